@@ -1,0 +1,54 @@
+"""Atomic file writes: long jobs never leave half-written files (write to a temporary name, then rename)."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike):
+    """Yield a temporary path beside ``path``; on success it replaces ``path`` in one rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    write_bytes(path, (json.dumps(obj, indent=2, sort_keys=False) + "\n").encode())
+
+
+def write_png(path: str | os.PathLike, array: np.ndarray) -> None:
+    """Grey PNG: float images in [0, 1] -> 8 bit; integer arrays kept (uint8, or uint16 for ids > 255)."""
+    from PIL import Image
+
+    array = np.asarray(array)
+    if np.issubdtype(array.dtype, np.floating):
+        array = np.round(np.clip(array, 0.0, 1.0) * 255.0).astype(np.uint8)
+    elif array.max(initial=0) > 255:
+        if array.max() > 65535:
+            raise ValueError(f"{path}: ids up to 65535 fit a 16-bit PNG, got {array.max()}")
+        array = array.astype(np.uint16)
+    else:
+        array = array.astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format="PNG")
+    write_bytes(path, buffer.getvalue())

@@ -1,0 +1,113 @@
+"""The DiffRenderGAN generator: G(phi_i) = noise(render(FCN(phi_i), scene(phi_i)), sigma).
+
+Only the FCN learns. Its outputs set the learned Principled-BSDF parameters and the noise sigma; the
+differentiable renderer turns them into an image, and gradients flow back through it to the FCN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from drgan.models.regressor import ParameterRegressor
+from drgan.scene.scene import ParticleScene
+
+
+def add_noise(image: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """clamp -> + sigma * N(0, 1) -> clamp: images stay in [0, 1]; sigma stays differentiable."""
+    clean = image.clamp(0.0, 1.0)
+    return (clean + sigma * torch.randn_like(clean)).clamp(0.0, 1.0)
+
+
+@dataclass
+class Sample:
+    """One generated image with everything needed to annotate and reproduce it."""
+
+    image: np.ndarray  # (H, W) float32 in [0, 1], noised
+    labels: np.ndarray  # (H, W) int32 instance ids, 0 = background
+    phi: np.ndarray  # (n, 4) x, y, z, scale in px of the real image
+    parameters: dict  # learned and fixed parameter values by key, e.g. "particle.roughness"
+    seed: int
+
+
+class Generator(nn.Module):
+    """FCN + scene + noise. ``forward(phi)`` maps (B, n, 4) constellations to (B, 1, H, W) images."""
+
+    def __init__(self, scene: ParticleScene, hidden: int = 128, blocks: int = 4, dropout: float = 0.1, seed: int = 0):
+        super().__init__()
+        self.scene = scene
+        self.material = scene.spec.parameters
+        self.learned = self.material.learned
+        self.regressor = ParameterRegressor(scene.n_particles, len(self.learned), hidden, blocks, dropout)
+        self.register_buffer("view_width", torch.tensor(float(scene.spec.view_width)))
+        # Render seeds are derived from a counter saved with the checkpoint, so a resumed run does not
+        # replay the sample patterns of its first steps.
+        self.register_buffer("render_count", torch.zeros((), dtype=torch.int64))
+        self.base_seed = int(seed)
+
+    def normalise(self, phi: torch.Tensor) -> torch.Tensor:
+        return phi / self.view_width
+
+    def learned_values(self, phi: torch.Tensor) -> torch.Tensor:
+        """(B, n, 4) -> (B, k): each learned parameter rescaled into its [min, max]."""
+        unit = self.regressor(self.normalise(phi))
+        low = unit.new_tensor([p.low for p in self.learned])
+        high = unit.new_tensor([p.high for p in self.learned])
+        return low + (high - low) * unit
+
+    def _split(self, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(k,) -> (BSDF values for the scene, sigma)."""
+        n_bsdf = len(self.scene.learned_bsdf)
+        sigma = values[n_bsdf] if self.material.noise_sigma.learned else values.new_tensor(self.material.noise_sigma.value)
+        return values[:n_bsdf], sigma
+
+    def next_seed(self) -> int:
+        seed = (self.base_seed * 1_000_003 + int(self.render_count)) & 0xFFFFFFFF
+        self.render_count += 1
+        return seed
+
+    def render_one(self, phi_i: torch.Tensor, values: torch.Tensor, seed: int | None = None) -> torch.Tensor:
+        """One noised image (1, H, W) of constellation phi_i with learned values (k,)."""
+        bsdf_values, sigma = self._split(values)
+        self.scene.set_layout(phi_i)
+        radiance = self.scene.render(bsdf_values, seed=self.next_seed() if seed is None else seed)
+        return add_noise(radiance, sigma).unsqueeze(0)
+
+    def forward(self, phi: torch.Tensor) -> torch.Tensor:
+        if phi.dim() == 2:
+            phi = phi.unsqueeze(0)
+        values = self.learned_values(phi.to(self.view_width.dtype))
+        return torch.stack([self.render_one(phi[b], values[b]) for b in range(phi.shape[0])])
+
+    def parameter_table(self, values: torch.Tensor) -> dict[str, float]:
+        """All parameters of one render by key, learned (from ``values``) and fixed."""
+        table = {p.key: float(p.value) for p in self.material.bsdf if not p.learned}
+        table.update({p.key: float(v) for p, v in zip(self.learned, values.detach().cpu().tolist())})
+        if not self.material.noise_sigma.learned:
+            table[self.material.noise_sigma.key] = float(self.material.noise_sigma.value)
+        return table
+
+    @torch.no_grad()
+    def sample(self, phi_i, seed: int | None = None) -> Sample:
+        """Render one constellation without gradients and return image, labels, phi and parameters."""
+        phi_i = torch.as_tensor(np.asarray(phi_i), dtype=torch.float32)
+        was_training = self.training
+        self.eval()
+        try:
+            values = self.learned_values(phi_i.unsqueeze(0))[0]
+            seed = self.next_seed() if seed is None else int(seed)
+            with self.scene_no_grad():
+                image = self.render_one(phi_i, values, seed=seed)[0]
+            labels = self.scene.instance_labels()
+        finally:
+            self.train(was_training)
+        return Sample(image.numpy(), labels, phi_i.numpy(), self.parameter_table(values), seed)
+
+    @staticmethod
+    def scene_no_grad():
+        from drgan.backend import dr
+
+        return dr.suspend_grad()

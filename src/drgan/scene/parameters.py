@@ -1,0 +1,114 @@
+"""Material parameters: which Principled-BSDF values and noise level are learned, within which limits.
+
+A parameter is *learned* when the configuration gives limits ``{min: a, max: b}`` and *fixed* when it
+gives a value (``{value: v}`` or a bare number). Learned parameters are what the generator's FCN outputs,
+squashed into [0, 1] by a sigmoid and rescaled into [min, max]; only they carry gradients in the scene.
+Ordering follows the paper's reference implementation: stage parameters, particle parameters, noise sigma.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from drgan.errors import ConfigError
+
+# Principled-BSDF parameters (Mitsuba's names) that may be learned or fixed. base_color is grey: the
+# microscope images have one channel.
+PRINCIPLED_PARAMETERS = (
+    "base_color",
+    "roughness",
+    "metallic",
+    "specular",
+    "spec_tint",
+    "sheen",
+    "sheen_tint",
+    "clearcoat",
+    "clearcoat_gloss",
+    "anisotropic",
+    "spec_trans",
+)
+SURFACES = ("stage", "particle")
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One scalar of the scene: ``surface`` is 'stage', 'particle' or 'noise'."""
+
+    surface: str
+    name: str
+    low: float | None = None
+    high: float | None = None
+    value: float | None = None
+
+    @property
+    def learned(self) -> bool:
+        return self.value is None
+
+    @property
+    def key(self) -> str:
+        return f"{self.surface}.{self.name}"
+
+    def rescale(self, unit):
+        """Map ``unit`` in [0, 1] (numbers, numpy or torch) into [low, high]."""
+        return self.low + (self.high - self.low) * unit
+
+
+def _parse_parameter(surface: str, name: str, spec, where: str) -> Parameter:
+    if isinstance(spec, (int, float)) and not isinstance(spec, bool):
+        spec = {"value": spec}
+    if not isinstance(spec, Mapping):
+        raise ConfigError(f"{where}: expected {{min: a, max: b}} (learned) or {{value: v}} (fixed), got {spec!r}")
+    keys = set(spec)
+    if keys == {"value"}:
+        value = float(spec["value"])
+        if not math.isfinite(value) or value < 0:
+            raise ConfigError(f"{where}.value={spec['value']!r}: expected a finite number >= 0")
+        return Parameter(surface, name, value=value)
+    if keys != {"min", "max"}:
+        raise ConfigError(f"{where}: expected keys {{min, max}} or {{value}}, got {sorted(keys)}")
+    low, high = float(spec["min"]), float(spec["max"])
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise ConfigError(f"{where}: limits must be finite, got min={low}, max={high}")
+    if low < 0:
+        raise ConfigError(f"{where}.min={low}: expected >= 0")
+    if low > high:
+        raise ConfigError(f"{where}: min={low} > max={high}; expected min <= max")
+    return Parameter(surface, name, low=low, high=high)
+
+
+@dataclass(frozen=True)
+class MaterialParameters:
+    """All scalars of a material: BSDF values per surface plus the noise sigma."""
+
+    bsdf: tuple[Parameter, ...]
+    noise_sigma: Parameter
+
+    @classmethod
+    def from_config(cls, particle_bsdf: Mapping, stage_bsdf: Mapping | None, noise_sigma) -> "MaterialParameters":
+        params: list[Parameter] = []
+        for surface, table in (("stage", stage_bsdf or {}), ("particle", particle_bsdf or {})):
+            for name, spec in table.items():
+                if name not in PRINCIPLED_PARAMETERS:
+                    raise ConfigError(
+                        f"{surface}_bsdf.{name}: unknown Principled-BSDF parameter; expected one of "
+                        f"{', '.join(PRINCIPLED_PARAMETERS)}"
+                    )
+                params.append(_parse_parameter(surface, name, spec, f"{surface}_bsdf.{name}"))
+        sigma = _parse_parameter("noise", "sigma", noise_sigma, "noise_sigma")
+        if sigma.learned and sigma.high > 1.0:
+            raise ConfigError(f"noise_sigma.max={sigma.high}: expected <= 1 (images are in [0, 1])")
+        return cls(tuple(params), sigma)
+
+    @property
+    def learned_bsdf(self) -> tuple[Parameter, ...]:
+        return tuple(p for p in self.bsdf if p.learned)
+
+    @property
+    def learned(self) -> tuple[Parameter, ...]:
+        """Every learned scalar in FCN output order: stage, particle, then sigma (when learned)."""
+        return self.learned_bsdf + ((self.noise_sigma,) if self.noise_sigma.learned else ())
+
+    def surface(self, surface: str) -> tuple[Parameter, ...]:
+        return tuple(p for p in self.bsdf if p.surface == surface)

@@ -1,0 +1,295 @@
+"""The particle scene: a stage, lights, a camera looking straight down, and n particle meshes.
+
+Units: one scene unit is one pixel of the real image at native resolution. The camera sees the square
+x, y in [-view_width/2, view_width/2] of the stage plane z = 0; ``resolution`` only sets how many pixels
+the render has, so the same layout renders the same picture at 64 or 512 px.
+
+Particles form **one merged mesh** (vertex buffer of all n meshes back to back). A layout phi_i (n x 4:
+x, y, z, scale) moves them in one vectorised write of the vertex buffer, so every layout reuses the same
+compiled kernels (no Python scalar is baked into them), and a ray's primitive index tells which particle it
+hit, which gives exact, occlusion-correct instance labels (`instance_labels`).
+
+Only BSDF parameters get gradients. Uniform scaling and translation keep vertex normals' directions, and
+Mitsuba recomputes them from the new positions anyway.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import trimesh
+
+from drgan import backend
+from drgan.errors import ConfigError
+from drgan.scene.parameters import MaterialParameters, Parameter
+
+dr = backend.dr
+mi = backend.mi
+
+INTEGRATORS = ("prb_basic", "direct_projective", "prb")
+
+
+@dataclass(frozen=True)
+class TorusLight:
+    """Ring-shaped area light around the stage (SEM/HIM detectors collect electrons from the side)."""
+
+    radiance: float = 1.0
+    major_radius: float = 1.5  # x view_width
+    minor_radius: float = 0.25  # x view_width
+    height: float = 0.5  # centre above the stage, x view_width
+
+
+@dataclass(frozen=True)
+class TopLight:
+    """Rectangle area light above the camera, facing down."""
+
+    radiance: float = 0.1
+    size: float = 1.0  # half side, x camera height
+    height: float = 1.1  # x camera height
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    resolution: int = 256  # pixels per side of the render
+    spp: int = 16  # samples per pixel; a perfect square (stratified sampler)
+    filter_stddev: float = 0.5  # Gaussian reconstruction filter, in render pixels
+    integrator: str = "prb_basic"
+    max_depth: int = 2  # 2 = direct illumination, all that BSDF-parameter gradients need here
+    camera_distance: float = 10.0  # x view_width; far camera = nearly orthographic view
+
+    def __post_init__(self):
+        check_spp(self.spp, "renderer.spp")
+        if int(self.resolution) < 1:
+            raise ConfigError(f"renderer.resolution={self.resolution}: expected a positive integer")
+        if not (self.filter_stddev > 0 and math.isfinite(self.filter_stddev)):
+            raise ConfigError(f"renderer.filter_stddev={self.filter_stddev}: expected a positive number")
+        if self.integrator not in INTEGRATORS:
+            raise ConfigError(f"renderer.integrator={self.integrator!r}: expected one of {', '.join(INTEGRATORS)}")
+        if self.max_depth < 2:
+            raise ConfigError(f"renderer.max_depth={self.max_depth}: expected >= 2 (1 sees only emitters)")
+        if self.camera_distance <= 1.0:
+            raise ConfigError(f"renderer.camera_distance={self.camera_distance}: expected > 1 (x view_width)")
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    parameters: MaterialParameters
+    render: RenderSettings = field(default_factory=RenderSettings)
+    view_width: float = 256.0  # px of the real image seen by the camera
+    stage: bool = True
+    torus_light: TorusLight | None = field(default_factory=TorusLight)
+    top_light: TopLight | None = field(default_factory=TopLight)
+
+    def __post_init__(self):
+        if not self.view_width > 0:
+            raise ConfigError(f"view_width={self.view_width}: expected > 0 (pixels of the real image)")
+        if self.torus_light is None and self.top_light is None:
+            raise ConfigError("scene has no light: enable torus_light or top_light")
+        if not self.stage and self.parameters.surface("stage"):
+            raise ConfigError("stage_bsdf is configured but scene.stage is false; remove one of them")
+
+
+def check_spp(spp, name: str = "spp") -> int:
+    """The stratified sampler needs a perfect square; say so rather than silently rounding up."""
+    if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
+        raise ConfigError(f"{name}={spp!r}: expected a positive integer")
+    root = math.isqrt(int(spp))
+    if root * root != spp:
+        raise ConfigError(
+            f"{name}={spp}: the stratified sampler needs a perfect square; use {root * root} or {(root + 1) ** 2}"
+        )
+    return int(spp)
+
+
+def _mitsuba_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, props=None, normals: bool = True):
+    mesh = mi.Mesh(name, len(vertices), len(faces), props=props or mi.Properties(), has_vertex_normals=normals)
+    buffers = mi.traverse(mesh)
+    buffers["vertex_positions"] = mi.Float(np.ascontiguousarray(vertices, dtype=np.float32).ravel())
+    buffers["faces"] = mi.UInt32(np.ascontiguousarray(faces, dtype=np.uint32).ravel())
+    buffers.update()
+    return mesh
+
+
+def _principled(parameters: Sequence[Parameter]) -> dict:
+    """A Principled BSDF with fixed values set and learned ones at their mid-range (overwritten per render)."""
+    bsdf = {"type": "principled"}
+    for p in parameters:
+        bsdf[p.name] = p.value if not p.learned else 0.5 * (p.low + p.high)
+    return bsdf
+
+
+class ParticleScene:
+    """A Mitsuba scene of n particles, re-posed per layout and rendered differentiably from torch.
+
+    ``meshes`` are unit meshes (largest extent 1, centred); particle k uses ``meshes[k % len(meshes)]``.
+    """
+
+    def __init__(self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: SceneSpec, variant: str = "auto"):
+        if n_particles < 1:
+            raise ConfigError(f"n_particles={n_particles}: expected >= 1")
+        if not meshes:
+            raise ConfigError("meshes: expected at least one particle mesh")
+        self.variant = backend.use_variant(variant)
+        self.spec = spec
+        self.n_particles = int(n_particles)
+        chosen = [meshes[k % len(meshes)] for k in range(self.n_particles)]
+        self._unit_vertices = np.concatenate([m.vertices for m in chosen]).astype(np.float32)
+        vertex_counts = np.array([len(m.vertices) for m in chosen])
+        face_counts = np.array([len(m.faces) for m in chosen])
+        self._vertex_owner = np.repeat(np.arange(self.n_particles), vertex_counts)
+        vertex_offsets = np.concatenate([[0], np.cumsum(vertex_counts)[:-1]])
+        faces = np.concatenate([m.faces + off for m, off in zip(chosen, vertex_offsets)])
+        # Face f belongs to particle face_owner[f]; +1 because label 0 is the background.
+        self._face_label = mi.UInt32(np.repeat(np.arange(1, self.n_particles + 1), face_counts).astype(np.uint32))
+
+        self.particles = _mitsuba_mesh("particles", self._unit_vertices, faces)
+        self.particles.set_bsdf(mi.load_dict(_principled(spec.parameters.surface("particle"))))
+        self.scene = mi.load_dict(self._scene_dict())
+        self.params = mi.traverse(self.scene)
+        self._learned = spec.parameters.learned_bsdf
+        self._learned_keys = [self._bsdf_key(p) for p in self._learned]
+        # Keep only what a render changes; everything else stays as loaded.
+        self.params.keep(self._learned_keys + ["particles.vertex_positions"])
+        self._render_wrapped = dr.wrap(source="torch", target="drjit")(self._render_drjit)
+        self._layout = None
+
+    # -- building -------------------------------------------------------------------------------
+    def _sensor_dict(self) -> dict:
+        r, w = self.spec.render, self.spec.view_width
+        distance = r.camera_distance * w
+        fov = 2.0 * math.degrees(math.atan(0.5 * w / distance))
+        return {
+            "type": "perspective",
+            "fov": fov,
+            "fov_axis": "x",
+            "near_clip": 0.5 * distance,
+            "far_clip": 2.0 * distance,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, distance], target=[0, 0, 0], up=[0, 1, 0]),
+            "sampler": {"type": "stratified", "sample_count": r.spp},
+            "film": {
+                "type": "hdrfilm",
+                "width": r.resolution,
+                "height": r.resolution,
+                "pixel_format": "rgb",
+                "rfilter": {"type": "gaussian", "stddev": r.filter_stddev},
+            },
+        }
+
+    def _integrator_dict(self) -> dict:
+        r = self.spec.render
+        if r.integrator == "direct_projective":
+            # Only BSDF parameters are differentiated: no silhouette (projective) samples are needed.
+            return {"type": "direct_projective", "sppp": 0, "sppi": 0}
+        return {"type": r.integrator, "max_depth": r.max_depth}
+
+    def _scene_dict(self) -> dict:
+        spec, w = self.spec, self.spec.view_width
+        scene = {
+            "type": "scene",
+            "integrator": self._integrator_dict(),
+            "sensor": self._sensor_dict(),
+            "particles": self.particles,
+        }
+        if spec.stage:
+            # Far larger than the view so its edge never shows, even through perspective at the border.
+            scene["stage"] = {
+                "type": "rectangle",
+                "to_world": mi.ScalarTransform4f().scale([4 * w, 4 * w, 1]),
+                "bsdf": _principled(spec.parameters.surface("stage")),
+            }
+        if spec.torus_light is not None and spec.torus_light.radiance > 0:
+            t = spec.torus_light
+            ring = trimesh.creation.torus(major_radius=t.major_radius * w, minor_radius=t.minor_radius * w)
+            ring.apply_translation([0, 0, t.height * w])
+            props = mi.Properties()
+            props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "uniform", "value": t.radiance}})
+            scene["torus_light"] = _mitsuba_mesh("torus_light", ring.vertices, ring.faces, props, normals=False)
+        if spec.top_light is not None and spec.top_light.radiance > 0:
+            t = spec.top_light
+            distance = spec.render.camera_distance * w
+            scene["top_light"] = {
+                "type": "rectangle",
+                # Rectangles emit along +z; flip to face the stage.
+                "to_world": mi.ScalarTransform4f()
+                .translate([0, 0, t.height * distance])
+                .rotate([1, 0, 0], 180)
+                .scale([t.size * distance, t.size * distance, 1]),
+                "emitter": {"type": "area", "radiance": {"type": "uniform", "value": t.radiance}},
+            }
+        return scene
+
+    @staticmethod
+    def _bsdf_key(p: Parameter) -> str:
+        owner = "particles.bsdf" if p.surface == "particle" else "stage.bsdf"
+        return f"{owner}.{p.name}.value"
+
+    # -- state ----------------------------------------------------------------------------------
+    @property
+    def learned_bsdf(self) -> tuple[Parameter, ...]:
+        return self._learned
+
+    def set_layout(self, phi_i) -> None:
+        """Move the particles to one constellation phi_i (n x 4: x, y, z, scale) in one buffer write."""
+        phi_i = np.asarray(phi_i.detach().cpu() if isinstance(phi_i, torch.Tensor) else phi_i, dtype=np.float32)
+        if phi_i.shape != (self.n_particles, 4):
+            raise ConfigError(f"phi_i: expected shape ({self.n_particles}, 4) (x, y, z, scale), got {phi_i.shape}")
+        if not np.isfinite(phi_i).all():
+            raise ConfigError("phi_i: contains non-finite values")
+        if (phi_i[:, 3] <= 0).any():
+            raise ConfigError("phi_i: particle scales (column 3) must be > 0")
+        per_vertex = phi_i[self._vertex_owner]
+        vertices = self._unit_vertices * per_vertex[:, 3:4] + per_vertex[:, :3]
+        self.params["particles.vertex_positions"] = mi.Float(vertices.ravel())
+        self.params.update()
+        self._layout = phi_i
+
+    @property
+    def layout(self) -> np.ndarray | None:
+        return self._layout
+
+    # -- rendering ------------------------------------------------------------------------------
+    def _render_drjit(self, values, seed, spp):
+        for key, value in zip(self._learned_keys, values):
+            self.params[key] = mi.Float(value.array)
+        self.params.update()
+        return mi.render(self.scene, self.params, seed=seed, spp=spp)
+
+    def render(self, values: torch.Tensor, seed: int, spp: int | None = None) -> torch.Tensor:
+        """Render the current layout; ``values`` holds the learned BSDF parameters in ``learned_bsdf`` order.
+
+        Returns linear radiance (H x W, float32; not clamped), differentiable w.r.t. ``values``.
+        ``seed`` must change between calls, or every step reuses one sample pattern.
+        """
+        if self._layout is None:
+            raise RuntimeError("set_layout(phi_i) before render()")
+        spp = check_spp(spp, "spp") if spp is not None else self.spec.render.spp
+        values = torch.as_tensor(values, dtype=torch.float32)
+        if values.shape != (len(self._learned),):
+            raise ConfigError(f"values: expected shape ({len(self._learned)},) for {self._learned_keys}, got {tuple(values.shape)}")
+        columns = tuple(values[i : i + 1] for i in range(len(self._learned)))
+        image = self._render_wrapped(columns, int(seed) & 0xFFFFFFFF, spp)
+        return image.mean(dim=-1)  # grey light and grey BSDFs: R = G = B
+
+    def instance_labels(self) -> np.ndarray:
+        """Instance label image of the current layout (0 background, k = particle k), pixel-aligned.
+
+        One ray through each pixel centre of the same camera: occlusion-correct and far cheaper than
+        a second high-spp render.
+        """
+        if self._layout is None:
+            raise RuntimeError("set_layout(phi_i) before instance_labels()")
+        size = self.spec.render.resolution
+        with dr.suspend_grad():
+            idx = dr.arange(mi.UInt32, size * size)
+            row, col = idx // size, idx % size
+            position = mi.Point2f((mi.Float(col) + 0.5) / size, (mi.Float(row) + 0.5) / size)
+            sensor = self.scene.sensors()[0]
+            ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5, 0.5))
+            si = self.scene.ray_intersect(ray)
+            hit = si.is_valid() & (si.shape == mi.ShapePtr(self.particles))
+            labels = dr.select(hit, dr.gather(mi.UInt32, self._face_label, si.prim_index, hit), 0)
+            return np.asarray(labels, dtype=np.int32).reshape(size, size)
