@@ -1,0 +1,588 @@
+"""Particle layouts: the transformation tensor Phi of shape (m, n, 4).
+
+Phi holds m constellations of n particles; each row is (x, y, z, scale).
+
+Units and frame (shared with the scene builder):
+- One scene unit is one pixel of the real image at native resolution (the 256 x 256 real patch).
+- The camera looks straight down (-z) at the stage plane z = 0; the view is the square
+  x, y in [-W/2, W/2], W = view width in px (256 by default).
+- ``scale`` is the particle's largest extent in px (meshes have unit largest extent), i.e. its diameter.
+- ``z`` is the height of the particle centre above the stage: a particle resting on the stage has
+  z = scale / 2, and no particle ever has z < scale / 2 (it would sink into the stage).
+
+A layout is sampled in two steps: a size distribution draws every scale, then a placement draws the
+positions given those scales. Everything here is numpy only, so it runs before any renderer is loaded.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Union
+
+import numpy as np
+
+from drgan.errors import ConfigError
+
+__all__ = [
+    "NormalSize",
+    "LognormalSize",
+    "BimodalSize",
+    "SizeDistribution",
+    "Random2D",
+    "Random3D",
+    "PoissonAgglomerates",
+    "Placement",
+    "sample_layouts",
+    "size_from_config",
+    "placement_from_config",
+]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Validation helpers: every check runs at construction, before any sampling.
+
+
+def _real(owner: str, name: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(float(value)):
+        raise ConfigError(f"{owner}.{name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _check_positive(owner: str, name: str, value: object) -> None:
+    if _real(owner, name, value) <= 0.0:
+        raise ConfigError(f"{owner}.{name} must be > 0, got {value!r}")
+
+
+def _check_non_negative(owner: str, name: str, value: object) -> None:
+    if _real(owner, name, value) < 0.0:
+        raise ConfigError(f"{owner}.{name} must be >= 0, got {value!r}")
+
+
+def _check_int_at_least(owner: str, name: str, value: object, lowest: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < lowest:
+        raise ConfigError(f"{owner}.{name} must be an integer >= {lowest}, got {value!r}")
+
+
+def _normal_pdf(x: float) -> float:
+    return math.exp(-0.5 * x * x) / math.sqrt(2.0 * math.pi)
+
+
+def _normal_cdf(x: float) -> float:
+    return 0.5 * (1.0 + math.erf(x / math.sqrt(2.0)))
+
+
+def _truncated_normal_moments(mean: float, std: float, min_size: float) -> tuple[float, float]:
+    """Mean and std of N(mean, std^2) restricted to [min_size, inf) (standard closed form)."""
+    if std == 0.0:
+        return mean, 0.0
+    alpha = (min_size - mean) / std
+    kept = 1.0 - _normal_cdf(alpha)  # > 0.5 because mean > min_size is enforced
+    ratio = _normal_pdf(alpha) / kept
+    truncated_mean = mean + std * ratio
+    truncated_var = std * std * (1.0 + alpha * ratio - ratio * ratio)
+    return truncated_mean, math.sqrt(max(truncated_var, 0.0))
+
+
+def _sample_truncated_normal(
+    rng: np.random.Generator, mean: np.ndarray | float, std: np.ndarray | float, shape: tuple[int, ...], min_size: float
+) -> np.ndarray:
+    """Normal draws below min_size are drawn again (rejection), so the density above min_size keeps its shape.
+
+    Clipping would instead pile probability mass exactly at min_size. mean > min_size is enforced by the
+    callers, so each round keeps more than half of the redrawn values and the loop ends after a few rounds.
+    """
+    mean_arr = np.broadcast_to(np.asarray(mean, dtype=np.float64), shape)
+    std_arr = np.broadcast_to(np.asarray(std, dtype=np.float64), shape)
+    values = rng.normal(mean_arr, std_arr)
+    too_small = values < min_size
+    while too_small.any():
+        values[too_small] = rng.normal(mean_arr[too_small], std_arr[too_small])
+        too_small = values < min_size
+    return values
+
+
+def _as_shape(shape: int | tuple[int, ...]) -> tuple[int, ...]:
+    return (int(shape),) if isinstance(shape, numbers.Integral) else tuple(int(side) for side in shape)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Size distributions: particle diameters (the ``scale`` column of Phi) in px.
+
+
+@dataclass(frozen=True)
+class NormalSize:
+    """Normal diameters in px, truncated below at ``min_size`` by resampling (not clipping).
+
+    mean, std: of the untruncated normal, px (mean > min_size, std >= 0).
+    min_size: smallest diameter allowed, px (> 0); draws below it are drawn again.
+    """
+
+    mean: float
+    std: float
+    min_size: float = 1.0
+
+    def __post_init__(self) -> None:
+        _check_positive("NormalSize", "mean", self.mean)
+        _check_non_negative("NormalSize", "std", self.std)
+        _check_positive("NormalSize", "min_size", self.min_size)
+        if self.mean <= self.min_size:
+            raise ConfigError(
+                f"NormalSize.mean must be > min_size ({self.min_size}) so truncation keeps most draws, got {self.mean}"
+            )
+
+    def sample(self, rng: np.random.Generator, shape: int | tuple[int, ...]) -> np.ndarray:
+        """Diameters in px, float64 array of ``shape``, all >= min_size."""
+        return _sample_truncated_normal(rng, self.mean, self.std, _as_shape(shape), self.min_size)
+
+    def moments(self) -> tuple[float, float]:
+        """(mean, std) in px of the truncated distribution (equal to mean, std when truncation is negligible)."""
+        return _truncated_normal_moments(float(self.mean), float(self.std), float(self.min_size))
+
+
+@dataclass(frozen=True)
+class LognormalSize:
+    """Lognormal diameters in px: log(diameter) ~ N(log(median), sigma^2).
+
+    median: median diameter, px (> 0).
+    sigma: standard deviation of log(diameter), dimensionless (> 0); 0.2 means a spread of about 20 %.
+    """
+
+    median: float
+    sigma: float
+
+    def __post_init__(self) -> None:
+        _check_positive("LognormalSize", "median", self.median)
+        _check_positive("LognormalSize", "sigma", self.sigma)
+
+    def sample(self, rng: np.random.Generator, shape: int | tuple[int, ...]) -> np.ndarray:
+        """Diameters in px, float64 array of ``shape``, all > 0."""
+        return rng.lognormal(math.log(self.median), self.sigma, _as_shape(shape))
+
+    def moments(self) -> tuple[float, float]:
+        """(mean, std) in px: median * exp(sigma^2 / 2) and mean * sqrt(exp(sigma^2) - 1)."""
+        mean = self.median * math.exp(0.5 * self.sigma**2)
+        return mean, mean * math.sqrt(math.expm1(self.sigma**2))
+
+
+@dataclass(frozen=True)
+class BimodalSize:
+    """Mixture of two normals in px, each truncated below at ``min_size`` by resampling.
+
+    mean1, std1 / mean2, std2: the two untruncated modes, px (mean > min_size, std >= 0).
+    weight1: probability of the first mode, in [0, 1].
+    min_size: smallest diameter allowed, px (> 0).
+    """
+
+    mean1: float
+    std1: float
+    mean2: float
+    std2: float
+    weight1: float
+    min_size: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("mean1", "mean2", "min_size"):
+            _check_positive("BimodalSize", name, getattr(self, name))
+        for name in ("std1", "std2"):
+            _check_non_negative("BimodalSize", name, getattr(self, name))
+        if not 0.0 <= _real("BimodalSize", "weight1", self.weight1) <= 1.0:
+            raise ConfigError(f"BimodalSize.weight1 must be in [0, 1], got {self.weight1!r}")
+        for name in ("mean1", "mean2"):
+            if getattr(self, name) <= self.min_size:
+                raise ConfigError(
+                    f"BimodalSize.{name} must be > min_size ({self.min_size}), got {getattr(self, name)}"
+                )
+
+    def sample(self, rng: np.random.Generator, shape: int | tuple[int, ...]) -> np.ndarray:
+        """Diameters in px, float64 array of ``shape``, all >= min_size."""
+        shape = _as_shape(shape)
+        first_mode = rng.random(shape) < self.weight1
+        mean = np.where(first_mode, self.mean1, self.mean2)
+        std = np.where(first_mode, self.std1, self.std2)
+        return _sample_truncated_normal(rng, mean, std, shape, self.min_size)
+
+    def moments(self) -> tuple[float, float]:
+        """(mean, std) in px of the mixture of the two truncated modes."""
+        mean1, std1 = _truncated_normal_moments(float(self.mean1), float(self.std1), float(self.min_size))
+        mean2, std2 = _truncated_normal_moments(float(self.mean2), float(self.std2), float(self.min_size))
+        w1, w2 = float(self.weight1), 1.0 - float(self.weight1)
+        mean = w1 * mean1 + w2 * mean2
+        second_moment = w1 * (std1**2 + mean1**2) + w2 * (std2**2 + mean2**2)
+        return mean, math.sqrt(max(second_moment - mean**2, 0.0))
+
+
+SizeDistribution = Union[NormalSize, LognormalSize, BimodalSize]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Placements: particle centres (x, y, z) in px given the diameters.
+
+
+def _half_extents(owner: str, sizes: np.ndarray, view_width: float, margin: float) -> np.ndarray:
+    """Largest |x|, |y| of each particle centre: W/2 minus ``margin`` particle radii."""
+    half = 0.5 * view_width - margin * 0.5 * sizes
+    if (half < 0.0).any():
+        raise ConfigError(
+            f"{owner}.margin = {margin} radii does not fit a particle of diameter {sizes.max():.3g} px "
+            f"in a view of width {view_width} px; lower margin or the particle size"
+        )
+    return half
+
+
+def _check_sizes(owner: str, sizes: np.ndarray, view_width: float) -> np.ndarray:
+    sizes = np.asarray(sizes, dtype=np.float64)
+    if sizes.ndim != 1 or sizes.size == 0:
+        raise ConfigError(f"{owner}.sample: sizes must be a non-empty 1-D array, got shape {sizes.shape}")
+    if not np.isfinite(sizes).all() or (sizes <= 0.0).any():
+        raise ConfigError(f"{owner}.sample: sizes must be finite and > 0 px, got min {sizes.min()!r}")
+    _check_positive(owner, "view_width", view_width)
+    return sizes
+
+
+@dataclass(frozen=True)
+class Random2D:
+    """Every particle rests on the stage (z = scale / 2) at a uniform x, y; particles may overlap.
+
+    margin: distance kept from the view border in particle radii (0: centre inside the view;
+    1: particle fully inside).
+    """
+
+    margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check_non_negative("Random2D", "margin", self.margin)
+
+    def sample(self, rng: np.random.Generator, sizes: np.ndarray, view_width: float) -> np.ndarray:
+        """Centres (n, 3) in px for diameters ``sizes`` (n,) in px."""
+        sizes = _check_sizes("Random2D", sizes, view_width)
+        half = _half_extents("Random2D", sizes, view_width, self.margin)
+        xy = rng.uniform(-1.0, 1.0, (sizes.size, 2)) * half[:, None]
+        return np.column_stack([xy, 0.5 * sizes])
+
+
+@dataclass(frozen=True)
+class Random3D:
+    """Uniform x, y; the gap between particle bottom and stage uniform in [0, max_height] px.
+
+    So z is uniform in [scale / 2, scale / 2 + max_height]. Particles may overlap.
+    margin: distance kept from the view border in particle radii (see Random2D).
+    """
+
+    max_height: float = 24.0
+    margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check_non_negative("Random3D", "max_height", self.max_height)
+        _check_non_negative("Random3D", "margin", self.margin)
+
+    def sample(self, rng: np.random.Generator, sizes: np.ndarray, view_width: float) -> np.ndarray:
+        """Centres (n, 3) in px for diameters ``sizes`` (n,) in px."""
+        sizes = _check_sizes("Random3D", sizes, view_width)
+        half = _half_extents("Random3D", sizes, view_width, self.margin)
+        xy = rng.uniform(-1.0, 1.0, (sizes.size, 2)) * half[:, None]
+        z = 0.5 * sizes + rng.uniform(0.0, self.max_height, sizes.size)
+        return np.column_stack([xy, z])
+
+
+# Distances are accepted only if they beat the minimum by this relative margin, so the guarantee still
+# holds after Phi is rounded to float32 (relative rounding ~6e-8 per coordinate).
+_DISTANCE_SAFETY = 1.0 + 1e-5
+# Tries to put a new cluster centre where it keeps the minimum distance to the earlier centres.
+_CENTRE_TRIES = 100
+# Each time every cluster is full, the cluster radius grows by this factor.
+_CLUSTER_GROWTH = 1.5
+# Below this many placed particles, checking all of them is cheaper than reading the background grid.
+_GRID_FROM = 64
+
+
+class _BackgroundGrid:
+    """Bridson's background grid over the box x, y in [-W/2, W/2], z in [0, top], for fast neighbour queries.
+
+    Bridson (2007) uses cells of side r / sqrt(d) so that each cell holds at most one sample. Here radii vary
+    with the particle pair, so the cells have side >= the largest pair distance instead and each holds a few
+    point indices; a query reads the block of cells around a point.
+    """
+
+    def __init__(self, view_width: float, top: float, cell: float, capacity: int = 4) -> None:
+        self.origin = (-0.5 * view_width, -0.5 * view_width, 0.0)
+        self.cell = cell
+        self.sizes = (int(view_width // cell) + 1, int(view_width // cell) + 1, int(top // cell) + 1)
+        self.points = np.full((*self.sizes, capacity), -1, dtype=np.int64)
+        self.counts = np.zeros(self.sizes, dtype=np.int64)
+
+    def cell_of(self, position: np.ndarray) -> tuple[int, int, int]:
+        # Plain Python arithmetic: this runs once per query on 3 numbers, where numpy calls cost more.
+        x, y, z = position.tolist()
+        nx, ny, nz = self.sizes
+        return (
+            min(max(int((x - self.origin[0]) // self.cell), 0), nx - 1),
+            min(max(int((y - self.origin[1]) // self.cell), 0), ny - 1),
+            min(max(int((z - self.origin[2]) // self.cell), 0), nz - 1),
+        )
+
+    def insert(self, point_index: int, position: np.ndarray) -> None:
+        ix, iy, iz = self.cell_of(position)
+        count = self.counts[ix, iy, iz]
+        if count == self.points.shape[3]:
+            grown = np.full((*self.sizes, 2 * count), -1, dtype=np.int64)
+            grown[..., :count] = self.points
+            self.points = grown
+        self.points[ix, iy, iz, count] = point_index
+        self.counts[ix, iy, iz] = count + 1
+
+    def near(self, position: np.ndarray, distance: float) -> np.ndarray:
+        """Indices of all stored points within ``distance`` px of ``position`` (and possibly a few more)."""
+        ix, iy, iz = self.cell_of(position)
+        reach = int(distance // self.cell) + 1
+        block = self.points[
+            max(ix - reach, 0) : ix + reach + 1,
+            max(iy - reach, 0) : iy + reach + 1,
+            max(iz - reach, 0) : iz + reach + 1,
+        ]
+        block = block.ravel()
+        return block[block >= 0]
+
+
+class _ShellDraws:
+    """Random numbers for Bridson attempts, drawn in batches (one numpy call per batch, not per attempt).
+
+    Each attempt gets k offsets uniform in volume in the unit shell 1 <= |offset| <= 2 (scaled by r later)
+    and two uniforms in [0, 1) that pick the cluster and the active particle.
+    """
+
+    def __init__(self, rng: np.random.Generator, k: int, batch: int) -> None:
+        self.rng, self.k, self.batch = rng, k, batch
+        self.used = batch
+
+    def next(self) -> tuple[np.ndarray, float, float]:
+        if self.used == self.batch:
+            directions = self.rng.standard_normal((self.batch, self.k, 3))
+            directions /= np.linalg.norm(directions, axis=2, keepdims=True)
+            # Radius with density ~ rho^2 on [1, 2]: uniform in volume.
+            self.offsets = directions * np.cbrt(1.0 + 7.0 * self.rng.random((self.batch, self.k, 1)))
+            self.picks = self.rng.random((self.batch, 2)).tolist()
+            self.used = 0
+        i = self.used
+        self.used += 1
+        return self.offsets[i], self.picks[i][0], self.picks[i][1]
+
+
+@dataclass(frozen=True)
+class PoissonAgglomerates:
+    """Agglomerates of piled particles grown by Bridson (2007) Poisson-disk sampling in 3-D.
+
+    Minimum distance: the centres of particles i and j (diameters s_i, s_j, px) are never closer than
+        min_distance_factor * (s_i + s_j) / 2,
+    over every pair in the layout (so 1.0 means touching spheres, < 1 lets neighbours interpenetrate a bit,
+    as sintered particles do).
+
+    Sampling: a number of clusters uniform in [1, max_clusters]; each cluster starts with one particle resting
+    on the stage at a uniform x, y (the cluster centre). Then each further particle picks a cluster at random,
+    an active particle p of it at random, and tries ``attempts`` (Bridson's k) candidates uniform in the 3-D
+    shell [r, 2r] around p, r = min_distance_factor * (s_p + s_new) / 2; a candidate below the stage is lifted
+    to z = s_new / 2 (so agglomerates are piles on the stage). The first candidate that keeps the minimum
+    distance to every particle, stays within 2r of p, within ``cluster_radius`` of its cluster centre, inside
+    the view and at most ``max_height`` above the stage is taken; if none is, p is retired (Bridson's active
+    list). When every cluster is full, the cluster radius grows by 1.5x and all particles become active
+    again, until it spans the whole view; a layout that still cannot host n particles raises ConfigError.
+    Every particle is within 2r of the particle it grew from, so each cluster is connected.
+
+    max_clusters: most agglomerates per layout (>= 1).
+    min_distance_factor: see above (> 0).
+    cluster_radius: px, initial 3-D radius of an agglomerate around its centre (> 0).
+    max_height: px, largest gap between particle bottom and stage, z <= scale / 2 + max_height (>= 0).
+    attempts: Bridson's k, candidates tried around an active particle before it is retired (>= 1).
+    margin: distance kept from the view border in particle radii (see Random2D).
+    """
+
+    max_clusters: int = 5
+    min_distance_factor: float = 0.9
+    cluster_radius: float = 48.0
+    max_height: float = 48.0
+    attempts: int = 30
+    margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check_int_at_least("PoissonAgglomerates", "max_clusters", self.max_clusters, 1)
+        _check_positive("PoissonAgglomerates", "min_distance_factor", self.min_distance_factor)
+        _check_positive("PoissonAgglomerates", "cluster_radius", self.cluster_radius)
+        _check_non_negative("PoissonAgglomerates", "max_height", self.max_height)
+        _check_int_at_least("PoissonAgglomerates", "attempts", self.attempts, 1)
+        _check_non_negative("PoissonAgglomerates", "margin", self.margin)
+
+    def sample(self, rng: np.random.Generator, sizes: np.ndarray, view_width: float) -> np.ndarray:
+        """Centres (n, 3) in px for diameters ``sizes`` (n,) in px; raises ConfigError if they cannot fit."""
+        sizes = _check_sizes("PoissonAgglomerates", sizes, view_width)
+        half = _half_extents("PoissonAgglomerates", sizes, view_width, self.margin)
+        n = sizes.size
+        factor = float(self.min_distance_factor)
+        k = int(self.attempts)
+        # Minimum centre distance of pair (i, j) is exclusion[i] + exclusion[j] (with the float32 safety margin).
+        exclusion = factor * 0.5 * _DISTANCE_SAFETY * sizes
+        largest_exclusion = float(exclusion.max())
+        max_height = float(self.max_height)
+        # Bound on |x|, |y|, z of each centre (z >= scale / 2 holds by construction).
+        upper = np.column_stack([half, half, 0.5 * sizes + max_height])
+        top = float(upper[:, 2].max())
+        # Cells at least as wide as the largest pair distance; coarser when that is tiny (<= ~64^3 cells).
+        cell = max(2.0 * largest_exclusion, max(view_width, top) / 64.0)
+        grid = _BackgroundGrid(view_width, top, cell)
+        positions = np.zeros((n, 3))
+
+        def keeps_distance(candidates: np.ndarray, i: int, others: np.ndarray | slice) -> np.ndarray:
+            gaps = candidates[:, None, :] - positions[others]
+            squared = np.einsum("ijk,ijk->ij", gaps, gaps)
+            return (squared >= (exclusion[i] + exclusion[others]) ** 2).all(axis=1)
+
+        # Cluster centres: the first particles, resting on the stage at uniform x, y.
+        n_clusters = min(int(rng.integers(1, int(self.max_clusters) + 1)), n)
+        centres: list[int] = []
+        for i in range(n_clusters):
+            for _ in range(_CENTRE_TRIES):
+                candidate = np.array([*rng.uniform(-half[i], half[i], 2), 0.5 * sizes[i]])
+                others = slice(0, i) if i < _GRID_FROM else grid.near(candidate, exclusion[i] + largest_exclusion)
+                if keeps_distance(candidate[None], i, others)[0]:
+                    positions[i] = candidate
+                    grid.insert(i, candidate)
+                    centres.append(i)
+                    break
+            else:
+                break  # no room for another centre: the remaining particles grow the existing clusters
+        members = [[centre] for centre in centres]
+        active = [[centre] for centre in centres]
+        radius = float(self.cluster_radius)
+        full_radius = math.sqrt(2.0) * view_width + top  # from any centre, reaches the whole box
+
+        shells = _ShellDraws(rng, k, batch=max(n, 16))
+        placed = len(centres)
+        while placed < n:
+            open_clusters = [c for c in range(len(centres)) if active[c]]
+            if not open_clusters:
+                if radius >= full_radius:
+                    raise ConfigError(
+                        f"PoissonAgglomerates could place only {placed} of n = {n} particles "
+                        f"(mean diameter {sizes.mean():.3g} px, min_distance_factor {factor}) in a view of "
+                        f"width {view_width} px and max_height {max_height} px: too many particles for "
+                        f"the volume; lower n, the sizes or min_distance_factor, or raise max_height"
+                    )
+                radius = min(radius * _CLUSTER_GROWTH, full_radius)
+                active = [list(cluster) for cluster in members]
+                continue
+            unit_offsets, pick_cluster, pick_parent = shells.next()
+            cluster = open_clusters[int(pick_cluster * len(open_clusters))]
+            slot = int(pick_parent * len(active[cluster]))
+            parent = active[cluster][slot]
+            size = float(sizes[placed])
+            pair_distance = factor * 0.5 * (float(sizes[parent]) + size)
+
+            # k candidates uniform in volume in the shell [r, 2r] around the parent.
+            parent_position = positions[parent]
+            candidates = parent_position + pair_distance * unit_offsets
+            np.maximum(candidates[:, 2], 0.5 * size, out=candidates[:, 2])  # lifted onto the stage
+            centre = centres[cluster]
+            if placed < _GRID_FROM:
+                # Few particles: checking all of them is cheaper than reading the grid.
+                others: np.ndarray | slice = slice(0, placed)
+                parent_column, centre_column = parent, centre
+            else:
+                reach = 2.0 * pair_distance + exclusion[placed] + largest_exclusion
+                others = np.append(grid.near(parent_position, reach), (parent, centre))
+                parent_column, centre_column = -2, -1
+            gaps = candidates[:, None, :] - positions[others]
+            squared = np.einsum("ijk,ijk->ij", gaps, gaps)
+            ok = (
+                (squared >= (exclusion[placed] + exclusion[others]) ** 2).all(axis=1)
+                & (squared[:, parent_column] <= 4.0 * pair_distance**2)
+                & (squared[:, centre_column] <= radius**2)
+                & (np.abs(candidates) <= upper[placed]).all(axis=1)
+            )
+            first = int(ok.argmax())
+            if ok[first]:
+                positions[placed] = candidates[first]
+                grid.insert(placed, candidates[first])
+                members[cluster].append(placed)
+                active[cluster].append(placed)
+                placed += 1
+            else:
+                active[cluster][slot] = active[cluster][-1]  # retire the parent (swap-remove)
+                active[cluster].pop()
+        return positions
+
+
+Placement = Union[Random2D, Random3D, PoissonAgglomerates]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The transformation tensor.
+
+
+def sample_layouts(
+    m: int,
+    n: int,
+    size: SizeDistribution,
+    placement: Placement,
+    view_width: float = 256.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """Phi: float32 (m, n, 4) of m constellations of n particles, rows (x, y, z, scale) in px.
+
+    The same arguments and seed give the same Phi (numpy default_rng(seed)).
+    """
+    _check_int_at_least("sample_layouts", "m", m, 1)
+    _check_int_at_least("sample_layouts", "n", n, 1)
+    _check_positive("sample_layouts", "view_width", view_width)
+    if not isinstance(size, (NormalSize, LognormalSize, BimodalSize)):
+        raise ConfigError(f"sample_layouts: size must be NormalSize, LognormalSize or BimodalSize, got {size!r}")
+    if not isinstance(placement, (Random2D, Random3D, PoissonAgglomerates)):
+        raise ConfigError(
+            f"sample_layouts: placement must be Random2D, Random3D or PoissonAgglomerates, got {placement!r}"
+        )
+    rng = np.random.default_rng(seed)
+    sizes = size.sample(rng, (m, n))
+    layouts = np.empty((m, n, 4), dtype=np.float32)
+    for i in range(m):
+        layouts[i, :, :3] = placement.sample(rng, sizes[i], float(view_width))
+        layouts[i, :, 3] = sizes[i]
+    return layouts
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Construction from Hydra config groups (conf/size/*.yaml, conf/placement/*.yaml).
+
+_SIZE_KINDS: dict[str, type] = {"normal": NormalSize, "lognormal": LognormalSize, "bimodal": BimodalSize}
+_PLACEMENT_KINDS: dict[str, type] = {
+    "random_2d": Random2D,
+    "random_3d": Random3D,
+    "poisson": PoissonAgglomerates,
+}
+
+
+def _from_config(group: str, kinds: dict[str, type], cfg: Mapping) -> object:
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"{group} config must be a mapping with a 'kind' key, got {type(cfg).__name__}")
+    values = dict(cfg)
+    kind = values.pop("kind", None)
+    if kind not in kinds:
+        raise ConfigError(f"{group}.kind must be one of {sorted(kinds)}, got {kind!r}")
+    cls = kinds[kind]
+    valid = [field.name for field in fields(cls)]
+    unknown = sorted(set(values) - set(valid))
+    if unknown:
+        raise ConfigError(f"{group} kind {kind!r}: unknown field(s) {unknown}; valid fields are {valid} and 'kind'")
+    try:
+        return cls(**values)
+    except TypeError as error:  # a required field is missing
+        raise ConfigError(f"{group} kind {kind!r}: {error}; fields are {valid}") from None
+
+
+def size_from_config(cfg: Mapping) -> SizeDistribution:
+    """Size distribution from a mapping: kind (normal | lognormal | bimodal) plus the dataclass fields."""
+    return _from_config("size", _SIZE_KINDS, cfg)  # type: ignore[return-value]
+
+
+def placement_from_config(cfg: Mapping) -> Placement:
+    """Placement from a mapping: kind (random_2d | random_3d | poisson) plus the dataclass fields."""
+    return _from_config("placement", _PLACEMENT_KINDS, cfg)  # type: ignore[return-value]
