@@ -1,0 +1,25 @@
+"""Real images: reading, splits, and mining of training and background patches."""
+
+from drgan.data.images import list_images, read_grey, read_split
+from drgan.data.patches import (
+    PatchSet,
+    SegmentParams,
+    contact_sheet,
+    count_particles,
+    dihedral_augment,
+    mine_patches,
+    segment_particles,
+)
+
+__all__ = [
+    "PatchSet",
+    "SegmentParams",
+    "contact_sheet",
+    "count_particles",
+    "dihedral_augment",
+    "list_images",
+    "mine_patches",
+    "read_grey",
+    "read_split",
+    "segment_particles",
+]

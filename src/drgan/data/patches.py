@@ -1,0 +1,514 @@
+"""Mining training patches from real images, without masks.
+
+The discriminator sees real square patches (256 x 256 in the paper). The paper's authors picked them by
+hand: patches showing at least three fully displayed particles. drgan picks them automatically:
+
+1. segment each whole image classically: Gaussian smoothing, Otsu threshold, distance transform,
+   seeds at its local maxima (peak_local_max), watershed to split touching particles;
+   segments of plausible area are particles;
+2. slide a window over the image (a grid with the given stride, centred so both margins are equal);
+   a particle is fully displayed in a window when its bounding box touches no window edge;
+3. keep windows with >= min_particles such particles, best first, dropping near-duplicates: windows
+   overlapping an already kept window of the same image by more than max_overlap of their area, and
+   patches whose normalised correlation with a kept patch is within min_corr_distance of 1;
+4. background patches: windows with the smallest foreground fraction (ideally none), same duplicate rules.
+
+Patch values stay as read: float32 grey in [0, 1].
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.feature import peak_local_max
+from skimage.filters import gaussian, threshold_otsu
+from skimage.segmentation import watershed
+from tqdm import tqdm
+
+from drgan.errors import ConfigError, DataError
+
+log = logging.getLogger(__name__)
+
+
+# --- classical segmentation -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SegmentParams:
+    """Classical particle segmentation; lengths in pixels, areas in square pixels.
+
+    Defaults suit particles some 15-50 px across (TiO2 SEM: ~24-35 px, median area ~460 px).
+    """
+
+    sigma: float = 1.0  # Gaussian smoothing before thresholding, px
+    min_distance: int = 7  # least distance between watershed seeds, about a particle's smallest radius, px
+    min_area: int = 40  # smaller segments are noise, specks or watershed slivers, px^2
+    max_area: int = 4000  # larger segments are agglomerates the watershed could not split, px^2
+    # Otsu's between-class / total variance. A unimodal (particle-free) image scores ~0.64 (2/pi for
+    # Gaussian noise); images with particles on a background score > 0.75. Below this: no foreground.
+    min_separability: float = 0.7
+
+    def __post_init__(self) -> None:
+        if self.sigma < 0:
+            raise ConfigError(f"SegmentParams.sigma={self.sigma}: expected >= 0")
+        if self.min_distance < 1:
+            raise ConfigError(f"SegmentParams.min_distance={self.min_distance}: expected >= 1")
+        if not 0 < self.min_area <= self.max_area:
+            raise ConfigError(f"SegmentParams min_area={self.min_area}, max_area={self.max_area}: expected 0 < min_area <= max_area")
+        if not 0 <= self.min_separability < 1:
+            raise ConfigError(f"SegmentParams.min_separability={self.min_separability}: expected in [0, 1)")
+
+
+def segment_particles(image: np.ndarray, params: SegmentParams | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Segment bright particles on a darker background.
+
+    Returns (labels, foreground): int32 labels (0 = none) of the watershed segments, and the bool
+    foreground mask: everything above the threshold except connected specks smaller than min_area
+    (it keeps agglomerates too large to count as particles).
+    """
+    params = params or SegmentParams()
+    image = np.asarray(image, dtype=np.float32)
+    smooth = gaussian(image, sigma=params.sigma, preserve_range=True) if params.sigma > 0 else image
+    foreground = _otsu_foreground(smooth, params.min_separability)
+    # Specks below min_area (noise, contamination on the substrate) belong to the background.
+    components, _ = ndi.label(foreground)
+    foreground &= (np.bincount(components.ravel()) >= params.min_area)[components]
+    if not foreground.any():
+        return np.zeros(image.shape, np.int32), foreground
+    components, _ = ndi.label(foreground)
+    # Seeds: maxima of the distance to the background; min_distance keeps one seed per particle core.
+    distance = ndi.distance_transform_edt(foreground)
+    peaks = peak_local_max(distance, min_distance=params.min_distance, labels=components, exclude_border=False)
+    seed_mask = np.zeros(image.shape, bool)
+    seed_mask[tuple(peaks.T)] = True
+    seeds, _ = ndi.label(seed_mask)  # a flat top (plateau) yields adjacent peaks: one seed, not several
+    labels = watershed(-distance, seeds, mask=foreground).astype(np.int32)
+    return labels, foreground
+
+
+def _otsu_foreground(smooth: np.ndarray, min_separability: float) -> np.ndarray:
+    if smooth.max() - smooth.min() < 1e-6:
+        return np.zeros(smooth.shape, bool)
+    threshold = threshold_otsu(smooth)
+    above = smooth > threshold
+    w1 = above.mean()
+    if w1 in (0.0, 1.0):
+        return np.zeros(smooth.shape, bool)
+    between = w1 * (1 - w1) * (smooth[above].mean() - smooth[~above].mean()) ** 2
+    if between / smooth.var() < min_separability:
+        return np.zeros(smooth.shape, bool)
+    return above
+
+
+def particle_boxes(labels: np.ndarray, params: SegmentParams | None = None) -> np.ndarray:
+    """Bounding boxes (K, 4) int: (row0, col0, row1, col1), ends exclusive, of segments of plausible area."""
+    params = params or SegmentParams()
+    areas = np.bincount(labels.ravel())
+    boxes = []
+    for index, slices in enumerate(ndi.find_objects(labels), start=1):
+        if slices is not None and params.min_area <= areas[index] <= params.max_area:
+            boxes.append((slices[0].start, slices[1].start, slices[0].stop, slices[1].stop))
+    return np.array(boxes, dtype=np.int64).reshape(-1, 4)
+
+
+def full_particle_counts(boxes: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Particles fully displayed in each window: counts (len(rows), len(cols)).
+
+    Window (r, c) spans rows [r, r + height) and columns [c, c + width); a particle counts when its box
+    touches none of the window's edge pixels.
+    """
+    rows, cols = np.asarray(rows)[:, None], np.asarray(cols)[:, None]
+    inside_rows = (boxes[:, 0] > rows) & (boxes[:, 2] < rows + height)  # (R, K)
+    inside_cols = (boxes[:, 1] > cols) & (boxes[:, 3] < cols + width)  # (C, K)
+    return inside_rows.astype(np.int64) @ inside_cols.T.astype(np.int64)
+
+
+def count_particles(patch: np.ndarray, params: SegmentParams | None = None) -> int:
+    """Fully displayed particles in one patch segmented on its own (mining segments whole images instead)."""
+    labels, _ = segment_particles(patch, params)
+    height, width = labels.shape
+    return int(full_particle_counts(particle_boxes(labels, params), np.array([0]), np.array([0]), height, width)[0, 0])
+
+
+# --- augmentation -----------------------------------------------------------------------------------------
+
+
+def dihedral_augment(patch: np.ndarray, k: int) -> np.ndarray:
+    """The k-th of the 8 symmetries of the square (k in 0..7), on the last two axes.
+
+    k % 4 quarter turns counter-clockwise, then a left-right flip for k >= 4; together these are all
+    rotations, flips and both transposes. k = 0 is the identity.
+    """
+    if not 0 <= k < 8:
+        raise ConfigError(f"dihedral_augment k={k}: expected an integer in 0..7")
+    out = np.rot90(patch, k % 4, axes=(-2, -1))
+    if k >= 4:
+        out = np.flip(out, axis=-1)
+    return np.ascontiguousarray(out)
+
+
+# --- the mined set ----------------------------------------------------------------------------------------
+
+_ARRAYS_FILE = "patches.npz"
+_SUMMARY_FILE = "summary.json"
+
+
+@dataclass
+class PatchSet:
+    """Training patches (>= min_particles particles) and background patches (no particles), with provenance.
+
+    Positions are the top-left (row, col) of a patch in its source image after cropping.
+    """
+
+    train: np.ndarray  # (N, S, S) float32 in [0, 1]
+    train_ids: list[str]
+    train_positions: np.ndarray  # (N, 2) int
+    train_counts: np.ndarray  # (N,) int: fully displayed particles found in each
+    background: np.ndarray  # (M, S, S) float32 in [0, 1]
+    background_ids: list[str]
+    background_positions: np.ndarray  # (M, 2) int
+    background_fractions: np.ndarray  # (M,) float: foreground fraction of each (0 = no particle pixel)
+    params: dict = field(default_factory=dict)  # how the set was mined, and the background report
+
+    def __post_init__(self) -> None:
+        for name, n in (("train", len(self.train)), ("background", len(self.background))):
+            lengths = {len(getattr(self, f"{name}{suffix}")) for suffix in ("_ids", "_positions")}
+            extra = self.train_counts if name == "train" else self.background_fractions
+            if lengths | {len(extra)} != {n}:
+                raise DataError(f"PatchSet {name}: {n} patches but ids/positions/{'counts' if name == 'train' else 'fractions'} of other lengths")
+
+    @property
+    def patch_size(self) -> int:
+        for array in (self.train, self.background):
+            if array.ndim == 3 and len(array):
+                return int(array.shape[-1])
+        return int(self.params.get("size", 0))
+
+    def summary(self) -> dict:
+        """Counts a user checks first: patches kept, from how many images, particles per patch, background."""
+        counts = np.asarray(self.train_counts)
+        per_image: dict[str, int] = {}
+        for i in self.train_ids:
+            per_image[i] = per_image.get(i, 0) + 1
+        return {
+            "patch_size": self.patch_size,
+            "n_train": len(self.train),
+            "n_background": len(self.background),
+            "n_images_with_train_patches": len(per_image),
+            "train_per_image": per_image,
+            "particles_per_patch": (
+                {"min": int(counts.min()), "median": float(np.median(counts)), "max": int(counts.max())} if counts.size else {}
+            ),
+            "background_empty": int(np.sum(np.asarray(self.background_fractions) == 0)),
+            "background_max_fraction": float(np.max(self.background_fractions)) if len(self.background_fractions) else 0.0,
+        }
+
+    def save(self, directory: str | Path) -> Path:
+        """Write patches.npz (arrays) and summary.json (ids, parameters, counts); each file atomically."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        arrays = {
+            "train": self.train,
+            "train_positions": self.train_positions,
+            "train_counts": self.train_counts,
+            "background": self.background,
+            "background_positions": self.background_positions,
+            "background_fractions": self.background_fractions,
+        }
+        _atomic_write(directory / _ARRAYS_FILE, lambda f: np.savez_compressed(f, **arrays))
+        meta = {
+            "summary": self.summary(),
+            "params": self.params,
+            "train_ids": list(self.train_ids),
+            "background_ids": list(self.background_ids),
+        }
+        _atomic_write(directory / _SUMMARY_FILE, lambda f: f.write(json.dumps(meta, indent=1).encode()))
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path) -> PatchSet:
+        directory = Path(directory)
+        for name in (_ARRAYS_FILE, _SUMMARY_FILE):
+            if not (directory / name).is_file():
+                raise DataError(f"patch set {directory}: no {name} (expected a folder written by PatchSet.save)")
+        try:
+            meta = json.loads((directory / _SUMMARY_FILE).read_text())
+            with np.load(directory / _ARRAYS_FILE) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+            return cls(
+                train=arrays["train"],
+                train_ids=list(meta["train_ids"]),
+                train_positions=arrays["train_positions"],
+                train_counts=arrays["train_counts"],
+                background=arrays["background"],
+                background_ids=list(meta["background_ids"]),
+                background_positions=arrays["background_positions"],
+                background_fractions=arrays["background_fractions"],
+                params=meta.get("params", {}),
+            )
+        except DataError:
+            raise
+        except Exception as exc:  # truncated npz, missing key, bad JSON
+            raise DataError(f"patch set {directory}: unreadable ({type(exc).__name__}: {exc})") from exc
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write through a temporary file in the same folder, then rename: readers never see half a file."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# --- mining -----------------------------------------------------------------------------------------------
+
+
+def window_starts(length: int, size: int, stride: int) -> np.ndarray:
+    """Start offsets of windows of `size` every `stride` pixels, the grid centred in `length`."""
+    n = (length - size) // stride + 1
+    offset = (length - size - (n - 1) * stride) // 2
+    return offset + stride * np.arange(n)
+
+
+@dataclass
+class _Candidate:
+    score: float  # higher is better: particle count (train) or minus foreground fraction (background)
+    image: int
+    row: int
+    col: int
+    value: float  # particle count or foreground fraction
+
+
+class _DuplicateFilter:
+    """Keeps a patch unless it overlaps a kept window of its image too much or correlates with a kept patch."""
+
+    def __init__(self, size: int, max_overlap: float, min_corr_distance: float):
+        self.size, self.max_overlap, self.min_corr_distance = size, max_overlap, min_corr_distance
+        self.windows: dict[int, list[tuple[int, int]]] = {}
+        self.signatures: np.ndarray | None = None  # (capacity, features), grown by doubling
+        self.kept = 0
+
+    def _signature(self, patch: np.ndarray) -> np.ndarray:
+        # Correlate block means (~64 x 64): cheap, and insensitive to pixel noise.
+        f = max(1, self.size // 64)
+        s = patch[: patch.shape[0] // f * f, : patch.shape[1] // f * f]
+        s = s.reshape(s.shape[0] // f, f, s.shape[1] // f, f).mean(axis=(1, 3)).ravel().astype(np.float64)
+        s = s - s.mean()
+        norm = np.linalg.norm(s)
+        return s / norm if norm > 0 else s
+
+    def accept(self, image: int, row: int, col: int, patch: np.ndarray) -> bool:
+        area = self.size * self.size
+        for r, c in self.windows.get(image, []):
+            overlap = max(0, self.size - abs(r - row)) * max(0, self.size - abs(c - col))
+            if overlap > self.max_overlap * area:
+                return False
+        signature = self._signature(patch)
+        if self.kept and np.max(self.signatures[: self.kept] @ signature) > 1 - self.min_corr_distance:
+            return False
+        if self.signatures is None or self.kept == len(self.signatures):
+            grown = np.zeros((max(16, 2 * self.kept), signature.size))
+            if self.signatures is not None:
+                grown[: self.kept] = self.signatures
+            self.signatures = grown
+        self.signatures[self.kept] = signature
+        self.kept += 1
+        self.windows.setdefault(image, []).append((row, col))
+        return True
+
+
+def mine_patches(
+    images: Sequence[np.ndarray],
+    ids: Sequence[str],
+    size: int = 256,
+    stride: int = 128,
+    min_particles: int = 3,
+    n_background: int = 200,
+    *,
+    background_stride: int | None = None,
+    segment: SegmentParams | None = None,
+    max_overlap: float = 0.5,
+    min_corr_distance: float = 0.05,
+    progress: bool = True,
+) -> PatchSet:
+    """Select training patches with >= min_particles fully displayed particles, and n_background empty ones.
+
+    images: grey float images (H, W) in [0, 1], info bars already cropped (see read_grey); ids: one name
+    each. Windows lie on a grid with the given stride (background_stride for background, default size // 4:
+    a fine grid finds the empty corners between agglomerates).
+    Near-duplicates: overlap with a kept window of the same image above max_overlap (fraction of patch
+    area), or correlation with any kept patch above 1 - min_corr_distance. Training patches are taken
+    best first (most particles); background patches emptiest first. If fewer than n_background windows
+    are free of foreground, the emptiest others fill up the count, and a warning states how many were
+    empty and the largest foreground fraction taken (also in PatchSet.params["background_report"]).
+    """
+    segment = segment or SegmentParams()
+    background_stride = background_stride or max(1, size // 4)
+    if len(images) != len(ids):
+        raise ConfigError(f"mine_patches: {len(images)} images but {len(ids)} ids")
+    if len(set(ids)) != len(ids):
+        raise ConfigError("mine_patches: ids must be unique")
+    if size < 8 or stride < 1 or background_stride < 1:
+        raise ConfigError(f"mine_patches: size={size}, stride={stride}, background_stride={background_stride}: expected size >= 8, strides >= 1")
+    if min_particles < 1 or n_background < 0:
+        raise ConfigError(f"mine_patches: min_particles={min_particles}, n_background={n_background}: expected >= 1 and >= 0")
+    if not 0 <= max_overlap < 1 or not 0 <= min_corr_distance < 1:
+        raise ConfigError(f"mine_patches: max_overlap={max_overlap}, min_corr_distance={min_corr_distance}: expected in [0, 1)")
+    for image, name in zip(images, ids):
+        if image.ndim != 2:
+            raise DataError(f"image {name!r}: shape {image.shape} (expected one grey channel, (H, W))")
+        if image.shape[0] < size or image.shape[1] < size:
+            raise DataError(f"image {name!r}: {image.shape[1]} x {image.shape[0]} px (W x H) is smaller than a {size} x {size} patch")
+
+    train_candidates: list[_Candidate] = []
+    background_candidates: list[_Candidate] = []
+    for index, image in enumerate(tqdm(images, desc="segmenting images", unit="image", disable=not progress)):
+        labels, foreground = segment_particles(image, segment)
+        height, width = image.shape
+        rows, cols = window_starts(height, size, stride), window_starts(width, size, stride)
+        counts = full_particle_counts(particle_boxes(labels, segment), rows, cols, size, size)
+        for i, r in enumerate(rows):
+            for j, c in enumerate(cols):
+                if counts[i, j] >= min_particles:
+                    train_candidates.append(_Candidate(float(counts[i, j]), index, int(r), int(c), float(counts[i, j])))
+        # Foreground fraction of every background window from one summed-area table.
+        rows, cols = window_starts(height, size, background_stride), window_starts(width, size, background_stride)
+        table = np.pad(foreground.astype(np.int64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+        sums = table[rows[:, None] + size, cols + size] - table[rows[:, None], cols + size] - table[rows[:, None] + size, cols] + table[rows[:, None], cols]
+        for i, r in enumerate(rows):
+            for j, c in enumerate(cols):
+                fraction = float(sums[i, j]) / (size * size)
+                background_candidates.append(_Candidate(-fraction, index, int(r), int(c), fraction))
+
+    def select(candidates: list[_Candidate], limit: int | None) -> list[_Candidate]:
+        candidates = sorted(candidates, key=lambda k: (-k.score, k.image, k.row, k.col))
+        keep = _DuplicateFilter(size, max_overlap, min_corr_distance)
+        chosen = []
+        for k in candidates:
+            if limit is not None and len(chosen) >= limit:
+                break
+            if keep.accept(k.image, k.row, k.col, images[k.image][k.row : k.row + size, k.col : k.col + size]):
+                chosen.append(k)
+        return sorted(chosen, key=lambda k: (k.image, k.row, k.col))
+
+    train = select(train_candidates, None)
+    background = select(background_candidates, n_background)
+
+    n_empty = sum(k.value == 0 for k in background)
+    threshold = max((k.value for k in background), default=0.0)
+    report = {"requested": n_background, "found": len(background), "empty": n_empty, "max_foreground_fraction": threshold}
+    if n_empty < n_background:
+        log.warning(
+            "background patches: %d of %d requested are free of foreground; %d taken in all, the emptiest with "
+            "foreground fraction up to %.4f",
+            n_empty, n_background, len(background), threshold,
+        )  # fmt: skip
+
+    def stack(chosen: list[_Candidate]) -> np.ndarray:
+        patches = [images[k.image][k.row : k.row + size, k.col : k.col + size] for k in chosen]
+        return np.stack(patches).astype(np.float32) if patches else np.zeros((0, size, size), np.float32)
+
+    def positions(chosen: list[_Candidate]) -> np.ndarray:
+        return np.array([(k.row, k.col) for k in chosen], dtype=np.int64).reshape(-1, 2)
+
+    params = {
+        "size": size,
+        "stride": stride,
+        "background_stride": background_stride,
+        "min_particles": min_particles,
+        "n_background": n_background,
+        "max_overlap": max_overlap,
+        "min_corr_distance": min_corr_distance,
+        "segment": asdict(segment),
+        "background_report": report,
+    }
+    return PatchSet(
+        train=stack(train),
+        train_ids=[str(ids[k.image]) for k in train],
+        train_positions=positions(train),
+        train_counts=np.array([int(k.value) for k in train], dtype=np.int64),
+        background=stack(background),
+        background_ids=[str(ids[k.image]) for k in background],
+        background_positions=positions(background),
+        background_fractions=np.array([k.value for k in background], dtype=np.float64),
+        params=params,
+    )
+
+
+# --- checking by eye --------------------------------------------------------------------------------------
+
+
+def contact_sheet(
+    patches: PatchSet | np.ndarray,
+    path: str | Path,
+    *,
+    title: str | None = None,
+    captions: Sequence[str] | None = None,
+    ncols: int = 16,
+    thumb: int = 128,
+    max_background: int = 64,
+) -> Path:
+    """Write a PNG grid of patches: a PatchSet's training patches (captioned id, position, particle
+    count) and up to max_background of its background patches, sampled evenly by foreground fraction
+    (captioned f); or a plain (N, H, W) array with optional captions."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    if isinstance(patches, PatchSet):
+        # Background: an even sample over the foreground fraction, so the least empty ones are shown too.
+        by_fraction = np.argsort(patches.background_fractions, kind="stable")
+        shown = by_fraction[np.unique(np.linspace(0, len(by_fraction) - 1, min(max_background, len(by_fraction))).round().astype(int))]
+        sections = [
+            (
+                f"selected: {len(patches.train)} patches",
+                patches.train,
+                [f"{i} {r},{c} n={n}" for i, (r, c), n in zip(patches.train_ids, patches.train_positions, patches.train_counts)],
+            ),
+            (
+                f"background: {len(patches.background)} patches (showing {len(shown)}, by foreground fraction f)",
+                patches.background[shown],
+                [f"{patches.background_ids[k]} {patches.background_positions[k][0]},{patches.background_positions[k][1]} f={patches.background_fractions[k]:.3f}" for k in shown],
+            ),
+        ]
+        title = title or f"PatchSet: {len(patches.train)} selected, {len(patches.background)} background"
+    else:
+        array = np.asarray(patches)
+        sections = [(f"{len(array)} patches", array, list(captions) if captions is not None else [""] * len(array))]
+        title = title or ""
+
+    font = ImageFont.load_default(size=max(9, thumb // 12))
+    line = max(12, thumb // 8)
+    gap = 4
+    width = ncols * (thumb + gap) + gap
+    heights = [line + max(1, -(-len(arr) // ncols)) * (thumb + gap) for _, arr, _ in sections]
+    sheet = Image.new("L", (width, line * 2 + sum(heights) + gap), color=255)
+    draw = ImageDraw.Draw(sheet)
+    draw.text((gap, gap), title, fill=0, font=ImageFont.load_default(size=max(12, thumb // 8)))
+    y = line * 2
+    for heading, arr, caps in sections:
+        draw.text((gap, y), heading, fill=0, font=font)
+        y += line
+        for n, patch in enumerate(arr):
+            tile = Image.fromarray((np.clip(patch, 0, 1) * 255).astype(np.uint8)).resize((thumb, thumb), Image.BILINEAR)
+            x0, y0 = gap + (n % ncols) * (thumb + gap), y + (n // ncols) * (thumb + gap)
+            sheet.paste(tile, (x0, y0))
+            if n < len(caps) and caps[n]:
+                draw.rectangle((x0, y0, x0 + thumb - 1, y0 + line - 2), fill=0)
+                draw.text((x0 + 2, y0), caps[n], fill=255, font=font)
+        y += max(1, -(-len(arr) // ncols)) * (thumb + gap)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _atomic_write(path, lambda f: sheet.save(f, format="PNG"))
+    return path

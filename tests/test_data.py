@@ -1,0 +1,305 @@
+"""Reading real images, splits, and patch mining, on synthetic images made here."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+from PIL import Image
+
+from drgan.data import (
+    PatchSet,
+    contact_sheet,
+    count_particles,
+    dihedral_augment,
+    list_images,
+    mine_patches,
+    read_grey,
+    read_split,
+)
+from drgan.errors import ConfigError, DataError
+
+# --- synthetic particles -----------------------------------------------------------------------------------
+
+RADIUS = 6
+SIZE, STRIDE = 64, 32  # windows start at multiples of 32 when (H - 64) and (W - 64) are multiples of 32
+
+
+def disc_image(centres, shape, seed=0, noise=0.02):
+    """Bright discs (0.7) of RADIUS on a dark noisy background (0.15); returns (image, disc mask)."""
+    rr, cc = np.mgrid[: shape[0], : shape[1]]
+    mask = np.zeros(shape, bool)
+    for cy, cx in centres:
+        mask |= (rr - cy) ** 2 + (cc - cx) ** 2 <= RADIUS**2
+    rng = np.random.default_rng(seed)
+    image = np.where(mask, 0.7, 0.15) + rng.normal(0, noise, shape)
+    return np.clip(image, 0, 1).astype(np.float32), mask
+
+
+def lattice_centres(shape, seed=0, p=0.35, empty=None):
+    """Disc centres on a 16-px lattice (0 and 16 mod 32): a disc either lies well inside a window or
+    crosses its edge by >= 6 px, never ambiguously close; centres on row or column 0 touch the border."""
+    rng = np.random.default_rng(seed)
+    centres = []
+    for cy in range(0, shape[0], 16):
+        for cx in range(0, shape[1], 16):
+            if empty is not None and empty[0] <= cy and empty[1] <= cx:
+                continue
+            if rng.random() < p:
+                centres.append((cy, cx))
+    return centres
+
+
+def true_full_count(centres, row, col, size=SIZE):
+    """Discs whose every pixel lies inside the window and off its edge rows and columns."""
+    return sum(
+        row < cy - RADIUS and cy + RADIUS < row + size - 1 and col < cx - RADIUS and cx + RADIUS < col + size - 1
+        for cy, cx in centres
+    )
+
+
+SHAPE = (224, 288)
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    centres = lattice_centres(SHAPE, seed=1, empty=(128, 160))
+    image, mask = disc_image(centres, SHAPE, seed=2)
+    return image, mask, centres
+
+
+# --- counting and selection ---------------------------------------------------------------------------------
+
+
+def test_count_particles_exact_on_clean_patch():
+    inside = [(20, 20), (20, 60), (50, 35), (75, 75)]
+    cut = [(0, 40), (40, 95), (95, 10)]  # centred on the border rows / columns of a 96 x 96 patch
+    touching = [(70, 20), (70, 33)]  # two overlapping discs: an agglomerate the watershed must split
+    patch, _ = disc_image(inside + cut + touching, (96, 96), seed=3)
+    assert count_particles(patch) == len(inside) + len(touching)
+
+
+def test_count_particles_finds_none_in_noise():
+    rng = np.random.default_rng(4)
+    assert count_particles(np.clip(rng.normal(0.2, 0.05, (96, 96)), 0, 1).astype(np.float32)) == 0
+
+
+def test_mined_counts_match_truth_and_selection_keeps_three_or_more(synthetic):
+    image, _, centres = synthetic
+    ps = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, min_particles=3, n_background=0, max_overlap=0.99, progress=False)
+    truth = {(r, c): true_full_count(centres, r, c) for r in range(0, SHAPE[0] - SIZE + 1, STRIDE) for c in range(0, SHAPE[1] - SIZE + 1, STRIDE)}
+    kept = {tuple(p) for p in ps.train_positions}
+    assert kept, "no patch selected"
+    for (r, c), count in zip(ps.train_positions, ps.train_counts):
+        assert count == truth[(r, c)]
+    # Every window with >= 3 particles is kept (no two are duplicates at max_overlap 0.99), and no other.
+    assert kept == {w for w, n in truth.items() if n >= 3}
+    assert any(0 < n < 3 for n in truth.values()), "the synthetic image should also hold rejectable windows"
+    patch_of = {tuple(p): t for p, t in zip(ps.train_positions, ps.train)}
+    r, c = next(iter(kept))
+    np.testing.assert_array_equal(patch_of[(r, c)], image[r : r + SIZE, c : c + SIZE])
+
+
+def test_overlapping_windows_are_dropped(synthetic):
+    image, _, _ = synthetic
+    ps = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, n_background=0, max_overlap=0.0, progress=False)
+    positions = ps.train_positions
+    for i in range(len(positions)):
+        for j in range(i + 1, len(positions)):
+            assert np.any(np.abs(positions[i] - positions[j]) >= SIZE), "kept windows overlap"
+
+
+def test_near_duplicate_images_are_dropped(synthetic):
+    image, _, centres = synthetic
+    again, _ = disc_image(centres, SHAPE, seed=99, noise=0.005)  # the same scene, imaged again
+    one = mine_patches([image], ["a"], size=SIZE, stride=STRIDE, n_background=0, progress=False)
+    two = mine_patches([image, again], ["a", "b"], size=SIZE, stride=STRIDE, n_background=0, progress=False)
+    assert len(two.train) == len(one.train) > 0
+    assert set(two.train_ids) == {"a"}
+
+
+def test_background_patches_hold_no_particle(synthetic, caplog):
+    image, mask, _ = synthetic
+    ps = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, n_background=3, progress=False)
+    assert len(ps.background) == 3
+    for (r, c), f in zip(ps.background_positions, ps.background_fractions):
+        assert f == 0
+        assert not mask[r : r + SIZE, c : c + SIZE].any()
+    # Asking for more than exist: the emptiest others fill up, and the shortfall is reported.
+    with caplog.at_level(logging.WARNING, logger="drgan.data.patches"):
+        many = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, n_background=40, progress=False)
+    report = many.params["background_report"]
+    assert report["empty"] == int(np.sum(many.background_fractions == 0)) < report["found"]
+    assert report["max_foreground_fraction"] == pytest.approx(many.background_fractions.max())
+    assert "free of foreground" in caplog.text
+
+
+def test_image_smaller_than_patch_names_image():
+    small = np.zeros((100, 300), np.float32)
+    with pytest.raises(DataError, match=r"'tiny'.*300 x 100"):
+        mine_patches([small], ["tiny"], size=256, progress=False)
+
+
+def test_dihedral_augment_gives_eight_distinct_views_with_same_content():
+    patch = np.random.default_rng(5).random((6, 6)).astype(np.float32)
+    views = [dihedral_augment(patch, k) for k in range(8)]
+    assert len({v.tobytes() for v in views}) == 8
+    for v in views:
+        np.testing.assert_array_equal(np.sort(v, axis=None), np.sort(patch, axis=None))
+    np.testing.assert_array_equal(views[0], patch)
+    np.testing.assert_array_equal(views[1], np.rot90(patch))
+    assert any(np.array_equal(v, patch.T) for v in views)
+    batch = np.stack([patch, patch + 1])
+    np.testing.assert_array_equal(dihedral_augment(batch, 5)[1], views[5] + 1)
+    with pytest.raises(ConfigError):
+        dihedral_augment(patch, 8)
+
+
+def test_patchset_save_load_and_contact_sheet(synthetic, tmp_path):
+    image, _, _ = synthetic
+    ps = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, n_background=2, progress=False)
+    ps.save(tmp_path / "set")
+    back = PatchSet.load(tmp_path / "set")
+    np.testing.assert_array_equal(back.train, ps.train)
+    np.testing.assert_array_equal(back.background_positions, ps.background_positions)
+    assert back.train_ids == ps.train_ids and back.summary() == ps.summary()
+    assert ps.summary()["n_train"] == len(ps.train) and ps.summary()["n_background"] == 2
+    assert not list((tmp_path / "set").glob("*.tmp"))
+    sheet = contact_sheet(ps, tmp_path / "sheet.png", title="synthetic")
+    assert Image.open(sheet).size[0] > 0
+    with pytest.raises(DataError, match="patches.npz"):
+        PatchSet.load(tmp_path)
+
+
+# --- reading ------------------------------------------------------------------------------------------------
+
+GREY = np.arange(0, 240, dtype=np.uint8).reshape(12, 20)
+
+
+def test_read_8bit_grey_png(tmp_path):
+    Image.fromarray(GREY).save(tmp_path / "a.png")
+    g = read_grey(tmp_path / "a.png")
+    assert g.dtype == np.float32 and g.shape == GREY.shape
+    np.testing.assert_allclose(g, GREY / 255, atol=1e-6)
+
+
+def test_read_16bit_tiff_and_png(tmp_path):
+    data = (np.arange(240, dtype=np.uint16).reshape(12, 20) * 273).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "a.tif", data)
+    np.testing.assert_allclose(read_grey(tmp_path / "a.tif"), data / 65535, atol=1e-6)
+    Image.fromarray(data).save(tmp_path / "b.png")
+    np.testing.assert_allclose(read_grey(tmp_path / "b.png"), data / 65535, atol=1e-6)
+
+
+def test_read_palette_tiff_and_png_maps_through_palette(tmp_path):
+    index = (GREY % 4).astype(np.uint8)
+    colormap = np.zeros((3, 256), np.uint16)
+    colormap[:, :4] = np.array([[65535, 0, 0], [0, 65535, 0], [0, 0, 65535], [65535, 65535, 65535]]).T
+    tifffile.imwrite(tmp_path / "p.tif", index, photometric="palette", colormap=colormap)
+    luma = np.array([0.299, 0.587, 0.114, 1.0])
+    np.testing.assert_allclose(read_grey(tmp_path / "p.tif"), luma[index], atol=1e-6)
+    img = Image.fromarray(index, mode="P")
+    img.putpalette([255, 0, 0, 0, 255, 0, 0, 0, 255, 255, 255, 255])
+    img.save(tmp_path / "p.png")
+    np.testing.assert_allclose(read_grey(tmp_path / "p.png"), luma[index], atol=1e-6)
+
+
+def test_read_rgb_jpeg_and_rgba_png_to_luminance(tmp_path):
+    rgb = np.zeros((32, 64, 3), np.uint8)
+    rgb[:, :32] = (200, 100, 50)
+    rgb[:, 32:] = (10, 220, 90)
+    Image.fromarray(rgb).save(tmp_path / "c.jpg", quality=95)
+    expected = rgb @ np.array([0.299, 0.587, 0.114]) / 255
+    g = read_grey(tmp_path / "c.jpg")
+    assert g.shape == (32, 64)
+    np.testing.assert_allclose(g[4:-4, 4:28], expected[4:-4, 4:28], atol=0.02)  # JPEG is lossy
+    np.testing.assert_allclose(g[4:-4, 36:-4], expected[4:-4, 36:-4], atol=0.02)
+    rgba = np.concatenate([rgb, np.full((32, 64, 1), 128, np.uint8)], axis=-1)
+    Image.fromarray(rgba).save(tmp_path / "d.png")
+    np.testing.assert_allclose(read_grey(tmp_path / "d.png"), expected, atol=1e-6)
+
+
+def test_float_tiff_must_lie_in_unit_range(tmp_path):
+    tifffile.imwrite(tmp_path / "ok.tif", np.full((4, 4), 0.25, np.float32))
+    assert read_grey(tmp_path / "ok.tif")[0, 0] == 0.25
+    tifffile.imwrite(tmp_path / "counts.tif", np.full((4, 4), 300.0, np.float32))
+    with pytest.raises(DataError, match=r"counts\.tif.*\[0, 1\]"):
+        read_grey(tmp_path / "counts.tif")
+
+
+def test_crop_rows_removes_info_bar(tmp_path):
+    Image.fromarray(GREY).save(tmp_path / "a.png")
+    g = read_grey(tmp_path / "a.png", crop_rows=(9, 12))
+    np.testing.assert_allclose(g, GREY[:9] / 255, atol=1e-6)
+    with pytest.raises(DataError, match="crop_rows"):
+        read_grey(tmp_path / "a.png", crop_rows=(9, 30))
+
+
+def test_read_errors_name_the_file(tmp_path):
+    with pytest.raises(DataError, match="missing.tif"):
+        read_grey(tmp_path / "missing.tif")
+    (tmp_path / "junk.tif").write_bytes(np.random.default_rng(6).bytes(4096))
+    with pytest.raises(DataError, match="junk.tif"):
+        read_grey(tmp_path / "junk.tif")
+    (tmp_path / "junk.png").write_bytes(b"not a png at all")
+    with pytest.raises(DataError, match="junk.png"):
+        read_grey(tmp_path / "junk.png")
+    (tmp_path / "a.bmp").write_bytes(b"")
+    with pytest.raises(DataError, match="unsupported file kind"):
+        read_grey(tmp_path / "a.bmp")
+
+
+def test_list_images_by_id(tmp_path):
+    with pytest.raises(DataError, match=f"{tmp_path.name}.*no image files"):
+        list_images(tmp_path)
+    for stem in ("b", "a"):
+        Image.fromarray(GREY).save(tmp_path / f"{stem}.png")
+    (tmp_path / "notes.txt").write_text("x")
+    assert [p.name for p in list_images(tmp_path)] == ["a.png", "b.png"]
+    assert [p.name for p in list_images(tmp_path, ["b", "a"])] == ["b.png", "a.png"]
+    with pytest.raises(DataError, match="test7"):
+        list_images(tmp_path, ["a", "test7"])
+    with pytest.raises(DataError, match="no such folder"):
+        list_images(tmp_path / "nope")
+
+
+def test_read_split(tmp_path):
+    good = tmp_path / "split.json"
+    good.write_text(json.dumps({"train": ["1", "2"], "test": ["3"]}))
+    assert read_split(good) == {"train": ["1", "2"], "test": ["3"]}
+    bad = tmp_path / "overlap.json"
+    bad.write_text(json.dumps({"train": ["1", "2"], "test": ["2"]}))
+    with pytest.raises(DataError, match=r"overlap\.json.*'2'"):
+        read_split(bad)
+    for name, text in (("nojson.json", "{train"), ("notest.json", '{"train": ["1"]}'), ("ints.json", '{"train": [1], "test": []}')):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(DataError, match=name):
+            read_split(tmp_path / name)
+
+
+# --- the real TiO2 SEM data (manual check) -------------------------------------------------------------------
+
+TIO2 = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "tio2_sem"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (TIO2 / "split.json").is_file(), reason=f"TiO2 SEM data not at {TIO2}")
+def test_mine_real_tio2_sem(tmp_path, request):
+    if "slow" not in (request.config.getoption("markexpr") or ""):
+        pytest.skip("manual check on real data: run with `-m slow`")
+    ids = read_split(TIO2 / "split.json")["train"]
+    start = time.perf_counter()
+    images = [read_grey(p, crop_rows=(712, 768)) for p in list_images(TIO2 / "images", ids)]
+    ps = mine_patches(images, ids, size=256, stride=288, min_particles=3, n_background=200)
+    seconds = time.perf_counter() - start
+    contact_sheet(ps, tmp_path / "contact.png", title=f"TiO2 SEM train: stride 288, {seconds:.0f} s")
+    summary = ps.summary()
+    print(json.dumps({k: v for k, v in summary.items() if k != "train_per_image"}), f"{seconds:.1f} s")
+    assert 100 <= summary["n_train"] <= 150  # the paper hand-picked 124
+    assert summary["n_background"] == 200
+    assert set(ps.train_ids) <= set(ids)
