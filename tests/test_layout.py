@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
+
+from conftest import compose
 from scipy.sparse.csgraph import connected_components
 
 from drgan.errors import ConfigError
@@ -264,7 +266,7 @@ def test_bad_inputs_raise_config_error_naming_the_field(build, field):
     ],
 )
 def test_config_group_files_build_their_dataclass(group, name, expected):
-    cfg = OmegaConf.load(CONF / group / f"{name}.yaml")
+    cfg = compose([f"{group}={name}"])[group]
     build = size_from_config if group == "size" else placement_from_config
     built = build(cfg)
     assert type(built) is expected
@@ -273,8 +275,8 @@ def test_config_group_files_build_their_dataclass(group, name, expected):
 
 
 def test_config_files_sample_paper_like_layouts():
-    size = size_from_config(OmegaConf.load(CONF / "size" / "lognormal.yaml"))
-    placement = placement_from_config(OmegaConf.load(CONF / "placement" / "poisson.yaml"))
+    cfg = compose(["material=tio2_sem", "size=lognormal", "placement=poisson"])
+    size, placement = size_from_config(cfg.size), placement_from_config(cfg.placement)
     layouts = sample_layouts(4, 40, size, placement)
     assert layouts.shape == (4, 40, 4)
     assert 18.0 < np.median(layouts[..., 3]) < 30.0

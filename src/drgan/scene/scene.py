@@ -154,7 +154,6 @@ class ParticleScene:
         self._learned_keys = [self._bsdf_key(p) for p in self._learned]
         # Keep only what a render changes; everything else stays as loaded.
         self.params.keep(self._learned_keys + ["particles.vertex_positions"])
-        self._render_wrapped = dr.wrap(source="torch", target="drjit")(self._render_drjit)
         self._layout = None
 
     # -- building -------------------------------------------------------------------------------
@@ -252,11 +251,17 @@ class ParticleScene:
         return self._layout
 
     # -- rendering ------------------------------------------------------------------------------
-    def _render_drjit(self, values, seed, spp):
-        for key, value in zip(self._learned_keys, values):
-            self.params[key] = mi.Float(value.array)
+    def _assign(self, values: torch.Tensor, grad: bool) -> list:
+        """Write learned values into the scene (as Dr.Jit arrays: no Python float is baked into kernels)."""
+        variables = []
+        for key, value in zip(self._learned_keys, values.detach().cpu().tolist()):
+            variable = dr.opaque(mi.Float, value, 1)
+            if grad:
+                dr.enable_grad(variable)
+            self.params[key] = variable
+            variables.append(variable)
         self.params.update()
-        return mi.render(self.scene, self.params, seed=seed, spp=spp)
+        return variables
 
     def render(self, values: torch.Tensor, seed: int, spp: int | None = None) -> torch.Tensor:
         """Render the current layout; ``values`` holds the learned BSDF parameters in ``learned_bsdf`` order.
@@ -269,10 +274,11 @@ class ParticleScene:
         spp = check_spp(spp, "spp") if spp is not None else self.spec.render.spp
         values = torch.as_tensor(values, dtype=torch.float32)
         if values.shape != (len(self._learned),):
-            raise ConfigError(f"values: expected shape ({len(self._learned)},) for {self._learned_keys}, got {tuple(values.shape)}")
-        columns = tuple(values[i : i + 1] for i in range(len(self._learned)))
-        image = self._render_wrapped(columns, int(seed) & 0xFFFFFFFF, spp)
-        return image.mean(dim=-1)  # grey light and grey BSDFs: R = G = B
+            raise ConfigError(
+                f"values: expected shape ({len(self._learned)},) for {self._learned_keys}, got {tuple(values.shape)}"
+            )
+        image = _RenderFunction.apply(values, self, int(seed) & 0xFFFFFFFF, spp)
+        return image.mean(dim=-1)  # grey lights and grey BSDFs: R = G = B
 
     def instance_labels(self) -> np.ndarray:
         """Instance label image of the current layout (0 background, k = particle k), pixel-aligned.
@@ -293,3 +299,40 @@ class ParticleScene:
             hit = si.is_valid() & (si.shape == mi.ShapePtr(self.particles))
             labels = dr.select(hit, dr.gather(mi.UInt32, self._face_label, si.prim_index, hit), 0)
             return np.asarray(labels, dtype=np.int32).reshape(size, size)
+
+
+class _RenderFunction(torch.autograd.Function):
+    """torch <-> Dr.Jit bridge that stays correct when several renders precede one backward pass.
+
+    Forward renders the primal image without an AD graph. Backward restores the layout and parameter
+    values of *this* render and replays its samples (same seed) with Mitsuba's adjoint pass
+    (``render_backward``). A plain ``dr.wrap`` around ``mi.render`` would replay every render's adjoint
+    with the scene state of the *last* forward call, which silently breaks batches and accumulation.
+    """
+
+    @staticmethod
+    def forward(ctx, values: torch.Tensor, scene: "ParticleScene", seed: int, spp: int) -> torch.Tensor:
+        with dr.suspend_grad():
+            scene._assign(values, grad=False)
+            image = mi.render(scene.scene, scene.params, seed=seed, spp=spp)
+            out = torch.from_numpy(np.array(image, dtype=np.float32, copy=True))
+        ctx.scene, ctx.seed, ctx.spp = scene, seed, spp
+        ctx.layout = scene.layout.copy()
+        ctx.save_for_backward(values)
+        return out.to(values.device)
+
+    @staticmethod
+    def backward(ctx, grad_image: torch.Tensor):
+        scene = ctx.scene
+        (values,) = ctx.saved_tensors
+        if values.numel() == 0:
+            return None, None, None, None
+        if scene.layout is None or not np.array_equal(scene.layout, ctx.layout):
+            scene.set_layout(ctx.layout)
+        variables = scene._assign(values, grad=True)
+        grad_in = mi.TensorXf(np.ascontiguousarray(grad_image.detach().cpu().numpy(), dtype=np.float32))
+        scene.scene.integrator().render_backward(scene.scene, scene.params, grad_in, seed=ctx.seed, spp=ctx.spp)
+        grads = torch.tensor([float(dr.grad(v)[0]) for v in variables], dtype=values.dtype, device=values.device)
+        for v in variables:
+            dr.disable_grad(v)
+        return grads, None, None, None

@@ -1,0 +1,35 @@
+# drgan: every target installs what it needs first (`make setup`), so each works on a fresh Debian machine.
+PYTHON ?= python3
+PIP := $(PYTHON) -m pip
+STAMP := .setup.stamp
+
+.PHONY: setup test test-slow train render meshes benchmark mlflow-ui clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/install_llvm.sh
+	bash scripts/install_llvm.sh
+	$(PYTHON) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0 || $(PIP) install -q torch
+	$(PIP) install -q -e ".[dev]"
+	$(PYTHON) -c "import drgan.backend as b; print('drgan backend:', b.resolve_variant('auto'), 'LLVM', b.configure_llvm())"
+	touch $(STAMP)
+
+test: setup
+	$(PYTHON) -m pytest -q
+
+test-slow: setup
+	$(PYTHON) -m pytest -q -m slow
+
+render: setup
+	$(PYTHON) -m drgan.render material=tio2_sem out=runs/render
+
+meshes: setup
+	$(PYTHON) -m drgan.meshes kind=sphere count=20 seed=0 out=meshes/spheres
+	$(PYTHON) -m drgan.meshes kind=cube count=40 seed=0 out=meshes/tio2_cubes
+	$(PYTHON) -m drgan.meshes kind=rod count=10 seed=0 out=meshes/agnw_rods
+
+benchmark: setup
+	$(PYTHON) benchmarks/render.py
+
+clean:
+	rm -rf $(STAMP) .pytest_cache outputs multirun

@@ -1,0 +1,51 @@
+"""Shared fixtures: tiny scenes (16-32 px, few spp) so the default run stays fast on 2 CPU cores."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+PAPER_PARTICLE = {name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")}
+PAPER_STAGE = {"base_color": {"min": 0.01, "max": 0.4}}
+PAPER_SIGMA = {"min": 0.001, "max": 0.1}
+
+# Four particles well inside a 64 px view, two of them overlapping.
+TINY_PHI = np.array(
+    [[-15, -10, 8, 16], [12, 8, 9, 18], [0, 14, 6, 12], [-8, 12, 7, 14]],
+    dtype=np.float32,
+)
+
+
+def make_scene(resolution=16, spp=4, n=4, integrator="prb_basic", particle=None, stage=PAPER_STAGE, sigma=PAPER_SIGMA, **spec_kw):
+    from drgan.scene import meshes
+    from drgan.scene.parameters import MaterialParameters
+    from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
+
+    params = MaterialParameters.from_config(PAPER_PARTICLE if particle is None else particle, stage, sigma)
+    spec = SceneSpec(
+        params,
+        RenderSettings(resolution=resolution, spp=spp, integrator=integrator, filter_stddev=spec_kw.pop("filter_stddev", 0.5)),
+        view_width=spec_kw.pop("view_width", 64.0),
+        stage=stage is not None,
+        **spec_kw,
+    )
+    return ParticleScene([meshes.sphere(2)], n, spec, variant="llvm_ad_rgb")
+
+
+@pytest.fixture(scope="session")
+def tiny_scene():
+    scene = make_scene()
+    scene.set_layout(TINY_PHI)
+    return scene
+
+
+def compose(overrides=(), config_name="render"):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    import drgan.build  # noqa: F401  (registers the ${mul:} resolver)
+    from pathlib import Path
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
+        return hydra_compose(config_name=config_name, overrides=list(overrides))

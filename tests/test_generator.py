@@ -1,0 +1,93 @@
+"""The generator: FCN -> learned parameters -> render -> noise, batches, and gradients to the FCN."""
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import TINY_PHI, make_scene
+from drgan.models.generator import Generator, add_noise
+
+
+@pytest.fixture(scope="module")
+def generator():
+    torch.manual_seed(0)
+    return Generator(make_scene(resolution=16, spp=1), seed=3)
+
+
+def test_output_shape_range_and_batches(generator):
+    phi = torch.from_numpy(np.stack([TINY_PHI, TINY_PHI + np.float32([3, -2, 0, 0])]))
+    images = generator(phi)
+    assert images.shape == (2, 1, 16, 16)
+    assert torch.isfinite(images).all() and images.min() >= 0 and images.max() <= 1
+
+
+def test_learned_values_stay_within_limits(generator):
+    phi = torch.from_numpy(TINY_PHI)[None] * torch.linspace(0.1, 10, 7)[:, None, None]
+    values = generator.learned_values(phi)
+    low = torch.tensor([p.low for p in generator.learned])
+    high = torch.tensor([p.high for p in generator.learned])
+    assert ((values >= low) & (values <= high)).all()
+    assert [p.key for p in generator.learned][-1] == "noise.sigma"
+
+
+def test_gradients_reach_every_fcn_layer(generator):
+    generator.zero_grad()
+    generator.train()
+    phi = torch.from_numpy(np.stack([TINY_PHI, TINY_PHI[::-1].copy()]))
+    generator(phi).mean().backward()
+    grads = [p.grad for p in generator.regressor.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert sum(float(g.abs().sum()) for g in grads) > 0
+
+
+def test_batched_backward_equals_per_sample_backward():
+    """Two renders before one backward must give the sum of their separate gradients."""
+    scene = make_scene(resolution=16, spp=4)
+    values = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6])
+    layouts = [TINY_PHI, TINY_PHI + np.float32([6, 0, 0, 0])]
+
+    def loss(phi, seed, x):
+        scene.set_layout(phi)
+        return scene.render(x, seed=seed).square().sum()
+
+    separate = torch.zeros(6)
+    for seed, phi in enumerate(layouts):
+        x = values.clone().requires_grad_(True)
+        loss(phi, seed, x).backward()
+        separate += x.grad
+    x = values.clone().requires_grad_(True)
+    (loss(layouts[0], 0, x) + loss(layouts[1], 1, x)).backward()
+    torch.testing.assert_close(x.grad, separate, rtol=1e-4, atol=1e-6)
+
+
+def test_noise_gradient_matches_finite_differences():
+    image = torch.rand(8, 8, generator=torch.Generator().manual_seed(0)) * 0.5 + 0.25
+    sigma = torch.tensor(0.05, requires_grad=True)
+
+    def f(s):
+        torch.manual_seed(7)
+        return add_noise(image, s).sum()
+
+    f(sigma).backward()
+    h = 1e-3
+    fd = (f(torch.tensor(0.05 + h)) - f(torch.tensor(0.05 - h))) / (2 * h)
+    assert sigma.grad == pytest.approx(float(fd), rel=1e-3)
+
+
+@pytest.mark.parametrize("sigma", [0.001, 0.1, 1.0])
+def test_noise_keeps_images_in_range(sigma):
+    image = torch.tensor([[0.0, 1.0], [0.5, 2.0]])
+    noisy = add_noise(image, torch.tensor(sigma))
+    assert noisy.min() >= 0 and noisy.max() <= 1
+
+
+def test_sample_returns_labels_and_parameters(generator):
+    sample = generator.sample(TINY_PHI, seed=5)
+    assert sample.image.shape == sample.labels.shape == (16, 16)
+    assert set(np.unique(sample.labels)) <= set(range(5)) and sample.labels.max() > 0
+    assert set(sample.parameters) >= {"particle.roughness", "stage.base_color", "noise.sigma"}
+
+
+def test_seeds_change_between_renders(generator):
+    first, second = generator.next_seed(), generator.next_seed()
+    assert first != second

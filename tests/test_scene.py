@@ -1,0 +1,208 @@
+"""The differentiable scene: gradients against finite differences, limits, labels, minimal scene, kernels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import PAPER_PARTICLE, PAPER_STAGE, TINY_PHI, make_scene
+from drgan.errors import ConfigError
+
+# Learned order: stage.base_color, particle.roughness, base_color, sheen, sheen_tint, spec_tint.
+MID = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6])
+
+
+def weighted_sum(scene, values, seeds, weight):
+    return sum((scene.render(values, seed=s) * weight).sum() for s in seeds)
+
+
+def ad_and_fd(scene, x0, seeds, weight, steps):
+    """AD gradient and central finite differences with common random numbers (same seeds on both sides)."""
+    x = x0.clone().requires_grad_(True)
+    weighted_sum(scene, x, seeds, weight).backward()
+    fd = []
+    with torch.no_grad():
+        for i, h in enumerate(steps):
+            e = torch.zeros_like(x0)
+            e[i] = h
+            fd.append(float(weighted_sum(scene, x0 + e, seeds, weight) - weighted_sum(scene, x0 - e, seeds, weight)) / (2 * h))
+    return x.grad.numpy(), np.array(fd)
+
+
+def test_gradients_match_finite_differences():
+    """Tolerance: |AD - FD| <= 5 % of |FD| + 1 % of the largest gradient (10 % for roughness).
+
+    Roughness changes the BSDF's importance sampling, so its estimator is not smooth in the parameter
+    even with common random numbers: it gets a wider step (0.1) and a looser relative tolerance.
+    """
+    scene = make_scene(resolution=16, spp=16)
+    scene.set_layout(TINY_PHI)
+    weight = torch.rand(16, 16, generator=torch.Generator().manual_seed(1))
+    steps = [0.01, 0.1, 0.01, 0.01, 0.01, 0.01]
+    ad, fd = ad_and_fd(scene, MID, range(24), weight, steps)
+    assert np.isfinite(ad).all()
+    scale = np.abs(fd).max()
+    rel = np.array([0.05, 0.10, 0.05, 0.05, 0.05, 0.05])
+    bad = np.abs(ad - fd) > rel * np.abs(fd) + 0.01 * scale
+    assert not bad.any(), f"AD {ad} vs FD {fd}"
+    # The gradients are informative, not all zero: stage and particle colour move the image.
+    assert abs(ad[0]) > 0.1 * scale and abs(ad[2]) > 0.1 * scale
+
+
+@pytest.mark.parametrize("integrator", ["direct_projective"])
+def test_other_integrator_agrees(integrator):
+    scene = make_scene(resolution=16, spp=16, integrator=integrator)
+    scene.set_layout(TINY_PHI)
+    weight = torch.rand(16, 16, generator=torch.Generator().manual_seed(2))
+    x = MID.clone()
+    ad, fd = ad_and_fd(scene, x, range(8), weight, [0.01, 0.1, 0.01, 0.01, 0.01, 0.01])
+    for i in (0, 2, 3, 5):  # colour-like parameters: smooth estimators
+        assert abs(ad[i] - fd[i]) <= 0.08 * abs(fd[i]) + 0.01 * np.abs(fd).max(), (i, ad, fd)
+
+
+@pytest.mark.parametrize("where", ["low", "high"])
+def test_gradients_finite_at_limits(tiny_scene, where):
+    learned = tiny_scene.learned_bsdf
+    values = torch.tensor([p.low if where == "low" else p.high for p in learned], requires_grad=True)
+    image = tiny_scene.render(values, seed=3)
+    assert torch.isfinite(image).all() and (image >= 0).all()
+    image.square().mean().backward()
+    assert torch.isfinite(values.grad).all(), values.grad
+
+
+def test_differentiable_parameters_are_exactly_the_learned_ones():
+    from drgan.backend import dr, mi
+
+    particle = dict(PAPER_PARTICLE)
+    particle["sheen_tint"] = {"value": 0.5}  # fixed: must not carry a gradient
+    particle["metallic"] = 0.2
+    scene = make_scene(particle=particle)
+    scene.set_layout(TINY_PHI)
+    values = torch.full((len(scene.learned_bsdf),), 0.5, requires_grad=True)
+    scene.render(values, seed=0).sum().backward()
+    params = mi.traverse(scene.scene)
+    enabled = {k for k in params.keys() if dr.grad_enabled(params[k])}
+    expected = {
+        "stage.bsdf.base_color.value",
+        "particles.bsdf.roughness.value",
+        "particles.bsdf.base_color.value",
+        "particles.bsdf.sheen.value",
+        "particles.bsdf.spec_tint.value",
+    }
+    assert enabled == expected
+    assert params["particles.bsdf.sheen_tint.value"][0] == pytest.approx(0.5)
+    assert params["particles.bsdf.metallic.value"][0] == pytest.approx(0.2)
+
+
+def test_unused_scene_elements_are_not_built():
+    scene = make_scene(stage=None, top_light=None)
+    ids = {shape.id() for shape in scene.scene.shapes()}
+    assert ids == {"particles", "torus_light"}
+    assert len(scene.scene.emitters()) == 1
+    full = make_scene()
+    assert {shape.id() for shape in full.scene.shapes()} == {"particles", "stage", "torus_light", "top_light"}
+
+
+def test_new_layouts_compile_no_new_kernels(tiny_scene):
+    from drgan.backend import dr
+
+    rng = np.random.default_rng(0)
+    values = MID.clone().requires_grad_(True)
+
+    def step(seed):
+        phi = TINY_PHI.copy()
+        phi[:, :2] += rng.uniform(-5, 5, size=(4, 2)).astype(np.float32)
+        phi[:, 3] *= rng.uniform(0.8, 1.2, size=4).astype(np.float32)
+        tiny_scene.set_layout(phi)
+        tiny_scene.render(values, seed=seed).mean().backward()
+
+    step(0)
+    step(1)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history_clear()
+        step(2)
+        warm = {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+        step(3)
+        step(4)
+        later = {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+    assert warm and later <= warm, f"{len(later - warm)} kernels compiled for new layouts/seeds"
+
+
+def test_labels_align_with_render():
+    """White particles on no stage (black): the thresholded render matches the labels."""
+    particle = {"base_color": {"value": 1.0}, "roughness": {"value": 1.0}}
+    from drgan.scene.scene import TopLight
+
+    light = TopLight(radiance=1.0, size=2.0)
+    scene = make_scene(resolution=64, spp=64, particle=particle, stage=None, filter_stddev=0.25, torus_light=None, top_light=light)
+    scene.set_layout(TINY_PHI)
+    image = scene.render(torch.zeros(0), seed=0).numpy()
+    labels = scene.instance_labels()
+    assert set(np.unique(labels)) == {0, 1, 2, 3, 4}
+    # Threshold well below the particle level: Monte Carlo noise inside particles must not read as background.
+    bright = image > 0.25 * np.median(image[labels > 0])
+    iou = (bright & (labels > 0)).sum() / (bright | (labels > 0)).sum()
+    assert iou >= 0.95, iou
+
+
+def test_labels_are_occlusion_correct():
+    scene = make_scene(resolution=32, n=2)
+    # Particle 2 sits above particle 1 at the same x, y: from above only particle 2 is visible there.
+    scene.set_layout(np.array([[0, 0, 10, 20], [0, 0, 30, 12]], dtype=np.float32))
+    labels = scene.instance_labels()
+    assert labels[16, 16] == 2
+    assert (labels == 1).any() and (labels == 2).sum() < (labels == 1).sum() + (labels == 2).sum()
+
+
+def test_label_geometry_matches_layout():
+    """A particle at +x, +y shows in the right half, top rows (image y runs down)."""
+    scene = make_scene(resolution=32, n=1)
+    scene.set_layout(np.array([[16, 16, 5, 10]], dtype=np.float32))
+    rows, cols = np.nonzero(scene.instance_labels())
+    # Centre (16, 16) px in a 64 px view -> pixel (8, 24) of 32 (x right, y up).
+    assert abs(cols.mean() - 24) < 1.0 and abs(rows.mean() - 8) < 1.0
+    assert abs(np.sqrt(len(rows) / np.pi) - 2.5) < 0.5  # radius 5 px of 64 -> 2.5 of 32 render px
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"spp": -4}, "spp"),
+        ({"spp": 10}, "perfect square"),
+        ({"resolution": 0}, "resolution"),
+        ({"integrator": "path_magic"}, "integrator"),
+    ],
+)
+def test_bad_render_settings_fail_clearly(kwargs, match):
+    from drgan.scene.scene import RenderSettings
+
+    with pytest.raises(ConfigError, match=match):
+        RenderSettings(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "particle, match",
+    [
+        ({"roughness": {"min": 2.0, "max": 1.0}}, "min=2.0 > max=1.0"),
+        ({"roughness": {"min": -1.0, "max": 1.0}}, "expected >= 0"),
+        ({"shininess": {"min": 0.0, "max": 1.0}}, "unknown Principled-BSDF parameter"),
+        ({"roughness": {"min": 0.1}}, "expected keys"),
+        ({"roughness": {"min": 0.1, "max": float("nan")}}, "finite"),
+    ],
+)
+def test_bad_limits_fail_clearly(particle, match):
+    from drgan.scene.parameters import MaterialParameters
+
+    with pytest.raises(ConfigError, match=match):
+        MaterialParameters.from_config(particle, PAPER_STAGE, {"min": 0.001, "max": 0.1})
+
+
+def test_bad_layout_fails_clearly(tiny_scene):
+    with pytest.raises(ConfigError, match=r"expected shape \(4, 4\)"):
+        tiny_scene.set_layout(np.zeros((3, 4), np.float32))
+    bad = TINY_PHI.copy()
+    bad[0, 3] = 0
+    with pytest.raises(ConfigError, match="scales"):
+        tiny_scene.set_layout(bad)
+    tiny_scene.set_layout(TINY_PHI)
