@@ -1,0 +1,123 @@
+"""Render cost: seconds per forward and per forward+backward of the differentiable scene.
+
+    python benchmarks/render.py                         # the issue's grid: 256 px, spp 1..121, 2 integrators, 10/40 particles
+    python benchmarks/render.py --spp 16 --resolution 64 128 256 512 --particles 40
+    python benchmarks/render.py --elements              # cost of each optional scene element (lights, stage, filter)
+
+Prints a markdown table (median of --repeats timed runs after one warm-up) and, with --out, writes it
+with the machine description. New layouts are drawn for every timed run, as in training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import platform
+import statistics
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from drgan.scene import layout, meshes  # noqa: E402
+from drgan.scene.parameters import MaterialParameters  # noqa: E402
+from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec, TopLight, TorusLight  # noqa: E402
+
+PARTICLE = {name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")}
+STAGE = {"base_color": {"min": 0.01, "max": 0.4}}
+SIGMA = {"min": 0.001, "max": 0.1}
+
+
+def make_scene(n, resolution, spp, integrator, variant, cube_meshes, **elements):
+    spec = SceneSpec(
+        MaterialParameters.from_config(PARTICLE, STAGE if elements.get("stage", True) else None, SIGMA),
+        RenderSettings(resolution=resolution, spp=spp, integrator=integrator, filter_stddev=elements.get("filter_stddev", 0.5)),
+        view_width=256.0,
+        stage=elements.get("stage", True),
+        torus_light=elements.get("torus_light", TorusLight()),
+        top_light=elements.get("top_light", TopLight()),
+    )
+    return ParticleScene(cube_meshes, n, spec, variant=variant)
+
+
+def time_scene(scene, n, repeats, seed=0):
+    sizes, placement = layout.LognormalSize(24.0, 0.25), layout.PoissonAgglomerates()
+    phis = layout.sample_layouts(2 * repeats + 2, n, sizes, placement, view_width=256.0, seed=seed)
+    values = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6][: len(scene.learned_bsdf)])
+    forward, both = [], []
+    for i, phi in enumerate(phis):
+        scene.set_layout(phi)
+        start = time.perf_counter()
+        if i % 2 == 0:
+            with torch.no_grad():
+                scene.render(values, seed=i)
+            forward.append(time.perf_counter() - start)
+        else:
+            x = values.clone().requires_grad_(True)
+            scene.render(x, seed=i).square().mean().backward()
+            both.append(time.perf_counter() - start)
+    # Drop the warm-up (first of each kind: kernel compilation).
+    return statistics.median(forward[1:]), statistics.median(both[1:])
+
+
+def grid(args, cube_meshes):
+    rows = []
+    for variant, integrator, n, resolution, spp in itertools.product(
+        args.variant, args.integrator, args.particles, args.resolution, args.spp
+    ):
+        scene = make_scene(n, resolution, spp, integrator, variant, cube_meshes)
+        fwd, fb = time_scene(scene, n, args.repeats)
+        rows.append((variant, integrator, n, resolution, spp, fwd, fb))
+        print(f"| {variant} | {integrator} | {n} | {resolution} | {spp} | {fwd:.3f} | {fb:.3f} |", flush=True)
+    return rows
+
+
+ELEMENTS = {
+    "full scene (stage, torus light, top light, filter 0.5)": {},
+    "no top light": {"top_light": None},
+    "no torus light": {"torus_light": None},
+    "no stage": {"stage": False},
+    "filter stddev 3.0 (HIM)": {"filter_stddev": 3.0},
+}
+
+
+def elements(args, cube_meshes):
+    n, resolution, spp = args.particles[0], args.resolution[0], args.spp[0]
+    for name, change in ELEMENTS.items():
+        scene = make_scene(n, resolution, spp, args.integrator[0], args.variant[0], cube_meshes, **change)
+        fwd, fb = time_scene(scene, n, args.repeats)
+        print(f"| {name} | {n} | {resolution} | {spp} | {fwd:.3f} | {fb:.3f} |", flush=True)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--spp", type=int, nargs="+", default=[1, 4, 16, 64, 121])
+    parser.add_argument("--resolution", type=int, nargs="+", default=[256])
+    parser.add_argument("--particles", type=int, nargs="+", default=[10, 40])
+    parser.add_argument("--integrator", nargs="+", default=["prb_basic", "direct_projective"])
+    parser.add_argument("--variant", nargs="+", default=["llvm_ad_rgb"])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--elements", action="store_true", help="cost of each optional scene element")
+    args = parser.parse_args()
+
+    cube_meshes = meshes.generate_meshes("cube", 40, seed=0)
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
+    print(f"command: python {' '.join(sys.argv)}\n")
+    if args.elements:
+        print("| scene | particles | resolution | spp | forward s | forward+backward s |")
+        print("|---|---|---|---|---|---|")
+        elements(args, cube_meshes)
+    else:
+        print("| variant | integrator | particles | resolution | spp | forward s | forward+backward s |")
+        print("|---|---|---|---|---|---|---|")
+        grid(args, cube_meshes)
+
+
+if __name__ == "__main__":
+    main()
