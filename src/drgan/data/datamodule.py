@@ -1,0 +1,225 @@
+"""Real training patches for the discriminator, as a LightningDataModule.
+
+The patches are mined once (drgan.data.patches.mine_patches) from the training images of a folder and
+cached in the run folder (``patches/``: patches.npz, summary.json, contact_sheet.png, source.json); a
+resumed run reads the cache instead of mining again, as long as the data settings are unchanged.
+Test ids of the split never reach training: only the split's train ids are read.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from lightning.pytorch import LightningDataModule
+from torch.utils.data import DataLoader, Dataset
+
+from drgan.data.images import list_images, read_grey, read_split
+from drgan.data.patches import PatchSet, SegmentParams, contact_sheet, dihedral_augment, mine_patches
+from drgan.errors import ConfigError, DataError
+
+log = logging.getLogger(__name__)
+
+_SOURCE_FILE = "source.json"
+
+
+class AugmentedPatches(Dataset):
+    """(N, H, W) float32 patches -> (1, H, W) tensors, each in a random one of the 8 dihedral symmetries."""
+
+    def __init__(self, patches: np.ndarray, augment: bool = True):
+        self.patches = patches
+        self.augment = augment
+
+    def __len__(self) -> int:
+        return len(self.patches)
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        patch = self.patches[index]
+        if self.augment:
+            patch = dihedral_augment(patch, int(torch.randint(8, ()).item()))
+        return torch.from_numpy(np.ascontiguousarray(patch, dtype=np.float32)).unsqueeze(0)
+
+
+class RealPatchDataModule(LightningDataModule):
+    """Training patches mined from the train images of ``dir``.
+
+    dir: folder of real images (TIFF/PNG/JPEG). split: a split.json ({"train": [...], "test": [...]});
+    "auto" uses ``dir/split.json`` or ``dir/../split.json`` when present; null trains on every image of
+    the folder. crop_rows: [start, stop) rows to drop (an info bar), or null. patch_size must equal the
+    renderer's resolution (``resolution``): the discriminator compares real and rendered patches pixel
+    by pixel. cache_dir: where the mined patches are written (the run folder's ``patches/``).
+    """
+
+    def __init__(
+        self,
+        dir: str,
+        split: str | None = "auto",
+        crop_rows: Sequence[int] | None = None,
+        patch_size: int = 256,
+        stride: int = 128,
+        min_particles: int = 3,
+        n_background: int = 200,
+        background_stride: int | None = None,
+        segment: Mapping | None = None,
+        batch_size: int = 1,
+        num_workers: int = 0,
+        augment: bool = True,
+        cache_dir: str | None = None,
+        resolution: int | None = None,
+    ):
+        super().__init__()
+        self.dir = Path(dir)
+        self.split = split
+        self.crop_rows = tuple(int(v) for v in crop_rows) if crop_rows is not None else None
+        self.patch_size = int(patch_size)
+        self.stride = int(stride)
+        self.min_particles = int(min_particles)
+        self.n_background = int(n_background)
+        self.background_stride = None if background_stride is None else int(background_stride)
+        try:
+            self.segment = SegmentParams(**dict(segment or {}))
+        except TypeError as error:
+            raise ConfigError(f"data.segment: {error} (expected keys of drgan.data.patches.SegmentParams)") from None
+        self.batch_size = int(batch_size)
+        self.num_workers = int(num_workers)
+        self.augment = bool(augment)
+        self.cache_dir = Path(cache_dir) if cache_dir else None
+        if self.batch_size < 1:
+            raise ConfigError(f"data.batch_size={batch_size}: expected >= 1")
+        if resolution is not None and int(resolution) != self.patch_size:
+            raise ConfigError(
+                f"data.patch_size={self.patch_size} but renderer.resolution={resolution}: the discriminator compares "
+                "real and rendered patches pixel by pixel, so they must be equal. Set data.patch_size to the render "
+                "resolution (and material.view_width to the real px the patch covers, usually the same number)."
+            )
+        self.patches: PatchSet | None = None
+        self.train_ids: list[str] = []
+        self.test_ids: list[str] = []
+
+    # --- which images -------------------------------------------------------------------------------------
+
+    def _split_path(self) -> Path | None:
+        if self.split is None or self.split in ("", "none", "null"):
+            return None
+        if self.split == "auto":
+            for candidate in (self.dir / "split.json", self.dir.parent / "split.json"):
+                if candidate.is_file():
+                    return candidate
+            return None
+        return Path(self.split)
+
+    def resolve_ids(self) -> tuple[list[Path], list[str], list[str]]:
+        """(train image paths, train ids, test ids); raises DataError on a missing image or a leaked test id."""
+        if not self.dir.is_dir():
+            raise DataError(f"data.dir {self.dir}: no such folder (expected a folder of real images)")
+        split_path = self._split_path()
+        if split_path is None:
+            paths = list_images(self.dir)
+            log.warning("data: no split file; training on all %d images of %s (no test ids held out)", len(paths), self.dir)
+            return paths, [p.stem for p in paths], []
+        split = read_split(split_path)
+        train, test = split["train"], split["test"]
+        leaked = sorted(set(train) & set(test))
+        if leaked:  # read_split refuses overlaps already; this guards the invariant itself
+            raise DataError(f"split {split_path}: test id(s) {leaked[:5]} are in the train list; test images must never be trained on")
+        if not train:
+            raise DataError(f"split {split_path}: empty 'train' list")
+        list_images(self.dir, test)  # a test id without an image means the split does not belong to this folder
+        return list_images(self.dir, train), list(train), list(test)
+
+    # --- mining and caching -------------------------------------------------------------------------------
+
+    def _source(self, ids: list[str]) -> dict:
+        return {
+            "dir": str(self.dir.resolve()),
+            "train_ids": ids,
+            "crop_rows": list(self.crop_rows) if self.crop_rows else None,
+            "patch_size": self.patch_size,
+            "stride": self.stride,
+            "min_particles": self.min_particles,
+            "n_background": self.n_background,
+            "background_stride": self.background_stride,
+            "segment": self.segment.__dict__,
+        }
+
+    def _load_cache(self, source: dict) -> PatchSet | None:
+        if self.cache_dir is None or not (self.cache_dir / _SOURCE_FILE).is_file():
+            return None
+        try:
+            cached = json.loads((self.cache_dir / _SOURCE_FILE).read_text())
+        except json.JSONDecodeError:
+            return None
+        if cached != source:
+            log.info("data: cached patches in %s were mined with other settings; mining again", self.cache_dir)
+            return None
+        log.info("data: reusing mined patches from %s", self.cache_dir)
+        return PatchSet.load(self.cache_dir)
+
+    def prepare_data(self) -> None:
+        self.setup("fit")
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.patches is not None:
+            return
+        paths, ids, self.test_ids = self.resolve_ids()
+        self.train_ids = ids
+        source = self._source(ids)
+        patches = self._load_cache(source)
+        if patches is None:
+            images = [read_grey(p, self.crop_rows) for p in paths]
+            patches = mine_patches(
+                images,
+                ids,
+                size=self.patch_size,
+                stride=self.stride,
+                min_particles=self.min_particles,
+                n_background=self.n_background,
+                background_stride=self.background_stride,
+                segment=self.segment,
+                progress=False,
+            )
+            if self.cache_dir is not None:
+                patches.save(self.cache_dir)
+                contact_sheet(patches, self.cache_dir / "contact_sheet.png")
+                (self.cache_dir / _SOURCE_FILE).write_text(json.dumps(source, indent=1))
+        leaked = sorted(set(patches.train_ids) & set(self.test_ids))
+        if leaked:
+            raise DataError(f"data: patches of test image(s) {leaked[:5]} reached the training set")
+        if len(patches.train) == 0:
+            raise DataError(
+                f"data.dir {self.dir}: no {self.patch_size} px patch of the {len(ids)} training image(s) shows >= "
+                f"{self.min_particles} fully displayed particles (lower data.min_particles or data.stride, or check "
+                "data.segment against your particle sizes)"
+            )
+        self.patches = patches
+        log.info("data: %s", json.dumps(patches.summary()))
+
+    # --- what the GAN sees --------------------------------------------------------------------------------
+
+    @property
+    def real_patches(self) -> np.ndarray:
+        self.setup()
+        return self.patches.train
+
+    @property
+    def background_patches(self) -> np.ndarray:
+        self.setup()
+        return self.patches.background
+
+    @property
+    def n_train(self) -> int:
+        return len(self.real_patches)
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(
+            AugmentedPatches(self.real_patches, self.augment),
+            batch_size=self.batch_size,
+            shuffle=True,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            drop_last=len(self.real_patches) >= self.batch_size,
+        )

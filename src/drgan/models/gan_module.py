@@ -1,0 +1,223 @@
+"""DiffRenderGAN training as a LightningModule: generator (FCN + differentiable render + noise) against
+a PatchGAN discriminator, with manual optimisation.
+
+One step renders once: ``fake = G(phi)``; D learns on ``fake.detach()`` against a real batch, then G
+learns through D on the same ``fake`` (a render is by far the most expensive part of a step).
+A step whose loss or gradient is not finite changes no weights; it is counted, and after
+``max_consecutive_nonfinite`` such steps in a row training stops with a RuntimeError.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from lightning.pytorch import LightningModule
+from omegaconf import DictConfig, OmegaConf
+
+from drgan import build
+from drgan.errors import ConfigError
+from drgan.models.discriminator import PatchDiscriminator
+
+log = logging.getLogger(__name__)
+
+# The config groups that define the model; saved with every checkpoint so that it rebuilds alone.
+MODEL_GROUPS = ("material", "size", "placement", "renderer", "model", "seed")
+LOSSES = ("lsgan", "vanilla")
+# Render seeds of different DDP ranks must differ: rank r renders with base seed seed + r * RANK_SEED_STRIDE.
+RANK_SEED_STRIDE = 7919
+
+
+def model_config(cfg: DictConfig | Mapping) -> dict:
+    """The part of a composed training config that the GANModule needs, resolved to plain values."""
+    cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg))
+    return {k: OmegaConf.to_container(cfg[k], resolve=True) if isinstance(cfg[k], DictConfig) else cfg[k] for k in MODEL_GROUPS if k in cfg}
+
+
+class GANModule(LightningModule):
+    """cfg: the composed config (or its ``model_config``); m: constellations in the phi bank (default:
+    ``model.n_constellations``, else required); base_dir: where relative mesh folders are found."""
+
+    def __init__(self, cfg: DictConfig | Mapping, m: int | None = None, base_dir: str | None = None):
+        super().__init__()
+        self.automatic_optimization = False
+        cfg = OmegaConf.create(model_config(cfg))
+        self.save_hyperparameters({"cfg": OmegaConf.to_container(cfg), "m": m, "base_dir": base_dir}, logger=False)
+        self.cfg = cfg
+        model = cfg.get("model") or OmegaConf.create({})
+        self.seed = int(cfg.get("seed", 0))
+        self.loss_kind = str(model.get("loss", "lsgan"))
+        if self.loss_kind not in LOSSES:
+            raise ConfigError(f"model.loss={self.loss_kind!r}: expected one of {LOSSES}")
+        self.lr_g, self.lr_d = float(model.get("lr_g", 2e-4)), float(model.get("lr_d", 1e-4))
+        self.betas = tuple(float(b) for b in model.get("betas", (0.5, 0.999)))
+        if self.lr_g <= 0 or self.lr_d <= 0 or len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
+            raise ConfigError(f"model: lr_g={self.lr_g}, lr_d={self.lr_d}, betas={self.betas}: expected lr > 0 and two betas in [0, 1)")
+        self.max_consecutive_nonfinite = int(model.get("max_consecutive_nonfinite", 5))
+        if self.max_consecutive_nonfinite < 1:
+            raise ConfigError(f"model.max_consecutive_nonfinite={self.max_consecutive_nonfinite}: expected >= 1")
+
+        self.generator = build.build_generator(cfg, base_dir=base_dir, seed=self.seed)
+        disc = model.get("discriminator") or {}
+        self.discriminator = PatchDiscriminator(1, int(disc.get("filters", 64)), int(disc.get("n_layers", 3)), float(disc.get("slope", 0.2)))
+        self.discriminator.check_size(self.generator.scene.spec.render.resolution)
+
+        m = m if m is not None else model.get("n_constellations")
+        if m is None or int(m) < 1:
+            raise ConfigError(f"GANModule: m={m} constellations; expected >= 1 (default: the number of training patches)")
+        self.register_buffer("phi_bank", torch.as_tensor(build.sample_phi(cfg, int(m), seed=self.seed), dtype=torch.float32))
+        # phi indices come from a generator of their own (per rank, saved in checkpoints), not the global RNG.
+        self.phi_rng = torch.Generator().manual_seed(self.seed)
+        self.skipped_steps = 0
+        self.consecutive_nonfinite = 0
+
+    @property
+    def learned_keys(self) -> list[str]:
+        return [p.key for p in self.generator.learned]
+
+    def setup(self, stage: str) -> None:
+        rank = int(self.global_rank)
+        self.generator.base_seed = self.seed + RANK_SEED_STRIDE * rank
+        self.phi_rng.manual_seed(self.seed + RANK_SEED_STRIDE * rank)
+
+    # --- optimisers and losses ----------------------------------------------------------------------------
+
+    def configure_optimizers(self):
+        opt_g = torch.optim.Adam(self.generator.parameters(), lr=self.lr_g, betas=self.betas)
+        opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=self.lr_d, betas=self.betas)
+        return [opt_g, opt_d]
+
+    def adversarial_loss(self, logits: torch.Tensor, real: bool) -> torch.Tensor:
+        target = torch.full_like(logits, 1.0 if real else 0.0)
+        if self.loss_kind == "lsgan":
+            return F.mse_loss(logits, target)
+        return F.binary_cross_entropy_with_logits(logits, target)
+
+    def score(self, logits: torch.Tensor) -> torch.Tensor:
+        """D's mean verdict: raw output (LSGAN, target 1 real / 0 fake) or probability of real (vanilla)."""
+        return (logits if self.loss_kind == "lsgan" else torch.sigmoid(logits)).mean()
+
+    # --- the step -----------------------------------------------------------------------------------------
+
+    def draw_phi(self, batch_size: int) -> torch.Tensor:
+        index = torch.randint(len(self.phi_bank), (batch_size,), generator=self.phi_rng)
+        return self.phi_bank[index.to(self.phi_bank.device)]
+
+    def render(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, n, 4) -> images (B, 1, H, W) and the learned values (B, k) used for them."""
+        values = self.generator.learned_values(phi)
+        images = torch.stack([self.generator.render_one(phi[b], values[b]) for b in range(phi.shape[0])])
+        return images.to(self.device), values
+
+    @staticmethod
+    def _finite_grads(module: torch.nn.Module) -> bool:
+        grads = [p.grad for p in module.parameters() if p.grad is not None]
+        return all(bool(torch.isfinite(g).all()) for g in grads)
+
+    def _optimise(self, optimizer, module: torch.nn.Module, loss: torch.Tensor) -> bool:
+        """One guarded update of ``module``: False (and no step) when the loss or a gradient is not finite."""
+        self.toggle_optimizer(optimizer)
+        try:
+            optimizer.zero_grad(set_to_none=True)
+            if not torch.isfinite(loss).all():
+                return False
+            self.manual_backward(loss)
+            if not self._finite_grads(module):
+                optimizer.zero_grad(set_to_none=True)
+                return False
+            optimizer.step()
+            return True
+        finally:
+            self.untoggle_optimizer(optimizer)
+
+    def training_step(self, batch, batch_idx):
+        start = time.perf_counter()
+        real = batch if torch.is_tensor(batch) else batch[0]
+        opt_g, opt_d = self.optimizers()
+        phi = self.draw_phi(real.shape[0])
+
+        render_start = time.perf_counter()
+        fake, values = self.render(phi)
+        render_s = time.perf_counter() - render_start
+
+        # D: real -> 1, detached fake -> 0. G: fake through the (just updated) D -> 1.
+        d_real_logits = self.discriminator(real)
+        d_fake_logits = self.discriminator(fake.detach())
+        d_loss = 0.5 * (self.adversarial_loss(d_real_logits, True) + self.adversarial_loss(d_fake_logits, False))
+        ok = self._optimise(opt_d, self.discriminator, d_loss)
+        g_loss = torch.tensor(float("nan"))
+        if ok:  # a failed D step skips the whole step: G would learn against a broken verdict
+            g_loss = self.adversarial_loss(self.discriminator(fake), True)
+            ok = self._optimise(opt_g, self.generator, g_loss)
+        self._count(ok, d_loss, g_loss)
+
+        batch_size = real.shape[0]
+        log = dict(on_step=True, on_epoch=True, batch_size=batch_size)
+        self.log("train/skipped_steps", float(self.skipped_steps), on_step=True, on_epoch=False, reduce_fx="max", batch_size=batch_size)
+        if ok:
+            self.log("train/d_loss", d_loss.detach(), prog_bar=True, **log)
+            self.log("train/g_loss", g_loss.detach(), prog_bar=True, **log)
+            self.log("train/d_real", self.score(d_real_logits.detach()), **log)
+            self.log("train/d_fake", self.score(d_fake_logits.detach()), **log)
+            for key, mean in zip(self.learned_keys, values.detach().mean(0).tolist()):
+                self.log(f"params/{key}", mean, **log)
+        self.log("time/render_s", render_s, **log)
+        self.log("time/step_s", time.perf_counter() - start, **log)
+
+    def _count(self, ok: bool, d_loss: torch.Tensor, g_loss: torch.Tensor) -> None:
+        if ok:
+            self.consecutive_nonfinite = 0
+            return
+        self.skipped_steps += 1
+        self.consecutive_nonfinite += 1
+        log.warning(
+            "step %d skipped: non-finite loss or gradient (d_loss=%s, g_loss=%s); %d in a row, %d in all",
+            self.global_step, _fmt(d_loss), _fmt(g_loss), self.consecutive_nonfinite, self.skipped_steps,
+        )  # fmt: skip
+        if self.consecutive_nonfinite >= self.max_consecutive_nonfinite:
+            raise RuntimeError(
+                f"training stopped: {self.consecutive_nonfinite} steps in a row had a non-finite loss or gradient "
+                f"(model.max_consecutive_nonfinite={self.max_consecutive_nonfinite}; {self.skipped_steps} skipped in all). "
+                "Try lower learning rates (model.lr_g, model.lr_d), narrower parameter limits in the material config "
+                "(material.particle_bsdf / stage_bsdf / noise_sigma), or a different renderer.integrator."
+            )
+
+    # --- for callbacks and inference ----------------------------------------------------------------------
+
+    @torch.no_grad()
+    def parameter_samples(self, phi) -> np.ndarray:
+        """Learned parameter values (B, k), in ``learned_keys`` order, for constellations (B, n, 4); eval mode."""
+        phi = torch.as_tensor(np.asarray(phi) if not torch.is_tensor(phi) else phi, dtype=torch.float32)
+        if phi.dim() == 2:
+            phi = phi.unsqueeze(0)
+        was_training = self.generator.training
+        self.generator.eval()
+        try:
+            return self.generator.learned_values(phi.to(self.phi_bank.device)).cpu().numpy()
+        finally:
+            self.generator.train(was_training)
+
+    # --- checkpoint state beyond the weights --------------------------------------------------------------
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["drgan"] = {
+            "phi_rng_state": self.phi_rng.get_state(),
+            "skipped_steps": self.skipped_steps,
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        state = checkpoint.get("drgan") or {}
+        if "phi_rng_state" in state:
+            self.phi_rng.set_state(state["phi_rng_state"])
+        self.skipped_steps = int(state.get("skipped_steps", 0))
+
+
+def _fmt(value: torch.Tensor) -> str:
+    v = float(value.detach().float().mean()) if torch.is_tensor(value) else float(value)
+    return f"{v:.4g}" if math.isfinite(v) else str(v)

@@ -1,0 +1,181 @@
+"""`python -m drgan.train material=sio2_him data.dir=/path/to/images`: train DiffRenderGAN.
+
+Composes conf/train.yaml, mines the real patches, and fits the GANModule with Lightning. Everything of
+one run lands in its folder, runs/<material>/<run_name>/ (patches/, checkpoints/, train.log, metrics.json,
+.hydra/); metrics and parameters go to MLflow (one experiment per material, one run per training run).
+
+Resume: run again with the same run_name and `ckpt_path=last`, e.g.
+    python -m drgan.train run_name=exp1 trainer.max_epochs=80 ckpt_path=last
+The same run_name gives the same folder, hence its checkpoints/last.ckpt, its cached patches and its
+MLflow run (whose id is kept in the folder). `ckpt_path=last` with no checkpoint yet starts afresh, so
+one command serves a first start and every restart (e.g. a preempted cluster job).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from drgan import build  # noqa: F401  (registers the ${mul:} resolver used by the size/placement configs)
+from drgan.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+MLFLOW_RUN_ID_FILE = "mlflow_run_id.txt"
+
+
+def _targets(group) -> list:
+    """Every `_target_` entry of a config group, in order (entries without one are ignored)."""
+    from hydra.utils import instantiate
+
+    if not group:
+        return []
+    return [instantiate(entry) for entry in group.values() if isinstance(entry, DictConfig) and "_target_" in entry]
+
+
+def instantiate_callbacks(cfg: DictConfig | None) -> list:
+    return _targets(cfg)
+
+
+def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, tags: dict) -> list:
+    """Loggers of the `logger` group. An MLflow logger of a resumed run continues the run's MLflow run."""
+    from hydra.utils import instantiate
+
+    loggers = []
+    for entry in (cfg or {}).values():
+        if not isinstance(entry, DictConfig) or "_target_" not in entry:
+            continue
+        if entry._target_.endswith("MLFlowLogger"):
+            id_file = output_dir / MLFLOW_RUN_ID_FILE
+            run_id = id_file.read_text().strip() if resume and id_file.is_file() else None
+            with _store_lock(str(entry.tracking_uri)):
+                logger = instantiate(entry, run_id=run_id, tags={**tags, **(entry.get("tags") or {})})
+                id_file.write_text(logger.run_id)  # creates the experiment and run now, under the lock
+        else:
+            logger = instantiate(entry)
+        loggers.append(logger)
+    return loggers
+
+
+@contextmanager
+def _store_lock(tracking_uri: str):
+    """Serialise first contact with a local MLflow store: parallel sweep jobs (joblib) would otherwise race
+    to create the SQLite schema or the experiment. Remote stores (http://...) need no lock."""
+    local = None
+    if tracking_uri.startswith("sqlite:///"):
+        local = Path(tracking_uri[len("sqlite:///") :]).parent
+    elif tracking_uri.startswith("file:"):
+        local = Path(tracking_uri[len("file:") :])
+    if local is None:
+        yield
+        return
+    local.mkdir(parents=True, exist_ok=True)
+    with open(local / ".drgan.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def resolve_checkpoint(ckpt_path: str | None, output_dir: Path) -> str | None:
+    if ckpt_path in (None, "", "null"):
+        return None
+    if ckpt_path == "last":
+        last = output_dir / "checkpoints" / "last.ckpt"
+        if last.is_file():
+            return str(last)
+        log.warning("ckpt_path=last: no %s yet; starting a fresh run", last)
+        return None
+    path = Path(ckpt_path)
+    if not path.is_file():
+        raise ConfigError(f"ckpt_path={ckpt_path}: no such checkpoint file (or use ckpt_path=last to resume this run folder)")
+    return str(path)
+
+
+def flat_config(cfg: DictConfig) -> dict:
+    """The composed config as flat "group/key" -> value pairs (MLflow params)."""
+    out: dict = {}
+
+    def walk(node, prefix):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}{k}/")
+        else:
+            out[prefix[:-1]] = node if isinstance(node, (int, float, str, bool)) or node is None else json.dumps(node)
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return out
+
+
+def train(cfg: DictConfig) -> dict:
+    """Fit one run; return its final metrics (last step/epoch values, plus time/wall_s)."""
+    import lightning.pytorch as L
+    from hydra.utils import instantiate
+
+    from drgan.models.gan_module import GANModule
+
+    wall_start = time.perf_counter()
+    with open_dict(cfg):  # absolute project root: every path of the run derives from it
+        cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
+    output_dir = Path(cfg.paths.output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    L.seed_everything(int(cfg.seed), workers=True)
+
+    # Data first: a bad folder, split or patch size fails here, before scenes are built or steps spent.
+    datamodule = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
+    datamodule.setup("fit")
+    m = cfg.model.get("n_constellations") or datamodule.n_train
+    model = GANModule(cfg, m=int(m), base_dir=cfg.paths.root_dir)
+
+    ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
+    tags = {"material": str(cfg.material.name), "output_dir": str(output_dir)}
+    tags.update({str(t): "1" for t in cfg.get("tags") or []})
+    loggers = instantiate_loggers(cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags)
+    callbacks = instantiate_callbacks(cfg.get("callbacks"))
+    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+
+    params = flat_config(cfg)
+    params.update({"data/n_train_patches": datamodule.n_train, "model/m": int(m)})
+    for logger in loggers:
+        try:
+            logger.log_hyperparams(params)
+        except Exception as error:  # MLflow refuses to change a logged param, e.g. max_epochs on resume
+            log.warning("%s: config params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
+
+    log.info("training %s: %d real patches, m=%d constellations, run folder %s", cfg.material.name, datamodule.n_train, m, output_dir)
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
+    metrics["time/wall_s"] = time.perf_counter() - wall_start
+    metrics["train/skipped_steps_total"] = float(model.skipped_steps)
+    for logger in loggers:
+        logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
+    (output_dir / "metrics.json").write_text(json.dumps({"epoch": trainer.current_epoch, "global_step": trainer.global_step, **metrics}, indent=1))
+    log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="train")
+def main(cfg: DictConfig):
+    metrics = train(cfg)
+    # Hydra sweepers (e.g. Optuna) optimise the value returned: `optimized_metric=val/fid`.
+    key = cfg.get("optimized_metric")
+    if key:
+        if key not in metrics:
+            raise ConfigError(f"optimized_metric={key}: not among the final metrics {sorted(metrics)}")
+        return metrics[key]
+    return metrics
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    main()
