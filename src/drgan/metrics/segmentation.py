@@ -1,0 +1,221 @@
+"""Instance segmentation scores of label images: DSC, AP50 and panoptic quality.
+
+A label image is a 2-D array of non-negative integers: 0 is background, every other value one particle
+instance (values need not be consecutive). Data flow: network output (class or probability map) ->
+``binarize_and_label`` -> label image -> ``match_instances`` against the true labels -> scores.
+
+A predicted and a true instance match when their IoU is strictly greater than the threshold (0.5 for
+every score here). Above 0.5 each instance can match at most one other (see ``match_instances``), so
+the matching needs no assignment step and every score is unambiguous.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.optimize import linear_sum_assignment
+
+from drgan.errors import ConfigError, DataError
+
+__all__ = [
+    "binarize_and_label",
+    "dice",
+    "InstanceMatch",
+    "match_instances",
+    "ap50",
+    "panoptic_quality",
+    "segmentation_scores",
+]
+
+# 4-connectivity: pixels touching only at a corner belong to different particles.
+_FOUR_CONNECTED = ndimage.generate_binary_structure(2, 1)
+
+
+def _check_pair(pred: np.ndarray, true: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    pred, true = np.asarray(pred), np.asarray(true)
+    if pred.shape != true.shape:
+        raise DataError(f"{what}: prediction shape {pred.shape} differs from ground truth shape {true.shape}")
+    if pred.ndim != 2:
+        raise DataError(f"{what}: expected 2-D images, got shape {pred.shape}")
+    return pred, true
+
+
+def _check_labels(labels: np.ndarray, name: str) -> np.ndarray:
+    if labels.dtype == bool or not np.issubdtype(labels.dtype, np.integer):
+        raise DataError(
+            f"{name}: expected an integer label image (0 = background), got dtype {labels.dtype}; "
+            "use binarize_and_label for masks or probability maps"
+        )
+    if labels.size and labels.min() < 0:
+        raise DataError(f"{name}: label values must be >= 0, got minimum {labels.min()}")
+    return labels
+
+
+def binarize_and_label(
+    prob_or_class_map: np.ndarray, particle_class: int = 1, threshold: float = 0.5
+) -> np.ndarray:
+    """Particle instances of a segmentation output as a label image (int32, 0 = background).
+
+    - Integer (or bool) input is a class map: pixels equal to ``particle_class`` are particle. Any other
+      class, in particular a contour / boundary class drawn between touching particles, counts as not
+      particle, so that it separates the instances.
+    - Float input is a particle probability map in [0, 1]: pixels > ``threshold`` are particle.
+
+    Instances are the 4-connected components of the particle pixels (diagonal neighbours are separate).
+    """
+    arr = np.asarray(prob_or_class_map)
+    if arr.ndim != 2:
+        raise DataError(f"binarize_and_label: expected a 2-D class or probability map, got shape {arr.shape}")
+    if arr.dtype == bool or np.issubdtype(arr.dtype, np.integer):
+        particle = arr == particle_class
+    elif np.issubdtype(arr.dtype, np.floating):
+        if not 0.0 <= threshold < 1.0:
+            raise ConfigError(f"binarize_and_label: threshold must be in [0, 1), got {threshold}")
+        if arr.size and (not np.isfinite(arr).all() or arr.min() < 0.0 or arr.max() > 1.0):
+            raise DataError(
+                "binarize_and_label: a float map must be probabilities in [0, 1]; "
+                "pass class maps as integers"
+            )
+        particle = arr > threshold
+    else:
+        raise DataError(f"binarize_and_label: unsupported dtype {arr.dtype}")
+    labels, _ = ndimage.label(particle, structure=_FOUR_CONNECTED)
+    return labels.astype(np.int32)
+
+
+def dice(pred_mask: np.ndarray, true_mask: np.ndarray) -> float:
+    """Dice similarity coefficient 2|P & T| / (|P| + |T|) of the foregrounds (nonzero pixels).
+
+    Both foregrounds empty is a perfect prediction: 1.0.
+    """
+    pred, true = _check_pair(pred_mask, true_mask, "dice")
+    p, t = pred != 0, true != 0
+    total = int(p.sum()) + int(t.sum())
+    if total == 0:
+        return 1.0
+    return 2.0 * int((p & t).sum()) / total
+
+
+@dataclass(frozen=True)
+class InstanceMatch:
+    """Result of ``match_instances``. Ids are the label values of the two images."""
+
+    pairs: list[tuple[int, int]]  # (pred_id, true_id), one per true positive
+    ious: np.ndarray  # IoU of each pair, float64, same order
+    unmatched_pred: list[int]  # false positives
+    unmatched_true: list[int]  # false negatives
+
+    @property
+    def tp(self) -> int:
+        return len(self.pairs)
+
+    @property
+    def fp(self) -> int:
+        return len(self.unmatched_pred)
+
+    @property
+    def fn(self) -> int:
+        return len(self.unmatched_true)
+
+
+def _iou_matrix(pred: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IoU of every (pred instance, true instance) pair, with the instance ids of rows and columns."""
+    pred_ids, pred_idx = np.unique(pred, return_inverse=True)  # index 0 is background if present
+    true_ids, true_idx = np.unique(true, return_inverse=True)
+    counts = np.bincount(
+        pred_idx.ravel() * len(true_ids) + true_idx.ravel(), minlength=len(pred_ids) * len(true_ids)
+    ).reshape(len(pred_ids), len(true_ids))
+    area_pred = counts.sum(axis=1)
+    area_true = counts.sum(axis=0)
+    keep_p = pred_ids != 0
+    keep_t = true_ids != 0
+    inter = counts[np.ix_(keep_p, keep_t)].astype(np.float64)
+    union = area_pred[keep_p][:, None] + area_true[keep_t][None, :] - inter
+    return inter / np.maximum(union, 1.0), pred_ids[keep_p], true_ids[keep_t]
+
+
+def match_instances(
+    pred_labels: np.ndarray, true_labels: np.ndarray, iou_threshold: float = 0.5
+) -> InstanceMatch:
+    """Match predicted to true instances; a pair matches when IoU > ``iou_threshold`` (strictly).
+
+    For thresholds >= 0.5 the matching is unique: IoU(p, t) > 0.5 means |p & t| > |p | t| / 2 >= |t| / 2,
+    i.e. p covers more than half of t, and two disjoint predictions cannot both do that (nor can one
+    prediction cover more than half of two disjoint true instances). So every pair above the threshold is
+    a match. At exactly 0.5 this fails (two halves of one particle both have IoU 0.5), which is why the
+    comparison is strict: IoU == 0.5 is not a match. Below 0.5 the one-to-one matching that maximises the
+    summed IoU over pairs above the threshold is found with the Hungarian algorithm.
+    """
+    pred, true = _check_pair(pred_labels, true_labels, "match_instances")
+    pred, true = _check_labels(pred, "pred_labels"), _check_labels(true, "true_labels")
+    if not 0.0 <= iou_threshold < 1.0:
+        raise ConfigError(f"match_instances: iou_threshold must be in [0, 1), got {iou_threshold}")
+    iou, pred_ids, true_ids = _iou_matrix(pred, true)
+
+    if iou_threshold >= 0.5:
+        rows, cols = np.nonzero(iou > iou_threshold)
+    else:
+        rows, cols = linear_sum_assignment(np.where(iou > iou_threshold, iou, 0.0), maximize=True)
+        ok = iou[rows, cols] > iou_threshold
+        rows, cols = rows[ok], cols[ok]
+    order = np.argsort(pred_ids[rows], kind="stable")
+    rows, cols = rows[order], cols[order]
+    matched_p, matched_t = set(rows.tolist()), set(cols.tolist())
+    return InstanceMatch(
+        pairs=[(int(pred_ids[r]), int(true_ids[c])) for r, c in zip(rows, cols)],
+        ious=iou[rows, cols].astype(np.float64),
+        unmatched_pred=[int(i) for k, i in enumerate(pred_ids) if k not in matched_p],
+        unmatched_true=[int(i) for k, i in enumerate(true_ids) if k not in matched_t],
+    )
+
+
+def _ap50(m: InstanceMatch) -> float:
+    total = m.tp + m.fp + m.fn
+    return 1.0 if total == 0 else m.tp / total
+
+
+def _pq(m: InstanceMatch) -> tuple[float, float, float]:
+    if m.tp + m.fp + m.fn == 0:
+        return 1.0, 1.0, 1.0
+    sq = float(m.ious.mean()) if m.tp else 0.0
+    rq = m.tp / (m.tp + 0.5 * m.fp + 0.5 * m.fn)
+    return sq * rq, sq, rq
+
+
+def ap50(pred_labels: np.ndarray, true_labels: np.ndarray) -> float:
+    """The "AP at IoU 0.5" of the DiffRenderGAN paper: TP / (TP + FP + FN).
+
+    TP are predicted/true pairs with IoU > 0.5 (one-to-one, see ``match_instances``), FP unmatched
+    predictions, FN unmatched true instances. This is the single-threshold "average precision" of the
+    Data Science Bowl 2018 / StarDist ("accuracy" in StarDist's ``matching``), not the area under a
+    precision-recall curve over detection scores (there are no scores here). Both images without
+    instances give 1.0.
+    """
+    return _ap50(match_instances(pred_labels, true_labels, 0.5))
+
+
+def panoptic_quality(pred_labels: np.ndarray, true_labels: np.ndarray) -> tuple[float, float, float]:
+    """(PQ, SQ, RQ) of the particle class (Kirillov et al., 2019).
+
+    SQ = mean IoU of the matched pairs (IoU > 0.5), RQ = TP / (TP + FP/2 + FN/2), PQ = SQ * RQ.
+    No matches gives SQ = 0 (and PQ = RQ = 0); both images without instances give (1, 1, 1).
+    """
+    return _pq(match_instances(pred_labels, true_labels, 0.5))
+
+
+def segmentation_scores(pred_labels: np.ndarray, true_labels: np.ndarray) -> dict[str, float | int]:
+    """All scores of one image pair: dsc, ap50, pq, sq, rq and the counts tp, fp, fn."""
+    m = match_instances(pred_labels, true_labels, 0.5)
+    pq, sq, rq = _pq(m)
+    return {
+        "dsc": dice(pred_labels, true_labels),
+        "ap50": _ap50(m),
+        "pq": pq,
+        "sq": sq,
+        "rq": rq,
+        "tp": m.tp,
+        "fp": m.fp,
+        "fn": m.fn,
+    }
