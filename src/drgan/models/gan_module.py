@@ -157,18 +157,24 @@ class GANModule(LightningModule):
             ok = self._optimise(opt_g, self.generator, g_loss)
         self._count(ok, d_loss, g_loss)
 
-        batch_size = real.shape[0]
-        log = dict(on_step=True, on_epoch=True, batch_size=batch_size)
-        self.log("train/skipped_steps", float(self.skipped_steps), on_step=True, on_epoch=False, reduce_fx="max", batch_size=batch_size)
+        # Step values under their plain names (train/g_loss ...), epoch means as <name>_epoch.
+        scalars = {"train/skipped_steps": float(self.skipped_steps), "time/render_s": render_s}
         if ok:
-            self.log("train/d_loss", d_loss.detach(), prog_bar=True, **log)
-            self.log("train/g_loss", g_loss.detach(), prog_bar=True, **log)
-            self.log("train/d_real", self.score(d_real_logits.detach()), **log)
-            self.log("train/d_fake", self.score(d_fake_logits.detach()), **log)
-            for key, mean in zip(self.learned_keys, values.detach().mean(0).tolist()):
-                self.log(f"params/{key}", mean, **log)
-        self.log("time/render_s", render_s, **log)
-        self.log("time/step_s", time.perf_counter() - start, **log)
+            scalars.update({
+                "train/d_loss": d_loss.detach(),
+                "train/g_loss": g_loss.detach(),
+                "train/d_real": self.score(d_real_logits.detach()),
+                "train/d_fake": self.score(d_fake_logits.detach()),
+            })  # fmt: skip
+            scalars.update({f"params/{k}": v for k, v in zip(self.learned_keys, values.detach().mean(0).tolist())})
+        scalars["time/step_s"] = time.perf_counter() - start
+        self.log_scalars(scalars, real.shape[0])
+
+    def log_scalars(self, scalars: dict, batch_size: int) -> None:
+        for key, value in scalars.items():
+            self.log(key, value, on_step=True, on_epoch=False, prog_bar=key in ("train/d_loss", "train/g_loss"), batch_size=batch_size)
+            if key != "train/skipped_steps":
+                self.log(f"{key}_epoch", value, on_step=False, on_epoch=True, batch_size=batch_size)
 
     def _count(self, ok: bool, d_loss: torch.Tensor, g_loss: torch.Tensor) -> None:
         if ok:

@@ -1,0 +1,276 @@
+"""Training core: data module, discriminator, GANModule and `python -m drgan.train`.
+
+Tiny everything: 24 px renders (the smallest a 3-layer PatchGAN takes), spp 1, 3 particles, synthetic
+real images (bright discs on a dark background), 1-3 steps per run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from conftest import compose
+from drgan.data.datamodule import RealPatchDataModule
+from drgan.errors import ConfigError, DataError
+
+MATERIALS = ["tio2_sem", "tio2_him", "sio2_him", "agnw_sem"]
+SIZE = 24
+
+
+def make_images(folder: Path, n: int = 3, size: int = 96, seed: int = 0) -> Path:
+    """Bright discs (radius 4.5 px) on a dark noisy background, one corner left empty for background patches."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    for i in range(n):
+        img = 0.15 + 0.02 * rng.standard_normal((size, size))
+        for _ in range(14):
+            cy, cx = rng.uniform(6, size - 6, 2)
+            if cy > size - 30 and cx > size - 30:
+                continue
+            img[(yy - cy) ** 2 + (xx - cx) ** 2 <= 4.5**2] = 0.8
+        Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8)).save(folder / f"img{i}.png")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory) -> Path:
+    return make_images(tmp_path_factory.mktemp("real") / "images")
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    # Two cores shared with Dr.Jit's own thread pool: torch's second thread only adds contention here.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def tiny_overrides(data_dir: Path, out: Path, material: str = "tio2_sem", *, logger: str = "none", extra=()) -> list[str]:
+    return [
+        f"material={material}",
+        "material.n_particles=3",
+        "material.meshes.count=3",
+        f"renderer.resolution={SIZE}",
+        "renderer.spp=1",
+        "renderer.filter_stddev=0.5",  # one set of compiled kernels for every material (HIM uses 3.0)
+        f"data.dir={data_dir}",
+        "data.crop_rows=null",
+        "data.stride=8",
+        "data.min_particles=1",
+        "data.n_background=2",
+        f"paths.output_dir={out}",
+        f"paths.root_dir={out.parent}",
+        f"logger={logger}",
+        "trainer.accelerator=cpu",
+        "trainer.enable_model_summary=false",
+        *extra,
+    ]
+
+
+def run_train(overrides):
+    from drgan.train import train
+
+    return train(compose(overrides, config_name="train"))
+
+
+# --- data module ------------------------------------------------------------------------------------------
+
+
+def datamodule(data_dir, tmp_path, **kw):
+    args = dict(dir=str(data_dir), split=None, patch_size=SIZE, stride=8, min_particles=1, n_background=2, cache_dir=str(tmp_path / "patches"), resolution=SIZE)
+    args.update(kw)
+    return RealPatchDataModule(**args)
+
+
+def test_datamodule_mines_caches_and_augments(images, tmp_path):
+    dm = datamodule(images, tmp_path, batch_size=4)
+    dm.setup("fit")
+    assert dm.real_patches.shape[1:] == (SIZE, SIZE) and dm.real_patches.dtype == np.float32
+    assert len(dm.real_patches) >= 4 and dm.background_patches.shape == (2, SIZE, SIZE)
+    for name in ("patches.npz", "summary.json", "contact_sheet.png", "source.json"):
+        assert (tmp_path / "patches" / name).is_file()
+    batch = next(iter(dm.train_dataloader()))
+    assert batch.shape == (4, 1, SIZE, SIZE) and batch.dtype == torch.float32
+    assert 0.0 <= float(batch.min()) and float(batch.max()) <= 1.0
+    # A second module with the same settings reads the cache (the resumed run's case).
+    again = datamodule(images, tmp_path)
+    again.setup("fit")
+    np.testing.assert_array_equal(again.real_patches, dm.real_patches)
+
+
+def test_split_keeps_test_images_out(images, tmp_path):
+    split = tmp_path / "split.json"
+    split.write_text(json.dumps({"train": ["img0", "img1"], "test": ["img2"]}))
+    dm = datamodule(images, tmp_path, split=str(split))
+    dm.setup("fit")
+    assert set(dm.patches.train_ids) <= {"img0", "img1"} and dm.test_ids == ["img2"]
+    assert "img2" not in dm.patches.background_ids
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("empty", "holds no image files"),
+        ("small", "smaller than a 24 x 24 patch"),
+        ("missing_test_id", "no image for 1 requested id"),
+        ("test_in_train", "appears in both"),
+        ("size_mismatch", "data.patch_size=32 but renderer.resolution=24"),
+    ],
+)
+def test_bad_inputs_fail_before_training(case, message, images, tmp_path):
+    kw = {}
+    folder = images
+    if case == "empty":
+        folder = tmp_path / "empty"
+        folder.mkdir()
+    elif case == "small":
+        folder = tmp_path / "small"
+        folder.mkdir()
+        Image.fromarray(np.zeros((16, 40), np.uint8)).save(folder / "a.png")
+    elif case in ("missing_test_id", "test_in_train"):
+        test = ["nope"] if case == "missing_test_id" else ["img0"]
+        (tmp_path / "split.json").write_text(json.dumps({"train": ["img0", "img1"], "test": test}))
+        kw["split"] = str(tmp_path / "split.json")
+    error = ConfigError if case == "size_mismatch" else DataError
+    with pytest.raises(error, match=message):
+        dm = datamodule(folder, tmp_path, patch_size=32 if case == "size_mismatch" else SIZE, **kw)
+        dm.setup("fit")
+
+
+def test_train_refuses_bad_data_before_building_the_model(tmp_path, monkeypatch):
+    import drgan.models.gan_module as gm
+
+    monkeypatch.setattr(gm.GANModule, "__init__", lambda *a, **k: pytest.fail("model built before the data were checked"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match="holds no image files"):
+        run_train(tiny_overrides(tmp_path / "empty", tmp_path / "run"))
+
+
+# --- discriminator and module -----------------------------------------------------------------------------
+
+
+def test_patchgan_shape_and_init():
+    from drgan.models.discriminator import PatchDiscriminator
+
+    d = PatchDiscriminator()
+    convs = [m for m in d.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert [c.out_channels for c in convs] == [64, 128, 256, 512, 1]
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in d.modules()) == 3
+    assert d(torch.rand(2, 1, 256, 256)).shape == (2, 1, 30, 30)
+    # Xavier uniform: |w| <= sqrt(6 / (fan_in + fan_out))
+    w = convs[1].weight
+    assert float(w.abs().max()) <= (6 / (64 * 16 + 128 * 16)) ** 0.5 + 1e-6
+    with pytest.raises(ConfigError, match=">= 24 px"):
+        d.check_size(16)
+
+
+def test_compose_defaults_and_experiments():
+    cfg = compose(config_name="train")
+    assert cfg.material.name == "tio2_sem" and cfg.placement.kind == "poisson"
+    assert cfg.model.loss == "lsgan" and cfg.model.lr_g == 2e-4 and cfg.model.lr_d == 1e-4
+    assert list(cfg.model.betas) == [0.5, 0.999] and cfg.data.batch_size == 1 and cfg.trainer.max_epochs == 50
+    assert cfg.data.patch_size == cfg.renderer.resolution == 256
+    assert cfg.logger.mlflow.experiment_name == "tio2_sem"
+    for material in MATERIALS:
+        exp = compose([f"experiment={material}"], config_name="train")
+        assert exp.material.name == material
+    assert compose(["experiment=agnw_sem"], config_name="train").placement.kind == "random_2d"
+    fast = compose(["debug=fast"], config_name="train")
+    assert fast.renderer.spp == 1 and "mlflow" not in (fast.logger or {})
+
+
+@pytest.mark.parametrize("material", MATERIALS)
+def test_every_material_trains_a_step(material, images, tmp_path):
+    metrics = run_train(tiny_overrides(images, tmp_path / "run", material, extra=["trainer.fast_dev_run=1"]))
+    assert np.isfinite(metrics["train/g_loss"]) and np.isfinite(metrics["train/d_loss"])
+    assert metrics["train/skipped_steps"] == 0 and metrics["time/render_s"] > 0
+
+
+def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
+    out = tmp_path / "run"
+    base = tiny_overrides(images, out, logger="mlflow", extra=[f"logger.mlflow.tracking_uri={uri}", "trainer.limit_train_batches=2", "trainer.log_every_n_steps=1"])
+    run_train(base + ["trainer.max_epochs=1"])
+    first = json.loads((out / "metrics.json").read_text())
+    assert first["global_step"] == 2 * 2  # two optimiser steps (D, G) per batch
+    assert (out / "checkpoints" / "last.ckpt").is_file()
+    run_id = (out / "mlflow_run_id.txt").read_text()
+
+    run_train(base + ["trainer.max_epochs=2", "ckpt_path=last"])
+    second = json.loads((out / "metrics.json").read_text())
+    assert second["epoch"] == 2 and second["global_step"] == 2 * first["global_step"]
+    assert (out / "mlflow_run_id.txt").read_text() == run_id
+
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    experiment = client.get_experiment_by_name("tio2_sem")
+    runs = client.search_runs([experiment.experiment_id])
+    assert [r.info.run_id for r in runs] == [run_id]
+    run = runs[0]
+    assert run.data.params["model/lr_g"] == "0.0002" and run.data.params["material/name"] == "tio2_sem"
+    for key in ("train/g_loss", "train/d_loss", "train/d_real", "train/d_fake", "train/skipped_steps", "time/render_s", "time/step_s",
+                "time/wall_s", "params/noise.sigma", "params/particle.roughness", "train/g_loss_epoch"):
+        assert key in run.data.metrics, key
+    steps = [m.step for m in client.get_metric_history(run_id, "train/g_loss")]
+    assert sorted(set(steps)) == [0, 1, 2, 3]  # logged per batch: the resumed epoch continues at batch 2
+
+    from drgan.models.gan_module import GANModule
+
+    module = GANModule.load_from_checkpoint(out / "checkpoints" / "last.ckpt")
+    assert module.phi_bank.shape[1:] == (3, 4)
+    samples = module.parameter_samples(module.phi_bank[:2])
+    assert samples.shape == (2, len(module.learned_keys)) and np.isfinite(samples).all()
+
+
+def test_non_finite_steps_are_skipped_then_stop_training(images, tmp_path, monkeypatch):
+    from drgan.models.discriminator import PatchDiscriminator
+
+    forward = PatchDiscriminator.forward
+    calls = {"n": 0}
+
+    def nan_for_first_two_steps(self, image):
+        calls["n"] += 1
+        out = forward(self, image)
+        # D is called 3 times per step (real, detached fake, fake for G): poison steps 1 and 2.
+        return out * float("nan") if calls["n"] <= 2 * 2 else out
+
+    monkeypatch.setattr(PatchDiscriminator, "forward", nan_for_first_two_steps)
+    out = tmp_path / "run"
+    base = tiny_overrides(images, out, extra=["model.max_consecutive_nonfinite=3", "trainer.max_epochs=1"])
+    metrics = run_train(base + ["trainer.limit_train_batches=3"])
+    assert metrics["train/skipped_steps_total"] == 2 and np.isfinite(metrics["train/g_loss"])
+
+    monkeypatch.setattr(PatchDiscriminator, "forward", lambda self, image: forward(self, image) * float("nan"))
+    with pytest.raises(RuntimeError, match="3 steps in a row had a non-finite loss or gradient.*lower learning rates"):
+        run_train(base + ["trainer.limit_train_batches=5"])
+
+
+def test_joblib_sweep_makes_two_mlflow_runs(images, tmp_path):
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
+    overrides = [o for o in tiny_overrides(images, tmp_path / "unused", logger="mlflow") if not o.startswith("paths.output_dir")]
+    cmd = [
+        sys.executable, "-m", "drgan.train", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+        "model.lr_g=1e-4,2e-4", "trainer.limit_train_batches=1", "trainer.log_every_n_steps=1", "trainer.max_epochs=1", "run_name=sweep",
+        f"logger.mlflow.tracking_uri={uri}", f"paths.root_dir={tmp_path}", *overrides,
+    ]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    runs = client.search_runs([client.get_experiment_by_name("tio2_sem").experiment_id])
+    assert sorted(r.data.params["model/lr_g"] for r in runs) == ["0.0001", "0.0002"]
+    assert all({"train/g_loss", "train/d_loss", "train/g_loss_epoch"} <= set(r.data.metrics) for r in runs)
+    assert sorted(p.name for p in (tmp_path / "multirun" / "tio2_sem" / "sweep").iterdir() if p.is_dir()) == ["0", "1"]
