@@ -58,7 +58,9 @@ def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, 
             run_id = id_file.read_text().strip() if resume and id_file.is_file() else None
             with _store_lock(str(entry.tracking_uri)):
                 logger = instantiate(entry, run_id=run_id, tags={**tags, **(entry.get("tags") or {})})
-                id_file.write_text(logger.run_id)  # creates the experiment and run now, under the lock
+                run = logger.run_id  # creates the experiment and run now, under the lock (None on DDP ranks > 0)
+            if run:
+                id_file.write_text(run)
         else:
             logger = instantiate(entry)
         loggers.append(logger)
