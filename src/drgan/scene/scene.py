@@ -105,6 +105,26 @@ def check_spp(spp, name: str = "spp") -> int:
     return int(spp)
 
 
+def reconstruction_blur(image: torch.Tensor, stddev: float) -> torch.Tensor:
+    """The Gaussian reconstruction filter, applied to the box-filtered render as a separable blur.
+
+    A box-filtered pixel already averages over its own square (variance 1/12 px^2 per axis), so the
+    blur uses stddev' = sqrt(stddev^2 - 1/12): the total blur then has the configured variance, as
+    Mitsuba's Gaussian filter gives. Borders replicate the edge pixels. Differentiable, and cheap.
+    """
+    variance = stddev * stddev - 1.0 / 12.0
+    if variance <= 1e-6:
+        return image
+    sigma = math.sqrt(variance)
+    radius = max(1, int(math.ceil(4.0 * sigma)))
+    x = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
+    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    padded = torch.nn.functional.pad(image[None, None], (radius, radius, radius, radius), mode="replicate")
+    rows = torch.nn.functional.conv2d(padded, kernel.view(1, 1, 1, -1))
+    return torch.nn.functional.conv2d(rows, kernel.view(1, 1, -1, 1))[0, 0]
+
+
 def _mitsuba_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, props=None, normals: bool = True):
     mesh = mi.Mesh(name, len(vertices), len(faces), props=props or mi.Properties(), has_vertex_normals=normals)
     buffers = mi.traverse(mesh)
@@ -174,7 +194,10 @@ class ParticleScene:
                 "width": r.resolution,
                 "height": r.resolution,
                 "pixel_format": "rgb",
-                "rfilter": {"type": "gaussian", "stddev": r.filter_stddev},
+                # Box here, Gaussian afterwards in torch (see `reconstruction_blur`): splatting every sample
+                # into a (8 stddev + 1)^2 footprint made the Gaussian filter the main cost of a render
+                # (stddev 3.0: 5.7 s vs 0.41 s per forward+backward at 256 px, 16 spp, 40 particles).
+                "rfilter": {"type": "box"},
             },
         }
 
@@ -278,7 +301,8 @@ class ParticleScene:
                 f"values: expected shape ({len(self._learned)},) for {self._learned_keys}, got {tuple(values.shape)}"
             )
         image = _RenderFunction.apply(values, self, int(seed) & 0xFFFFFFFF, spp)
-        return image.mean(dim=-1)  # grey lights and grey BSDFs: R = G = B
+        grey = image.mean(dim=-1)  # grey lights and grey BSDFs: R = G = B
+        return reconstruction_blur(grey, self.spec.render.filter_stddev)
 
     def instance_labels(self) -> np.ndarray:
         """Instance label image of the current layout (0 background, k = particle k), pixel-aligned.
