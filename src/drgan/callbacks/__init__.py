@@ -1,0 +1,15 @@
+"""Training callbacks: per-epoch FID/KID, best-epoch selection (low FID, broad parameters) and plots."""
+
+from drgan.callbacks.best_epoch import BestEpochCallback, parameter_spread, select_best
+from drgan.callbacks.fid import FIDCallback, RandomProjectionFeatures
+from drgan.callbacks.visuals import ParameterHistogramCallback, SampleGridCallback
+
+__all__ = [
+    "FIDCallback",
+    "RandomProjectionFeatures",
+    "BestEpochCallback",
+    "parameter_spread",
+    "select_best",
+    "ParameterHistogramCallback",
+    "SampleGridCallback",
+]

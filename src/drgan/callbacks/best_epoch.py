@@ -1,0 +1,139 @@
+"""The best epoch: among the ``top_k`` epochs of lowest FID, the one whose learned parameter distribution is
+broadest.
+
+A GAN's lowest FID is often reached by a generator that collapsed onto a narrow set of material
+parameters; a broad distribution generalises better to downstream segmentation. So the selection is:
+sort evaluated epochs by FID, keep the ``top_k`` lowest, pick the one with the largest *parameter spread*.
+
+Parameter spread (``parameter_spread``): for a fixed set of ``n_phi`` constellations (drawn once from the
+configured size and placement distributions), the regressor's learned values are normalised by their
+configured limits, u = (x - low) / (high - low) in [0, 1], and the spread is the mean over parameters of
+the (population, ddof=0) standard deviation of u. 0: every constellation gets the same parameters; the
+largest possible value is 0.5 (half at each limit).
+
+Each epoch's weights are saved to ``<checkpoints>/epochs/epoch_XXX.ckpt`` (weights only); those that fall
+out of the top_k are deleted, since the best can only be among the top_k. After every evaluated epoch
+(so a cut-off run has them) ``<checkpoints>/best.ckpt`` and ``best_epoch.json`` are rewritten atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+from lightning.pytorch import Callback, LightningModule, Trainer
+
+from drgan import build
+from drgan.callbacks.fid import FIDCallback, atomic_copy, atomic_write_text, checkpoint_dir, log_artifact
+from drgan.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def parameter_spread(values: np.ndarray, low, high) -> float:
+    """values (B, k) of k parameters with limits low/high (k,) -> mean over parameters of std((x - low) / (high - low))."""
+    values = np.asarray(values, dtype=np.float64)
+    low, high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+    if values.ndim != 2 or values.shape[1] != low.shape[0] or high.shape != low.shape:
+        raise ConfigError(f"parameter_spread: values {values.shape} do not match limits {low.shape}, {high.shape}")
+    if values.shape[1] == 0:
+        return 0.0
+    unit = (values - low) / np.where(high > low, high - low, 1.0)
+    return float(unit.std(axis=0).mean())
+
+
+def select_best(history: list[dict], top_k: int) -> tuple[dict | None, list[dict]]:
+    """history: dicts with epoch, fid, spread -> (best entry, the top_k table sorted by FID).
+
+    Epochs with a non-finite FID are never chosen; ties in spread go to the lower FID."""
+    finite = [h for h in history if math.isfinite(h.get("fid", math.nan)) and math.isfinite(h.get("spread", math.nan))]
+    table = sorted(finite, key=lambda h: (h["fid"], h["epoch"]))[: int(top_k)]
+    if not table:
+        return None, []
+    best = max(table, key=lambda h: (h["spread"], -h["fid"]))
+    return best, table
+
+
+class BestEpochCallback(Callback):
+    """top_k: how many lowest-FID epochs compete on spread; n_phi: constellations for the spread; seed: of
+    those constellations. Needs a FIDCallback before it in the callback list."""
+
+    def __init__(self, top_k: int = 5, n_phi: int = 1000, seed: int = 0):
+        if int(top_k) < 1 or int(n_phi) < 2:
+            raise ConfigError(f"BestEpochCallback: top_k={top_k}, n_phi={n_phi}; expected top_k >= 1 and n_phi >= 2")
+        self.top_k, self.n_phi, self.seed = int(top_k), int(n_phi), int(seed)
+        self.history: list[dict] = []  # epoch, fid, kid, spread, checkpoint
+        self._phi: np.ndarray | None = None
+
+    @property
+    def state_key(self) -> str:
+        return type(self).__name__
+
+    def spread(self, pl_module: LightningModule) -> float:
+        if self._phi is None:
+            self._phi = build.sample_phi(pl_module.cfg, self.n_phi, seed=self.seed)
+        learned = pl_module.generator.learned
+        values = pl_module.parameter_samples(self._phi)
+        return parameter_spread(values, [p.low for p in learned], [p.high for p in learned])
+
+    def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        fid_callback = next((c for c in trainer.callbacks if isinstance(c, FIDCallback)), None)
+        if fid_callback is None:
+            raise ConfigError("BestEpochCallback needs a FIDCallback (callbacks.fid) in the callback list")
+        epoch = trainer.current_epoch
+        scores = fid_callback.latest(epoch)
+        if scores is None:  # FID not evaluated this epoch (every_n_epochs > 1)
+            return
+        folder = checkpoint_dir(trainer)
+        ckpt = folder / "epochs" / f"epoch_{epoch:03d}.ckpt"
+        trainer.save_checkpoint(ckpt, weights_only=True)  # collective under DDP: every rank calls it
+        entry = {"epoch": epoch, "fid": scores["fid"], "kid": scores["kid"], "spread": self.spread(pl_module), "checkpoint": str(ckpt)}
+        self.history = [h for h in self.history if h["epoch"] != epoch] + [entry]
+        if trainer.is_global_zero:
+            self._prune(folder)
+        self.write(trainer, pl_module)
+
+    def _prune(self, folder: Path) -> None:
+        """Delete epoch checkpoints outside the top_k: the best is always among them."""
+        _, table = select_best(self.history, self.top_k)
+        keep = {Path(h["checkpoint"]).name for h in table}
+        for path in (folder / "epochs").glob("epoch_*.ckpt"):
+            if path.name not in keep:
+                path.unlink(missing_ok=True)
+
+    def write(self, trainer: Trainer, pl_module: LightningModule) -> dict | None:
+        best, table = select_best(self.history, self.top_k)
+        if best is None or not trainer.is_global_zero:
+            return best
+        folder = checkpoint_dir(trainer)
+        src = Path(best["checkpoint"])
+        if src.is_file():
+            atomic_copy(src, folder / "best.ckpt")
+        else:
+            log.warning("best epoch %d: its checkpoint %s is gone; best.ckpt not updated", best["epoch"], src)
+        summary = {
+            "epoch": best["epoch"], "fid": best["fid"], "kid": best["kid"], "spread": best["spread"],
+            "top_k": self.top_k, "n_phi": self.n_phi,
+            "spread_definition": "mean over learned parameters of std((x - low) / (high - low)) over n_phi constellations",
+            "table": table, "history": self.history,
+        }  # fmt: skip
+        path = folder / "best_epoch.json"
+        atomic_write_text(path, json.dumps(summary, indent=1))
+        pl_module.log("best/epoch", float(best["epoch"]), on_step=False, on_epoch=True, rank_zero_only=True)
+        pl_module.log("best/fid", float(best["fid"]), on_step=False, on_epoch=True, rank_zero_only=True)
+        log_artifact(trainer, path)
+        return best
+
+    def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        best, _ = select_best(self.history, self.top_k)
+        if best is not None and trainer.is_global_zero:
+            log.info("best epoch %d: FID %.4g, spread %.4g (of the %d lowest-FID epochs)", best["epoch"], best["fid"], best["spread"], self.top_k)
+
+    def state_dict(self) -> dict:
+        return {"history": [dict(h) for h in self.history]}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.history = [dict(h) for h in state_dict.get("history", [])]

@@ -1,0 +1,212 @@
+"""FID and KID of the generator against the real training patches, once per epoch.
+
+At the end of a training epoch the generator renders as many images as there are real training patches
+(from the module's phi bank, cycling when the bank is smaller), without gradients, and compares their
+Inception features with those of the real patches. The real statistics are cached on disk, keyed by a hash
+of the patch array and its resolution, so a resumed run or a second run on the same patches skips them.
+
+Logged: ``val/fid``, ``val/kid`` (mean over subsets) and ``time/fid_s``, through ``pl_module.log`` so that a
+``ModelCheckpoint(monitor="val/fid")`` sees them. The per-epoch history travels in the checkpoint.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from lightning.pytorch import Callback, LightningModule, Trainer
+
+from drgan.errors import ConfigError
+from drgan.metrics.fid import FeatureStats, InceptionFeatures, cached_reference_stats, kid
+
+log = logging.getLogger(__name__)
+
+# FID renders use seeds of their own, far from the training seeds, so they do not touch the generator's
+# render counter (saved in checkpoints) and an epoch's FID images are reproducible.
+FID_SEED_BASE = 0x5EED0000
+
+
+# --- helpers shared by the drgan callbacks --------------------------------------------------------------------
+
+
+def run_dir(trainer: Trainer) -> Path:
+    """The run folder: the trainer's default_root_dir (conf/trainer sets it to paths.output_dir)."""
+    return Path(trainer.default_root_dir)
+
+
+def checkpoint_dir(trainer: Trainer) -> Path:
+    """Where ModelCheckpoint writes (``<run>/checkpoints`` by default)."""
+    callback = getattr(trainer, "checkpoint_callback", None)
+    dirpath = getattr(callback, "dirpath", None)
+    return Path(dirpath) if dirpath else run_dir(trainer) / "checkpoints"
+
+
+def atomic_copy(src: Path, dst: Path) -> None:
+    """Copy to a temp file beside ``dst``, then rename: a reader never sees half a file."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=dst.parent, prefix=dst.name + ".", suffix=".tmp")
+    os.close(fd)
+    try:
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def mlflow_loggers(trainer: Trainer) -> list:
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    return [lg for lg in trainer.loggers if isinstance(lg, MLFlowLogger)]
+
+
+def log_artifact(trainer: Trainer, path: Path, artifact_path: str | None = None) -> None:
+    """Log a file as an artifact of the run's MLflow run (rank 0 only; no-op without an MLflow logger)."""
+    if not trainer.is_global_zero:
+        return
+    for logger in mlflow_loggers(trainer):
+        try:
+            logger.experiment.log_artifact(logger.run_id, str(path), artifact_path)
+        except Exception as error:  # an unreachable artifact store must not stop training
+            log.warning("MLflow artifact %s not logged: %s", path, str(error).splitlines()[0])
+
+
+def real_patches(trainer: Trainer) -> np.ndarray:
+    datamodule = getattr(trainer, "datamodule", None)
+    patches = getattr(datamodule, "real_patches", None)
+    if patches is None:
+        raise ConfigError("FID callbacks need a datamodule with real_patches (drgan.data.RealPatchDataModule)")
+    return np.asarray(patches, dtype=np.float32)
+
+
+def dataset_key(patches: np.ndarray) -> str:
+    """Cache key of a patch set: a hash of its bytes and shape (the resolution is added by the cache)."""
+    digest = hashlib.sha1(np.ascontiguousarray(patches).tobytes())
+    digest.update(str(patches.shape).encode())
+    return f"real_{digest.hexdigest()[:16]}"
+
+
+def render_samples(pl_module: LightningModule, n: int, seed_base: int, progress: bool = False) -> np.ndarray:
+    """``n`` images (n, H, W) in [0, 1] from the phi bank (cycling), without gradients, fixed seeds."""
+    bank = pl_module.phi_bank
+    iterator = range(n)
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(iterator, desc="FID renders", unit="img", leave=False)
+    images = [pl_module.generator.sample(bank[i % len(bank)].cpu(), seed=(seed_base + i) & 0xFFFFFFFF).image for i in iterator]
+    return np.clip(np.stack(images).astype(np.float32), 0.0, 1.0)
+
+
+class RandomProjectionFeatures:
+    """A fast stand-in for the Inception network, for tests and smoke runs: a fixed random projection of
+    the flattened pixels to ``dim`` features. Its "FID" is NOT comparable with a real FID."""
+
+    def __init__(self, dim: int = 32, seed: int = 0):
+        self.dim, self.seed = int(dim), int(seed)
+
+    def features(self, images: np.ndarray) -> np.ndarray:
+        flat = np.asarray(images, dtype=np.float64).reshape(len(images), -1)
+        proj = np.random.default_rng(self.seed).standard_normal((flat.shape[1], self.dim)) / np.sqrt(flat.shape[1])
+        return flat @ proj
+
+
+# --- the callback -------------------------------------------------------------------------------------------
+
+
+class FIDCallback(Callback):
+    """every_n_epochs: evaluate every n-th epoch (and never on others); n_images: synthetic images per
+    evaluation (None: as many as real training patches); batch_size: Inception batch size; cache_dir: real
+    statistics cache (None: ``<run>/fid_cache``); extractor: an object with ``features(images) -> (N, D)``
+    (None: the TF-Inception network); kid_subsets/kid_subset_size: KID's random subsets."""
+
+    def __init__(
+        self,
+        every_n_epochs: int = 1,
+        n_images: int | None = None,
+        batch_size: int = 16,
+        cache_dir: str | None = None,
+        extractor=None,
+        kid_subsets: int = 100,
+        kid_subset_size: int = 1000,
+        progress: bool = True,
+    ):
+        if int(every_n_epochs) < 1:
+            raise ConfigError(f"FIDCallback.every_n_epochs={every_n_epochs}: expected >= 1")
+        if n_images is not None and int(n_images) < 2:
+            raise ConfigError(f"FIDCallback.n_images={n_images}: expected >= 2 (a covariance needs two images) or null")
+        self.every_n_epochs = int(every_n_epochs)
+        self.n_images = None if n_images is None else int(n_images)
+        self.batch_size = int(batch_size)
+        self.cache_dir = cache_dir
+        self.extractor = extractor
+        self.kid_subsets, self.kid_subset_size = int(kid_subsets), int(kid_subset_size)
+        self.progress = bool(progress)
+        self.history: list[dict] = []  # one entry per evaluated epoch: epoch, fid, kid, kid_std, n_images, seconds
+        self._real: FeatureStats | None = None
+
+    @property
+    def state_key(self) -> str:
+        return type(self).__name__  # one FID callback per trainer; its state survives changed arguments
+
+    def _extractor(self):
+        if self.extractor is None:
+            self.extractor = InceptionFeatures(batch_size=self.batch_size, progress=self.progress)
+        return self.extractor
+
+    def real_stats(self, trainer: Trainer) -> FeatureStats:
+        if self._real is None:
+            patches = real_patches(trainer)
+            cache = Path(self.cache_dir) if self.cache_dir else run_dir(trainer) / "fid_cache"
+            key = dataset_key(patches)
+            if not isinstance(self._extractor(), InceptionFeatures):
+                key += f"_{type(self.extractor).__name__}"  # other features never mix with Inception's
+            self._real = cached_reference_stats(patches, cache, key, extractor=self._extractor())
+        return self._real
+
+    def latest(self, epoch: int) -> dict | None:
+        return next((h for h in reversed(self.history) if h["epoch"] == epoch), None)
+
+    def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        epoch = trainer.current_epoch
+        if trainer.sanity_checking or (epoch + 1) % self.every_n_epochs:
+            return
+        start = time.perf_counter()
+        real = self.real_stats(trainer)
+        n = self.n_images or real.n
+        fake = render_samples(pl_module, n, FID_SEED_BASE + 100_003 * epoch, progress=self.progress)
+        fake_feats = self._extractor().features(fake)
+        fid = FeatureStats.from_features(fake_feats).fid(real)
+        kid_mean, kid_std = kid(fake_feats, real.features, self.kid_subsets, self.kid_subset_size, seed=epoch)
+        seconds = time.perf_counter() - start
+        self.history = [h for h in self.history if h["epoch"] != epoch]
+        self.history.append({"epoch": epoch, "fid": fid, "kid": kid_mean, "kid_std": kid_std, "n_images": n, "seconds": seconds})
+        log.info("epoch %d: FID %.4g, KID %.4g (%d images, %.1f s)", epoch, fid, kid_mean, n, seconds)
+        for key, value in (("val/fid", fid), ("val/kid", kid_mean), ("time/fid_s", seconds)):
+            pl_module.log(key, float(value), on_step=False, on_epoch=True, prog_bar=key == "val/fid")
+
+    def state_dict(self) -> dict:
+        return {"history": [dict(h) for h in self.history]}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.history = [dict(h) for h in state_dict.get("history", [])]
