@@ -1,0 +1,94 @@
+"""Callbacks: best-epoch selection, parameter spread, and a tiny 2-epoch training with FID (random-projection
+features instead of Inception, for speed), best.ckpt/best_epoch.json, MLflow metrics and plots, and resume."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_train import images, make_images, run_train, tiny_overrides  # noqa: F401  (fixtures)
+
+from drgan.callbacks import RandomProjectionFeatures, parameter_spread, select_best
+from drgan.errors import ConfigError
+
+
+def test_select_best_prefers_broadest_of_top_k():
+    fids = [50, 40, 45, 41, 60, 42, 39]
+    spreads = [0.9, 0.05, 0.30, 0.10, 0.95, 0.20, 0.01]
+    history = [{"epoch": e, "fid": f, "spread": s} for e, (f, s) in enumerate(zip(fids, spreads))]
+    best, table = select_best(history, top_k=5)
+    # Five lowest FIDs: epochs 6 (39), 1 (40), 3 (41), 5 (42), 2 (45); epoch 2 is broadest among them.
+    assert [h["epoch"] for h in table] == [6, 1, 3, 5, 2]
+    assert best["epoch"] == 2
+    # Epochs 0 and 4 are broader but not among the top 5 FIDs; top_k=1 is the plain lowest FID.
+    assert select_best(history, top_k=1)[0]["epoch"] == 6
+    assert select_best(history + [{"epoch": 7, "fid": float("nan"), "spread": 1.0}], 5)[0]["epoch"] == 2
+    assert select_best([], 5) == (None, [])
+
+
+def test_parameter_spread_hand_computed():
+    # parameter a in [0, 2]: values 0, 2 -> unit 0, 1 -> std 0.5; b in [1, 3]: 2, 2 -> std 0
+    values = np.array([[0.0, 2.0], [2.0, 2.0]])
+    assert parameter_spread(values, [0.0, 1.0], [2.0, 3.0]) == pytest.approx(0.25)
+    assert parameter_spread(np.full((5, 3), 0.3), [0, 0, 0], [1, 1, 1]) == 0.0
+    with pytest.raises(ConfigError, match="do not match limits"):
+        parameter_spread(values, [0.0], [1.0])
+
+
+CALLBACK_OVERRIDES = [
+    "callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}",
+    "callbacks.fid.n_images=4",
+    "+callbacks.fid.kid_subsets=5",
+    "callbacks.best_epoch.n_phi=20",
+    "callbacks.histograms.n_phi=20",
+    "callbacks.sample_grid.n=2",
+    "callbacks.progress_bar.refresh_rate=0",
+]
+
+
+def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(images, tmp_path):  # noqa: F811
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
+    out = tmp_path / "run"
+    base = tiny_overrides(images, out, logger="mlflow", extra=[f"logger.mlflow.tracking_uri={uri}", "trainer.limit_train_batches=1", *CALLBACK_OVERRIDES])
+    metrics = run_train(base + ["trainer.max_epochs=2"])
+    assert np.isfinite(metrics["val/fid"]) and np.isfinite(metrics["val/kid"]) and metrics["time/fid_s"] > 0
+
+    ckpts = out / "checkpoints"
+    summary = json.loads((ckpts / "best_epoch.json").read_text())
+    assert [h["epoch"] for h in summary["history"]] == [0, 1]
+    assert summary["epoch"] in (0, 1) and (ckpts / "best.ckpt").is_file()
+    assert all(0.0 <= h["spread"] <= 0.5 for h in summary["history"])
+    for name in ("params_epoch_000.png", "params_epoch_001.png", "samples_epoch_000.png", "samples_epoch_001.png", "fid.png"):
+        assert (out / "plots" / name).is_file(), name
+    assert list((out / "fid_cache").glob("real_*_RandomProjectionFeatures_clean_24x24.npz"))
+    # ModelCheckpoint monitors val/fid: it found the metric (else it raises) and kept a best model.
+    assert (ckpts / "last.ckpt").is_file()
+
+    from drgan.models.gan_module import GANModule
+
+    best = GANModule.load_from_checkpoint(ckpts / "best.ckpt")
+    assert best.phi_bank.shape[1:] == (3, 4)
+
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    run_id = (out / "mlflow_run_id.txt").read_text()
+    run = client.get_run(run_id)
+    for key in ("val/fid", "val/kid", "time/fid_s", "best/epoch", "best/fid"):
+        assert key in run.data.metrics, key
+    assert len(client.get_metric_history(run_id, "val/fid")) == 2
+    artifacts = {a.path for a in client.list_artifacts(run_id)} | {a.path for a in client.list_artifacts(run_id, "plots")}
+    assert "best_epoch.json" in artifacts and "plots/samples_epoch_001.png" in artifacts
+
+    # Resume for a third epoch: the FID history of the first two is kept.
+    run_train(base + ["trainer.max_epochs=3", "ckpt_path=last"])
+    summary = json.loads((ckpts / "best_epoch.json").read_text())
+    assert [h["epoch"] for h in summary["history"]] == [0, 1, 2]
+    assert len(client.get_metric_history(run_id, "val/fid")) == 3
+
+
+def test_random_projection_features_are_fixed():
+    imgs = np.random.default_rng(0).random((3, 8, 8))
+    a, b = RandomProjectionFeatures(dim=5).features(imgs), RandomProjectionFeatures(dim=5).features(imgs)
+    assert a.shape == (3, 5) and np.array_equal(a, b)
