@@ -27,9 +27,20 @@ def atomic_path(path: str | os.PathLike):
             os.unlink(tmp)
 
 
-def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+def write_with(path: str | os.PathLike, write) -> None:
+    """Call ``write(binary_file)`` on a temporary file, then rename it to ``path``.
+
+    A file object (not a name) suits np.savez (which would append ".npz" to a name) and PIL's save.
+    """
     with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+        with open(tmp, "wb") as handle:
+            write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    write_with(path, lambda handle: handle.write(data))
 
 
 def write_json(path: str | os.PathLike, obj) -> None:

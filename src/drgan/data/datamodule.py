@@ -19,7 +19,8 @@ from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
 from drgan.data.images import list_images, read_grey, read_split
-from drgan.data.patches import PatchSet, SegmentParams, _atomic_write, contact_sheet, dihedral_augment, mine_patches
+from drgan.data.patches import PatchSet, SegmentParams, contact_sheet, dihedral_augment, mine_patches
+from drgan.io import write_with
 from drgan.errors import ConfigError, DataError
 
 log = logging.getLogger(__name__)
@@ -185,7 +186,7 @@ class RealPatchDataModule(LightningDataModule):
             if self.cache_dir is not None:
                 patches.save(self.cache_dir)
                 contact_sheet(patches, self.cache_dir / "contact_sheet.png")
-                _atomic_write(self.cache_dir / _SOURCE_FILE, lambda f: f.write(json.dumps(source, indent=1).encode()))
+                write_with(self.cache_dir / _SOURCE_FILE, lambda f: f.write(json.dumps(source, indent=1).encode()))
         leaked = sorted(set(patches.train_ids) & set(self.test_ids))
         if leaked:
             raise DataError(f"data: patches of test image(s) {leaked[:5]} reached the training set")

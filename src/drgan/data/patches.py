@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -34,6 +32,7 @@ from skimage.segmentation import watershed
 from tqdm import tqdm
 
 from drgan.errors import ConfigError, DataError
+from drgan.io import write_with
 
 log = logging.getLogger(__name__)
 
@@ -223,14 +222,14 @@ class PatchSet:
             "background_positions": self.background_positions,
             "background_fractions": self.background_fractions,
         }
-        _atomic_write(directory / _ARRAYS_FILE, lambda f: np.savez_compressed(f, **arrays))
+        write_with(directory / _ARRAYS_FILE, lambda f: np.savez_compressed(f, **arrays))
         meta = {
             "summary": self.summary(),
             "params": self.params,
             "train_ids": list(self.train_ids),
             "background_ids": list(self.background_ids),
         }
-        _atomic_write(directory / _SUMMARY_FILE, lambda f: f.write(json.dumps(meta, indent=1).encode()))
+        write_with(directory / _SUMMARY_FILE, lambda f: f.write(json.dumps(meta, indent=1).encode()))
         return directory
 
     @classmethod
@@ -258,19 +257,6 @@ class PatchSet:
             raise
         except Exception as exc:  # truncated npz, missing key, bad JSON
             raise DataError(f"patch set {directory}: unreadable ({type(exc).__name__}: {exc})") from exc
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Write through a temporary file in the same folder, then rename: readers never see half a file."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 # --- mining -----------------------------------------------------------------------------------------------
@@ -510,5 +496,5 @@ def contact_sheet(
         y += max(1, -(-len(arr) // ncols)) * (thumb + gap)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write(path, lambda f: sheet.save(f, format="PNG"))
+    write_with(path, lambda f: sheet.save(f, format="PNG"))
     return path

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from drgan.io import write_with
 from drgan.errors import ConfigError, DataError
 
 __all__ = [
@@ -397,19 +398,7 @@ class FeatureStats:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write an .npz atomically (temp file in the same directory, then os.replace)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as fh:  # a file object: np.savez would append ".npz" to a name
-                np.savez(fh, mu=self.mu, sigma=self.sigma, features=self.features)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        write_with(path, lambda handle: np.savez(handle, mu=self.mu, sigma=self.sigma, features=self.features))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "FeatureStats":

@@ -26,6 +26,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from drgan.io import write_bytes
 from drgan.errors import ConfigError, MeshError
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
@@ -372,7 +373,7 @@ def save_mesh_set(meshes: list[trimesh.Trimesh], out_dir: str | os.PathLike, man
     for index, mesh in enumerate(meshes):
         name = f"mesh_{index:0{width}d}.ply"
         validate_mesh(mesh, name)
-        _write_atomically(out_dir / name, trimesh.exchange.ply.export_ply(mesh, encoding="binary"))
+        write_bytes(out_dir / name, trimesh.exchange.ply.export_ply(mesh, encoding="binary"))
         entries.append({"file": name, "vertices": len(mesh.vertices), "faces": len(mesh.faces)})
     written = {entry["file"] for entry in entries}
     for stale in out_dir.iterdir():
@@ -380,11 +381,5 @@ def save_mesh_set(meshes: list[trimesh.Trimesh], out_dir: str | os.PathLike, man
             stale.unlink()
     manifest_path = out_dir / "manifest.json"
     full_manifest = {**manifest, "meshes": entries}
-    _write_atomically(manifest_path, (json.dumps(full_manifest, indent=2) + "\n").encode())
+    write_bytes(manifest_path, (json.dumps(full_manifest, indent=2) + "\n").encode())
     return manifest_path
-
-
-def _write_atomically(path: Path, data: bytes) -> None:
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_bytes(data)
-    os.replace(temporary, path)
