@@ -191,6 +191,9 @@ class FIDCallback(Callback):
         epoch = trainer.current_epoch
         if trainer.sanity_checking or (epoch + 1) % self.every_n_epochs:
             return
+        if trainer.fast_dev_run:  # a smoke test of the step, like Lightning's own checkpoint callbacks skip
+            log.info("fast_dev_run: FID skipped")
+            return
         start = time.perf_counter()
         real = self.real_stats(trainer)
         n = self.n_images or real.n
