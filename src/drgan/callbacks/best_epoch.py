@@ -18,7 +18,6 @@ out of the top_k are deleted, since the best can only be among the top_k. After 
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from pathlib import Path
@@ -27,8 +26,9 @@ import numpy as np
 from lightning.pytorch import Callback, LightningModule, Trainer
 
 from drgan import build
-from drgan.callbacks.fid import FIDCallback, atomic_copy, atomic_write_text, checkpoint_dir, log_artifact
+from drgan.callbacks.fid import FIDCallback, atomic_copy, checkpoint_dir, log_artifact
 from drgan.errors import ConfigError
+from drgan.io import write_json
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +121,7 @@ class BestEpochCallback(Callback):
             "table": table, "history": self.history,
         }  # fmt: skip
         path = folder / "best_epoch.json"
-        atomic_write_text(path, json.dumps(summary, indent=1))
+        write_json(path, summary)
         pl_module.log("best/epoch", float(best["epoch"]), on_step=False, on_epoch=True, rank_zero_only=True)
         pl_module.log("best/fid", float(best["fid"]), on_step=False, on_epoch=True, rank_zero_only=True)
         log_artifact(trainer, path)

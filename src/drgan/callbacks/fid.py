@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -23,6 +21,7 @@ import numpy as np
 from lightning.pytorch import Callback, LightningModule, Trainer
 
 from drgan.errors import ConfigError
+from drgan.io import write_with
 from drgan.metrics.fid import FeatureStats, InceptionFeatures, cached_reference_stats, kid
 
 log = logging.getLogger(__name__)
@@ -49,29 +48,8 @@ def checkpoint_dir(trainer: Trainer) -> Path:
 
 def atomic_copy(src: Path, dst: Path) -> None:
     """Copy to a temp file beside ``dst``, then rename: a reader never sees half a file."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=dst.parent, prefix=dst.name + ".", suffix=".tmp")
-    os.close(fd)
-    try:
-        shutil.copyfile(src, tmp)
-        os.replace(tmp, dst)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with open(src, "rb") as source:
+        write_with(dst, lambda handle: shutil.copyfileobj(source, handle))
 
 
 def mlflow_loggers(trainer: Trainer) -> list:

@@ -7,8 +7,6 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +15,7 @@ from lightning.pytorch import Callback, LightningModule, Trainer
 from drgan import build
 from drgan.callbacks.fid import FIDCallback, log_artifact, real_patches, render_samples, run_dir
 from drgan.errors import ConfigError
+from drgan.io import write_with
 
 # Sample-grid renders: seeds of their own (see drgan.callbacks.fid.FID_SEED_BASE).
 GRID_SEED_BASE = 0x6A1D0000
@@ -26,16 +25,8 @@ def save_figure(fig, path: Path) -> None:
     """Save a matplotlib figure as PNG atomically and close it."""
     import matplotlib.pyplot as plt
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=100)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        write_with(path, lambda handle: fig.savefig(handle, format="png", dpi=100))
     finally:
         plt.close(fig)
 
