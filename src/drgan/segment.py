@@ -1,0 +1,120 @@
+"""`python -m drgan.segment data=DIR name=NAME`: train the U-Net segmenter (3 classes, Dice + CE, Adam).
+
+`data=DIR`: pairs written by `python -m drgan.generate` (images/ID.png, masks/ID.png classes 0/1/2).
+`real=DATASET`: the real-data baseline, trained on the `train` ids of DATASET/split.json only; targets are
+class_mask(4-connected components of the binary mask, contour_px). A seeded `val_fraction` of the pairs is
+held out for validation. Run folder `out`: checkpoints/last.ckpt (and the latest epoch), segment.log,
+metrics.json; MLflow experiment `segment_<name>` gets the params, metrics and the final checkpoint.
+Resume: same `out` and `ckpt_path=last` (no checkpoint yet: a fresh start).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, open_dict
+
+from drgan.errors import ConfigError
+from drgan.io import write_json
+
+log = logging.getLogger(__name__)
+
+
+def load_training_pairs(cfg: DictConfig):
+    from drgan.segmentation.data import load_generated_pairs, load_real_pairs, real_ids
+
+    if bool(cfg.get("data_dir")) == bool(cfg.get("real")):
+        raise ConfigError("segment: give exactly one of data=DIR (generated pairs) or real=DATASET (real baseline)")
+    if cfg.get("data_dir"):
+        return load_generated_pairs(cfg.data_dir)
+    real = Path(cfg.real)
+    ids = real_ids(real, cfg.get("split"), "train")
+    return load_real_pairs(real, ids, int(cfg.contour_px), cfg.get("crop_rows"))
+
+
+def dataloaders(cfg: DictConfig, pairs):
+    from torch.utils.data import DataLoader
+
+    from drgan.segmentation.data import CropDataset, split_pairs
+
+    train_pairs, val_pairs = split_pairs(pairs, float(cfg.val_fraction), int(cfg.seed))
+    ld = cfg.loader
+    kw = dict(crop=int(ld.crop), brightness=float(ld.brightness), contrast=float(ld.contrast), seed=int(cfg.seed))
+    train = DataLoader(CropDataset(train_pairs, augment=True, samples_per_pair=int(ld.samples_per_pair), **kw),
+                       batch_size=int(ld.batch_size), shuffle=True, drop_last=len(train_pairs) * int(ld.samples_per_pair) > int(ld.batch_size),
+                       num_workers=int(ld.num_workers), persistent_workers=int(ld.num_workers) > 0)
+    val = None
+    if val_pairs:
+        val = DataLoader(CropDataset(val_pairs, augment=False, **kw), batch_size=int(ld.batch_size), num_workers=0)
+    return train, val, len(train_pairs), len(val_pairs)
+
+
+def segment(cfg: DictConfig) -> dict:
+    """Train one segmenter; return final metrics. Writes everything under cfg.out."""
+    import lightning.pytorch as L
+    from hydra.utils import instantiate
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from drgan.segmentation.module import SegmenterModule
+    from drgan.train import flat_config, instantiate_loggers, resolve_checkpoint
+
+    wall_start = time.perf_counter()
+    with open_dict(cfg):
+        cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
+    out = Path(cfg.out)
+    L.seed_everything(int(cfg.seed), workers=True)
+
+    # Data first: bad folders, sizes or mask values fail here, before the run folder gets anything.
+    pairs = load_training_pairs(cfg)
+    train_loader, val_loader, n_train, n_val = dataloaders(cfg, pairs)
+    out.mkdir(parents=True, exist_ok=True)
+
+    model = SegmenterModule(**{k: v for k, v in cfg.model.items()})
+    ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
+    tags = {"name": str(cfg.name), "output_dir": str(out), **{str(t): "1" for t in cfg.get("tags") or []}}
+    loggers = instantiate_loggers(cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags)
+    checkpoint = ModelCheckpoint(dirpath=out / "checkpoints", filename="epoch_{epoch:03d}", auto_insert_metric_name=False,
+                                 save_last=True, save_top_k=1)
+    trainer = instantiate(cfg.trainer, callbacks=[checkpoint], logger=loggers or False)
+
+    params = flat_config(cfg)
+    params.update({"data/n_train_pairs": n_train, "data/n_val_pairs": n_val,
+                   "model/n_parameters": sum(p.numel() for p in model.parameters())})
+    for logger in loggers:
+        try:
+            logger.log_hyperparams(params)
+        except Exception as error:  # MLflow refuses to change a logged param on resume
+            log.warning("%s: params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
+
+    log.info("segmenter %s: %d train / %d val pairs, run folder %s", cfg.name, n_train, n_val, out)
+    trainer.fit(model, train_dataloaders=train_loader, val_dataloaders=val_loader, ckpt_path=ckpt_path)
+
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
+    metrics["time/wall_s"] = time.perf_counter() - wall_start
+    last = out / "checkpoints" / "last.ckpt"
+    for logger in loggers:
+        logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
+        if hasattr(logger, "experiment") and getattr(logger, "run_id", None) and last.is_file():
+            logger.experiment.log_artifact(logger.run_id, str(last), artifact_path="checkpoints")
+    write_json(out / "metrics.json", {"epoch": trainer.current_epoch, "global_step": trainer.global_step, **metrics})
+    log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="segment")
+def main(cfg: DictConfig):
+    return segment(cfg)
+
+
+if __name__ == "__main__":
+    from drgan.segmentation.cli import rewrite_argv
+
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    sys.argv = [sys.argv[0], *rewrite_argv(sys.argv[1:], many_models=False)]
+    main()

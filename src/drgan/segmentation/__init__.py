@@ -1,0 +1,5 @@
+"""Segmentation of real images by a U-Net trained on generated (or real) image/mask pairs.
+
+Data flow: data.py (pairs -> random crops) -> module.py (SegmenterModule: U-Net, Dice + CE) ->
+inference.py (sliding window over a full image -> class map 0 background / 1 particle / 2 contour).
+"""

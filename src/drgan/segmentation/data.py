@@ -1,0 +1,201 @@
+"""Image/mask pairs for the segmenter, and the random-crop training dataset.
+
+Two sources, both giving float32 grey images in [0, 1] and uint8 class masks {0 background, 1 particle,
+2 contour}:
+- generated data (`python -m drgan.generate`): DIR/images/ID.png + DIR/masks/ID.png (classes), paired by
+  file name (DIR/manifest.json, when present, is not needed for pairing);
+- real annotated data: binary masks (0/255, or 0/1) named ID_m.<ext> beside ID.<ext> images; instances are
+  the 4-connected components, turned into classes with `class_mask(labels, contour_px)`.
+Every pair is checked (sizes, mask values) before any training or evaluation starts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy import ndimage
+from torch.utils.data import Dataset
+
+from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split
+from drgan.errors import ConfigError, DataError
+from drgan.scene.labels import class_mask
+
+_FOUR_CONNECTED = ndimage.generate_binary_structure(2, 1)
+
+
+@dataclass
+class Pair:
+    id: str
+    image: np.ndarray  # float32 (H, W) in [0, 1]
+    mask: np.ndarray  # uint8 (H, W) classes {0, 1, 2}
+
+
+def read_raw_mask(path: Path, crop_rows=None) -> np.ndarray:
+    """A mask file as its integer values (no scaling), info-bar rows dropped like read_grey does."""
+    from PIL import Image
+
+    if not path.is_file():
+        raise DataError(f"mask {path}: no such file")
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            arr = np.asarray(tifffile.imread(path))
+        else:
+            with Image.open(path) as img:
+                arr = np.asarray(img)
+    except Exception as exc:
+        raise DataError(f"mask {path}: cannot be read ({type(exc).__name__}: {exc})") from exc
+    if arr.ndim == 3 and arr.shape[-1] in (3, 4) and np.all(arr[..., :3] == arr[..., :1]):
+        arr = arr[..., 0]
+    if arr.ndim != 2 or not (arr.dtype == bool or np.issubdtype(arr.dtype, np.integer)):
+        raise DataError(f"mask {path}: expected a 2-D integer mask, got shape {arr.shape}, dtype {arr.dtype}")
+    if crop_rows is not None:
+        start, stop = (int(v) for v in crop_rows)
+        if not 0 <= start < stop <= arr.shape[0]:
+            raise DataError(f"mask {path}: crop_rows {tuple(crop_rows)} is not a row range inside its {arr.shape[0]} rows")
+        arr = np.concatenate([arr[:start], arr[stop:]], axis=0)
+    return arr
+
+
+def _check_same_size(image: np.ndarray, mask: np.ndarray, image_path: Path, mask_path: Path) -> None:
+    if image.shape != mask.shape:
+        raise DataError(f"mask {mask_path}: size {mask.shape[::-1]} (w x h) differs from its image {image_path} {image.shape[::-1]}")
+
+
+def binary_mask(raw: np.ndarray, path: Path) -> np.ndarray:
+    """A real annotation (0/255 or 0/1) as bool particle pixels; any other value is refused."""
+    values = np.unique(raw)
+    allowed = {0, 255} if values.max(initial=0) > 1 else {0, 1}
+    bad = sorted(set(values.tolist()) - allowed)
+    if bad:
+        raise DataError(f"mask {path}: unexpected values {bad[:5]} (expected a binary mask of 0 and 255, or 0 and 1)")
+    return raw > 0
+
+
+def instance_labels(particle: np.ndarray) -> np.ndarray:
+    """4-connected components of a binary mask (int32, 0 = background)."""
+    labels, _ = ndimage.label(particle, structure=_FOUR_CONNECTED)
+    return labels.astype(np.int32)
+
+
+def real_mask_path(masks_dir: Path, image_id: str) -> Path:
+    for suffix in IMAGE_SUFFIXES:
+        for name in (f"{image_id}_m{suffix}", f"{image_id}{suffix}"):
+            if (masks_dir / name).is_file():
+                return masks_dir / name
+    raise DataError(f"mask folder {masks_dir}: no mask for image id {image_id!r} (expected {image_id}_m.tif or similar)")
+
+
+def real_ids(data_dir: Path, split: str | Path | None, subset: str) -> list[str]:
+    """Ids of one subset ('train' or 'test') of a real dataset folder (images/, masks/, split.json)."""
+    split_path = Path(split) if split else data_dir / "split.json"
+    ids = read_split(split_path)
+    if subset not in ids:
+        raise ConfigError(f"split file {split_path}: no subset {subset!r} (has {sorted(ids)})")
+    return ids[subset]
+
+
+def load_real(data_dir, ids, crop_rows=(712, 768)) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(id, image, instance labels) of real images; every file is read and checked before returning."""
+    data_dir = Path(data_dir)
+    images_dir, masks_dir = data_dir / "images", data_dir / "masks"
+    if not masks_dir.is_dir():
+        raise DataError(f"real dataset {data_dir}: no masks/ folder")
+    out = []
+    for image_path, image_id in zip(list_images(images_dir, ids), ids):
+        image = read_grey(image_path, crop_rows=tuple(crop_rows) if crop_rows else None)
+        mask_path = real_mask_path(masks_dir, image_id)
+        raw = read_raw_mask(mask_path, crop_rows)
+        _check_same_size(image, raw, image_path, mask_path)
+        out.append((image_id, image, instance_labels(binary_mask(raw, mask_path))))
+    return out
+
+
+def load_real_pairs(data_dir, ids, contour_px: int, crop_rows=(712, 768)) -> list[Pair]:
+    return [Pair(i, img, class_mask(lab, contour_px)) for i, img, lab in load_real(data_dir, ids, crop_rows)]
+
+
+def load_generated_pairs(data_dir) -> list[Pair]:
+    """DIR/images/ID.png + DIR/masks/ID.png (uint8 classes 0/1/2), paired by file name."""
+    data_dir = Path(data_dir)
+    images_dir, masks_dir = data_dir / "images", data_dir / "masks"
+    for d in (images_dir, masks_dir):
+        if not d.is_dir():
+            raise DataError(f"generated dataset {data_dir}: no {d.name}/ folder (expected images/ID.png and masks/ID.png)")
+    image_paths = list_images(images_dir)
+    mask_stems = {p.stem for p in masks_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+    missing = [p.stem for p in image_paths if p.stem not in mask_stems]
+    if missing:
+        raise DataError(f"generated dataset {data_dir}: no mask for {len(missing)} image(s), e.g. {missing[0]!r}")
+    pairs = []
+    for image_path, mask_path in zip(image_paths, list_images(masks_dir, [p.stem for p in image_paths])):
+        image = read_grey(image_path)
+        mask = read_raw_mask(mask_path)
+        _check_same_size(image, mask, image_path, mask_path)
+        bad = sorted(set(np.unique(mask).tolist()) - {0, 1, 2})
+        if bad:
+            raise DataError(f"mask {mask_path}: unexpected values {bad[:5]} (expected classes 0 background, 1 particle, 2 contour)")
+        pairs.append(Pair(image_path.stem, image, mask.astype(np.uint8)))
+    return pairs
+
+
+def split_pairs(pairs: list[Pair], val_fraction: float, seed: int) -> tuple[list[Pair], list[Pair]]:
+    """A random (seeded) validation subset: at least one pair when val_fraction > 0 and there are >= 2 pairs."""
+    if not 0.0 <= val_fraction < 1.0:
+        raise ConfigError(f"val_fraction={val_fraction}: expected a value in [0, 1)")
+    n_val = int(round(len(pairs) * val_fraction))
+    if val_fraction > 0 and len(pairs) >= 2:
+        n_val = max(n_val, 1)
+    order = np.random.default_rng(seed).permutation(len(pairs))
+    val = {int(i) for i in order[:n_val]}
+    return [p for k, p in enumerate(pairs) if k not in val], [p for k, p in enumerate(pairs) if k in val]
+
+
+class CropDataset(Dataset):
+    """Random crops of the pairs, `samples_per_pair` per pair and epoch.
+
+    augment: a random dihedral transform (8 flips/rotations) and a small brightness/contrast jitter,
+    x -> clip((x - mean) * c + mean + b) with c in [1 - contrast, 1 + contrast], b in [-brightness, brightness].
+    Without augment (validation), crops are a fixed grid-free choice: the top-left-aligned centre crop.
+    Images smaller than the crop are reflect-padded (mask padded with background... by reflection too).
+    """
+
+    def __init__(self, pairs: list[Pair], crop: int, augment: bool, samples_per_pair: int = 1,
+                 brightness: float = 0.05, contrast: float = 0.1, seed: int = 0):
+        if not pairs:
+            raise DataError("segmentation dataset: no image/mask pairs")
+        self.pairs, self.crop, self.augment = pairs, int(crop), augment
+        self.samples_per_pair, self.brightness, self.contrast, self.seed = int(samples_per_pair), brightness, contrast, seed
+
+    def __len__(self) -> int:
+        return len(self.pairs) * self.samples_per_pair
+
+    def __getitem__(self, index: int):
+        pair = self.pairs[index % len(self.pairs)]
+        rng = np.random.default_rng() if self.augment else np.random.default_rng((self.seed, index))
+        image, mask = pair.image, pair.mask
+        c = self.crop
+        h, w = image.shape
+        if h < c or w < c:
+            pad = ((0, max(c - h, 0)), (0, max(c - w, 0)))
+            image, mask = np.pad(image, pad, mode="reflect"), np.pad(mask, pad, mode="reflect")
+            h, w = image.shape
+        if self.augment:
+            y, x = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+        else:
+            y, x = (h - c) // 2, (w - c) // 2
+        image, mask = image[y : y + c, x : x + c], mask[y : y + c, x : x + c]
+        if self.augment:
+            k = int(rng.integers(0, 8))
+            image, mask = np.rot90(image, k % 4), np.rot90(mask, k % 4)
+            if k >= 4:
+                image, mask = image[:, ::-1], mask[:, ::-1]
+            mean = float(image.mean())
+            scale = rng.uniform(1 - self.contrast, 1 + self.contrast)
+            image = np.clip((image - mean) * scale + mean + rng.uniform(-self.brightness, self.brightness), 0.0, 1.0)
+        return (torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None],
+                torch.from_numpy(np.ascontiguousarray(mask).astype(np.int64)))

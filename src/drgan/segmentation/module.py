@@ -1,0 +1,81 @@
+"""SegmenterModule: U-Net, loss = soft Dice (mean over classes) + cross-entropy, Adam.
+
+Logged keys: train/loss, train/ce, train/dice_loss, val/loss, val/dsc (particle-class Dice of the argmax
+map, over the whole validation batch). Checkpoints carry `kind: drgan_segmenter` in their hyperparameters,
+which `load_segmenter` checks before use.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning.pytorch as L
+import torch
+import torch.nn.functional as F
+
+from drgan.errors import DataError
+from drgan.segmentation.unet import UNet
+
+KIND = "drgan_segmenter"
+
+
+def soft_dice_loss(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0) -> torch.Tensor:
+    """1 - mean over classes of 2|P.T| / (|P| + |T|), P softmax probabilities, sums over batch and pixels."""
+    probs = logits.softmax(dim=1)
+    onehot = F.one_hot(target, logits.shape[1]).permute(0, 3, 1, 2).to(probs.dtype)
+    inter = (probs * onehot).sum(dim=(0, 2, 3))
+    total = probs.sum(dim=(0, 2, 3)) + onehot.sum(dim=(0, 2, 3))
+    return 1.0 - ((2 * inter + eps) / (total + eps)).mean()
+
+
+class SegmenterModule(L.LightningModule):
+    def __init__(self, depth: int = 4, base: int = 16, n_classes: int = 3, lr: float = 1e-3,
+                 dice_weight: float = 1.0, ce_weight: float = 1.0, kind: str = KIND):
+        super().__init__()
+        self.save_hyperparameters()
+        self.net = UNet(1, n_classes, depth, base)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+    def _losses(self, batch):
+        image, mask = batch
+        logits = self(image)
+        ce = F.cross_entropy(logits, mask)
+        dl = soft_dice_loss(logits, mask)
+        return logits, ce, dl, self.hparams.ce_weight * ce + self.hparams.dice_weight * dl
+
+    def training_step(self, batch, batch_idx):
+        _, ce, dl, loss = self._losses(batch)
+        self.log_dict({"train/loss": loss, "train/ce": ce, "train/dice_loss": dl}, prog_bar=True, batch_size=len(batch[0]))
+        return loss
+
+    def validation_step(self, batch, batch_idx):
+        logits, _, _, loss = self._losses(batch)
+        pred, true = logits.argmax(1) == 1, batch[1] == 1
+        denom = pred.sum() + true.sum()
+        dsc = (2 * (pred & true).sum() / denom) if denom > 0 else torch.tensor(1.0)
+        self.log_dict({"val/loss": loss, "val/dsc": dsc.float()}, prog_bar=True, batch_size=len(batch[0]))
+
+    def configure_optimizers(self):
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+
+
+def load_segmenter(path: str | Path) -> SegmenterModule:
+    """A trained segmenter from a Lightning checkpoint, in eval mode on the CPU.
+
+    Refuses (DataError) missing files, files that are not checkpoints and checkpoints of other models
+    (e.g. a GAN checkpoint from drgan.train)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"model {path}: no such checkpoint file")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise DataError(f"model {path}: not a readable PyTorch checkpoint ({type(exc).__name__}: {exc})") from exc
+    hparams = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    if not isinstance(hparams, dict) or hparams.get("kind") != KIND or "state_dict" not in ckpt:
+        raise DataError(f"model {path}: not a drgan segmenter checkpoint (expected one written by `python -m drgan.segment`)")
+    model = SegmenterModule(**{k: v for k, v in hparams.items() if not k.startswith("_")})
+    model.load_state_dict(ckpt["state_dict"])
+    return model.eval()
