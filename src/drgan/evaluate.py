@@ -1,0 +1,163 @@
+"""`python -m drgan.evaluate model=A.ckpt [model=B.ckpt ...] data=DATASET out=DIR`: score segmenters on real test images.
+
+Per test image: sliding-window prediction -> particle class only (contour and background are both "not
+particle", so the contour separates touching particles) -> 4-connected components -> scores against the
+4-connected components of the true binary mask (drgan.metrics.segmentation):
+- DSC: Dice of particle pixels;
+- AP50: TP / (TP + FP + FN) with a match at IoU > 0.5 (the paper's single-threshold "AP", as in the Data
+  Science Bowl 2018 / StarDist accuracy; no precision-recall curve);
+- PQ = SQ * RQ of the particle class.
+Test-set value of a run = the mean over its test images (every image weighs the same, whatever its particle
+count). Over several runs (one checkpoint each): mean +- sample std (ddof = 1) of the runs' test-set values.
+
+Writes results.csv (one row per run and image, plus per-run "mean" rows), results.md (per-image table as
+mean +- std over runs, and the per-run and overall summary) and overlays/ID.png (first model's prediction:
+true positive instances green, false positives red, missed true instances yellow, over the grey image).
+All inputs (checkpoints, images, masks, split) are read and checked before any prediction.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import os
+import sys
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig
+
+from drgan.errors import ConfigError
+from drgan.io import write_bytes, write_with
+from drgan.metrics.segmentation import binarize_and_label, match_instances, segmentation_scores
+
+log = logging.getLogger(__name__)
+
+SCORES = ("dsc", "ap50", "pq", "sq", "rq")
+COUNTS = ("tp", "fp", "fn")
+GREEN, RED, YELLOW = (0, 200, 0), (230, 0, 0), (255, 220, 0)
+
+
+def overlay(image: np.ndarray, pred_labels: np.ndarray, true_labels: np.ndarray, alpha: float = 0.5) -> np.ndarray:
+    """(H, W, 3) uint8: grey image with matched predicted instances green, unmatched predictions red and
+    unmatched true instances yellow (where no prediction covers them), blended with weight alpha."""
+    m = match_instances(pred_labels, true_labels, 0.5)
+    grey = np.round(np.clip(image, 0, 1) * 255.0)
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    tp_pred = np.isin(pred_labels, [p for p, _ in m.pairs])
+    fp = np.isin(pred_labels, m.unmatched_pred)
+    fn = np.isin(true_labels, m.unmatched_true) & (pred_labels == 0)
+    for where, colour in ((fn, YELLOW), (fp, RED), (tp_pred, GREEN)):
+        rgb[where] = (1 - alpha) * rgb[where] + alpha * np.array(colour, dtype=np.float64)
+    return np.round(rgb).astype(np.uint8)
+
+
+def score_image(class_map: np.ndarray, true_labels: np.ndarray) -> tuple[dict, np.ndarray]:
+    pred_labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
+    return segmentation_scores(pred_labels, true_labels), pred_labels
+
+
+def _mean_std(values) -> tuple[float, float]:
+    v = np.asarray(values, dtype=np.float64)
+    return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0
+
+
+def tables(rows: list[dict], runs: list[str], ids: list[str]) -> tuple[str, str]:
+    """(csv text, markdown text) of per-(run, image) rows; adds per-run mean rows to the CSV."""
+    fields = ["run", "model", "image", *SCORES, *COUNTS]
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    writer.writeheader()
+    run_means = {}
+    for run in runs:
+        mine = [r for r in rows if r["run"] == run]
+        for r in mine:
+            writer.writerow({k: (f"{r[k]:.6f}" if k in SCORES else r[k]) for k in fields})
+        run_means[run] = {k: float(np.mean([r[k] for r in mine])) for k in SCORES}
+        writer.writerow({"run": run, "model": mine[0]["model"], "image": "mean",
+                         **{k: f"{run_means[run][k]:.6f}" for k in SCORES},
+                         **{k: sum(r[k] for r in mine) for k in COUNTS}})
+
+    md = ["# Segmentation on real test images", "",
+          f"{len(ids)} test image(s), {len(runs)} run(s). Particle class only (contour = background), 4-connected instances, "
+          "match at IoU > 0.5. AP50 = TP / (TP + FP + FN); PQ = SQ x RQ. A run's test-set value is the mean over its "
+          "images; values below are mean +- sample std over runs.", "",
+          "## Test set", "", "| | " + " | ".join(s.upper() for s in SCORES) + " |", "|---|" + "---|" * len(SCORES)]
+    overall = {k: _mean_std([run_means[r][k] for r in runs]) for k in SCORES}
+    md.append("| **all runs** | " + " | ".join(f"{m:.3f} +- {s:.3f}" for m, s in overall.values()) + " |")
+    for run in runs:
+        md.append(f"| {run} | " + " | ".join(f"{run_means[run][k]:.3f}" for k in SCORES) + " |")
+    md += ["", "## Per image", "", "| image | " + " | ".join(s.upper() for s in SCORES) + " | TP | FP | FN |",
+           "|---|" + "---|" * (len(SCORES) + 3)]
+    for i in ids:
+        mine = [r for r in rows if r["image"] == i]
+        cells = [f"{m:.3f} +- {s:.3f}" for m, s in (_mean_std([r[k] for r in mine]) for k in SCORES)]
+        counts = [f"{np.mean([r[k] for r in mine]):.1f}" for k in COUNTS]
+        md.append(f"| {i} | " + " | ".join(cells + counts) + " |")
+    md += ["", "Runs: " + ", ".join(f"{r} = `{[x['model'] for x in rows if x['run'] == r][0]}`" for r in runs), ""]
+    return buf.getvalue(), "\n".join(md)
+
+
+def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
+    """Score every model on the test ids; returns {"runs": {run: {score: value}}, "mean": {...}, "std": {...}}.
+
+    predictors: optional {run name: f(image) -> class map} instead of cfg.models (tests)."""
+    from drgan.segmentation.data import load_real, real_ids
+
+    if not cfg.get("data_dir"):
+        raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")
+    if predictors is None:
+        models = list(cfg.get("models") or [])
+        if not models:
+            raise ConfigError("evaluate: give at least one model=CHECKPOINT")
+        from drgan.segmentation.inference import predict
+        from drgan.segmentation.module import load_segmenter
+
+        loaded = [(Path(m), load_segmenter(m)) for m in models]  # every checkpoint checked before work
+        inf = dict(cfg.inference)
+        predictors = {f"run{k}": (lambda im, net=net: predict(net, im, **inf)) for k, (_, net) in enumerate(loaded)}
+        model_names = {f"run{k}": str(p) for k, (p, _) in enumerate(loaded)}
+    else:
+        model_names = {r: r for r in predictors}
+    data_dir = Path(cfg.data_dir)
+    ids = real_ids(data_dir, cfg.get("split"), str(cfg.subset))
+    samples = load_real(data_dir, ids, cfg.get("crop_rows"))  # every image/mask read and checked first
+
+    out = Path(cfg.out)
+    rows = []
+    for k, (run, predictor) in enumerate(predictors.items()):
+        for image_id, image, true_labels in samples:
+            class_map = np.asarray(predictor(image))
+            if class_map.shape != image.shape:
+                raise ConfigError(f"evaluate: {run} returned a class map of shape {class_map.shape} for image {image_id} {image.shape}")
+            scores, pred_labels = score_image(class_map, true_labels)
+            rows.append({"run": run, "model": model_names[run], "image": image_id, **scores})
+            log.info("%s %s: %s", run, image_id, {s: round(scores[s], 3) for s in SCORES})
+            if k == 0 and cfg.get("overlays", True):
+                from PIL import Image
+
+                rgb = overlay(image, pred_labels, true_labels, float(cfg.overlay_alpha))
+                write_with(out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG"))
+    runs = list(predictors)
+    csv_text, md_text = tables(rows, runs, ids)
+    write_bytes(out / "results.csv", csv_text.encode())
+    write_bytes(out / "results.md", md_text.encode())
+    per_run = {r: {s: float(np.mean([x[s] for x in rows if x["run"] == r])) for s in SCORES} for r in runs}
+    stats = {s: _mean_std([per_run[r][s] for r in runs]) for s in SCORES}
+    log.info("wrote %s: %s", out / "results.md", {s: f"{m:.3f} +- {sd:.3f}" for s, (m, sd) in stats.items()})
+    return {"runs": per_run, "rows": rows, "mean": {s: v[0] for s, v in stats.items()}, "std": {s: v[1] for s, v in stats.items()}}
+
+
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="evaluate")
+def main(cfg: DictConfig):
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    from drgan.segmentation.cli import rewrite_argv
+
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    sys.argv = [sys.argv[0], *rewrite_argv(sys.argv[1:], many_models=True)]
+    main()
