@@ -1,0 +1,133 @@
+"""`python -m drgan.export_nnunet data=DIR out=NNUNET_RAW dataset_id=501 name=TiO2SEM`: nnU-Net v2 raw layout.
+
+Reads the dataset that drgan.generate lists in DIR/manifest.json (synthetic pairs and backgrounds) and writes
+
+    NNUNET_RAW/Dataset501_TiO2SEM/imagesTr/{case}_0000.png   the grey image (one channel, "SEM")
+    NNUNET_RAW/Dataset501_TiO2SEM/labelsTr/{case}.png        the mask: 0 background, 1 particle, 2 contour
+    NNUNET_RAW/Dataset501_TiO2SEM/dataset.json
+
+Cases keep the dataset's ids (syn_000012, bg_0003). Files are copied byte for byte, each atomically.
+An existing dataset folder is completed when it holds the same dataset (same dataset.json, no other
+cases); a different one, or another folder with the same dataset id, is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from drgan import io
+from drgan.errors import ConfigError, DataError
+
+log = logging.getLogger(__name__)
+
+LABELS = {"background": 0, "particle": 1, "contour": 2}
+CHANNEL = "_0000"  # nnU-Net's channel suffix: one channel
+
+
+def dataset_folder_name(dataset_id: int, name: str) -> str:
+    if isinstance(dataset_id, bool) or not isinstance(dataset_id, int) or not 1 <= dataset_id <= 999:
+        raise ConfigError(f"dataset_id={dataset_id!r}: expected an integer in 1..999 (nnU-Net's DatasetNNN)")
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", str(name or "")):
+        raise ConfigError(f"name={name!r}: expected letters, digits, '_' or '-' (it becomes Dataset{dataset_id:03d}_<name>)")
+    return f"Dataset{dataset_id:03d}_{name}"
+
+
+def read_manifest(data: Path) -> dict:
+    path = data / "manifest.json"
+    if not path.is_file():
+        raise DataError(f"data={data}: no manifest.json (expected a folder written by drgan.generate; if its shards are done, run it with merge=true)")
+    manifest = json.loads(path.read_text())
+    if not manifest.get("entries"):
+        raise DataError(f"data={data}: manifest.json lists no entries")
+    return manifest
+
+
+def dataset_json(manifest: dict, n_cases: int, channel_names: dict, labels: dict, name: str, description: str | None) -> dict:
+    values = sorted(int(v) for v in labels.values())
+    if values != list(range(len(values))) or labels.get("background") != 0:
+        raise ConfigError(f"labels={labels}: nnU-Net expects 'background': 0 and consecutive integer values 0..K-1")
+    config = manifest.get("config", {})
+    counts = manifest.get("counts", {})
+    return {
+        "name": name,
+        "description": description or (
+            f"drgan synthetic {config.get('material', '')} dataset: {counts.get('synthetic', '?')} DiffRenderGAN renders "
+            f"+ {counts.get('background', '?')} real background patches (checkpoint {config.get('ckpt', '?')})"
+        ),
+        "channel_names": {str(k): str(v) for k, v in channel_names.items()},
+        "labels": {str(k): int(v) for k, v in labels.items()},
+        "numTraining": n_cases,
+        "file_ending": ".png",
+    }
+
+
+def export(cfg: DictConfig) -> Path:
+    """Write the nnU-Net raw dataset; return its folder."""
+    data = Path(str(cfg.data)).expanduser().resolve()
+    out = Path(str(cfg.out)).expanduser().resolve()
+    folder_name = dataset_folder_name(cfg.dataset_id, cfg.name)
+    channel_names = OmegaConf.to_container(cfg.channel_names) if isinstance(cfg.channel_names, DictConfig) else dict(cfg.channel_names)
+    labels = OmegaConf.to_container(cfg.labels) if isinstance(cfg.labels, DictConfig) else dict(cfg.labels)
+    if not channel_names:
+        raise ConfigError("channel_names: expected at least one channel, e.g. {'0': 'SEM'}")
+    manifest = read_manifest(data)
+    entries = manifest["entries"]
+    for entry in entries:
+        for key in ("image", "mask"):
+            if not (data / entry["files"][key]).is_file():
+                raise DataError(f"data={data}: {entry['files'][key]} of {entry['id']} is missing")
+    description = dataset_json(manifest, len(entries), channel_names, labels, str(cfg.name), cfg.get("description"))
+
+    target = out / folder_name
+    _check_target(out, target, cfg.dataset_id, description, {e["id"] for e in entries})
+    for entry in entries:
+        case = entry["id"]
+        _copy(data / entry["files"]["image"], target / "imagesTr" / f"{case}{CHANNEL}.png")
+        _copy(data / entry["files"]["mask"], target / "labelsTr" / f"{case}.png")
+    io.write_json(target / "dataset.json", description)  # last: a complete export has a dataset.json
+    log.info("wrote %s: %d cases", target, len(entries))
+    print(f"{target}: {len(entries)} training cases")
+    return target
+
+
+def _check_target(out: Path, target: Path, dataset_id: int, description: dict, cases: set[str]) -> None:
+    if out.is_dir():
+        others = [p.name for p in out.glob(f"Dataset{dataset_id:03d}_*") if p.name != target.name]
+        if others:
+            raise ConfigError(f"out={out} already holds {others[0]} with dataset_id={dataset_id}: pick another dataset_id (nnU-Net ids are unique)")
+    if not target.exists():
+        return
+    existing = target / "dataset.json"
+    if existing.is_file():
+        old = json.loads(existing.read_text())
+        if old != description:
+            raise ConfigError(f"{target} holds a different dataset (its dataset.json differs): remove it or choose another dataset_id/name")
+    found = {p.name[: -len(CHANNEL + ".png")] for p in (target / "imagesTr").glob(f"*{CHANNEL}.png")}
+    found |= {p.stem for p in (target / "labelsTr").glob("*.png")}
+    extra = sorted(found - cases)
+    if extra:
+        raise ConfigError(f"{target} holds cases not in this dataset (e.g. {extra[0]}): remove it or choose another dataset_id/name")
+
+
+def _copy(source: Path, destination: Path) -> None:
+    data = source.read_bytes()
+    if destination.is_file() and destination.read_bytes() == data:
+        return
+    io.write_bytes(destination, data)
+
+
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="export_nnunet")
+def main(cfg: DictConfig) -> None:
+    export(cfg)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    main()
