@@ -1,0 +1,239 @@
+"""drgan.generate and drgan.export_nnunet on a tiny checkpoint (24 px, spp 1, 3 particles, 1 training step).
+
+The tiny generator is untrained, so most tests keep every image with a visible particle (min_contrast=0);
+the contrast filter itself is tested on hand-made arrays and by a filter that nothing passes.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from test_train import make_images, run_train, tiny_overrides
+
+from conftest import compose
+from drgan import generate as gen
+from drgan.errors import ConfigError
+
+N = 3
+N_BG = 2
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> Path:
+    """A training run folder with checkpoints/best.ckpt and patches/ (2 background patches)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        root = tmp_path_factory.mktemp("gen")
+        images = make_images(root / "real" / "images")
+        out = root / "run"
+        run_train(tiny_overrides(images, out, extra=["trainer.max_epochs=1", "trainer.limit_train_batches=1"]))
+    finally:
+        torch.set_num_threads(threads)
+    assert (out / "checkpoints" / "best.ckpt").is_file() and (out / "patches" / "patches.npz").is_file()
+    return out
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def run_generate(ckpt, out, *extra, n=N):
+    cfg = compose([f"ckpt={ckpt}", f"out={out}", f"n={n}", f"n_background={N_BG}", "min_contrast=0", "progress=false", *extra], config_name="generate")
+    return gen.generate(cfg)
+
+
+@pytest.fixture
+def count_renders(monkeypatch):
+    calls = []
+    render = gen.render_index
+
+    def counting(module, sample_phi, settings, index):
+        calls.append(index)
+        return render(module, sample_phi, settings, index)
+
+    monkeypatch.setattr(gen, "render_index", counting)
+    return calls
+
+
+@pytest.fixture(scope="session")
+def dataset(tiny_run, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("syn") / "data"
+    run_generate(tiny_run, out)
+    return out
+
+
+def read(path) -> np.ndarray:
+    return np.asarray(Image.open(path))
+
+
+def ids(out: Path) -> list[str]:
+    return [e["id"] for e in json.loads((out / "manifest.json").read_text())["entries"]]
+
+
+# --- units --------------------------------------------------------------------------------------------------
+
+
+def test_contrast_check_hand_made():
+    labels = np.zeros((10, 10), np.int32)
+    labels[2:5, 2:5] = 1
+    labels[6:8, 6:8] = 2
+    image = np.full((10, 10), 0.2)
+    image[labels > 0] = 0.3  # 1.5 x the background
+    check = gen.contrast_check(image, labels, 1.15, 0.05)
+    assert check.kept and check.contrast == pytest.approx(1.5) and check.particles_visible == 2
+    assert check.background_fraction == pytest.approx(87 / 100)
+    image[labels > 0] = 0.22  # 1.1 x: not clearly brighter
+    assert gen.contrast_check(image, labels, 1.15, 0.05).reason == "contrast"
+    assert gen.contrast_check(image, np.zeros_like(labels), 1.15, 0.05).reason == "no_particle"
+    assert gen.contrast_check(image, np.ones_like(labels), 0.0, 0.05).reason == "background_fraction"
+    labels[:, :] = 1
+    labels[0, :3] = 0  # 3 % background < 5 %
+    assert gen.contrast_check(np.ones((10, 10)), labels, 0.0, 0.05).reason == "background_fraction"
+
+
+def test_shard_and_seeds():
+    assert gen.Shard.parse("1/3") == gen.Shard(1, 3) and gen.Shard.parse(None) == gen.Shard(0, 1)
+    for bad in ("3/2", "2/2", "-1/2", "1/0", "a/b", "1", "1/2/3"):
+        with pytest.raises(ConfigError, match="expected 'i/k'"):
+            gen.Shard.parse(bad)
+    assert gen.index_seeds(0, 5) == gen.index_seeds(0, 5) != gen.index_seeds(0, 6) != gen.index_seeds(1, 5)
+    assert gen.dataset_cutoff({0: True, 1: False, 2: True, 4: True}, 2) == (2, 3)
+    assert gen.dataset_cutoff({0: True, 1: False, 3: True}, 2) == (None, 2)
+
+
+# --- generation ---------------------------------------------------------------------------------------------
+
+
+def test_dataset_layout_masks_and_manifest(dataset):
+    manifest = json.loads((dataset / "manifest.json").read_text())
+    syn = [e for e in manifest["entries"] if e["kind"] == "synthetic"]
+    bg = [e for e in manifest["entries"] if e["kind"] == "background"]
+    assert len(syn) == N and [e["id"] for e in bg] == ["bg_0000", "bg_0001"]
+    assert all(e["id"] == f"syn_{e['index']:06d}" for e in syn)
+    counts = manifest["counts"]
+    assert counts["kept"] == N and counts["attempted"] == N + counts["dropped"]
+    assert manifest["config"]["material"] == "tio2_sem" and manifest["config"]["renderer"]["spp"] == 1
+    assert manifest["config"]["contour_px"] == 1 and manifest["throughput"]["this_run"]["rendered"] >= N
+    for entry in manifest["entries"]:
+        files = {k: dataset / v for k, v in entry["files"].items()}
+        image, mask, labels = read(files["image"]), read(files["mask"]), read(files["label"])
+        assert image.dtype == np.uint8 and image.shape == mask.shape == labels.shape == (24, 24)
+        assert set(np.unique(mask)) <= {0, 1, 2}
+        np.testing.assert_array_equal(mask > 0, labels > 0)
+        meta = json.loads(files["meta"].read_text())
+        if entry["kind"] == "background":
+            assert not mask.any() and meta["source"]["image_id"].startswith("img")
+        else:
+            assert labels.any() and np.asarray(meta["phi"]).shape == (3, 4)
+            assert meta["sigma"] is not None and meta["contrast"] > 0 and set(meta["seed"]) == {"phi", "render", "noise"}
+    # Nothing half-written: no temporary files anywhere.
+    assert not [p for p in dataset.rglob("*") if p.name.startswith(".") or ".tmp" in p.name]
+
+
+def test_resume_skips_done_indices_and_completes(tiny_run, dataset, tmp_path, count_renders):
+    out = tmp_path / "data"
+    shutil.copytree(dataset, out)
+    first = ids(out)[0]
+    reference = (out / "images" / f"{first}.png").read_bytes()
+    # A cut-off run: the first image lost its meta (the done marker) and its image.
+    (out / "meta" / f"{first}.json").unlink()
+    (out / "images" / f"{first}.png").unlink()
+    (out / "manifest.json").unlink()
+    run_generate(tiny_run, out)
+    assert count_renders == [int(first[4:])]  # only the unfinished index is rendered again ...
+    assert (out / "images" / f"{first}.png").read_bytes() == reference  # ... and it is the same image
+    assert ids(out) == ids(dataset)
+    # The same command again renders nothing; a larger n renders only the new indices.
+    count_renders.clear()
+    run_generate(tiny_run, out)
+    assert count_renders == []
+    run_generate(tiny_run, out, n=N + 1)
+    assert count_renders and min(count_renders) > max(int(i[4:]) for i in ids(dataset) if i.startswith("syn"))
+    assert len([i for i in ids(out) if i.startswith("syn")]) == N + 1
+
+
+def test_two_shards_fill_one_dataset_like_one_process(tiny_run, dataset, tmp_path):
+    out = tmp_path / "data"
+    assert run_generate(tiny_run, out, "shard=0/2") is None or True  # may complete alone (it keeps going)
+    run_generate(tiny_run, out, "shard=1/2")
+    assert (out / "manifest_shard_0.json").is_file() and (out / "manifest_shard_1.json").is_file()
+    assert ids(out) == ids(dataset)
+    for entry in ids(dataset):
+        assert (out / "images" / f"{entry}.png").read_bytes() == (dataset / "images" / f"{entry}.png").read_bytes()
+    # merge=true renders nothing and writes the same manifest.
+    (out / "manifest.json").unlink()
+    run_generate(tiny_run, out, "merge=true")
+    assert ids(out) == ids(dataset)
+
+
+def test_filter_that_nothing_passes_stops_with_a_clear_error(tiny_run, tmp_path):
+    with pytest.raises(RuntimeError, match=r"only 0 of n=1 images passed the filter in max_attempts=2"):
+        run_generate(tiny_run, tmp_path / "data", "min_contrast=1e9", "max_attempts=2", "n_background=0", n=1)
+    assert len(list((tmp_path / "data" / "dropped").glob("syn_*.json"))) == 2
+
+
+@pytest.mark.parametrize(
+    "case, extra, message",
+    [
+        ("missing", ["ckpt=/nope/best.ckpt"], "no such checkpoint file or run folder"),
+        ("n0", ["n=0"], r"n=0: expected an integer >= 1"),
+        ("shard", ["shard=3/2"], "expected 'i/k'"),
+        ("material", ["material=tio2_him"], r"was trained for material tio2_sem, not tio2_him"),
+        ("settings", ["seed=7"], "generated with other settings"),
+    ],
+)
+def test_bad_inputs_fail_before_rendering(case, extra, message, tiny_run, dataset, tmp_path, monkeypatch):
+    monkeypatch.setattr(gen, "load_module", lambda *a, **k: pytest.fail("model loaded before the inputs were checked"))
+    out = dataset if case == "settings" else tmp_path / "data"
+    args = [f"ckpt={tiny_run}", f"out={out}", "progress=false", *extra]
+    with pytest.raises(ConfigError, match=message):
+        gen.generate(compose(args, config_name="generate"))
+
+
+# --- nnU-Net export -----------------------------------------------------------------------------------------
+
+
+def export(data, out, *extra):
+    from drgan.export_nnunet import compose_config
+    from drgan.export_nnunet import export as run
+
+    return run(compose_config([f"data={data}", f"out={out}", *extra]))
+
+
+def test_export_nnunet_layout_and_dataset_json(dataset, tmp_path):
+    target = export(dataset, tmp_path / "raw")
+    assert target.name == "Dataset501_TiO2SEM"
+    description = json.loads((target / "dataset.json").read_text())
+    assert description["channel_names"] == {"0": "SEM"} and description["file_ending"] == ".png"
+    assert description["labels"] == {"background": 0, "particle": 1, "contour": 2}
+    assert description["numTraining"] == N + N_BG
+    cases = ids(dataset)
+    assert sorted(p.name for p in (target / "imagesTr").iterdir()) == sorted(f"{c}_0000.png" for c in cases)
+    assert sorted(p.name for p in (target / "labelsTr").iterdir()) == sorted(f"{c}.png" for c in cases)
+    assert (target / "labelsTr" / f"{cases[0]}.png").read_bytes() == (dataset / "masks" / f"{cases[0]}.png").read_bytes()
+    # The same export again is fine; a different dataset under the same id or folder is refused.
+    export(dataset, tmp_path / "raw")
+    with pytest.raises(ConfigError, match="holds a different dataset"):
+        export(dataset, tmp_path / "raw", "channel_names.0=HIM")
+    with pytest.raises(ConfigError, match="already holds Dataset501_TiO2SEM"):
+        export(dataset, tmp_path / "raw", "name=Other")
+    assert not [p for p in target.rglob("*") if ".tmp" in p.name]
+
+
+def test_export_nnunet_passes_nnunet_integrity_check(dataset, tmp_path):
+    pytest.importorskip("nnunetv2")
+    from nnunetv2.experiment_planning.verify_dataset_integrity import verify_dataset_integrity
+
+    target = export(dataset, tmp_path / "raw")
+    verify_dataset_integrity(str(target), num_processes=1)
