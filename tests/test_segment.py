@@ -1,0 +1,278 @@
+"""Segmenter, sliding-window inference, evaluation and particle analysis on tiny synthetic data.
+
+Images are bright discs / squares on a dark background, 32-64 px; trainings run a few steps.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from conftest import compose
+from drgan.errors import DataError
+from drgan.scene.labels import class_mask
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def disc_labels(size=32, n=3, radius=4.0, seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    labels = np.zeros((size, size), np.int32)
+    for k in range(n):
+        cy, cx = rng.uniform(radius + 2, size - radius - 2, 2)
+        labels[((yy - cy) ** 2 + (xx - cx) ** 2 <= radius**2) & (labels == 0)] = k + 1
+    return labels
+
+
+def disc_image(labels, seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.clip(np.where(labels > 0, 0.8, 0.2) + 0.03 * rng.standard_normal(labels.shape), 0, 1).astype(np.float32)
+
+
+def make_generated(folder: Path, n=6, size=32) -> Path:
+    for d in ("images", "masks"):
+        (folder / d).mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        labels = disc_labels(size, seed=i)
+        Image.fromarray((disc_image(labels, i) * 255).astype(np.uint8)).save(folder / "images" / f"{i:03d}.png")
+        Image.fromarray(class_mask(labels, 1)).save(folder / "masks" / f"{i:03d}.png")
+    return folder
+
+
+def make_real(folder: Path, images: dict, masks: dict, split: dict) -> Path:
+    """A real-style dataset: images/ID.tif (8 bit), masks/ID_m.tif (0/255), split.json."""
+    import tifffile
+
+    for d in ("images", "masks"):
+        (folder / d).mkdir(parents=True, exist_ok=True)
+    for i, img in images.items():
+        tifffile.imwrite(folder / "images" / f"{i}.tif", (np.asarray(img) * 255).astype(np.uint8))
+    for i, m in masks.items():
+        tifffile.imwrite(folder / "masks" / f"{i}_m.tif", np.asarray(m).astype(np.uint8))
+    (folder / "split.json").write_text(json.dumps(split))
+    return folder
+
+
+# --- model and inference ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("depth, base, size", [(4, 16, (64, 64)), (3, 8, (37, 50)), (1, 4, (5, 7))])
+def test_unet_output_shape(depth, base, size):
+    from drgan.segmentation.unet import UNet
+
+    net = UNet(1, 3, depth, base).eval()
+    assert net(torch.rand(2, 1, *size)).shape == (2, 3, *size)
+
+
+def test_training_steps_reduce_loss():
+    from drgan.segmentation.data import CropDataset, Pair
+    from drgan.segmentation.module import SegmenterModule
+
+    torch.manual_seed(0)
+    pairs = [Pair(str(i), disc_image(disc_labels(seed=i), i), class_mask(disc_labels(seed=i), 1)) for i in range(4)]
+    data = CropDataset(pairs, crop=32, augment=True)
+    batch = [torch.stack(x) for x in zip(*(data[i] for i in range(4)))]
+    model = SegmenterModule(depth=3, base=8, lr=1e-2)
+    opt = model.configure_optimizers()
+    losses = []
+    for _ in range(25):
+        opt.zero_grad()
+        loss = model._losses(batch)[3]
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.7 * losses[0], losses
+
+
+def test_sliding_window_matches_direct_inference():
+    from drgan.segmentation.inference import predict, predict_probs
+    from drgan.segmentation.unet import UNet
+
+    torch.manual_seed(0)
+    net = UNet(1, 3, 3, 4).eval()
+    image = np.random.default_rng(0).random((32, 32)).astype(np.float32)
+    direct = net(torch.from_numpy(image)[None, None]).softmax(1)[0].detach().numpy()
+    np.testing.assert_allclose(predict_probs(net, image, tile=32), direct, atol=1e-5)
+    # Sizes not multiple of the tile, and smaller than one tile: full coverage, probabilities sum to 1.
+    for shape in [(50, 71), (20, 45)]:
+        probs = predict_probs(net, np.random.default_rng(1).random(shape).astype(np.float32), tile=32, overlap=0.5, batch_size=3)
+        assert probs.shape == (3, *shape) and np.isfinite(probs).all()
+        np.testing.assert_allclose(probs.sum(0), 1.0, atol=1e-5)
+    assert predict(net, image, tile=32).dtype == np.uint8
+
+
+# --- evaluation -------------------------------------------------------------------------------------------
+
+
+def _hand_case(tmp_path):
+    """20x20 image: true squares A (rows 2-5, cols 2-5) and B (rows 12-15, cols 12-15).
+    Run 'partial' predicts A exactly plus a false square C (rows 2-3, cols 14-15) and misses B:
+    TP 1, FP 1, FN 1 -> DSC 2*16/(20+32), AP50 1/3, SQ 1, RQ 1/2, PQ 1/2. Run 'perfect' scores 1."""
+    true = np.zeros((20, 20), np.uint8)
+    true[2:6, 2:6] = 255
+    true[12:16, 12:16] = 255
+    image = np.where(true > 0, 0.8, 0.2)
+    partial = np.zeros((20, 20), np.uint8)
+    partial[2:6, 2:6] = 1
+    partial[2:4, 14:16] = 1
+    perfect = (true > 0).astype(np.uint8)
+    data = make_real(tmp_path / "real", {"a": image, "t": image}, {"a": true, "t": true}, {"train": ["t"], "test": ["a"]})
+    return data, {"partial": lambda im: partial, "perfect": lambda im: perfect}
+
+
+def eval_cfg(data, out, extra=()):
+    return compose([f"data_dir={data}", f"out={out}", "crop_rows=null", *extra], config_name="evaluate")
+
+
+def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
+    from drgan.evaluate import GREEN, RED, YELLOW, evaluate
+
+    data, predictors = _hand_case(tmp_path)
+    result = evaluate(eval_cfg(data, tmp_path / "out", ["overlay_alpha=1.0"]), predictors=predictors)
+    part = result["runs"]["partial"]
+    assert part["dsc"] == pytest.approx(32 / 52) and part["ap50"] == pytest.approx(1 / 3)
+    assert part["pq"] == pytest.approx(0.5) and part["sq"] == pytest.approx(1.0) and part["rq"] == pytest.approx(0.5)
+    assert result["runs"]["perfect"] == {k: pytest.approx(1.0) for k in ("dsc", "ap50", "pq", "sq", "rq")}
+    assert result["mean"]["ap50"] == pytest.approx((1 / 3 + 1) / 2)
+    assert result["std"]["pq"] == pytest.approx(np.std([0.5, 1.0], ddof=1))
+    rows = list(csv.DictReader((tmp_path / "out" / "results.csv").open()))
+    assert [(r["run"], r["image"]) for r in rows] == [("partial", "a"), ("partial", "mean"), ("perfect", "a"), ("perfect", "mean")]
+    assert (rows[0]["tp"], rows[0]["fp"], rows[0]["fn"]) == ("1", "1", "1")
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert "0.750 +- 0.354" in md  # PQ over the two runs
+    rgb = np.asarray(Image.open(tmp_path / "out" / "overlays" / "a.png"))  # overlay of the first run
+    assert tuple(rgb[3, 3]) == GREEN and tuple(rgb[2, 14]) == RED and tuple(rgb[13, 13]) == YELLOW
+    assert tuple(rgb[10, 0]) == (51, 51, 51)  # background: the grey image (0.2 * 255)
+
+
+@pytest.mark.parametrize("case, message", [
+    ("size", "differs from its image"),
+    ("values", "unexpected values"),
+    ("missing", "no mask for image id"),
+    ("not_segmenter", "not a drgan segmenter checkpoint"),
+    ("not_checkpoint", "not a readable PyTorch checkpoint"),
+])
+def test_evaluate_refuses_bad_inputs_before_writing(case, message, tmp_path):
+    from drgan.evaluate import evaluate
+
+    image, mask = np.full((16, 16), 0.5), np.zeros((16, 16), np.uint8)
+    masks = {"a": mask}
+    if case == "size":
+        masks = {"a": np.zeros((16, 17), np.uint8)}
+    elif case == "values":
+        masks = {"a": np.array([[0, 128, 255]] * 16 + [[0, 0, 0]] * 0, np.uint8)[:, :3].repeat(6, axis=1)[:, :16]}
+    elif case == "missing":
+        masks = {}
+    data = make_real(tmp_path / "real", {"a": image}, masks, {"train": [], "test": ["a"]})
+    ckpt = tmp_path / "model.ckpt"
+    if case == "not_checkpoint":
+        ckpt.write_text("hello")
+    elif case == "not_segmenter":
+        torch.save({"state_dict": {}, "hyper_parameters": {"material": "tio2_sem"}}, ckpt)
+    out = tmp_path / "out"
+    with pytest.raises(DataError, match=message):
+        if case.startswith("not_"):
+            evaluate(eval_cfg(data, out, [f"models=[{ckpt}]"]))
+        else:
+            evaluate(eval_cfg(data, out), predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
+    assert not out.exists()
+
+
+# --- training entry point, checkpoint, evaluation with the real model -------------------------------------
+
+
+def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
+    from drgan.evaluate import evaluate
+    from drgan.segment import segment
+
+    data = make_generated(tmp_path / "gen")
+    out = tmp_path / "run"
+    common = [f"data_dir={data}", f"out={out}", f"paths.root_dir={tmp_path}", "model.depth=2", "model.base=4",
+              "loader.crop=32", "loader.batch_size=4", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false",
+              "trainer.log_every_n_steps=1", "name=tiny"]
+    metrics = segment(compose([*common, "trainer.max_epochs=1"], config_name="segment"))
+    assert {"train/loss", "val/loss", "val/dsc"} <= set(metrics)
+    last = out / "checkpoints" / "last.ckpt"
+    assert last.is_file() and json.loads((out / "metrics.json").read_text())["global_step"] == 1
+    again = segment(compose([*common, "trainer.max_epochs=2", "ckpt_path=last"], config_name="segment"))
+    assert json.loads((out / "metrics.json").read_text())["global_step"] == 2 and "train/loss" in again
+
+    import mlflow
+
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlruns/mlflow.db")
+    exp = client.get_experiment_by_name("segment_tiny")
+    runs = client.search_runs([exp.experiment_id])
+    assert len(runs) == 1  # the resumed run continued the same MLflow run
+    assert "model/depth" in runs[0].data.params and "train/loss" in runs[0].data.metrics
+    assert [a.path for a in client.list_artifacts(runs[0].info.run_id, "checkpoints")] == ["checkpoints/last.ckpt"]
+
+    labels = disc_labels(40, seed=7)
+    real = make_real(tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]})
+    result = evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{last},{last}]", "inference.tile=32"]))
+    assert set(result["runs"]) == {"run0", "run1"} and result["std"]["dsc"] == pytest.approx(0.0)
+    assert (tmp_path / "eval" / "overlays" / "x.png").is_file()
+
+
+def test_segment_refuses_bad_data_before_writing(tmp_path):
+    from drgan.segment import segment
+
+    data = make_generated(tmp_path / "gen", n=2)
+    Image.fromarray(np.full((32, 32), 3, np.uint8)).save(data / "masks" / "001.png")
+    out = tmp_path / "run"
+    with pytest.raises(DataError, match="unexpected values"):
+        segment(compose([f"data_dir={data}", f"out={out}", "logger=none"], config_name="segment"))
+    assert not out.exists()
+
+
+def test_cli_spelling():
+    from drgan.segmentation.cli import rewrite_argv
+
+    assert rewrite_argv(["data=/d", "model=a.ckpt", "model=/b/c.ckpt", "out=o"], many_models=True) == ["data_dir=/d", "out=o", "models=[a.ckpt,/b/c.ckpt]"]
+    assert rewrite_argv(["model=a.ckpt", "images=i"], many_models=False) == ["images=i", "ckpt=a.ckpt"]
+
+
+# --- analysis ---------------------------------------------------------------------------------------------
+
+
+def test_analyze_areas_equal_true_disc_areas(tmp_path):
+    from drgan.analyze import analyze
+
+    yy, xx = np.mgrid[:48, :48]
+    labels = np.zeros((48, 48), np.int32)
+    for k, (cy, cx, r) in enumerate([(10, 10, 5.0), (12, 34, 6.5), (34, 12, 3.2), (36, 36, 7.9)]):
+        labels[(yy - cy) ** 2 + (xx - cx) ** 2 <= r * r] = k + 1
+    folder = tmp_path / "images"
+    folder.mkdir()
+    Image.fromarray((disc_image(labels) * 255).astype(np.uint8)).save(folder / "img.png")
+    cfg = compose([f"images={folder}", f"out={tmp_path / 'out'}", "nm_per_px=2.0", "min_area_px=0", "wires=true"], config_name="analyze")
+    rows = analyze(cfg, predictor=lambda im: (labels > 0).astype(np.uint8))
+    true_areas = sorted(int((labels == k).sum()) for k in range(1, labels.max() + 1))
+    assert sorted(r["area_px"] for r in rows) == true_areas
+    r = rows[0]
+    assert r["area_nm2"] == pytest.approx(4 * r["area_px"]) and r["equivalent_diameter_nm"] == pytest.approx(2 * r["equivalent_diameter_px"])
+    table = list(csv.DictReader((tmp_path / "out" / "particles.csv").open()))
+    assert len(table) == len(true_areas) and {"centroid_x", "bbox_min_row", "equivalent_diameter_px"} <= set(table[0])
+    for name in ("histograms.png", "thickness_histogram.png", "thickness/img.png"):
+        assert (tmp_path / "out" / name).is_file()
+
+
+def test_local_thickness_of_a_strip():
+    from drgan.analyze import local_thickness
+
+    strip = np.zeros((30, 60), bool)
+    strip[10:20, 5:55] = True
+    t = local_thickness(strip)
+    assert t[15, 30] == pytest.approx(10.0, abs=1.0) and t[0, 0] == 0
