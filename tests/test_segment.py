@@ -276,3 +276,4 @@ def test_local_thickness_of_a_strip():
     strip[10:20, 5:55] = True
     t = local_thickness(strip)
     assert t[15, 30] == pytest.approx(10.0, abs=1.0) and t[0, 0] == 0
+    assert not local_thickness(np.zeros((5, 5), bool)).any() and np.isfinite(local_thickness(np.ones((5, 5), bool))).all()

@@ -59,7 +59,13 @@ def local_thickness(particle: np.ndarray) -> np.ndarray:
     """Local thickness (a diameter, px) of every foreground pixel; 0 outside."""
     import localthickness
 
-    return 2.0 * np.asarray(localthickness.local_thickness(particle.astype(bool)), dtype=np.float64) * particle
+    particle = np.asarray(particle, dtype=bool)
+    if not particle.any():
+        return np.zeros(particle.shape)
+    # A one-pixel background frame: a mask with no background pixel has an infinite distance transform.
+    framed = np.pad(particle, 1)
+    radius = np.asarray(localthickness.local_thickness(framed), dtype=np.float64)[1:-1, 1:-1]
+    return 2.0 * radius * particle
 
 
 def _figure_png(draw) -> bytes:

@@ -31,7 +31,7 @@ def _starts(size: int, tile: int, stride: int) -> list[int]:
 
 
 @torch.no_grad()
-def predict_probs(model: torch.nn.Module, image: np.ndarray, tile: int = 256, overlap: float = 0.25,
+def predict_probs(model: torch.nn.Module, image: np.ndarray, tile: int = 384, overlap: float = 0.125,
                   batch_size: int = 8) -> np.ndarray:
     """(H, W) float image in [0, 1] -> (C, H, W) float32 class probabilities."""
     image = np.asarray(image, dtype=np.float32)
