@@ -160,8 +160,8 @@ class CropDataset(Dataset):
 
     augment: a random dihedral transform (8 flips/rotations) and a small brightness/contrast jitter,
     x -> clip((x - mean) * c + mean + b) with c in [1 - contrast, 1 + contrast], b in [-brightness, brightness].
-    Without augment (validation), crops are a fixed grid-free choice: the top-left-aligned centre crop.
-    Images smaller than the crop are reflect-padded (mask padded with background... by reflection too).
+    Without augment (validation) every sample is the pair's centre crop, unchanged, so val scores are repeatable.
+    Images smaller than the crop are reflect-padded, their masks likewise.
     """
 
     def __init__(self, pairs: list[Pair], crop: int, augment: bool, samples_per_pair: int = 1,
