@@ -20,6 +20,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, open_dict
 
+from drgan import build  # noqa: F401  (registers the ${mlflow_uri:} resolver of the logger config)
 from drgan.errors import ConfigError
 from drgan.io import write_json
 

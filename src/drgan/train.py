@@ -24,7 +24,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from drgan import build  # noqa: F401  (registers the ${mul:} resolver used by the size/placement configs)
+from drgan import build  # noqa: F401  (registers the ${mul:} and ${mlflow_uri:} config resolvers)
 from drgan.errors import ConfigError
 
 log = logging.getLogger(__name__)
