@@ -32,6 +32,18 @@ def make_scene(resolution=16, spp=4, n=4, integrator="prb_basic", particle=None,
     return ParticleScene([meshes.sphere(2)], n, spec, variant="llvm_ad_rgb")
 
 
+@pytest.fixture
+def one_torch_thread():
+    """Training-like tests: two cores are shared with Dr.Jit's own thread pool, and torch's second thread
+    only adds contention there (a 24 px discriminator step took 0.75 s with 2 threads, 0.05 s with 1)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="session")
 def tiny_scene():
     scene = make_scene()

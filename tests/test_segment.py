@@ -19,12 +19,7 @@ from drgan.errors import DataError
 from drgan.scene.labels import class_mask
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def disc_labels(size=32, n=3, radius=4.0, seed=0) -> np.ndarray:

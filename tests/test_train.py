@@ -46,13 +46,7 @@ def images(tmp_path_factory) -> Path:
     return make_images(tmp_path_factory.mktemp("real") / "images")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Two cores shared with Dr.Jit's own thread pool: torch's second thread only adds contention here.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # Fast stand-ins for the epoch-end callbacks: a random-projection "FID" on 4 images, few constellations.
