@@ -74,6 +74,14 @@ def test_noise_gradient_matches_finite_differences():
     assert sigma.grad == pytest.approx(float(fd), rel=1e-3)
 
 
+def test_saturated_pixels_still_pass_gradients():
+    image = torch.tensor([[0.5, 3.0], [-0.2, 1.0]], requires_grad=True)
+    out = add_noise(image, torch.tensor(0.0))
+    assert out.min() >= 0 and out.max() <= 1
+    out.sum().backward()
+    torch.testing.assert_close(image.grad, torch.ones(2, 2))  # straight through, also where clamped
+
+
 @pytest.mark.parametrize("sigma", [0.001, 0.1, 1.0])
 def test_noise_keeps_images_in_range(sigma):
     image = torch.tensor([[0.0, 1.0], [0.5, 2.0]])

@@ -16,10 +16,20 @@ from drgan.models.regressor import ParameterRegressor
 from drgan.scene.scene import ParticleScene
 
 
+def clamp_straight_through(x: torch.Tensor) -> torch.Tensor:
+    """Clamp to [0, 1] in the forward pass, identity in the backward pass.
+
+    A plain clamp has zero gradient wherever a render exceeds 1, which the paper's limits (particle
+    base colour up to 5) make common: the discriminator's verdict on a saturated particle then never
+    reaches the FCN, and training drifts to brighter and brighter particles (seen in a TiO2 SEM run).
+    """
+    return x + (x.clamp(0.0, 1.0) - x).detach()
+
+
 def add_noise(image: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-    """clamp -> + sigma * N(0, 1) -> clamp: images stay in [0, 1]; sigma stays differentiable."""
-    clean = image.clamp(0.0, 1.0)
-    return (clean + sigma * torch.randn_like(clean)).clamp(0.0, 1.0)
+    """clamp -> + sigma * N(0, 1) -> clamp: images stay in [0, 1]; sigma and the render stay differentiable."""
+    clean = clamp_straight_through(image)
+    return clamp_straight_through(clean + sigma * torch.randn_like(clean))
 
 
 @dataclass
