@@ -279,7 +279,7 @@ def test_config_files_sample_paper_like_layouts():
     size, placement = size_from_config(cfg.size), placement_from_config(cfg.placement)
     layouts = sample_layouts(4, 40, size, placement)
     assert layouts.shape == (4, 40, 4)
-    assert 18.0 < np.median(layouts[..., 3]) < 30.0
+    assert 0.8 * cfg.material.particle_size_px < np.median(layouts[..., 3]) < 1.25 * cfg.material.particle_size_px
 
 
 def test_config_unknown_kind_lists_valid_kinds():
