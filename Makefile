@@ -22,7 +22,7 @@ test-slow: setup
 	$(PYTHON) -m pytest -q -m slow
 
 train: setup
-	$(PYTHON) -m drgan.train
+	$(PYTHON) -m drgan.train experiment=tio2_sem $(ARGS)
 
 mlflow-ui: setup
 	mlflow ui --backend-store-uri sqlite:///mlruns/mlflow.db --port 5000
