@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from drgan import build  # noqa: F401  (registers the ${mul:} and ${mlflow_uri:} config resolvers)
 from drgan.errors import ConfigError
+from drgan.io import write_bytes, write_json
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +61,7 @@ def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, 
                 logger = instantiate(entry, run_id=run_id, tags={**tags, **(entry.get("tags") or {})})
                 run = logger.run_id  # creates the experiment and run now, under the lock (None on DDP ranks > 0)
             if run:
-                id_file.write_text(run)
+                write_bytes(id_file, run.encode())
         else:
             logger = instantiate(entry)
         loggers.append(logger)
@@ -161,7 +162,7 @@ def train(cfg: DictConfig) -> dict:
     metrics["train/skipped_steps_total"] = float(model.skipped_steps)
     for logger in loggers:
         logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
-    (output_dir / "metrics.json").write_text(json.dumps({"epoch": trainer.current_epoch, "global_step": trainer.global_step, **metrics}, indent=1))
+    write_json(output_dir / "metrics.json", {"epoch": trainer.current_epoch, "global_step": trainer.global_step, **metrics})
     log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
     return metrics
 
