@@ -48,7 +48,7 @@ def time_setting(material: str, spp: int, resolution: int, images: int, seed: in
             t_phi = time.perf_counter()
             torch.manual_seed(seeds["noise"])
             values = generator.learned_values(phi.unsqueeze(0))[0]
-            with generator.scene_no_grad():
+            with torch.no_grad():
                 image = generator.render_one(phi, values, seed=seeds["render"])[0].numpy()
             t_render = time.perf_counter()
             labels = generator.scene.instance_labels()

@@ -13,7 +13,6 @@ import logging
 import math
 import time
 from collections.abc import Mapping
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -111,8 +110,7 @@ class GANModule(LightningModule):
 
     def render(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, n, 4) -> images (B, 1, H, W) and the learned values (B, k) used for them."""
-        values = self.generator.learned_values(phi)
-        images = torch.stack([self.generator.render_one(phi[b], values[b]) for b in range(phi.shape[0])])
+        images, values = self.generator.render_batch(phi)
         return images.to(self.device), values
 
     @staticmethod

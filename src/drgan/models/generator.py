@@ -86,11 +86,15 @@ class Generator(nn.Module):
         radiance = self.scene.render(bsdf_values, seed=self.next_seed() if seed is None else seed)
         return add_noise(radiance, sigma).unsqueeze(0)
 
-    def forward(self, phi: torch.Tensor) -> torch.Tensor:
+    def render_batch(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, n, 4) -> images (B, 1, H, W) and the learned values (B, k) they were rendered with."""
         if phi.dim() == 2:
             phi = phi.unsqueeze(0)
         values = self.learned_values(phi.to(self.view_width.dtype))
-        return torch.stack([self.render_one(phi[b], values[b]) for b in range(phi.shape[0])])
+        return torch.stack([self.render_one(phi[b], values[b]) for b in range(phi.shape[0])]), values
+
+    def forward(self, phi: torch.Tensor) -> torch.Tensor:
+        return self.render_batch(phi)[0]
 
     def parameter_table(self, values: torch.Tensor) -> dict[str, float]:
         """All parameters of one render by key, learned (from ``values``) and fixed."""
@@ -109,15 +113,8 @@ class Generator(nn.Module):
         try:
             values = self.learned_values(phi_i.unsqueeze(0))[0]
             seed = self.next_seed() if seed is None else int(seed)
-            with self.scene_no_grad():
-                image = self.render_one(phi_i, values, seed=seed)[0]
+            image = self.render_one(phi_i, values, seed=seed)[0]  # the primal render builds no AD graph
             labels = self.scene.instance_labels()
         finally:
             self.train(was_training)
         return Sample(image.numpy(), labels, phi_i.numpy(), self.parameter_table(values), seed)
-
-    @staticmethod
-    def scene_no_grad():
-        from drgan.backend import dr
-
-        return dr.suspend_grad()
