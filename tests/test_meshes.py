@@ -80,7 +80,7 @@ def test_same_seed_gives_identical_meshes_and_count_does_not_change_earlier_ones
         np.testing.assert_array_equal(a.faces, b.faces)
 
 
-@pytest.mark.parametrize("kind", ["cube", "rod"])
+@pytest.mark.parametrize("kind", ["cube", "rod", "potato"])
 def test_different_seeds_give_different_meshes(kind):
     (a,), (b,) = generate_meshes(kind, 1, seed=1), generate_meshes(kind, 1, seed=2)
     assert not np.allclose(a.vertices, b.vertices, atol=1e-3)
@@ -115,8 +115,23 @@ def test_rods_are_elongated_bent_and_lie_flat(generated):
     assert centreline_deviation(straight) < 1e-3  # control: the deviation measure sees no bend here
 
 
+def test_potatoes_are_rounded_varied_and_rest_on_their_broad_side(generated):
+    potatoes = generated["potato"]
+    for potato in potatoes:
+        extents = potato.extents
+        assert extents[2] < min(extents[0], extents[1])  # thinnest vertically: resting on the broad side
+        assert potato.is_convex or potato.volume > 0.8 * potato.convex_hull.volume  # no deep dents
+        # rounded: no flat faces, so face normals spread smoothly (a cube's cluster around 6 directions)
+        normals = potato.face_normals
+        assert np.abs(normals @ normals.T).mean() < 0.6
+    shapes = np.array([np.sort(p.extents) for p in potatoes])
+    assert np.ptp(shapes[:, 0]) > 0.03  # varied aspect ratios, not one ellipsoid
+    with pytest.raises(ConfigError, match="middle"):
+        generate_meshes("potato", 1, seed=0, middle=(0.9, 0.5))
+
+
 def test_generate_meshes_rejects_unknown_kind_bad_count_and_unknown_parameter():
-    with pytest.raises(ConfigError, match=r"'pyramid'.*\['cube', 'rod', 'sphere'\]"):
+    with pytest.raises(ConfigError, match=r"'pyramid'.*\['cube', 'potato', 'rod', 'sphere'\]"):
         generate_meshes("pyramid", 2, seed=0)
     with pytest.raises(ConfigError, match="count"):
         generate_meshes("cube", 0, seed=0)

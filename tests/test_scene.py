@@ -229,3 +229,81 @@ def test_box_render_plus_blur_matches_mitsubas_gaussian_filter():
     error = np.abs(ours.numpy()[inner] - reference[inner]).mean() / reference[inner].mean()
     blurred_less = np.abs(np.array(mi.render(scene.scene, seed=0)).mean(-1)[inner] - reference[inner]).mean() / reference[inner].mean()
     assert error < 0.05 and error < 0.5 * blurred_less, (error, blurred_less)
+
+
+# --- ring light ---------------------------------------------------------------------------------------------
+
+
+def _particle_noise(scene) -> tuple[float, float]:
+    """(mean, Monte Carlo noise) over particle pixels, from two renders with different seeds."""
+    labels = scene.instance_labels() > 0
+    a, b = (scene.render(MID, seed=s).detach().numpy() for s in (1, 2))
+    return float(a[labels].mean()), float(((a - b)[labels] / np.sqrt(2)).std())
+
+
+def test_band_light_faces_the_scene():
+    from drgan.scene.scene import TorusLight, torus_light_mesh
+
+    band = torus_light_mesh(TorusLight(shape="band"), 256)
+    towards_centre = np.einsum("fk,fk->f", band.face_normals, -band.triangles_center)
+    assert (towards_centre > 0).all()
+    # The strip spans the tube's extent: 2 x minor radius wide, centred on the tube's centre circle.
+    radial = np.hypot(band.vertices[:, 0], band.vertices[:, 1])
+    centre = np.array([radial.mean(), band.vertices[:, 2].mean()])
+    np.testing.assert_allclose(centre, [256.0, 256.0], rtol=1e-6)
+    widths = np.hypot(radial[:128] - radial[128:], band.vertices[:128, 2] - band.vertices[128:, 2])
+    np.testing.assert_allclose(widths, 2 * 0.3 * 256, rtol=1e-6)
+
+
+def test_band_light_lights_like_the_torus_with_less_noise():
+    """Same ring of directions: similar brightness; with next-event estimation, clearly less noise."""
+    from drgan.scene.scene import TorusLight
+
+    stats = {}
+    for shape in ("torus", "band"):
+        scene = make_scene(resolution=32, spp=4, integrator="prb", torus_light=TorusLight(shape=shape), top_light=None)
+        scene.set_layout(TINY_PHI)
+        stats[shape] = _particle_noise(scene)
+    (torus_mean, torus_noise), (band_mean, band_noise) = stats["torus"], stats["band"]
+    assert band_mean == pytest.approx(torus_mean, rel=0.2)
+    assert band_noise < 0.8 * torus_noise
+
+
+def test_culled_torus_lights_the_scene_like_the_whole_torus(monkeypatch):
+    import trimesh
+
+    import drgan.scene.scene as scene_module
+    from drgan.scene.scene import TorusLight
+
+    light = TorusLight(shape="torus")
+    culled = scene_module.torus_light_mesh(light, 64.0)
+    whole = trimesh.creation.torus(major_radius=64.0, minor_radius=0.3 * 64.0)
+    assert 0.4 * len(whole.faces) < len(culled.faces) < 0.8 * len(whole.faces)
+
+    def render_mean(mesh_fn):
+        monkeypatch.setattr(scene_module, "torus_light_mesh", mesh_fn)
+        scene = make_scene(resolution=16, spp=256, integrator="prb", torus_light=light, top_light=None)
+        scene.set_layout(TINY_PHI)
+        return scene.render(MID, seed=3).detach().numpy()
+
+    def whole_torus(light, w):
+        ring = trimesh.creation.torus(major_radius=light.major_radius * w, minor_radius=light.minor_radius * w)
+        ring.apply_translation([0, 0, light.height * w])
+        return ring
+
+    reference = render_mean(whole_torus)
+    cut = render_mean(lambda light, w: culled)
+    # Whole-image brightness equal within Monte Carlo error (the culled faces light nothing in view).
+    assert cut.mean() == pytest.approx(reference.mean(), rel=0.03)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"shape": "cylinder"}, "shape"), ({"minor_radius": 2.0}, "minor_radius"), ({"radiance": -1.0}, "radiance")],
+)
+def test_bad_ring_light_is_refused(kwargs, match):
+    from drgan.errors import ConfigError
+    from drgan.scene.scene import TorusLight
+
+    with pytest.raises(ConfigError, match=match):
+        TorusLight(**kwargs)

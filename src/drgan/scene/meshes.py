@@ -147,6 +147,56 @@ def _cube_grid(segments: int) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
+def _bulge(rng: np.random.Generator, mesh: trimesh.Trimesh, reference: np.ndarray, amplitude: float) -> trimesh.Trimesh:
+    """Move each vertex along its normal by a smooth random field: four random plane waves with wavelengths
+    of one to two particle sizes, evaluated at ``reference`` (undeformed positions), of rms ~``amplitude``."""
+    wave_count = 4
+    wave_vectors = rng.normal(0.0, 1.0, size=(wave_count, 3))
+    wave_vectors *= (2 * np.pi * rng.uniform(0.5, 1.0, size=wave_count) / np.linalg.norm(wave_vectors, axis=1))[:, None]
+    phases = rng.uniform(0.0, 2 * np.pi, size=wave_count)
+    amplitudes = rng.normal(0.0, amplitude / np.sqrt(wave_count), size=wave_count)
+    field = (amplitudes * np.sin(reference @ wave_vectors.T + phases)).sum(axis=1)
+    return trimesh.Trimesh(mesh.vertices + field[:, None] * mesh.vertex_normals, mesh.faces, process=False)
+
+
+def potato(
+    rng: np.random.Generator,
+    middle: tuple[float, float] = (0.55, 0.95),
+    short: tuple[float, float] = (0.45, 0.8),
+    bulge: float = 0.06,
+    tilt_deg: float = 15.0,
+    subdivisions: int = 3,
+) -> trimesh.Trimesh:
+    """Rounded, irregular ellipsoid lying on the stage: the shape of most particles in the TiO2 SEM images
+    (rounded, often elongated, no sharp faces), which neither spheres nor deformed cubes match.
+
+    middle, short: ranges of the middle and shortest semi-axes relative to the longest (drawn uniformly;
+        the shortest is also kept <= the middle). The shortest axis points up (a particle rests on its
+        broad side), the long axis lies at a random heading in the stage plane.
+    bulge: rms of a smooth random normal displacement (fraction of the longest axis): gently dented sides.
+    tilt_deg: largest random tilt (degrees) of the resting pose about a horizontal axis.
+    subdivisions: of the icosphere it starts from (642 vertices at 3).
+    """
+    for name, (low, high) in (("middle", middle), ("short", short)):
+        if not 0 < low <= high <= 1:
+            raise ConfigError(f"potato {name}={(low, high)}: expected 0 < low <= high <= 1 (fraction of the long axis)")
+    if bulge < 0:
+        raise ConfigError(f"potato bulge must be >= 0, got {bulge}")
+    if not 0 <= tilt_deg <= 90:
+        raise ConfigError(f"potato tilt_deg must be in [0, 90], got {tilt_deg}")
+    ball = trimesh.creation.icosphere(subdivisions=subdivisions)
+    unit = np.asarray(ball.vertices)
+    b = rng.uniform(*middle)
+    c = min(rng.uniform(*short), b)
+    mesh = trimesh.Trimesh(unit * np.array([1.0, b, c]), ball.faces, process=False)
+    mesh = _bulge(rng, mesh, unit, bulge)
+    tilt_axis = np.array([*rng.normal(size=2), 0.0])
+    tilt = Rotation.from_rotvec(np.radians(rng.uniform(-tilt_deg, tilt_deg)) * tilt_axis / np.linalg.norm(tilt_axis))
+    heading = Rotation.from_euler("z", rng.uniform(0.0, 2 * np.pi))
+    vertices = np.asarray(mesh.vertices) @ (tilt * heading).as_matrix().T
+    return _finish(vertices, mesh.faces, f"potato(middle={middle}, short={short}, bulge={bulge})")
+
+
 def deformed_cube(
     rng: np.random.Generator,
     displacement: float = 0.1,
@@ -189,15 +239,7 @@ def deformed_cube(
                 )
                 moved += weight[:, None] * corner_moves[cx, cy, cz]
 
-    # Low-frequency normal field: a few random plane waves with wavelengths of about one to two edges.
-    mesh = trimesh.Trimesh(moved, faces, process=False)
-    wave_count = 4
-    wave_vectors = rng.normal(0.0, 1.0, size=(wave_count, 3))
-    wave_vectors *= (2 * np.pi * rng.uniform(0.5, 1.0, size=wave_count) / np.linalg.norm(wave_vectors, axis=1))[:, None]
-    phases = rng.uniform(0.0, 2 * np.pi, size=wave_count)
-    amplitudes = rng.normal(0.0, 0.5 * displacement / np.sqrt(wave_count), size=wave_count)
-    field = (amplitudes * np.sin(vertices @ wave_vectors.T + phases)).sum(axis=1)
-    mesh = trimesh.Trimesh(moved + field[:, None] * mesh.vertex_normals, faces, process=False)
+    mesh = _bulge(rng, trimesh.Trimesh(moved, faces, process=False), vertices, 0.5 * displacement)
 
     if smoothing_iterations:
         trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=smoothing_iterations)
@@ -284,6 +326,7 @@ KINDS: dict[str, Callable[..., trimesh.Trimesh]] = {
     "sphere": _sphere_from_rng,
     "cube": deformed_cube,
     "rod": bent_rod,
+    "potato": potato,
 }
 
 
