@@ -99,3 +99,22 @@ def test_sample_returns_labels_and_parameters(generator):
 def test_seeds_change_between_renders(generator):
     first, second = generator.next_seed(), generator.next_seed()
     assert first != second
+
+
+def test_sample_spp_override_renders_with_less_noise_than_training_spp():
+    scene = make_scene(resolution=32, spp=1, sigma={"value": 0.001})
+    gen = Generator(scene, seed=0)
+    noise = {}
+    for spp in (None, 64):
+        a, b = (gen.sample(TINY_PHI, seed=s, spp=spp).image for s in (1, 2))
+        noise[spp] = float(np.std(a - b))
+    assert noise[64] < 0.4 * noise[None]  # 1 -> 64 spp: ~8x less Monte Carlo noise
+    assert scene.spec.render.spp == 1  # the override does not change the scene
+
+
+def test_fid_callback_refuses_a_bad_spp():
+    from drgan.callbacks import FIDCallback
+    from drgan.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="callbacks.fid.spp"):
+        FIDCallback(spp=10)

@@ -50,7 +50,7 @@ def test_gradients_match_finite_differences():
     assert abs(ad[0]) > 0.1 * scale and abs(ad[2]) > 0.1 * scale
 
 
-@pytest.mark.parametrize("integrator", ["direct_projective"])
+@pytest.mark.parametrize("integrator", ["direct_projective", "prb"])
 def test_other_integrator_agrees(integrator):
     scene = make_scene(resolution=16, spp=16, integrator=integrator)
     scene.set_layout(TINY_PHI)

@@ -22,6 +22,7 @@ from lightning.pytorch import Callback, LightningModule, Trainer
 
 from drgan.errors import ConfigError
 from drgan.io import write_with
+from drgan.scene.scene import check_spp
 from drgan.metrics.fid import FeatureStats, InceptionFeatures, cached_reference_stats, kid
 
 log = logging.getLogger(__name__)
@@ -84,15 +85,21 @@ def dataset_key(patches: np.ndarray) -> str:
     return f"real_{digest.hexdigest()[:16]}"
 
 
-def render_samples(pl_module: LightningModule, n: int, seed_base: int, progress: bool = False) -> np.ndarray:
-    """``n`` images (n, H, W) in [0, 1] from the phi bank (cycling), without gradients, fixed seeds."""
+def render_samples(
+    pl_module: LightningModule, n: int, seed_base: int, progress: bool = False, spp: int | None = None
+) -> np.ndarray:
+    """``n`` images (n, H, W) in [0, 1] from the phi bank (cycling), without gradients, fixed seeds;
+    ``spp`` None renders at the training spp."""
     bank = pl_module.phi_bank
     iterator = range(n)
     if progress:
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc="FID renders", unit="img", leave=False)
-    images = [pl_module.generator.sample(bank[i % len(bank)].cpu(), seed=(seed_base + i) & 0xFFFFFFFF).image for i in iterator]
+    images = [
+        pl_module.generator.sample(bank[i % len(bank)].cpu(), seed=(seed_base + i) & 0xFFFFFFFF, spp=spp).image
+        for i in iterator
+    ]
     return np.clip(np.stack(images).astype(np.float32), 0.0, 1.0)
 
 
@@ -116,7 +123,8 @@ class FIDCallback(Callback):
     """every_n_epochs: evaluate every n-th epoch (and never on others); n_images: synthetic images per
     evaluation (None: as many as real training patches); batch_size: Inception batch size; cache_dir: real
     statistics cache (None: ``<run>/fid_cache``); extractor: an object with ``features(images) -> (N, D)``
-    (None: the TF-Inception network); kid_subsets/kid_subset_size: KID's random subsets."""
+    (None: the TF-Inception network); kid_subsets/kid_subset_size: KID's random subsets; spp: samples per
+    pixel of the FID renders (None: the training spp; fix it to compare runs trained at different spp)."""
 
     def __init__(
         self,
@@ -128,6 +136,7 @@ class FIDCallback(Callback):
         kid_subsets: int = 100,
         kid_subset_size: int = 1000,
         progress: bool = True,
+        spp: int | None = None,
     ):
         if int(every_n_epochs) < 1:
             raise ConfigError(f"FIDCallback.every_n_epochs={every_n_epochs}: expected >= 1")
@@ -140,6 +149,7 @@ class FIDCallback(Callback):
         self.extractor = extractor
         self.kid_subsets, self.kid_subset_size = int(kid_subsets), int(kid_subset_size)
         self.progress = bool(progress)
+        self.spp = None if spp is None else check_spp(spp, "callbacks.fid.spp")
         self.history: list[dict] = []  # one entry per evaluated epoch: epoch, fid, kid, kid_std, n_images, seconds
         self._real: FeatureStats | None = None
 
@@ -175,7 +185,7 @@ class FIDCallback(Callback):
         start = time.perf_counter()
         real = self.real_stats(trainer)
         n = self.n_images or real.n
-        fake = render_samples(pl_module, n, FID_SEED_BASE + 100_003 * epoch, progress=self.progress)
+        fake = render_samples(pl_module, n, FID_SEED_BASE + 100_003 * epoch, progress=self.progress, spp=self.spp)
         fake_feats = self._extractor().features(fake)
         fid = FeatureStats.from_features(fake_feats).fid(real)
         kid_mean, kid_std = kid(fake_feats, real.features, self.kid_subsets, self.kid_subset_size, seed=epoch)

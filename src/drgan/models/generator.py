@@ -79,11 +79,13 @@ class Generator(nn.Module):
         self.render_count += 1
         return seed
 
-    def render_one(self, phi_i: torch.Tensor, values: torch.Tensor, seed: int | None = None) -> torch.Tensor:
-        """One noised image (1, H, W) of constellation phi_i with learned values (k,)."""
+    def render_one(
+        self, phi_i: torch.Tensor, values: torch.Tensor, seed: int | None = None, spp: int | None = None
+    ) -> torch.Tensor:
+        """One noised image (1, H, W) of constellation phi_i with learned values (k,); spp None = the scene's."""
         bsdf_values, sigma = self._split(values)
         self.scene.set_layout(phi_i)
-        radiance = self.scene.render(bsdf_values, seed=self.next_seed() if seed is None else seed)
+        radiance = self.scene.render(bsdf_values, seed=self.next_seed() if seed is None else seed, spp=spp)
         return add_noise(radiance, sigma).unsqueeze(0)
 
     def render_batch(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -105,15 +107,17 @@ class Generator(nn.Module):
         return table
 
     @torch.no_grad()
-    def sample(self, phi_i, seed: int | None = None) -> Sample:
-        """Render one constellation without gradients and return image, labels, phi and parameters."""
+    def sample(self, phi_i, seed: int | None = None, spp: int | None = None) -> Sample:
+        """Render one constellation without gradients and return image, labels, phi and parameters.
+
+        ``spp`` overrides the training spp (e.g. generate a dataset at a higher spp than was trained at)."""
         phi_i = torch.as_tensor(np.asarray(phi_i), dtype=torch.float32)
         was_training = self.training
         self.eval()
         try:
             values = self.learned_values(phi_i.unsqueeze(0))[0]
             seed = self.next_seed() if seed is None else int(seed)
-            image = self.render_one(phi_i, values, seed=seed)[0]  # the primal render builds no AD graph
+            image = self.render_one(phi_i, values, seed=seed, spp=spp)[0]  # the primal render builds no AD graph
             labels = self.scene.instance_labels()
         finally:
             self.train(was_training)
