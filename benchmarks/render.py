@@ -3,6 +3,7 @@
     python benchmarks/render.py                         # the issue's grid: 256 px, spp 1..121, 2 integrators, 10/40 particles
     python benchmarks/render.py --spp 16 --resolution 64 128 256 512 --particles 40
     python benchmarks/render.py --elements              # cost of each optional scene element (lights, stage, filter)
+    python benchmarks/render.py --noise                 # Monte Carlo noise of particle pixels: integrator x ring light x spp
 
 Prints a markdown table (median of --repeats timed runs after one warm-up) and, with --out, writes it
 with the machine description. New layouts are drawn for every timed run, as in training.
@@ -17,7 +18,6 @@ import platform
 import statistics
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -79,7 +79,8 @@ def grid(args, cube_meshes):
 
 
 ELEMENTS = {
-    "full scene (stage, torus light, top light, filter 0.5)": {},
+    "full scene (stage, ring light as band, top light, filter 0.5)": {},
+    "ring light as the paper's torus": {"torus_light": TorusLight(shape="torus")},
     "no top light": {"top_light": None},
     "no torus light": {"torus_light": None},
     "no stage": {"stage": False},
@@ -95,21 +96,47 @@ def elements(args, cube_meshes):
         print(f"| {name} | {n} | {resolution} | {spp} | {fwd:.3f} | {fb:.3f} |", flush=True)
 
 
+def noise(args, cube_meshes):
+    """Noise of the image a discriminator sees: std of (render(seed 1) - render(seed 2)) / sqrt(2) over the
+    particle pixels of one 40-particle layout, and the forward time."""
+    sizes, placement = layout.LognormalSize(30.0, 0.4), layout.PoissonAgglomerates()
+    phi = layout.sample_layouts(1, args.particles[-1], sizes, placement, view_width=256.0, seed=3)[0]
+    values = torch.tensor([0.15, 0.5, 1.0, 0.5, 0.5, 0.5])
+    for integrator, shape, spp in itertools.product(args.integrator, ("torus", "band"), args.spp):
+        scene = make_scene(len(phi), args.resolution[0], spp, integrator, args.variant[0], cube_meshes,
+                           torus_light=TorusLight(shape=shape))
+        scene.set_layout(phi)
+        particles = scene.instance_labels() > 0
+        with torch.no_grad():
+            scene.render(values, seed=0)  # warm-up (kernel compilation)
+            start = time.perf_counter()
+            a = scene.render(values, seed=1).numpy()
+            seconds = time.perf_counter() - start
+            b = scene.render(values, seed=2).numpy()
+        diff = (a - b)[particles] / np.sqrt(2.0)
+        print(f"| {integrator} | {shape} | {spp} | {a[particles].mean():.3f} | {diff.std():.4f} | {seconds:.3f} |", flush=True)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--spp", type=int, nargs="+", default=[1, 4, 16, 64, 121])
     parser.add_argument("--resolution", type=int, nargs="+", default=[256])
     parser.add_argument("--particles", type=int, nargs="+", default=[10, 40])
-    parser.add_argument("--integrator", nargs="+", default=["prb_basic", "direct_projective"])
+    parser.add_argument("--integrator", nargs="+", default=["prb", "prb_basic", "direct_projective"])
     parser.add_argument("--variant", nargs="+", default=["llvm_ad_rgb"])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--elements", action="store_true", help="cost of each optional scene element")
+    parser.add_argument("--noise", action="store_true", help="particle-pixel noise against integrator, ring light, spp")
     args = parser.parse_args()
 
     cube_meshes = meshes.generate_meshes("cube", 40, seed=0)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
     print(f"command: python {' '.join(sys.argv)}\n")
-    if args.elements:
+    if args.noise:
+        print("| integrator | ring light | spp | particle mean | particle noise | forward s |")
+        print("|---|---|---|---|---|---|")
+        noise(args, cube_meshes)
+    elif args.elements:
         print("| scene | particles | resolution | spp | forward s | forward+backward s |")
         print("|---|---|---|---|---|---|")
         elements(args, cube_meshes)

@@ -16,8 +16,6 @@ from __future__ import annotations
 import csv
 import io
 import logging
-import os
-import sys
 from pathlib import Path
 from typing import Callable
 
@@ -26,7 +24,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.errors import ConfigError
-from drgan.io import write_bytes, write_with
+from drgan.io import write_bytes
 from drgan.metrics.segmentation import binarize_and_label
 
 log = logging.getLogger(__name__)
@@ -169,8 +167,6 @@ def main(cfg: DictConfig):
 
 
 if __name__ == "__main__":
-    from drgan.segmentation.cli import rewrite_argv
+    from drgan.segmentation.cli import run_cli
 
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    sys.argv = [sys.argv[0], *rewrite_argv(sys.argv[1:], many_models=False)]
-    main()
+    run_cli(main, many_models=False)

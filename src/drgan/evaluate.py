@@ -21,8 +21,6 @@ from __future__ import annotations
 import csv
 import io
 import logging
-import os
-import sys
 from pathlib import Path
 
 import hydra
@@ -156,8 +154,6 @@ def main(cfg: DictConfig):
 
 
 if __name__ == "__main__":
-    from drgan.segmentation.cli import rewrite_argv
+    from drgan.segmentation.cli import run_cli
 
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    sys.argv = [sys.argv[0], *rewrite_argv(sys.argv[1:], many_models=True)]
-    main()
+    run_cli(main, many_models=True)

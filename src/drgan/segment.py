@@ -10,10 +10,7 @@ Resume: same `out` and `ckpt_path=last` (no checkpoint yet: a fresh start).
 
 from __future__ import annotations
 
-import json
 import logging
-import os
-import sys
 import time
 from pathlib import Path
 
@@ -114,8 +111,6 @@ def main(cfg: DictConfig):
 
 
 if __name__ == "__main__":
-    from drgan.segmentation.cli import rewrite_argv
+    from drgan.segmentation.cli import run_cli
 
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    sys.argv = [sys.argv[0], *rewrite_argv(sys.argv[1:], many_models=False)]
-    main()
+    run_cli(main, many_models=False)

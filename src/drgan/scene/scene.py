@@ -82,7 +82,7 @@ class RenderSettings:
     resolution: int = 256  # pixels per side of the render
     spp: int = 16  # samples per pixel; a perfect square (stratified sampler)
     filter_stddev: float = 0.5  # Gaussian reconstruction filter, in render pixels
-    integrator: str = "prb_basic"
+    integrator: str = "prb"
     max_depth: int = 2  # 2 = direct illumination, all that BSDF-parameter gradients need here
     camera_distance: float = 10.0  # x view_width; far camera = nearly orthographic view
 

@@ -8,6 +8,10 @@ them before Hydra parses the command line: `data=X` -> `data_dir=X`, and every `
 
 from __future__ import annotations
 
+import os
+import sys
+from typing import Callable
+
 
 def _quote(value: str) -> str:
     return value if value.replace("/", "").replace(".", "").replace("_", "").replace("-", "").isalnum() else f"'{value}'"
@@ -29,3 +33,10 @@ def rewrite_argv(argv: list[str], *, many_models: bool) -> list[str]:
         else:
             out.append(f"ckpt={models[-1]}")
     return out
+
+
+def run_cli(main: Callable[[], object], *, many_models: bool) -> None:
+    """The ``__main__`` of evaluate, segment and analyze: short errors, rewritten argv, then the Hydra main."""
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    sys.argv = [sys.argv[0], *rewrite_argv(sys.argv[1:], many_models=many_models)]
+    main()
