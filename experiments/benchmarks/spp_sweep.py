@@ -66,7 +66,7 @@ def main():
         wall, train, epochs, fid = zip(*points)
         best = min(range(len(fid)), key=fid.__getitem__)
         step_s = run.data.metrics.get("time/step_s_epoch", float("nan"))
-        steps = int(run.data.metrics.get("trainer/global_step", 0)) or "-"
+        steps = max(m.step for m in client.get_metric_history(run.info.run_id, "time/step_s"))
         print(f"| {spp} | {steps} | {step_s:.2f} | {len(fid)} | {fid[0]:.1f} | {fid[best]:.1f} ({epochs[best]}, {wall[best]:.0f}) | {fid[-1]:.1f} |")
         ax_wall.plot(wall, fid, "o-", label=f"spp {spp}")
         ax_train.plot(train, fid, "o-", label=f"spp {spp}")
