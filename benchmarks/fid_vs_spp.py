@@ -32,14 +32,13 @@ def main():
     real_stats = FeatureStats.from_features(extractor.features(real))
     module = GANModule.load_from_checkpoint(args.ckpt, map_location="cpu")
     module.eval()
-    scene = module.generator.scene
     print(f"command: python {' '.join(sys.argv)}\ncheckpoint epoch: see {args.ckpt.name}; {len(real)} real patches\n")
     print("| spp | FID | render s |")
     print("|---|---|---|")
     for spp in args.spp:
-        scene.spec = scene.spec.__class__(**{**scene.spec.__dict__, "render": scene.spec.render.__class__(**{**scene.spec.render.__dict__, "spp": spp})})
         start = time.perf_counter()
-        images = np.stack([module.generator.sample(module.phi_bank[i % len(module.phi_bank)], seed=10_000 + i).image for i in range(len(real))])
+        bank = module.phi_bank
+        images = np.stack([module.generator.sample(bank[i % len(bank)], seed=10_000 + i, spp=spp).image for i in range(len(real))])
         seconds = time.perf_counter() - start
         fid = FeatureStats.from_features(extractor.features(images)).fid(real_stats)
         print(f"| {spp} | {fid:.1f} | {seconds:.0f} |", flush=True)

@@ -48,8 +48,8 @@ class TorusLight:
     height: float = 1.0  # centre above the stage, x view_width
     # Emitting surface: "band", a conical strip of width 2 x minor_radius facing the view centre, or
     # "torus", the paper's tube. Same ring of directions; the band wastes no light samples on surface
-    # that faces away, so with the prb integrator it renders the particles with 1.7x less Monte Carlo
-    # noise at equal spp (see `torus_light_mesh`).
+    # that faces away, so an integrator that samples lights (prb) renders the particles with less Monte
+    # Carlo noise: 0.060 vs 0.086 for the torus at spp 16 (see `torus_light_mesh`).
     shape: str = "band"
     segments: int = 128  # around the ring
 
@@ -161,7 +161,8 @@ def torus_light_mesh(light: TorusLight, view_width: float) -> trimesh.Trimesh:
 
     - "band": a conical strip of revolution, centred on the tube's centre circle, of width 2 x minor
       radius, perpendicular to the line to the view centre, emitting towards it: the same ring of
-      directions, nearly every sample useful (particle noise 0.064 vs 0.109 for the torus with prb_basic).
+      directions, nearly every sample useful (particle noise at spp 16 with prb: 0.060 vs 0.086 for the
+      torus; prb_basic samples no lights and gets ~0.107 with either; experiments/benchmarks/render.md).
     - "torus": the paper's tube, minus the faces that light nothing in the scene volume. A face lights p
       only if n . (p - c) > 0 (normal n, centroid c); over the box holding every particle (view square,
       up to one view width high) that test is largest at a corner, so faces failing it at all corners are
@@ -186,8 +187,8 @@ def torus_light_mesh(light: TorusLight, view_width: float) -> trimesh.Trimesh:
         faces = np.concatenate([np.stack([k, nxt, m + k], 1), np.stack([nxt, m + nxt, m + k], 1)])
         ring = trimesh.Trimesh(np.concatenate(rims), faces, process=False)
         away = np.einsum("fk,fk->f", ring.face_normals, -ring.triangles_center) < 0
-        faces[away] = faces[away][:, ::-1]  # emit towards the scene
-        return trimesh.Trimesh(np.concatenate(rims), faces, process=False)
+        ring.faces[away] = ring.faces[away][:, ::-1]  # emit towards the scene
+        return ring
     ring = trimesh.creation.torus(major_radius=radius, minor_radius=half_width)
     ring.apply_translation([0, 0, height])
     corners = np.array([[x, y, z] for x in (-w / 2, w / 2) for y in (-w / 2, w / 2) for z in (0.0, w)])
