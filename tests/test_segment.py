@@ -109,6 +109,79 @@ def test_sliding_window_matches_direct_inference():
     assert predict(net, image, tile=32).dtype == np.uint8
 
 
+def _two_touching_discs(size=48, r=9.0, gap=14.0):
+    """Labels of two discs whose centres are `gap` px apart (< 2 r: they overlap, the second wins)."""
+    yy, xx = np.mgrid[:size, :size]
+    labels = np.zeros((size, size), np.int32)
+    c = size / 2
+    for k, cx in enumerate((c - gap / 2, c + gap / 2)):
+        labels[(yy - c) ** 2 + (xx - cx) ** 2 <= r * r] = k + 1
+    return labels
+
+
+def _probs_of(particle: np.ndarray, contour: np.ndarray | None = None) -> np.ndarray:
+    """(3, H, W) one-hot-ish probabilities: 0.9 on the given class, the rest shared."""
+    contour = np.zeros(particle.shape, bool) if contour is None else contour
+    cls = np.where(contour, 2, np.where(particle, 1, 0))
+    probs = np.full((3, *particle.shape), 0.05, np.float32)
+    np.put_along_axis(probs, cls[None], 0.9, axis=0)
+    return probs
+
+
+def test_separate_regions_gives_one_4_connected_instance_per_region():
+    from drgan.metrics.segmentation import binarize_and_label
+    from drgan.segmentation.inference import separate_regions
+
+    labels = np.zeros((6, 8), np.int32)
+    labels[1:5, 1:4] = 1
+    labels[1:5, 4:7] = 2  # shares a 4-px vertical edge with region 1
+    cm = separate_regions(labels)
+    # exactly the 4 pixels of region 2 next to region 1 (column 4, rows 1-4) become line
+    assert (cm == 2).sum() == 4 and (cm[1:5, 4] == 2).all()
+    assert ((cm > 0) == (labels > 0)).all()  # nothing leaves the foreground
+    assert binarize_and_label(cm.astype(np.int64)).max() == 2
+    # a merged blob of the argmax would be one instance
+    assert binarize_and_label((labels > 0).astype(np.int64)).max() == 1
+
+
+def test_split_touching_separates_a_merged_pair_and_keeps_single_particles():
+    from drgan.metrics.segmentation import binarize_and_label, match_instances
+    from drgan.segmentation.inference import split_touching
+
+    truth = _two_touching_discs()
+    merged = _probs_of(truth > 0)  # the network drew no line between them
+    assert binarize_and_label(merged.argmax(0).astype(np.int64)).max() == 1
+    pred = binarize_and_label(split_touching(merged).astype(np.int64))
+    m = match_instances(pred, truth, 0.5)
+    assert m.tp == 2 and m.fp == 0 and m.fn == 0 and m.ious.min() > 0.8
+    # one round particle stays one
+    yy, xx = np.mgrid[:40, :40]
+    disc = (yy - 20) ** 2 + (xx - 20) ** 2 <= 100
+    assert binarize_and_label(split_touching(_probs_of(disc)).astype(np.int64)).max() == 1
+    # contour pixels count as foreground (the particle keeps its rim) and seed nothing by themselves
+    rim = disc & ~((yy - 20) ** 2 + (xx - 20) ** 2 <= 64)
+    cm = split_touching(_probs_of(disc, contour=rim))
+    assert ((cm > 0) == disc).all()
+    assert not split_touching(_probs_of(np.zeros((20, 20), bool), contour=disc[:20, :20])).any()
+
+
+def test_predictor_settings_are_checked_before_predicting():
+    from drgan.errors import ConfigError
+    from drgan.segmentation.inference import make_predictor, predict
+    from drgan.segmentation.unet import UNet
+
+    net = UNet(1, 3, 2, 4).eval()
+    for bad, message in [({"split": "magic"}, "inference.split"), ({"split_depth": 0}, "split_depth"),
+                         ({"tile_size": 32}, "unknown setting")]:
+        with pytest.raises(ConfigError, match=message):
+            make_predictor(net, bad)
+    image = np.random.default_rng(0).random((32, 32)).astype(np.float32)
+    # split="none" is the plain argmax of the probabilities
+    from drgan.segmentation.inference import predict_probs
+
+    assert (predict(net, image, split="none", tile=32) == predict_probs(net, image, tile=32).argmax(0)).all()
+
+
 # --- evaluation -------------------------------------------------------------------------------------------
 
 

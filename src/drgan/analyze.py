@@ -92,12 +92,10 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
     if predictor is None:
         if not cfg.get("ckpt"):
             raise ConfigError("analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment)")
-        from drgan.segmentation.inference import predict
+        from drgan.segmentation.inference import make_predictor
         from drgan.segmentation.module import load_segmenter
 
-        net = load_segmenter(cfg.ckpt)
-        inf = dict(cfg.inference)
-        predictor = lambda im: predict(net, im, **inf)  # noqa: E731
+        predictor = make_predictor(load_segmenter(cfg.ckpt), cfg.inference)
     crop = tuple(cfg.crop_rows) if cfg.get("crop_rows") else None
     images = [(p.stem, read_grey(p, crop)) for p in paths]  # all read (and checked) before predicting
 

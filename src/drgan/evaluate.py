@@ -1,6 +1,7 @@
 """`python -m drgan.evaluate model=A.ckpt [model=B.ckpt ...] data=DATASET out=DIR`: score segmenters on real test images.
 
-Per test image: sliding-window prediction -> particle class only (contour and background are both "not
+Per test image: sliding-window prediction (touching particles split, ``inference.split``, see
+drgan.segmentation.inference) -> particle class only (contour and background are both "not
 particle", so the contour separates touching particles) -> 4-connected components -> scores against the
 4-connected components of the true binary mask (drgan.metrics.segmentation):
 - DSC: Dice of particle pixels;
@@ -62,8 +63,9 @@ def _mean_std(values) -> tuple[float, float]:
     return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0
 
 
-def tables(rows: list[dict], runs: list[str], ids: list[str]) -> tuple[str, str]:
-    """(csv text, markdown text) of per-(run, image) rows; adds per-run mean rows to the CSV."""
+def tables(rows: list[dict], runs: list[str], ids: list[str], inference: str = "") -> tuple[str, str]:
+    """(csv text, markdown text) of per-(run, image) rows; adds per-run mean rows to the CSV.
+    inference: a line saying how class maps were made (shown in the markdown)."""
     fields = ["run", "model", "image", *SCORES, *COUNTS]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
@@ -81,7 +83,7 @@ def tables(rows: list[dict], runs: list[str], ids: list[str]) -> tuple[str, str]
     md = ["# Segmentation on real test images", "",
           f"{len(ids)} test image(s), {len(runs)} run(s). Particle class only (contour = background), 4-connected instances, "
           "match at IoU > 0.5. AP50 = TP / (TP + FP + FN); PQ = SQ x RQ. A run's test-set value is the mean over its "
-          "images; values below are mean +- sample std over runs.", "",
+          "images; values below are mean +- sample std over runs." + (f" Inference: {inference}." if inference else ""), "",
           "## Test set", "", "| | " + " | ".join(s.upper() for s in SCORES) + " |", "|---|" + "---|" * len(SCORES)]
     overall = {k: _mean_std([run_means[r][k] for r in runs]) for k in SCORES}
     md.append("| **all runs** | " + " | ".join(f"{m:.3f} +- {s:.3f}" for m, s in overall.values()) + " |")
@@ -110,15 +112,16 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
         models = list(cfg.get("models") or [])
         if not models:
             raise ConfigError("evaluate: give at least one model=CHECKPOINT")
-        from drgan.segmentation.inference import predict
+        from drgan.segmentation.inference import make_predictor
         from drgan.segmentation.module import load_segmenter
 
         loaded = [(Path(m), load_segmenter(m)) for m in models]  # every checkpoint checked before work
         inf = dict(cfg.inference)
-        predictors = {f"run{k}": (lambda im, net=net: predict(net, im, **inf)) for k, (_, net) in enumerate(loaded)}
+        predictors = {f"run{k}": make_predictor(net, inf) for k, (_, net) in enumerate(loaded)}
         model_names = {f"run{k}": str(p) for k, (p, _) in enumerate(loaded)}
+        how = ", ".join(f"{k} {v}" for k, v in inf.items())
     else:
-        model_names = {r: r for r in predictors}
+        model_names, how = {r: r for r in predictors}, ""
     data_dir = Path(cfg.data_dir)
     ids = real_ids(data_dir, cfg.get("split"), str(cfg.subset))
     samples = load_real(data_dir, ids, cfg.get("crop_rows"))  # every image/mask read and checked first
@@ -139,7 +142,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
                 rgb = overlay(image, pred_labels, true_labels, float(cfg.overlay_alpha))
                 write_with(out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG"))
     runs = list(predictors)
-    csv_text, md_text = tables(rows, runs, ids)
+    csv_text, md_text = tables(rows, runs, ids, how)
     write_bytes(out / "results.csv", csv_text.encode())
     write_bytes(out / "results.md", md_text.encode())
     per_run = {r: {s: float(np.mean([x[s] for x in rows if x["run"] == r])) for s in SCORES} for r in runs}
