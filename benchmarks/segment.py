@@ -15,8 +15,9 @@ import time
 import numpy as np
 import torch
 
-from drgan.segmentation.inference import predict
-from drgan.segmentation.module import SegmenterModule
+from drgan.segmentation.inference import predict, predict_probs, split_touching
+from drgan.data.images import read_grey
+from drgan.segmentation.module import SegmenterModule, load_segmenter
 
 
 def main() -> None:
@@ -31,6 +32,8 @@ def main() -> None:
     ap.add_argument("--tile", type=int, default=384)
     ap.add_argument("--overlap", type=float, default=0.125)
     ap.add_argument("--threads", type=int, default=torch.get_num_threads())
+    ap.add_argument("--ckpt", help="time inference with this trained segmenter (default: the untrained network)")
+    ap.add_argument("--image", help="time inference on this image (default: uniform noise, 1024 x 712)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -49,18 +52,22 @@ def main() -> None:
     pairs_s = args.batch / per_step
     minutes = args.pairs * args.epochs / pairs_s / 60
 
-    model.eval()
-    full = np.random.default_rng(0).random((712, 1024)).astype(np.float32)
-    predict(model, full[:256, :256])
+    net = model.net if args.ckpt is None else load_segmenter(args.ckpt)
+    net.eval()
+    full = (np.random.default_rng(0).random((712, 1024)).astype(np.float32) if args.image is None
+            else read_grey(args.image, (712, 768)))
+    predict(net, full[:256, :256])
     start = time.perf_counter()
-    predict(model, full, tile=args.tile, overlap=args.overlap)
+    probs = predict_probs(net, full, tile=args.tile, overlap=args.overlap)
+    network_s = time.perf_counter() - start
+    split_touching(probs)
     infer_s = time.perf_counter() - start
 
     n_params = sum(p.numel() for p in model.parameters())
-    print(f"| depth | base | params | crop | batch | threads | s/step | pairs/s | min for {args.pairs} pairs x {args.epochs} epochs | tile / overlap | s per 1024x712 image |")
+    print(f"| depth | base | params | crop | batch | threads | s/step | pairs/s | min for {args.pairs} pairs x {args.epochs} epochs | tile / overlap | s per 1024x712 image (network + split) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     print(f"| {args.depth} | {args.base} | {n_params / 1e6:.2f} M | {args.crop} | {args.batch} | {args.threads} | {per_step:.3f} | "
-          f"{pairs_s:.1f} | {minutes:.1f} | {args.tile} / {args.overlap} | {infer_s:.2f} |")
+          f"{pairs_s:.1f} | {minutes:.1f} | {args.tile} / {args.overlap} | {infer_s:.2f} ({network_s:.2f} + {infer_s - network_s:.2f}) |")
 
 
 if __name__ == "__main__":
