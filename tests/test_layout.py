@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
 from conftest import compose
 from scipy.sparse.csgraph import connected_components
