@@ -15,8 +15,8 @@ import time
 import numpy as np
 import torch
 
-from drgan.segmentation.inference import predict, predict_probs, split_touching
 from drgan.data.images import read_grey
+from drgan.segmentation.inference import predict, predict_probs, split_touching
 from drgan.segmentation.module import SegmenterModule, load_segmenter
 
 

@@ -20,6 +20,8 @@ real *train* images of TiO2 SEM (experiments/tio2_sem/RESULTS.md), never on test
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import torch
 
@@ -141,10 +143,13 @@ def predict(model: torch.nn.Module, image: np.ndarray, split: str = "watershed",
 
 def make_predictor(model: torch.nn.Module, inference: dict):
     """f(image) -> class map with the settings of a config's `inference:` block, checked now (before any
-    image is predicted)."""
+    image is predicted). Known settings and their defaults are those of ``predict`` and ``predict_probs``."""
     inference = dict(inference)
-    unknown = set(inference) - {"tile", "overlap", "batch_size", "split", "split_depth", "split_smooth"}
+    defaults = {name: p.default for fn in (predict_probs, predict)
+                for name, p in inspect.signature(fn).parameters.items() if p.default is not inspect.Parameter.empty}
+    unknown = set(inference) - set(defaults)
     if unknown:
         raise ConfigError(f"inference: unknown setting(s) {sorted(unknown)}")
-    check_split(inference.get("split", "watershed"), inference.get("split_depth", 2.0), inference.get("split_smooth", 1.0))
+    settings = {**defaults, **inference}
+    check_split(settings["split"], settings["split_depth"], settings["split_smooth"])
     return lambda image: predict(model, image, **inference)
