@@ -27,6 +27,29 @@ def test_select_best_prefers_broadest_of_top_k():
     assert select_best([], 5) == (None, [])
 
 
+def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
+    # Epoch 0 has the lowest FID but is 4.6x too dark (the grazing-ring generator); epoch 3 is too bright.
+    history = [{"epoch": 0, "fid": 200.0, "spread": 0.3, "brightness": 0.22},
+               {"epoch": 1, "fid": 290.0, "spread": 0.1, "brightness": 0.9},
+               {"epoch": 2, "fid": 300.0, "spread": 0.2, "brightness": 1.1},
+               {"epoch": 3, "fid": 250.0, "spread": 0.5, "brightness": 2.5}]
+    assert select_best(history, top_k=5)[0]["epoch"] == 3  # no range: broadest of all
+    best, table = select_best(history, top_k=5, brightness_range=(0.5, 2.0))
+    assert best["epoch"] == 2 and [h["epoch"] for h in table] == [1, 2]
+    assert select_best(history, top_k=1, brightness_range=(0.5, 2.0))[0]["epoch"] == 1
+    # None inside the range: all compete rather than nothing being chosen; unknown brightness competes.
+    assert select_best(history[:1], top_k=5, brightness_range=(0.5, 2.0))[0]["epoch"] == 0
+    assert select_best([{"epoch": 0, "fid": 1.0, "spread": 0.1}], 5, (0.5, 2.0))[0]["epoch"] == 0
+
+
+@pytest.mark.parametrize("bad", [[2.0, 0.5], [0.0, 1.0], [1.0]])
+def test_best_epoch_refuses_bad_brightness_range(bad):
+    from drgan.callbacks import BestEpochCallback
+
+    with pytest.raises(ConfigError, match="brightness_range"):
+        BestEpochCallback(brightness_range=bad)
+
+
 def test_parameter_spread_hand_computed():
     # parameter a in [0, 2]: values 0, 2 -> unit 0, 1 -> std 0.5; b in [1, 3]: 2, 2 -> std 0
     values = np.array([[0.0, 2.0], [2.0, 2.0]])
@@ -52,6 +75,7 @@ def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(ima
     assert [h["epoch"] for h in summary["history"]] == [0, 1]
     assert summary["epoch"] in (0, 1) and (ckpts / "best.ckpt").is_file()
     assert all(0.0 <= h["spread"] <= 0.5 for h in summary["history"])
+    assert all(h["brightness"] > 0 for h in summary["history"]) and summary["brightness_range"] == [0.5, 2.0]
     for name in ("params_epoch_000.png", "params_epoch_001.png", "samples_epoch_000.png", "samples_epoch_001.png", "fid.png"):
         assert (out / "plots" / name).is_file(), name
     assert list((out / "fid_cache").glob("real_*_RandomProjectionFeatures_clean_24x24.npz"))
@@ -66,7 +90,7 @@ def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(ima
     client = mlflow.MlflowClient(tracking_uri=uri)
     run_id = (out / "mlflow_run_id.txt").read_text()
     run = client.get_run(run_id)
-    for key in ("val/fid", "val/kid", "time/fid_s", "best/epoch", "best/fid"):
+    for key in ("val/fid", "val/kid", "val/brightness", "time/fid_s", "best/epoch", "best/fid"):
         assert key in run.data.metrics, key
     assert len(client.get_metric_history(run_id, "val/fid")) == 2
     artifacts = {a.path for a in client.list_artifacts(run_id)} | {a.path for a in client.list_artifacts(run_id, "plots")}

@@ -109,6 +109,34 @@ def test_sliding_window_matches_direct_inference():
     assert predict(net, image, tile=32).dtype == np.uint8
 
 
+
+def test_zscore_segmenter_ignores_detector_brightness_and_contrast():
+    """A "zscore" model predicts the same on a*x + b as on x (whole-image statistics, at inference as in
+    training crops); the raw "none" model does not, so the check can fail."""
+    from drgan.errors import ConfigError
+    from drgan.segmentation.data import CropDataset, Pair
+    from drgan.segmentation.inference import predict_probs
+    from drgan.segmentation.module import SegmenterModule
+
+    labels = disc_labels(size=48, n=4)
+    image = disc_image(labels)
+    darker = 0.25 * image + 0.02  # a different detector setting: 4x less contrast, an offset
+    for mode, same in (("zscore", True), ("none", False)):
+        torch.manual_seed(0)
+        model = SegmenterModule(depth=3, base=4, normalize=mode).eval()
+        a, b = predict_probs(model, image, tile=32, overlap=0.5), predict_probs(model, darker, tile=32, overlap=0.5)
+        assert np.allclose(a, b, atol=1e-4) == same, (mode, np.abs(a - b).max())
+    # The training crops are normalised with the statistics of their whole image, not of the crop.
+    pair = Pair("a", image, class_mask(labels, 1))
+    crop = CropDataset([pair], crop=16, augment=False, normalize="zscore")[0][0][0].numpy()
+    centre = image[16:32, 16:32]
+    np.testing.assert_allclose(crop, (centre - image.mean()) / image.std(), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(CropDataset([pair], crop=16, augment=False)[0][0][0].numpy(), centre)
+    with pytest.raises(ConfigError, match="model.normalize.*zscore"):
+        SegmenterModule(normalize="minmax")
+    with pytest.raises(ConfigError, match="loader normalize"):
+        CropDataset([pair], crop=16, augment=False, normalize="percentile")
+
 def _two_touching_discs(size=48, r=9.0, gap=14.0):
     """Labels of two discs whose centres are `gap` px apart (< 2 r: they overlap, the second wins)."""
     yy, xx = np.mgrid[:size, :size]

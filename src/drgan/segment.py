@@ -43,7 +43,8 @@ def dataloaders(cfg: DictConfig, pairs):
 
     train_pairs, val_pairs = split_pairs(pairs, float(cfg.val_fraction), int(cfg.seed))
     ld = cfg.loader
-    kw = dict(crop=int(ld.crop), brightness=float(ld.brightness), contrast=float(ld.contrast), seed=int(cfg.seed))
+    kw = dict(crop=int(ld.crop), brightness=float(ld.brightness), contrast=float(ld.contrast), seed=int(cfg.seed),
+              normalize=str(cfg.model.get("normalize", "none")))
     train = DataLoader(CropDataset(train_pairs, augment=True, samples_per_pair=int(ld.samples_per_pair), **kw),
                        batch_size=int(ld.batch_size), shuffle=True, drop_last=len(train_pairs) * int(ld.samples_per_pair) > int(ld.batch_size),
                        num_workers=int(ld.num_workers), persistent_workers=int(ld.num_workers) > 0)

@@ -11,6 +11,12 @@ configured limits, u = (x - low) / (high - low) in [0, 1], and the spread is the
 the (population, ddof=0) standard deviation of u. 0: every constellation gets the same parameters; the
 largest possible value is 0.5 (half at each limit).
 
+Brightness guard: the FID hardly sees global brightness (see drgan.callbacks.fid), so epochs whose images
+are on average far darker or brighter than the real patches (``val/brightness`` outside
+``brightness_range``, default 0.5-2x) do not compete, unless no epoch is inside the range (then all do, with
+a warning). A TiO2 SEM generator with a grazing ring light scored its lowest FID with images 4.6x too dark,
+and a segmenter trained on them found nothing in the real images (experiments/tio2_sem/README.md).
+
 Each epoch's weights are saved to ``<checkpoints>/epochs/epoch_XXX.ckpt`` (weights only); those that fall
 out of the top_k are deleted, since the best can only be among the top_k. After every evaluated epoch
 (so a cut-off run has them) ``<checkpoints>/best.ckpt`` and ``best_epoch.json`` are rewritten atomically.
@@ -45,12 +51,23 @@ def parameter_spread(values: np.ndarray, low, high) -> float:
     return float(unit.std(axis=0).mean())
 
 
-def select_best(history: list[dict], top_k: int) -> tuple[dict | None, list[dict]]:
-    """history: dicts with epoch, fid, spread -> (best entry, the top_k table sorted by FID).
+def within_brightness(entry: dict, brightness_range) -> bool:
+    """True when the entry's brightness (synthetic / real mean grey) is inside [low, high], or unknown, or
+    there is no range."""
+    if brightness_range is None or entry.get("brightness") is None:
+        return True
+    low, high = brightness_range
+    return low <= entry["brightness"] <= high
 
-    Epochs with a non-finite FID are never chosen; ties in spread go to the lower FID."""
+
+def select_best(history: list[dict], top_k: int, brightness_range=None) -> tuple[dict | None, list[dict]]:
+    """history: dicts with epoch, fid, spread (and brightness) -> (best entry, the top_k table sorted by FID).
+
+    Epochs with a non-finite FID are never chosen; ties in spread go to the lower FID. With a
+    ``brightness_range`` (low, high), only epochs inside it compete, unless none is (then all do)."""
     finite = [h for h in history if math.isfinite(h.get("fid", math.nan)) and math.isfinite(h.get("spread", math.nan))]
-    table = sorted(finite, key=lambda h: (h["fid"], h["epoch"]))[: int(top_k)]
+    eligible = [h for h in finite if within_brightness(h, brightness_range)]
+    table = sorted(eligible or finite, key=lambda h: (h["fid"], h["epoch"]))[: int(top_k)]
     if not table:
         return None, []
     best = max(table, key=lambda h: (h["spread"], -h["fid"]))
@@ -59,12 +76,19 @@ def select_best(history: list[dict], top_k: int) -> tuple[dict | None, list[dict
 
 class BestEpochCallback(Callback):
     """top_k: how many lowest-FID epochs compete on spread; n_phi: constellations for the spread; seed: of
-    those constellations. Needs a FIDCallback before it in the callback list."""
+    those constellations; brightness_range: (low, high) of synthetic / real mean grey for an epoch to
+    compete (None: no check). Needs a FIDCallback before it in the callback list."""
 
-    def __init__(self, top_k: int = 5, n_phi: int = 1000, seed: int = 0):
+    def __init__(self, top_k: int = 5, n_phi: int = 1000, seed: int = 0, brightness_range=(0.5, 2.0)):
         if int(top_k) < 1 or int(n_phi) < 2:
             raise ConfigError(f"BestEpochCallback: top_k={top_k}, n_phi={n_phi}; expected top_k >= 1 and n_phi >= 2")
+        if brightness_range is not None:
+            brightness_range = tuple(float(v) for v in brightness_range)
+            if len(brightness_range) != 2 or not 0 < brightness_range[0] < brightness_range[1]:
+                raise ConfigError(f"callbacks.best_epoch.brightness_range={list(brightness_range)}: expected [low, high] "
+                                  "with 0 < low < high (synthetic / real mean grey), or null")
         self.top_k, self.n_phi, self.seed = int(top_k), int(n_phi), int(seed)
+        self.brightness_range = brightness_range
         self.history: list[dict] = []  # epoch, fid, kid, spread, checkpoint
         self._phi: np.ndarray | None = None
 
@@ -90,7 +114,8 @@ class BestEpochCallback(Callback):
         folder = checkpoint_dir(trainer)
         ckpt = folder / "epochs" / f"epoch_{epoch:03d}.ckpt"
         trainer.save_checkpoint(ckpt, weights_only=True)  # collective under DDP: every rank calls it
-        entry = {"epoch": epoch, "fid": scores["fid"], "kid": scores["kid"], "spread": self.spread(pl_module), "checkpoint": str(ckpt)}
+        entry = {"epoch": epoch, "fid": scores["fid"], "kid": scores["kid"], "brightness": scores.get("brightness"),
+                 "spread": self.spread(pl_module), "checkpoint": str(ckpt)}
         self.history = [h for h in self.history if h["epoch"] != epoch] + [entry]
         if trainer.is_global_zero:
             self._prune(folder)
@@ -98,14 +123,14 @@ class BestEpochCallback(Callback):
 
     def _prune(self, folder: Path) -> None:
         """Delete epoch checkpoints outside the top_k: the best is always among them."""
-        _, table = select_best(self.history, self.top_k)
+        _, table = select_best(self.history, self.top_k, self.brightness_range)
         keep = {Path(h["checkpoint"]).name for h in table}
         for path in (folder / "epochs").glob("epoch_*.ckpt"):
             if path.name not in keep:
                 path.unlink(missing_ok=True)
 
     def write(self, trainer: Trainer, pl_module: LightningModule) -> dict | None:
-        best, table = select_best(self.history, self.top_k)
+        best, table = select_best(self.history, self.top_k, self.brightness_range)
         if best is None or not trainer.is_global_zero:
             return best
         folder = checkpoint_dir(trainer)
@@ -116,7 +141,9 @@ class BestEpochCallback(Callback):
             log.warning("best epoch %d: its checkpoint %s is gone; best.ckpt not updated", best["epoch"], src)
         summary = {
             "epoch": best["epoch"], "fid": best["fid"], "kid": best["kid"], "spread": best["spread"],
-            "top_k": self.top_k, "n_phi": self.n_phi,
+            "brightness": best.get("brightness"), "top_k": self.top_k, "n_phi": self.n_phi,
+            "brightness_range": None if self.brightness_range is None else list(self.brightness_range),
+            "brightness_ok": within_brightness(best, self.brightness_range),
             "spread_definition": "mean over learned parameters of std((x - low) / (high - low)) over n_phi constellations",
             "table": table, "history": self.history,
         }  # fmt: skip
@@ -128,9 +155,13 @@ class BestEpochCallback(Callback):
         return best
 
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        best, _ = select_best(self.history, self.top_k)
+        best, _ = select_best(self.history, self.top_k, self.brightness_range)
         if best is not None and trainer.is_global_zero:
             log.info("best epoch %d: FID %.4g, spread %.4g (of the %d lowest-FID epochs)", best["epoch"], best["fid"], best["spread"], self.top_k)
+            if not within_brightness(best, self.brightness_range):
+                log.warning("best epoch %d: its images are %.2f x as bright as the real patches on average, outside %s "
+                            "in every epoch; check the light radiance and BSDF limits before generating data from it",
+                            best["epoch"], best["brightness"], list(self.brightness_range))
 
     def state_dict(self) -> dict:
         return {"history": [dict(h) for h in self.history]}

@@ -25,6 +25,25 @@ from drgan.scene.labels import class_mask
 
 _FOUR_CONNECTED = ndimage.generate_binary_structure(2, 1)
 
+# Per-image input normalisation of the segmenter. "zscore" (nnU-Net's default for non-CT images):
+# (x - mean) / std of the whole image, so that a model does not depend on the detector's brightness and
+# contrast settings (which differ between microscopes and sessions, and between synthetic and real data).
+NORMALIZATIONS = ("none", "zscore")
+
+
+def check_normalize(mode: str, name: str = "normalize") -> str:
+    if mode not in NORMALIZATIONS:
+        raise ConfigError(f"{name}: expected one of {', '.join(NORMALIZATIONS)}, got {mode!r}")
+    return mode
+
+
+def normalization(image: np.ndarray, mode: str) -> tuple[float, float]:
+    """(shift, scale) such that (image - shift) / scale is the network input for a whole image."""
+    if check_normalize(mode) == "none":
+        return 0.0, 1.0
+    image = np.asarray(image, dtype=np.float64)
+    return float(image.mean()), max(float(image.std()), 1e-3)
+
 
 @dataclass
 class Pair:
@@ -162,20 +181,23 @@ class CropDataset(Dataset):
     x -> clip((x - mean) * c + mean + b) with c in [1 - contrast, 1 + contrast], b in [-brightness, brightness].
     Without augment (validation) every sample is the pair's centre crop, unchanged, so val scores are repeatable.
     Images smaller than the crop are reflect-padded, their masks likewise.
+    normalize: per-image input normalisation (NORMALIZATIONS), with the statistics of the *whole* image (as at
+    inference, `predict_probs`), applied to each crop after the jitter.
     """
 
     def __init__(self, pairs: list[Pair], crop: int, augment: bool, samples_per_pair: int = 1,
-                 brightness: float = 0.05, contrast: float = 0.1, seed: int = 0):
+                 brightness: float = 0.05, contrast: float = 0.1, seed: int = 0, normalize: str = "none"):
         if not pairs:
             raise DataError("segmentation dataset: no image/mask pairs")
         self.pairs, self.crop, self.augment = pairs, int(crop), augment
         self.samples_per_pair, self.brightness, self.contrast, self.seed = int(samples_per_pair), brightness, contrast, seed
+        self.stats = [normalization(p.image, check_normalize(normalize, "loader normalize")) for p in pairs]
 
     def __len__(self) -> int:
         return len(self.pairs) * self.samples_per_pair
 
     def __getitem__(self, index: int):
-        pair = self.pairs[index % len(self.pairs)]
+        pair, (shift, scale) = self.pairs[index % len(self.pairs)], self.stats[index % len(self.pairs)]
         rng = np.random.default_rng() if self.augment else np.random.default_rng((self.seed, index))
         image, mask = pair.image, pair.mask
         c = self.crop
@@ -195,7 +217,8 @@ class CropDataset(Dataset):
             if k >= 4:
                 image, mask = image[:, ::-1], mask[:, ::-1]
             mean = float(image.mean())
-            scale = rng.uniform(1 - self.contrast, 1 + self.contrast)
-            image = np.clip((image - mean) * scale + mean + rng.uniform(-self.brightness, self.brightness), 0.0, 1.0)
+            c = rng.uniform(1 - self.contrast, 1 + self.contrast)
+            image = np.clip((image - mean) * c + mean + rng.uniform(-self.brightness, self.brightness), 0.0, 1.0)
+        image = (image - shift) / scale
         return (torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None],
                 torch.from_numpy(np.ascontiguousarray(mask).astype(np.int64)))

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from drgan.errors import ConfigError, DataError
+from drgan.segmentation.data import normalization
 
 SPLITS = ("watershed", "none")
 
@@ -47,10 +48,16 @@ def _starts(size: int, tile: int, stride: int) -> list[int]:
 @torch.no_grad()
 def predict_probs(model: torch.nn.Module, image: np.ndarray, tile: int = 384, overlap: float = 0.125,
                   batch_size: int = 8) -> np.ndarray:
-    """(H, W) float image in [0, 1] -> (C, H, W) float32 class probabilities."""
+    """(H, W) float image in [0, 1] -> (C, H, W) float32 class probabilities.
+
+    The whole image is normalised first as the model was trained (its ``input_normalization``, e.g. "zscore";
+    "none" for plain modules), then cut into overlapping tiles whose probabilities are blended with a
+    Gaussian weight."""
     image = np.asarray(image, dtype=np.float32)
     if image.ndim != 2:
         raise DataError(f"predict: expected a 2-D grey image, got shape {image.shape}")
+    shift, scale = normalization(image, getattr(model, "input_normalization", "none"))
+    image = (image - shift) / scale
     if not 0.0 <= overlap < 1.0 or tile < 1:
         raise ConfigError(f"predict: need tile >= 1 and overlap in [0, 1), got tile={tile}, overlap={overlap}")
     model.eval()

@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from drgan.errors import DataError
+from drgan.segmentation.data import check_normalize
 from drgan.segmentation.unet import UNet
 
 KIND = "drgan_segmenter"
@@ -30,10 +31,17 @@ def soft_dice_loss(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0)
 
 class SegmenterModule(L.LightningModule):
     def __init__(self, depth: int = 4, base: int = 16, n_classes: int = 3, lr: float = 1e-3,
-                 dice_weight: float = 1.0, ce_weight: float = 1.0, kind: str = KIND):
+                 dice_weight: float = 1.0, ce_weight: float = 1.0, kind: str = KIND, normalize: str = "none"):
         super().__init__()
+        # "none" by default so that checkpoints written before the setting existed load as they were trained.
+        check_normalize(normalize, "model.normalize")
         self.save_hyperparameters()
         self.net = UNet(1, n_classes, depth, base)
+
+    @property
+    def input_normalization(self) -> str:
+        """How `predict_probs` normalises a whole image before tiling it (the training crops saw the same)."""
+        return self.hparams.normalize
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
