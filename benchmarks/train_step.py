@@ -2,6 +2,7 @@
 
     python benchmarks/train_step.py                     # 256 px, batch 1, spp 16 and 121, FID pass over 124 images
     python benchmarks/train_step.py --spp 4 16 --fid-images 0
+    python benchmarks/train_step.py --spp 16 121 --grad-spp 0 4 16 --fid-images 0   # 0: adjoint at the image's spp
 
 An iteration: render (G forward), D step (forward on real and fake, backward, Adam), G step (D forward on the
 fake, backward through D and the renderer's adjoint pass, Adam). Median of --steps after --warmup steps.
@@ -72,17 +73,25 @@ def main():
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--fid-images", type=int, default=124)
+    parser.add_argument("--grad-spp", type=int, nargs="+", default=[0],
+                        help="spp of the adjoint pass (renderer.grad_spp); 0 = the image's spp; skipped when > spp")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
     print(f"command: python {' '.join(sys.argv)}\n")
-    print("| spp | resolution | render s | D step s | G step (incl. adjoint render) s | iteration s |")
-    print("|---|---|---|---|---|---|")
+    print("| spp | grad_spp | resolution | render s | D step s | G step (incl. adjoint render) s | iteration s |")
+    print("|---|---|---|---|---|---|---|")
     module = None
     for spp in args.spp:
-        cfg = compose(["material=tio2_sem", f"renderer.spp={spp}", f"renderer.resolution={args.resolution}"], config_name="train")
-        module = GANModule(cfg, m=124, base_dir=str(ROOT))
-        t = time_iteration(module, args.steps, args.warmup)
-        print(f"| {spp} | {args.resolution} | {t['render']:.3f} | {t['d_step']:.3f} | {t['g_step']:.3f} | {t['iteration']:.3f} |", flush=True)
+        for grad_spp in args.grad_spp:
+            if grad_spp > spp:
+                continue
+            grad = grad_spp or spp
+            cfg = compose(["material=tio2_sem", f"renderer.spp={spp}", f"renderer.grad_spp={grad}",
+                           f"renderer.resolution={args.resolution}"], config_name="train")
+            module = GANModule(cfg, m=124, base_dir=str(ROOT))
+            t = time_iteration(module, args.steps, args.warmup)
+            print(f"| {spp} | {grad} | {args.resolution} | {t['render']:.3f} | {t['d_step']:.3f} | {t['g_step']:.3f} | "
+                  f"{t['iteration']:.3f} |", flush=True)
     if args.fid_images and module is not None:
         render_s, inception_s = time_fid_pass(module, args.fid_images)
         print(f"\nFID pass, {args.fid_images} images at spp {args.spp[-1]}: render {render_s:.1f} s + Inception {inception_s:.1f} s "

@@ -61,6 +61,30 @@ def test_other_integrator_agrees(integrator):
         assert abs(ad[i] - fd[i]) <= 0.08 * abs(fd[i]) + 0.01 * np.abs(fd).max(), (i, ad, fd)
 
 
+def test_fewer_adjoint_samples_keep_the_gradient_unbiased():
+    """renderer.grad_spp: the image is rendered at spp 16 and unchanged, its gradient from an adjoint pass
+    at spp 4; summed over seeds it agrees with finite differences of the spp 16 image, and it is a
+    different estimate per seed than the full-spp adjoint (the setting is used)."""
+    scene = make_scene(resolution=16, spp=16, integrator="prb")
+    scene.set_layout(TINY_PHI)
+    weight = torch.rand(16, 16, generator=torch.Generator().manual_seed(3))
+    steps = [0.01, 0.1, 0.01, 0.01, 0.01, 0.01]
+    _, fd = ad_and_fd(scene, MID, range(24), weight, steps)
+
+    def adjoint(grad_spp, seeds):
+        x = MID.clone().requires_grad_(True)
+        images = [scene.render(x, seed=s, grad_spp=grad_spp) for s in seeds]
+        sum((im * weight).sum() for im in images).backward()
+        return x.grad.numpy(), torch.stack(images).detach()
+
+    cheap, images_cheap = adjoint(4, range(24))
+    full, images_full = adjoint(16, range(1))
+    torch.testing.assert_close(images_cheap[0], images_full[0])  # the image itself does not change
+    assert not np.allclose(adjoint(4, range(1))[0], full), "grad_spp had no effect on the adjoint pass"
+    for i in (0, 2, 3, 5):  # colour-like parameters: smooth estimators
+        assert abs(cheap[i] - fd[i]) <= 0.08 * abs(fd[i]) + 0.02 * np.abs(fd).max(), (i, cheap, fd)
+
+
 @pytest.mark.parametrize("where", ["low", "high"])
 def test_gradients_finite_at_limits(tiny_scene, where):
     learned = tiny_scene.learned_bsdf
@@ -172,6 +196,7 @@ def test_label_geometry_matches_layout():
         ({"spp": 10}, "perfect square"),
         ({"resolution": 0}, "resolution"),
         ({"integrator": "path_magic"}, "integrator"),
+        ({"grad_spp": 8}, "renderer.grad_spp=8.*perfect square"),
     ],
 )
 def test_bad_render_settings_fail_clearly(kwargs, match):
