@@ -298,11 +298,14 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     out = tmp_path / "run"
     common = [f"data_dir={data}", f"out={out}", f"paths.root_dir={tmp_path}", "model.depth=2", "model.base=4",
               "loader.crop=32", "loader.batch_size=4", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false",
-              "trainer.log_every_n_steps=1", "name=tiny"]
+              "trainer.log_every_n_steps=1", "name=tiny", "model.normalize=zscore"]
     metrics = segment(compose([*common, "trainer.max_epochs=1"], config_name="segment"))
     assert {"train/loss", "val/loss", "val/dsc"} <= set(metrics)
     last = out / "checkpoints" / "last.ckpt"
     assert last.is_file() and json.loads((out / "metrics.json").read_text())["global_step"] == 1
+    from drgan.segmentation.module import load_segmenter
+
+    assert load_segmenter(last).input_normalization == "zscore"  # travels with the checkpoint to inference
     again = segment(compose([*common, "trainer.max_epochs=2", "ckpt_path=last"], config_name="segment"))
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 2 and "train/loss" in again
 

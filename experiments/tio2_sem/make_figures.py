@@ -31,7 +31,15 @@ def main(run: Path, out: Path) -> None:
     ax.axvline(best["epoch"], color="tab:red", ls="--", label=f"chosen epoch {best['epoch']}")
     ax.set_xlabel("epoch")
     ax.set_ylabel("FID (134 synthetic vs 134 real train patches)")
-    ax.legend()
+    bright = [h.get("brightness") for h in history]
+    if all(b is not None for b in bright):  # runs since the brightness guard: mean grey synthetic / real
+        twin = ax.twinx()
+        twin.plot(epochs, bright, color="tab:grey", marker=".", ls=":", label="brightness (synthetic / real)")
+        twin.set_ylabel("mean grey, synthetic / real", color="tab:grey")
+        low, high = best.get("brightness_range") or (None, None)
+        if low is not None:
+            twin.axhspan(low, high, color="tab:grey", alpha=0.08)
+    ax.legend(loc="upper left")
     fig.tight_layout()
     fig.savefig(out / "fid_curve.png", dpi=120)
     plt.close(fig)
@@ -55,8 +63,10 @@ def main(run: Path, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out / "samples_best_epoch.png", dpi=100)
     plt.close(fig)
-    summary = {k: best[k] for k in ("epoch", "fid", "kid", "spread") if k in best}
+    summary = {k: best[k] for k in ("epoch", "fid", "kid", "spread", "brightness", "brightness_range") if k in best}
     summary["fid_by_epoch"] = dict(zip(epochs, np.round(fid, 1).tolist()))
+    if all(b is not None for b in bright):
+        summary["brightness_by_epoch"] = dict(zip(epochs, np.round(bright, 3).tolist()))
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(json.dumps(summary, indent=2))
 
