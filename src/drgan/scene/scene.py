@@ -369,7 +369,7 @@ class ParticleScene:
         Returns linear radiance (H x W, float32; not clamped), differentiable w.r.t. ``values``.
         ``seed`` must change between calls, or every step reuses one sample pattern.
         ``spp`` / ``grad_spp``: samples per pixel of the image and of its adjoint pass (None: the scene's
-        ``renderer.spp`` / ``renderer.grad_spp``, the latter defaulting to the image's spp). The adjoint pass
+        ``renderer.spp`` / ``renderer.grad_spp``, the latter defaulting to, and capped at, the image's spp). The adjoint pass
         (Mitsuba's ``render_backward``) traces paths of its own, so a lower ``grad_spp`` keeps the gradient
         unbiased for the image's expectation and only adds variance, at a fraction of the cost of the
         backward pass (the larger half of a training step at spp 121).
@@ -379,7 +379,7 @@ class ParticleScene:
         spp = check_spp(spp, "spp") if spp is not None else self.spec.render.spp
         if grad_spp is None:
             grad_spp = self.spec.render.grad_spp if self.spec.render.grad_spp is not None else spp
-        grad_spp = check_spp(grad_spp, "grad_spp")
+        grad_spp = min(check_spp(grad_spp, "grad_spp"), spp)  # never more adjoint samples than image samples
         values = torch.as_tensor(values, dtype=torch.float32)
         if values.shape != (len(self._learned),):
             raise ConfigError(
