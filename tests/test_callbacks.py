@@ -27,6 +27,13 @@ def test_select_best_prefers_broadest_of_top_k():
     assert select_best([], 5) == (None, [])
 
 
+def test_select_best_treats_nearly_equal_spreads_as_a_tie():
+    history = [{"epoch": 5, "fid": 140.0, "spread": 0.0197}, {"epoch": 6, "fid": 148.9, "spread": 0.0200},
+               {"epoch": 4, "fid": 142.0, "spread": 0.0170}]
+    assert select_best(history, top_k=5)[0]["epoch"] == 5  # within 5 %: the lower FID wins
+    assert select_best(history, top_k=5, spread_tolerance=0.0)[0]["epoch"] == 6
+
+
 def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
     # Epoch 0 has the lowest FID but is 4.6x too dark (the grazing-ring generator); epoch 3 is too bright.
     history = [{"epoch": 0, "fid": 200.0, "spread": 0.3, "brightness": 0.22},
