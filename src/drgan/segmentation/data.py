@@ -191,7 +191,8 @@ class CropDataset(Dataset):
             raise DataError("segmentation dataset: no image/mask pairs")
         self.pairs, self.crop, self.augment = pairs, int(crop), augment
         self.samples_per_pair, self.brightness, self.contrast, self.seed = int(samples_per_pair), brightness, contrast, seed
-        self.stats = [normalization(p.image, check_normalize(normalize, "loader normalize")) for p in pairs]
+        mode = check_normalize(normalize, "loader normalize")
+        self.stats = [normalization(p.image, mode) for p in pairs]  # (shift, scale) of each whole image
 
     def __len__(self) -> int:
         return len(self.pairs) * self.samples_per_pair
