@@ -26,7 +26,10 @@ def main():
     parser.add_argument("ckpt", type=Path)
     parser.add_argument("--spp", type=int, nargs="+", default=[4, 16, 64])
     args = parser.parse_args()
-    run = args.ckpt.resolve().parents[1]
+    # The run folder holds patches/: checkpoints/last.ckpt or checkpoints/epochs/epoch_XXX.ckpt.
+    run = next((p for p in args.ckpt.resolve().parents if (p / "patches").is_dir()), None)
+    if run is None:
+        sys.exit(f"{args.ckpt}: no run folder with patches/ above it (expected <run>/checkpoints/...ckpt)")
     real = PatchSet.load(run / "patches").train
     extractor = InceptionFeatures(batch_size=16)
     real_stats = FeatureStats.from_features(extractor.features(real))

@@ -239,6 +239,32 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
     assert samples.shape == (2, len(module.learned_keys)) and np.isfinite(samples).all()
 
 
+def test_lr_decay_factor_and_bad_settings():
+    from drgan.models.gan_module import LRDecay
+
+    decay = LRDecay(start_step=10, steps=4, final_factor=0.2)
+    assert [decay(s) for s in (0, 10, 11, 12, 14, 100)] == pytest.approx([1.0, 1.0, 0.8, 0.6, 0.2, 0.2])
+    assert LRDecay.from_config(None) is None and LRDecay.from_config({"start_step": None, "steps": 3}) is None
+    for bad in ({"start_step": -1, "steps": 3}, {"start_step": 0, "steps": 0}, {"start_step": 0, "steps": 3, "final_factor": 1.5}):
+        with pytest.raises(ConfigError, match="model.lr_decay"):
+            LRDecay.from_config(bad)
+
+
+def test_lr_decay_follows_steps_across_resume(images, tmp_path):
+    out = tmp_path / "run"
+    decay = ["model.lr_decay.start_step=1", "model.lr_decay.steps=2", "model.lr_decay.final_factor=0.25", "trainer.limit_train_batches=2"]
+    base = tiny_overrides(images, out, extra=decay)
+
+    def lrs():
+        state = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+        return [opt["param_groups"][0]["lr"] for opt in state["optimizer_states"]]
+
+    run_train(base + ["trainer.max_epochs=1"])
+    assert lrs() == pytest.approx([2e-4 * 0.625, 1e-4 * 0.625])  # 2 steps: 1 at full rate, then half-way down
+    run_train(base + ["trainer.max_epochs=2", "ckpt_path=last"])
+    assert lrs() == pytest.approx([2e-4 * 0.25, 1e-4 * 0.25])  # the schedule resumed at step 2, not 0
+
+
 def test_non_finite_steps_are_skipped_then_stop_training(images, tmp_path, monkeypatch):
     from drgan.models.discriminator import PatchDiscriminator
 

@@ -39,6 +39,32 @@ def model_config(cfg: DictConfig | Mapping) -> dict:
     return {k: OmegaConf.to_container(cfg[k], resolve=True) if isinstance(cfg[k], DictConfig) else cfg[k] for k in MODEL_GROUPS if k in cfg}
 
 
+class LRDecay:
+    """Learning-rate factor per training step: 1 until ``start_step``, then linear down to ``final_factor``
+    over ``steps`` steps, then constant (pix2pix decays linearly too, over its second half). Applied to G and D.
+
+    A plain callable object, not a lambda, so that the schedulers' state pickles into checkpoints."""
+
+    def __init__(self, start_step: int, steps: int, final_factor: float):
+        if start_step < 0 or steps < 1 or not 0 <= final_factor <= 1:
+            raise ConfigError(
+                f"model.lr_decay: start_step={start_step}, steps={steps}, final_factor={final_factor}: "
+                "expected start_step >= 0, steps >= 1 and final_factor in [0, 1]"
+            )
+        self.start_step, self.steps, self.final_factor = int(start_step), int(steps), float(final_factor)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping | None) -> LRDecay | None:
+        """None (constant learning rates) when ``cfg`` or its ``start_step`` is null."""
+        if not cfg or cfg.get("start_step") is None:
+            return None
+        return cls(int(cfg["start_step"]), int(cfg.get("steps", 1)), float(cfg.get("final_factor", 0.0)))
+
+    def __call__(self, step: int) -> float:
+        progress = min(max(step - self.start_step, 0) / self.steps, 1.0)
+        return 1.0 - (1.0 - self.final_factor) * progress
+
+
 class GANModule(LightningModule):
     """cfg: the composed config (or its ``model_config``); m: constellations in the phi bank (default:
     ``model.n_constellations``, else required); base_dir: where relative mesh folders are found."""
@@ -58,6 +84,7 @@ class GANModule(LightningModule):
         self.betas = tuple(float(b) for b in model.get("betas", (0.5, 0.999)))
         if self.lr_g <= 0 or self.lr_d <= 0 or len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
             raise ConfigError(f"model: lr_g={self.lr_g}, lr_d={self.lr_d}, betas={self.betas}: expected lr > 0 and two betas in [0, 1)")
+        self.lr_decay = LRDecay.from_config(model.get("lr_decay"))
         self.max_consecutive_nonfinite = int(model.get("max_consecutive_nonfinite", 5))
         if self.max_consecutive_nonfinite < 1:
             raise ConfigError(f"model.max_consecutive_nonfinite={self.max_consecutive_nonfinite}: expected >= 1")
@@ -90,7 +117,11 @@ class GANModule(LightningModule):
     def configure_optimizers(self):
         opt_g = torch.optim.Adam(self.generator.parameters(), lr=self.lr_g, betas=self.betas)
         opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=self.lr_d, betas=self.betas)
-        return [opt_g, opt_d]
+        if self.lr_decay is None:
+            return [opt_g, opt_d]
+        # Stepped once per training step in training_step (manual optimisation steps schedulers by hand).
+        schedulers = [torch.optim.lr_scheduler.LambdaLR(opt, self.lr_decay) for opt in (opt_g, opt_d)]
+        return [opt_g, opt_d], schedulers
 
     def adversarial_loss(self, logits: torch.Tensor, real: bool) -> torch.Tensor:
         target = torch.full_like(logits, 1.0 if real else 0.0)
@@ -154,9 +185,12 @@ class GANModule(LightningModule):
             g_loss = self.adversarial_loss(self.discriminator(fake), True)
             ok = self._optimise(opt_g, self.generator, g_loss)
         self._count(ok, d_loss, g_loss)
+        schedulers = self.lr_schedulers() if self.lr_decay is not None else None
+        for scheduler in schedulers or ():
+            scheduler.step()  # per training step, skipped ones included: the schedule follows the step count
 
         # Step values under their plain names (train/g_loss ...), epoch means as <name>_epoch.
-        scalars = {"train/skipped_steps": float(self.skipped_steps), "time/render_s": render_s}
+        scalars = {"train/skipped_steps": float(self.skipped_steps), "time/render_s": render_s, "train/lr_g": opt_g.param_groups[0]["lr"]}
         if ok:
             scalars.update({
                 "train/d_loss": d_loss.detach(),
