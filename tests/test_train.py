@@ -288,6 +288,31 @@ def test_non_finite_steps_are_skipped_then_stop_training(images, tmp_path, monke
         run_train(base + ["trainer.limit_train_batches=5"])
 
 
+def test_ddp_on_two_cpu_processes_scores_the_same_fid_images(images, tmp_path):
+    """trainer=ddp_cpu with 2 processes trains, and its FID (each rank renders a share, features gathered)
+    equals the FID of the same images rendered in one process from the saved weights."""
+    from drgan.callbacks.fid import FID_SEED_BASE, RandomProjectionFeatures, render_samples
+    from drgan.data.patches import PatchSet
+    from drgan.metrics.fid import FeatureStats
+    from drgan.models.gan_module import GANModule
+
+    out = tmp_path / "run"
+    overrides = tiny_overrides(images, out, extra=["trainer=ddp_cpu", "trainer.limit_train_batches=2", "trainer.max_epochs=1",
+                                                   "callbacks.fid.n_images=5"])  # 5: 3 renders per rank, one dropped
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([sys.executable, "-m", "drgan.train", *overrides], cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    fid_ddp = json.loads((out / "checkpoints" / "best_epoch.json").read_text())["history"][0]["fid"]
+    assert json.loads((out / "metrics.json").read_text())["val/fid"] == pytest.approx(fid_ddp)
+
+    module = GANModule.load_from_checkpoint(out / "checkpoints" / "last.ckpt", map_location="cpu")
+    module.eval()
+    extractor = RandomProjectionFeatures(dim=16)
+    real = FeatureStats.from_features(extractor.features(PatchSet.load(out / "patches").train))
+    fake = render_samples(module, 5, FID_SEED_BASE)  # epoch 0's FID seeds
+    assert FeatureStats.from_features(extractor.features(fake)).fid(real) == pytest.approx(fid_ddp, rel=1e-6)
+
+
 def test_joblib_sweep_makes_two_mlflow_runs(images, tmp_path):
     import mlflow
 

@@ -162,7 +162,8 @@ def train(cfg: DictConfig) -> dict:
     metrics["train/skipped_steps_total"] = float(model.skipped_steps)
     for logger in loggers:
         logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
-    write_json(output_dir / "metrics.json", {"epoch": trainer.current_epoch, "global_step": trainer.global_step, **metrics})
+    if trainer.is_global_zero:  # under DDP every rank returns here; one writes
+        write_json(output_dir / "metrics.json", {"epoch": trainer.current_epoch, "global_step": trainer.global_step, **metrics})
     log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
     return metrics
 

@@ -17,11 +17,14 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import shutil
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
 
 from drgan.errors import ConfigError
@@ -90,12 +93,14 @@ def dataset_key(patches: np.ndarray) -> str:
 
 
 def render_samples(
-    pl_module: LightningModule, n: int, seed_base: int, progress: bool = False, spp: int | None = None
+    pl_module: LightningModule, n: int, seed_base: int, progress: bool = False, spp: int | None = None,
+    indices: Sequence[int] | None = None,
 ) -> np.ndarray:
-    """``n`` images (n, H, W) in [0, 1] from the phi bank (cycling), without gradients, fixed seeds;
+    """Images (len, H, W) in [0, 1] without gradients: image i uses constellation ``i % len(phi_bank)`` and
+    seed ``seed_base + i``, so it is the same whichever process renders it. ``indices`` None: 0 .. n-1;
     ``spp`` None renders at the training spp."""
     bank = pl_module.phi_bank
-    iterator = range(n)
+    iterator = range(n) if indices is None else list(indices)
     if progress:
         from tqdm.auto import tqdm
 
@@ -105,6 +110,21 @@ def render_samples(
         for i in iterator
     ]
     return np.clip(np.stack(images).astype(np.float32), 0.0, 1.0)
+
+
+def rank_share(n: int, rank: int, world: int) -> list[int]:
+    """Image indices rendered by ``rank`` of ``world``: rank, rank + world, ... (ceil(n / world) of them, so
+    that every rank renders as many; indices >= n are padding, dropped after the gather)."""
+    return [rank + world * j for j in range(math.ceil(n / world))]
+
+
+def gather_rows(trainer: Trainer, rows: np.ndarray, n: int) -> np.ndarray:
+    """Every rank's ``rows`` (one per index of its ``rank_share``) in index order 0 .. n-1, on every rank."""
+    if trainer.world_size == 1:
+        return rows[:n]
+    gathered = trainer.strategy.all_gather(torch.as_tensor(np.ascontiguousarray(rows), dtype=torch.float64))
+    gathered = gathered.cpu().numpy()  # (world, per_rank, ...): index rank + world * j sits at [rank, j]
+    return np.swapaxes(gathered, 0, 1).reshape(-1, *rows.shape[1:])[:n]
 
 
 class RandomProjectionFeatures:
@@ -196,19 +216,25 @@ class FIDCallback(Callback):
         start = time.perf_counter()
         real = self.real_stats(trainer)
         n = self.n_images or real.n
-        fake = render_samples(pl_module, n, FID_SEED_BASE + 100_003 * epoch, progress=self.progress, spp=self.spp)
-        fake_feats = self._extractor().features(fake)
+        # Under DDP each rank renders and embeds its share; the features are gathered, so every rank scores
+        # the same n images (the same ones as a single process would: seeds follow the image index).
+        mine = rank_share(n, trainer.global_rank, trainer.world_size)
+        fake = render_samples(pl_module, n, FID_SEED_BASE + 100_003 * epoch, progress=self.progress and trainer.is_global_zero,
+                              spp=self.spp, indices=mine)
+        fake_feats = gather_rows(trainer, np.asarray(self._extractor().features(fake), dtype=np.float64), n)
+        grey = gather_rows(trainer, fake.mean(axis=(1, 2), dtype=np.float64), n)  # every image has as many pixels
         fid = FeatureStats.from_features(fake_feats).fid(real)
         kid_mean, kid_std = kid(fake_feats, real.features, self.kid_subsets, self.kid_subset_size, seed=epoch)
-        brightness = float(fake.mean(dtype=np.float64)) / max(self.real_mean(trainer), 1e-6)
+        brightness = float(grey.mean()) / max(self.real_mean(trainer), 1e-6)
         seconds = time.perf_counter() - start
         self.history = [h for h in self.history if h["epoch"] != epoch]
         self.history.append({"epoch": epoch, "fid": fid, "kid": kid_mean, "kid_std": kid_std, "brightness": brightness,
                              "n_images": n, "seconds": seconds})
-        log.info("epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (%d images, %.1f s)", epoch, fid, kid_mean,
-                 brightness, n, seconds)
+        if trainer.is_global_zero:
+            log.info("epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (%d images, %.1f s)", epoch, fid, kid_mean,
+                     brightness, n, seconds)
         for key, value in (("val/fid", fid), ("val/kid", kid_mean), ("val/brightness", brightness), ("time/fid_s", seconds)):
-            pl_module.log(key, float(value), on_step=False, on_epoch=True, prog_bar=key == "val/fid")
+            pl_module.log(key, float(value), on_step=False, on_epoch=True, prog_bar=key == "val/fid", sync_dist=True)
 
     def state_dict(self) -> dict:
         return {"history": [dict(h) for h in self.history]}

@@ -206,7 +206,8 @@ class GANModule(LightningModule):
         for key, value in scalars.items():
             self.log(key, value, on_step=True, on_epoch=False, prog_bar=key in ("train/d_loss", "train/g_loss"), batch_size=batch_size)
             if key != "train/skipped_steps":
-                self.log(f"{key}_epoch", value, on_step=False, on_epoch=True, batch_size=batch_size)
+                # Epoch means over all DDP ranks (one reduction per epoch; a no-op in a single process).
+                self.log(f"{key}_epoch", value, on_step=False, on_epoch=True, batch_size=batch_size, sync_dist=True)
 
     def _count(self, ok: bool, d_loss: torch.Tensor, g_loss: torch.Tensor) -> None:
         if ok:

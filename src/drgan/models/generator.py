@@ -26,10 +26,13 @@ def clamp_straight_through(x: torch.Tensor) -> torch.Tensor:
     return x + (x.clamp(0.0, 1.0) - x).detach()
 
 
-def add_noise(image: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-    """clamp -> + sigma * N(0, 1) -> clamp: images stay in [0, 1]; sigma and the render stay differentiable."""
+def add_noise(image: torch.Tensor, sigma: torch.Tensor, seed: int | None = None) -> torch.Tensor:
+    """clamp -> + sigma * N(0, 1) -> clamp: images stay in [0, 1]; sigma and the render stay differentiable.
+    ``seed`` draws the noise from a generator of its own (None: torch's global generator)."""
     clean = clamp_straight_through(image)
-    return clamp_straight_through(clean + sigma * torch.randn_like(clean))
+    generator = None if seed is None else torch.Generator(device=clean.device).manual_seed(int(seed))
+    noise = torch.randn(clean.shape, generator=generator, dtype=clean.dtype, device=clean.device)
+    return clamp_straight_through(clean + sigma * noise)
 
 
 @dataclass
@@ -85,8 +88,9 @@ class Generator(nn.Module):
         """One noised image (1, H, W) of constellation phi_i with learned values (k,); spp None = the scene's."""
         bsdf_values, sigma = self._split(values)
         self.scene.set_layout(phi_i)
-        radiance = self.scene.render(bsdf_values, seed=self.next_seed() if seed is None else seed, spp=spp)
-        return add_noise(radiance, sigma).unsqueeze(0)
+        seed = self.next_seed() if seed is None else int(seed)
+        radiance = self.scene.render(bsdf_values, seed=seed, spp=spp)
+        return add_noise(radiance, sigma, seed=seed).unsqueeze(0)  # one seed fixes the image: paths and noise
 
     def render_batch(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, n, 4) -> images (B, 1, H, W) and the learned values (B, k) they were rendered with."""
