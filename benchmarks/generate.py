@@ -46,7 +46,6 @@ def time_setting(material: str, spp: int, resolution: int, images: int, seed: in
             start = time.perf_counter()
             phi = torch.as_tensor(build.sample_phi(cfg, 1, seed=seeds["phi"])[0], dtype=torch.float32)
             t_phi = time.perf_counter()
-            torch.manual_seed(seeds["noise"])
             values = generator.learned_values(phi.unsqueeze(0))[0]
             with torch.no_grad():
                 image = generator.render_one(phi, values, seed=seeds["render"])[0].numpy()

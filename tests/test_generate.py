@@ -131,7 +131,7 @@ def test_dataset_layout_masks_and_manifest(dataset):
             assert not mask.any() and meta["source"]["image_id"].startswith("img")
         else:
             assert labels.any() and np.asarray(meta["phi"]).shape == (3, 4)
-            assert meta["sigma"] is not None and meta["contrast"] > 0 and set(meta["seed"]) == {"phi", "render", "noise"}
+            assert meta["sigma"] is not None and meta["contrast"] > 0 and set(meta["seed"]) == {"phi", "render"}
     # Nothing half-written: no temporary files anywhere.
     assert not [p for p in dataset.rglob("*") if p.name.startswith(".") or ".tmp" in p.name]
 

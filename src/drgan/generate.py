@@ -65,9 +65,10 @@ def bg_id(index: int) -> str:
 
 
 def index_seeds(seed: int, index: int) -> dict[str, int]:
-    """Independent 31-bit seeds for the layout, the render's sample pattern and the noise of index i."""
-    phi, render, noise = (int(s) & 0x7FFFFFFF for s in np.random.SeedSequence([int(seed), int(index)]).generate_state(3))
-    return {"phi": phi, "render": render, "noise": noise}
+    """Independent 31-bit seeds for the layout and the render of index i (the render seed fixes both the
+    sample pattern and the additive noise, drgan.models.generator.add_noise)."""
+    phi, render = (int(s) & 0x7FFFFFFF for s in np.random.SeedSequence([int(seed), int(index)]).generate_state(2))
+    return {"phi": phi, "render": render}
 
 
 @dataclass(frozen=True)
@@ -365,11 +366,8 @@ class Stats:
 
 def render_index(module, sample_phi, settings: dict, index: int):
     """(image, labels, mask, check, meta, render_s, label_s) of index ``index``: reproducible from (seed, index)."""
-    import torch
-
     seeds = index_seeds(settings["seed"], index)
     phi = sample_phi(seeds["phi"])
-    torch.manual_seed(seeds["noise"])  # the generator's noise draws from torch's global generator
     start = time.perf_counter()
     sample = module.generator.sample(phi, seed=seeds["render"])
     render_s = time.perf_counter() - start
