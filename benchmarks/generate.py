@@ -2,6 +2,7 @@
 
     python benchmarks/generate.py                          # TiO2 SEM, 256 px, spp 121, 5 timed images
     python benchmarks/generate.py --spp 16 121 --images 10 --material tio2_him
+    python benchmarks/generate.py --particles 40 20         # the material's paper count and experiment=tio2_sem's
 
 Builds a freshly initialised GANModule from the material's training config (no checkpoint needed: the
 FCN's weights do not change the cost), then does per image what drgan.generate does: draw a new phi,
@@ -34,8 +35,11 @@ from drgan.models.gan_module import GANModule  # noqa: E402
 from drgan.scene.labels import class_mask  # noqa: E402
 
 
-def time_setting(material: str, spp: int, resolution: int, images: int, seed: int = 0) -> dict:
-    cfg = compose([f"material={material}", f"renderer.spp={spp}", f"renderer.resolution={resolution}", f"seed={seed}"], config_name="train")
+def time_setting(material: str, spp: int, resolution: int, images: int, seed: int = 0, particles: int | None = None) -> dict:
+    overrides = [f"material={material}", f"renderer.spp={spp}", f"renderer.resolution={resolution}", f"seed={seed}"]
+    if particles is not None:
+        overrides.append(f"material.n_particles={particles}")
+    cfg = compose(overrides, config_name="train")
     module = GANModule(cfg, m=1, base_dir=str(Path(__file__).resolve().parents[1])).eval()
     generator = module.generator
     contour_px = int(cfg.material.contour_px)
@@ -80,6 +84,7 @@ def main():
     parser.add_argument("--spp", type=int, nargs="+", default=[121])
     parser.add_argument("--resolution", type=int, nargs="+", default=[256])
     parser.add_argument("--images", type=int, default=5, help="timed images per setting (after one warm-up)")
+    parser.add_argument("--particles", type=int, nargs="+", default=[None], help="particles per scene (default: the material's)")
     args = parser.parse_args()
     if args.images < 1:
         parser.error("--images: expected >= 1")
@@ -89,8 +94,8 @@ def main():
     print("| material | particles | resolution | spp | images | phi s | render s | labels s | write s | pairs/minute |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for resolution in args.resolution:
-        for spp in args.spp:
-            r = time_setting(args.material, spp, resolution, args.images)
+        for spp, particles in ((s, n) for s in args.spp for n in args.particles):
+            r = time_setting(args.material, spp, resolution, args.images, particles=particles)
             print(
                 f"| {r['material']} | {r['particles']} | {r['resolution']} | {r['spp']} | {r['images']} | {r['phi_s']:.3f} "
                 f"| {r['render_s']:.3f} | {r['labels_s']:.3f} | {r['write_s']:.3f} | {r['pairs_per_minute']:.1f} |",
