@@ -185,9 +185,9 @@ class GANModule(LightningModule):
             g_loss = self.adversarial_loss(self.discriminator(fake), True)
             ok = self._optimise(opt_g, self.generator, g_loss)
         self._count(ok, d_loss, g_loss)
-        schedulers = self.lr_schedulers() if self.lr_decay is not None else None
-        for scheduler in schedulers or ():
-            scheduler.step()  # per training step, skipped ones included: the schedule follows the step count
+        if self.lr_decay is not None:  # per training step, skipped ones included: the schedule follows the step count
+            for scheduler in self.lr_schedulers():  # [G's, D's]
+                scheduler.step()
 
         # Step values under their plain names (train/g_loss ...), epoch means as <name>_epoch.
         scalars = {"train/skipped_steps": float(self.skipped_steps), "time/render_s": render_s, "train/lr_g": opt_g.param_groups[0]["lr"]}
