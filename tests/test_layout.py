@@ -21,6 +21,7 @@ from drgan.scene.layout import (
     PoissonAgglomerates,
     Random2D,
     Random3D,
+    particle_counts,
     placement_from_config,
     sample_layouts,
     size_from_config,
@@ -113,6 +114,41 @@ def test_layout_shape_dtype_and_reproducibility(placement):
     assert first.dtype == np.float32
     np.testing.assert_array_equal(first, sample_layouts(6, 40, LOGNORMAL, placement, seed=7))
     assert not np.array_equal(first, sample_layouts(6, 40, LOGNORMAL, placement, seed=8))
+
+
+@pytest.mark.parametrize("placement", PLACEMENTS, ids=lambda p: type(p).__name__)
+def test_variable_counts_fill_the_first_rows_and_zero_the_rest(placement):
+    layouts = sample_layouts(300, 12, LOGNORMAL, placement, seed=4, n_min=3)
+    counts = particle_counts(layouts)
+    assert counts.min() == 3 and counts.max() == 12  # both ends are drawn, nothing outside them
+    assert abs(counts.mean() - 7.5) < 0.5  # uniform over 3..12
+    for layout, k in zip(layouts, counts):
+        assert (layout[:k, 3] > 0).all() and not layout[k:].any()
+    # The present particles keep the placement's guarantees: centres in the view, none below the stage.
+    present = layouts[layouts[..., 3] > 0]
+    assert (np.abs(present[:, :2]) <= 128.0).all() and (present[:, 2] >= 0.5 * present[:, 3] - 1e-3).all()
+    # Without n_min every row is present and the draw is the one it always was.
+    full = sample_layouts(5, 12, LOGNORMAL, placement, seed=4)
+    assert (particle_counts(full) == 12).all()
+    np.testing.assert_array_equal(full, sample_layouts(5, 12, LOGNORMAL, placement, seed=4, n_min=None))
+
+
+@pytest.mark.parametrize("n_min, match", [(0, "n_min must be an integer >= 1"), (13, "n_min = 13 must be <= n = 12"),
+                                          (2.5, "n_min must be an integer")])
+def test_bad_n_min_is_refused(n_min, match):
+    with pytest.raises(ConfigError, match=match):
+        sample_layouts(2, 12, LOGNORMAL, Random2D(), n_min=n_min)
+
+
+def test_material_n_particles_min_reaches_the_phi_bank():
+    from drgan.build import sample_phi
+
+    cfg = compose(["material=tio2_sem", "material.n_particles=10", "material.n_particles_min=4"], config_name="train")
+    counts = particle_counts(sample_phi(cfg, 200, seed=0))
+    assert counts.min() == 4 and counts.max() == 10
+    cfg.material.n_particles_min = 11
+    with pytest.raises(ConfigError, match=r"material.n_particles_min=11: expected null or an integer in 1..material.n_particles \(10\)"):
+        sample_phi(cfg, 2, seed=0)
 
 
 @pytest.mark.parametrize("placement", PLACEMENTS, ids=lambda p: type(p).__name__)

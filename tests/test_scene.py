@@ -233,6 +233,25 @@ def test_bad_layout_fails_clearly(tiny_scene):
     tiny_scene.set_layout(TINY_PHI)
 
 
+@pytest.mark.parametrize("stage", [PAPER_STAGE, None], ids=["stage", "no_stage"])
+def test_an_all_zero_row_is_an_absent_particle(stage):
+    """A 4-particle scene whose last two rows are zero renders and labels like a 2-particle scene
+    (same meshes, same seed): the absent meshes are neither seen, nor hit, nor cast shadows."""
+    kw = {"resolution": 24, "spp": 4, "stage": stage}
+    if stage is None:
+        kw["particle"] = {"base_color": {"value": 1.0}, "roughness": {"value": 1.0}}
+    four, two = make_scene(n=4, **kw), make_scene(n=2, **kw)
+    values = MID if stage is not None else torch.zeros(0)
+    phi = TINY_PHI.copy()
+    phi[2:] = 0
+    four.set_layout(phi)
+    two.set_layout(TINY_PHI[:2])
+    np.testing.assert_allclose(four.render(values, seed=3).numpy(), two.render(values, seed=3).numpy(), atol=1e-5)
+    np.testing.assert_array_equal(four.instance_labels(), two.instance_labels())
+    assert set(np.unique(four.instance_labels())) == {0, 1, 2}
+    np.testing.assert_array_equal(four.layout, phi)  # the layout as given, for the adjoint pass to restore
+
+
 def test_box_render_plus_blur_matches_mitsubas_gaussian_filter():
     """The Gaussian reconstruction filter applied after a box-filtered render gives Mitsuba's image."""
     from drgan.backend import mi

@@ -124,9 +124,13 @@ def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: i
 
 
 def sample_phi(cfg: DictConfig, m: int, seed: int) -> np.ndarray:
-    """Phi (m, n, 4) for the material with the configured size distribution and placement."""
+    """Phi (m, n, 4) for the material with the configured size distribution and placement; with
+    ``material.n_particles_min`` each constellation shows n_particles_min..n_particles of them."""
     size = layout.size_from_config(_plain(cfg.size))
     placement = layout.placement_from_config(_plain(cfg.placement))
+    n, n_min = int(cfg.material.n_particles), cfg.material.get("n_particles_min")
+    if n_min is not None and (isinstance(n_min, bool) or not isinstance(n_min, int) or not 1 <= n_min <= n):
+        raise ConfigError(f"material.n_particles_min={n_min!r}: expected null or an integer in 1..material.n_particles ({n})")
     return layout.sample_layouts(
-        m, int(cfg.material.n_particles), size, placement, view_width=float(cfg.material.view_width), seed=seed
+        m, n, size, placement, view_width=float(cfg.material.view_width), seed=seed, n_min=n_min
     )

@@ -36,6 +36,7 @@ __all__ = [
     "PoissonAgglomerates",
     "Placement",
     "sample_layouts",
+    "particle_counts",
     "size_from_config",
     "placement_from_config",
 ]
@@ -526,14 +527,23 @@ def sample_layouts(
     placement: Placement,
     view_width: float = 256.0,
     seed: int = 0,
+    n_min: int | None = None,
 ) -> np.ndarray:
     """Phi: float32 (m, n, 4) of m constellations of n particles, rows (x, y, z, scale) in px.
 
-    The same arguments and seed give the same Phi (numpy default_rng(seed)).
+    ``n_min``: when given, constellation i shows k_i particles, drawn uniformly from n_min..n; its first
+    k_i rows are placed together and the other n - k_i rows are all zero: absent particles, which the scene
+    does not render (real patches show anywhere from a few to dozens of particles; one fixed count gives
+    every synthetic image the same density). The same arguments and seed give the same Phi (numpy
+    default_rng(seed)); ``n_min`` = None consumes the generator exactly as before it existed.
     """
     _check_int_at_least("sample_layouts", "m", m, 1)
     _check_int_at_least("sample_layouts", "n", n, 1)
     _check_positive("sample_layouts", "view_width", view_width)
+    if n_min is not None:
+        _check_int_at_least("sample_layouts", "n_min", n_min, 1)
+        if n_min > n:
+            raise ConfigError(f"sample_layouts: n_min = {n_min} must be <= n = {n} (the most particles a scene holds)")
     if not isinstance(size, (NormalSize, LognormalSize, BimodalSize)):
         raise ConfigError(f"sample_layouts: size must be NormalSize, LognormalSize or BimodalSize, got {size!r}")
     if not isinstance(placement, (Random2D, Random3D, PoissonAgglomerates)):
@@ -542,11 +552,17 @@ def sample_layouts(
         )
     rng = np.random.default_rng(seed)
     sizes = size.sample(rng, (m, n))
-    layouts = np.empty((m, n, 4), dtype=np.float32)
-    for i in range(m):
-        layouts[i, :, :3] = placement.sample(rng, sizes[i], float(view_width))
-        layouts[i, :, 3] = sizes[i]
+    counts = np.full(m, n) if n_min is None else rng.integers(n_min, n + 1, size=m)
+    layouts = np.zeros((m, n, 4), dtype=np.float32)
+    for i, k in enumerate(counts):
+        layouts[i, :k, :3] = placement.sample(rng, sizes[i, :k], float(view_width))
+        layouts[i, :k, 3] = sizes[i, :k]
     return layouts
+
+
+def particle_counts(layouts: np.ndarray) -> np.ndarray:
+    """Particles present in each constellation of Phi (m, n, 4): rows with a scale > 0."""
+    return (np.asarray(layouts)[..., 3] > 0).sum(axis=-1)
 
 
 # ----------------------------------------------------------------------------------------------------------------

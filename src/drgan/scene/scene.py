@@ -332,15 +332,22 @@ class ParticleScene:
         return self._learned
 
     def set_layout(self, phi_i) -> None:
-        """Move the particles to one constellation phi_i (n x 4: x, y, z, scale) in one buffer write."""
+        """Move the particles to one constellation phi_i (n x 4: x, y, z, scale) in one buffer write.
+
+        An all-zero row is an absent particle (``sample_layouts(n_min=...)``): its mesh collapses to one
+        point below the stage, where its zero-area triangles can neither be hit nor cast a shadow.
+        """
         phi_i = np.asarray(phi_i.detach().cpu() if isinstance(phi_i, torch.Tensor) else phi_i, dtype=np.float32)
         if phi_i.shape != (self.n_particles, 4):
             raise ConfigError(f"phi_i: expected shape ({self.n_particles}, 4) (x, y, z, scale), got {phi_i.shape}")
         if not np.isfinite(phi_i).all():
             raise ConfigError("phi_i: contains non-finite values")
-        if (phi_i[:, 3] <= 0).any():
-            raise ConfigError("phi_i: particle scales (column 3) must be > 0")
-        per_vertex = phi_i[self._vertex_owner]
+        absent = ~phi_i.any(axis=1)
+        if (phi_i[~absent, 3] <= 0).any():
+            raise ConfigError("phi_i: particle scales (column 3) must be > 0 (an absent particle is an all-zero row)")
+        placed = phi_i.copy()
+        placed[absent] = (0.0, 0.0, -self.spec.view_width, 0.0)
+        per_vertex = placed[self._vertex_owner]
         vertices = self._unit_vertices * per_vertex[:, 3:4] + per_vertex[:, :3]
         self.params["particles.vertex_positions"] = mi.Float(vertices.ravel())
         self.params.update()
