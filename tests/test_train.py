@@ -239,6 +239,31 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
     assert samples.shape == (2, len(module.learned_keys)) and np.isfinite(samples).all()
 
 
+def test_init_from_starts_a_fresh_run_from_another_runs_weights(images, tmp_path):
+    def weights(run):
+        state = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+        return {k: v for k, v in state.items() if k.startswith(("generator.regressor.", "discriminator.")) and "running" not in k
+                and "num_batches" not in k}
+
+    one_step = ["trainer.limit_train_batches=1", "trainer.max_epochs=1"]
+    run_train(tiny_overrides(images, tmp_path / "a", extra=one_step))
+    source = tmp_path / "a" / "checkpoints" / "last.ckpt"
+    # Learning rates of 1e-12 keep the copied weights (Adam moves each by ~lr); another seed initialises others.
+    frozen = [*one_step, "seed=1", "model.lr_g=1e-12", "model.lr_d=1e-12"]
+    run_train(tiny_overrides(images, tmp_path / "b", extra=[*frozen, f"init_from={source}"]))
+    run_train(tiny_overrides(images, tmp_path / "c", extra=frozen))
+    a, b, c = weights(tmp_path / "a"), weights(tmp_path / "b"), weights(tmp_path / "c")
+    assert all(torch.allclose(a[k], b[k], rtol=0, atol=1e-9) for k in a)
+    assert not any(torch.allclose(a[k], c[k], rtol=0, atol=1e-3) for k in a if "weight.original1" in k)
+    assert json.loads((tmp_path / "b" / "metrics.json").read_text())["epoch"] == 1  # its own count, not a resume
+
+    with pytest.raises(ConfigError, match=r"init_from=.*input is 4 x material.n_particles"):
+        run_train(tiny_overrides(images, tmp_path / "d", extra=[*one_step, f"init_from={source}", "material.n_particles=4"]))
+    with pytest.raises(ConfigError, match="init_from=.*no such checkpoint file"):
+        run_train(tiny_overrides(images, tmp_path / "e", extra=[f"init_from={tmp_path / 'missing.ckpt'}"]))
+    assert not (tmp_path / "e" / "patches").exists()  # refused before any patch was mined
+
+
 def test_lr_decay_factor_and_bad_settings():
     from drgan.models.gan_module import LRDecay
 

@@ -4,6 +4,8 @@ Composes conf/train.yaml, mines the real patches, and fits the GANModule with Li
 one run lands in its folder, runs/<material>/<run_name>/ (patches/, checkpoints/, train.log, metrics.json,
 .hydra/); metrics and parameters go to MLflow (one experiment per material, one run per training run).
 
+Fine-tune: `init_from=<another run's best.ckpt>` starts a new run from that run's FCN and D weights.
+
 Resume: run again with the same run_name and `ckpt_path=last`, e.g.
     python -m drgan.train run_name=exp1 trainer.max_epochs=80 ckpt_path=last
 The same run_name gives the same folder, hence its checkpoints/last.ckpt, its cached patches and its
@@ -127,6 +129,8 @@ def train(cfg: DictConfig) -> dict:
     from drgan.models.gan_module import GANModule
 
     wall_start = time.perf_counter()
+    if cfg.get("init_from") and not Path(cfg.init_from).expanduser().is_file():  # before any data is mined
+        raise ConfigError(f"init_from={cfg.init_from}: no such checkpoint file (a .ckpt written by drgan.train)")
     with open_dict(cfg):  # absolute project root: every path of the run derives from it
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
     output_dir = Path(cfg.paths.output_dir)
@@ -140,6 +144,9 @@ def train(cfg: DictConfig) -> dict:
     model = GANModule(cfg, m=int(m), base_dir=cfg.paths.root_dir)
 
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
+    if cfg.get("init_from") and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights
+        copied = model.load_weights(Path(cfg.init_from).expanduser())
+        log.info("init_from=%s: %d weight tensors of the FCN and discriminator copied; a fresh run from epoch 0", cfg.init_from, copied)
     tags = {"material": str(cfg.material.name), "output_dir": str(output_dir)}
     tags.update({str(t): "1" for t in cfg.get("tags") or []})
     loggers = instantiate_loggers(cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags)

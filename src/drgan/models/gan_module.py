@@ -13,6 +13,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -241,6 +242,42 @@ class GANModule(LightningModule):
             return self.generator.learned_values(phi.to(self.phi_bank.device)).cpu().numpy()
         finally:
             self.generator.train(was_training)
+
+    # --- warm start -----------------------------------------------------------------------------------------
+
+    WARM_START_PREFIXES = ("generator.regressor.", "discriminator.")
+
+    def load_weights(self, path: str | Path) -> int:
+        """Copy the FCN and discriminator weights of another run's checkpoint (``init_from``) into this module.
+
+        Only the networks: the phi bank, the render counter, optimiser state and the epoch count stay those of
+        the new run, which starts at epoch 0. Every tensor must exist with the same shape; the FCN's input
+        width is 4 x material.n_particles, its output the number of learned parameters. Returns the number
+        of tensors copied.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"init_from={path}: no such checkpoint file (a .ckpt written by drgan.train)")
+        try:
+            checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+            source = checkpoint["state_dict"]
+        except Exception as error:  # not a Lightning checkpoint, or a damaged file
+            raise ConfigError(f"init_from={path}: not a readable drgan.train checkpoint ({type(error).__name__}: {error})") from None
+        target = {k: v for k, v in self.state_dict().items() if k.startswith(self.WARM_START_PREFIXES)}
+        missing = sorted(set(target) - set(source))
+        if missing:
+            raise ConfigError(f"init_from={path}: the checkpoint lacks {missing[:3]}{' ...' if len(missing) > 3 else ''}")
+        for key, value in target.items():
+            if source[key].shape != value.shape:
+                raise ConfigError(
+                    f"init_from={path}: {key} has shape {tuple(source[key].shape)} there and {tuple(value.shape)} here; "
+                    "the FCN's input is 4 x material.n_particles wide and its output is one per learned parameter, "
+                    "so both runs need the same n_particles and learned parameters (and the same discriminator settings)"
+                )
+        with torch.no_grad():
+            for key, value in target.items():
+                value.copy_(source[key])
+        return len(target)
 
     # --- checkpoint state beyond the weights --------------------------------------------------------------
 
