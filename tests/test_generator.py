@@ -128,3 +128,70 @@ def test_fid_callback_refuses_a_bad_spp():
 
     with pytest.raises(ConfigError, match="callbacks.fid.spp"):
         FIDCallback(spp=10)
+
+
+# --- real background texture on the stage -----------------------------------------------------------------
+
+
+def striped_backgrounds(size: int, k: int = 3) -> np.ndarray:
+    """Grey level + slow ramp + fine stripes: the high-pass keeps the stripes only."""
+    rows = np.arange(size, dtype=np.float32)[:, None]
+    ramp = 0.002 * rows * np.ones((1, size), np.float32)
+    stripes = 0.05 * np.where(np.arange(size) % 2 == 0, 1.0, -1.0).astype(np.float32)[None, :]
+    return np.stack([0.1 + 0.05 * i + ramp + stripes for i in range(k)])
+
+
+def test_background_texture_keeps_the_fine_structure_only():
+    from drgan.models.generator import BackgroundTexture
+
+    texture = BackgroundTexture(striped_backgrounds(32), highpass_px=4.0)
+    inner = texture.textures[:, 8:-8, 8:-8]  # away from the border, where the blur reflects
+    assert np.abs(inner.mean()) < 1e-3  # grey level and ramp are gone
+    np.testing.assert_allclose(np.abs(inner), 0.05, atol=0.005)  # the stripes stay
+    first = texture.for_seed(7)
+    np.testing.assert_array_equal(first.numpy(), texture.for_seed(7).numpy())  # a seed fixes patch and symmetry
+    assert any(not torch.equal(first, texture.for_seed(s)) for s in range(8, 16))
+
+
+@pytest.mark.parametrize("patches, highpass, match", [
+    (np.zeros((0, 16, 16)), 8, r"expected square background patches \(k, H, H\) with k >= 1"),
+    (np.zeros((2, 16, 12)), 8, "expected square background patches"),
+    (np.full((1, 16, 16), np.nan), 8, "non-finite"),
+    (np.zeros((1, 16, 16)), 0, "highpass_px=0: expected a number of px > 0"),
+])
+def test_bad_background_textures_are_refused(patches, highpass, match):
+    from drgan.errors import ConfigError
+    from drgan.models.generator import BackgroundTexture
+
+    with pytest.raises(ConfigError, match=match):
+        BackgroundTexture(patches, highpass_px=highpass)
+
+
+def test_background_texture_changes_stage_pixels_only_and_no_gradient():
+    from drgan.errors import ConfigError
+    from drgan.models.generator import BackgroundTexture
+
+    scene = make_scene(resolution=32, spp=4, sigma={"value": 0.001})
+    gen = Generator(scene, seed=0).eval()
+    texture = BackgroundTexture(striped_backgrounds(32), highpass_px=4.0)
+    phi = torch.as_tensor(TINY_PHI).unsqueeze(0)
+
+    def image_and_grad():
+        gen.zero_grad()
+        image = gen.render_one(phi[0], gen.learned_values(phi)[0], seed=5)
+        image.sum().backward()
+        return image.detach()[0].numpy(), [p.grad.clone() for p in gen.regressor.parameters()]
+
+    plain, plain_grad = image_and_grad()
+    gen.set_background(texture)
+    textured, textured_grad = image_and_grad()
+    stage = scene.instance_labels() == 0
+    assert stage.any() and (~stage).any()
+    np.testing.assert_array_equal(textured[~stage], plain[~stage])
+    expected = np.clip(plain + texture.for_seed(5).numpy(), 0, 1)  # noise is seeded: same on both sides
+    inside = stage & (plain > 0.06) & (plain < 0.94)  # away from the clamp
+    np.testing.assert_allclose(textured[inside], expected[inside], atol=2e-3)
+    for a, b in zip(plain_grad, textured_grad):  # a constant on the image: the same gradient
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
+    with pytest.raises(ConfigError, match="background patches of 16 px, renders of 32 px"):
+        gen.set_background(BackgroundTexture(striped_backgrounds(16)))

@@ -264,6 +264,19 @@ def test_init_from_starts_a_fresh_run_from_another_runs_weights(images, tmp_path
     assert not (tmp_path / "e" / "patches").exists()  # refused before any patch was mined
 
 
+def test_background_texture_reaches_training_and_needs_background_patches(images, tmp_path, monkeypatch):
+    from drgan.models.generator import Generator
+
+    seen = []
+    original = Generator.set_background
+    monkeypatch.setattr(Generator, "set_background", lambda self, texture: (seen.append(texture), original(self, texture))[1])
+    texture = ["material.background_texture.enabled=true", "material.background_texture.highpass_px=2"]
+    metrics = run_train(tiny_overrides(images, tmp_path / "run", extra=[*texture, "trainer.fast_dev_run=1"]))
+    assert np.isfinite(metrics["train/g_loss"]) and len(seen) == 1 and len(seen[0]) == 2  # data.n_background=2
+    with pytest.raises(ConfigError, match="background_texture.enabled: no real background patches.*data.n_background > 0"):
+        run_train(tiny_overrides(images, tmp_path / "none", extra=[*texture, "data.n_background=0", "trainer.fast_dev_run=1"]))
+
+
 def test_lr_decay_factor_and_bad_settings():
     from drgan.models.gan_module import LRDecay
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -16,6 +17,9 @@ from omegaconf import DictConfig, OmegaConf
 from drgan.errors import ConfigError
 from drgan.scene import layout, meshes
 from drgan.scene.parameters import MaterialParameters
+
+if TYPE_CHECKING:
+    from drgan.models.generator import BackgroundTexture
 
 # `${mul:a,b}` lets size configs scale the material's typical particle size (e.g. std = 0.25 x size).
 if not OmegaConf.has_resolver("mul"):
@@ -134,3 +138,18 @@ def sample_phi(cfg: DictConfig, m: int, seed: int) -> np.ndarray:
     return layout.sample_layouts(
         m, n, size, placement, view_width=float(cfg.material.view_width), seed=seed, n_min=n_min
     )
+
+
+def background_texture(material: Mapping, patches) -> BackgroundTexture | None:
+    """The material's stage texture (``material.background_texture``) from real background patches, or None."""
+    from drgan.models.generator import BackgroundTexture
+
+    settings = _plain(material.get("background_texture"))
+    if not settings.get("enabled", False):
+        return None
+    if patches is None or len(patches) == 0:
+        raise ConfigError(
+            "material.background_texture.enabled: no real background patches to take the texture from "
+            "(set data.n_background > 0 for training, or give generate backgrounds=<run>/patches)"
+        )
+    return BackgroundTexture(patches, settings.get("highpass_px", 8.0))

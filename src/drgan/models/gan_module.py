@@ -112,6 +112,10 @@ class GANModule(LightningModule):
         rank = int(self.global_rank)
         self.generator.base_seed = self.seed + RANK_SEED_STRIDE * rank
         self.phi_rng.manual_seed(self.seed + RANK_SEED_STRIDE * rank)
+        if (self.cfg.material.get("background_texture") or {}).get("enabled", False):
+            datamodule = getattr(self.trainer, "datamodule", None)
+            patches = getattr(datamodule, "background_patches", None)
+            self.generator.set_background(build.background_texture(self.cfg.material, patches))
 
     # --- optimisers and losses ----------------------------------------------------------------------------
 
