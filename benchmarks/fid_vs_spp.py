@@ -35,6 +35,8 @@ def main():
     real_stats = FeatureStats.from_features(extractor.features(real))
     module = GANModule.load_from_checkpoint(args.ckpt, map_location="cpu")
     module.eval()
+    if module.textured:  # the stage texture of training, from the same run's background patches
+        module.use_background_texture(PatchSet.load(run / "patches").background)
     print(f"command: python {' '.join(sys.argv)}\ncheckpoint epoch: see {args.ckpt.name}; {len(real)} real patches\n")
     print("| spp | FID | render s |")
     print("|---|---|---|")

@@ -232,3 +232,31 @@ def test_export_nnunet_passes_nnunet_integrity_check(dataset, tmp_path):
 
     target = export(dataset, tmp_path / "raw")
     verify_dataset_integrity(str(target), num_processes=1)
+
+
+# --- a generator trained with the real background texture -----------------------------------------------------
+
+
+def test_textured_generator_takes_its_texture_from_the_run_patches(tmp_path, monkeypatch):
+    import shutil
+
+    from drgan.models.generator import Generator
+
+    images = make_images(tmp_path / "real" / "images")
+    run = tmp_path / "run"
+    run_train(tiny_overrides(images, run, extra=["trainer.max_epochs=1", "trainer.limit_train_batches=1",
+                                                 "material.background_texture.enabled=true"]))
+    seen = []
+    original = Generator.set_background
+    monkeypatch.setattr(Generator, "set_background", lambda self, texture: (seen.append(texture), original(self, texture))[1])
+    out = tmp_path / "data"
+    run_generate(run, out, n=1)
+    assert len(seen) == 1 and len(seen[0]) == N_BG  # the run's own background patches
+    assert len(ids(out)) == 1 + N_BG
+
+    lonely = tmp_path / "elsewhere" / "best.ckpt"  # a checkpoint without its run folder
+    lonely.parent.mkdir()
+    shutil.copyfile(run / "checkpoints" / "best.ckpt", lonely)
+    with pytest.raises(ConfigError, match="trained with material.background_texture.*give backgrounds=PATCHSET_FOLDER"):
+        gen.generate(compose([f"ckpt={lonely}", f"out={tmp_path / 'data2'}", "n=1", "n_background=0", "progress=false"],
+                             config_name="generate"))

@@ -59,7 +59,10 @@ def main(run: Path, out: Path) -> None:
             axes[row, k].axis("off")
     axes[0, 0].set_title("synthetic image", loc="left")
     axes[1, 0].set_title("exact instance labels", loc="left")
-    fig.suptitle(f"best epoch {best['epoch']} (FID {best['fid']:.1f})")
+    # The stage texture comes from the real images (licensed no-derivatives): these samples are rendered
+    # without it (a module loaded from a checkpoint has none until use_background_texture), and say so.
+    omitted = "; the stage texture of training (real background patches) is left out here" if module.textured else ""
+    fig.suptitle(f"best epoch {best['epoch']} (FID {best['fid']:.1f}){omitted}")
     fig.tight_layout()
     fig.savefig(out / "samples_best_epoch.png", dpi=100)
     plt.close(fig)

@@ -432,10 +432,10 @@ def generate(cfg: DictConfig) -> dict:
 
     model_cfg = OmegaConf.create(settings["model_cfg"])
     module = load_module(Path(settings["ckpt"]), settings["model_cfg"])
-    if textured(settings["model_cfg"]):
+    if module.textured:
         from drgan.data.patches import PatchSet
 
-        module.generator.set_background(build.background_texture(model_cfg.material, PatchSet.load(settings["backgrounds"]).background))
+        module.use_background_texture(PatchSet.load(settings["backgrounds"]).background)
     resolution = int(module.generator.scene.spec.render.resolution)
     log.info(
         "generating %d images of %s into %s (shard %s, %d x %d px, spp %s, contour %d px)",

@@ -112,10 +112,18 @@ class GANModule(LightningModule):
         rank = int(self.global_rank)
         self.generator.base_seed = self.seed + RANK_SEED_STRIDE * rank
         self.phi_rng.manual_seed(self.seed + RANK_SEED_STRIDE * rank)
-        if (self.cfg.material.get("background_texture") or {}).get("enabled", False):
-            datamodule = getattr(self.trainer, "datamodule", None)
-            patches = getattr(datamodule, "background_patches", None)
-            self.generator.set_background(build.background_texture(self.cfg.material, patches))
+        if self.textured:
+            self.use_background_texture(getattr(getattr(self.trainer, "datamodule", None), "background_patches", None))
+
+    @property
+    def textured(self) -> bool:
+        """Whether the material adds real background texture to the stage (``material.background_texture``)."""
+        return bool((self.cfg.material.get("background_texture") or {}).get("enabled", False))
+
+    def use_background_texture(self, patches) -> None:
+        """Give the generator its stage texture from real background patches (k, H, W). Training does this in
+        ``setup``; a module loaded from a checkpoint for rendering needs it from the run's ``patches/``."""
+        self.generator.set_background(build.background_texture(self.cfg.material, patches))
 
     # --- optimisers and losses ----------------------------------------------------------------------------
 
