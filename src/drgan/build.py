@@ -140,13 +140,18 @@ def sample_phi(cfg: DictConfig, m: int, seed: int) -> np.ndarray:
     )
 
 
+def textured(material: Mapping) -> bool:
+    """Whether the material adds real background texture to the stage (``material.background_texture``)."""
+    return bool(_plain(material.get("background_texture")).get("enabled", False))
+
+
 def background_texture(material: Mapping, patches) -> BackgroundTexture | None:
     """The material's stage texture (``material.background_texture``) from real background patches, or None."""
     from drgan.models.generator import BackgroundTexture
 
-    settings = _plain(material.get("background_texture"))
-    if not settings.get("enabled", False):
+    if not textured(material):
         return None
+    settings = _plain(material.get("background_texture"))
     if patches is None or len(patches) == 0:
         raise ConfigError(
             "material.background_texture.enabled: no real background patches to take the texture from "

@@ -171,11 +171,6 @@ def effective_renderer(saved: dict, overrides) -> dict:
     return renderer
 
 
-def textured(model_cfg: dict) -> bool:
-    """Whether the generator adds real background texture to its stage (``material.background_texture``)."""
-    return bool(((model_cfg.get("material") or {}).get("background_texture") or {}).get("enabled", False))
-
-
 def load_module(ckpt_file: Path, model_cfg: dict):
     """GANModule in eval mode, rebuilt with ``model_cfg`` (the saved one, renderer possibly overridden)."""
     from drgan.models.gan_module import GANModule
@@ -329,7 +324,9 @@ def settings_from(cfg: DictConfig) -> dict:
         backgrounds = None
     if n_background and backgrounds is None:
         raise ConfigError(f"n_background={n_background}: the checkpoint has no run folder with patches/; give backgrounds=PATCHSET_FOLDER or n_background=0")
-    if textured(saved) and backgrounds is None:
+    from drgan.build import textured
+
+    if textured(saved["material"]) and backgrounds is None:
         raise ConfigError(
             f"checkpoint {ckpt_file} was trained with material.background_texture, which takes its texture from real "
             "background patches, and it has no run folder with patches/; give backgrounds=PATCHSET_FOLDER"

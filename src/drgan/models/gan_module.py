@@ -118,7 +118,7 @@ class GANModule(LightningModule):
     @property
     def textured(self) -> bool:
         """Whether the material adds real background texture to the stage (``material.background_texture``)."""
-        return bool((self.cfg.material.get("background_texture") or {}).get("enabled", False))
+        return build.textured(self.cfg.material)
 
     def use_background_texture(self, patches) -> None:
         """Give the generator its stage texture from real background patches (k, H, W). Training does this in
