@@ -253,6 +253,7 @@ class ParticleScene:
         # Keep only what a render changes; everything else stays as loaded.
         self.params.keep(self._learned_keys + ["particles.vertex_positions"])
         self._layout = None
+        self._labels = None  # instance labels of the current layout, traced once per layout
 
     # -- building -------------------------------------------------------------------------------
     def _sensor_dict(self) -> dict:
@@ -352,6 +353,7 @@ class ParticleScene:
         self.params["particles.vertex_positions"] = mi.Float(vertices.ravel())
         self.params.update()
         self._layout = phi_i
+        self._labels = None
 
     @property
     def layout(self) -> np.ndarray | None:
@@ -400,10 +402,16 @@ class ParticleScene:
         """Instance label image of the current layout (0 background, k = particle k), pixel-aligned.
 
         One ray through each pixel centre of the same camera: occlusion-correct and far cheaper than
-        a second high-spp render.
+        a second high-spp render. Traced once per layout (a textured render needs the stage mask, and the
+        sample then needs the labels); each call returns its own copy.
         """
         if self._layout is None:
             raise RuntimeError("set_layout(phi_i) before instance_labels()")
+        if self._labels is None:
+            self._labels = self._trace_labels()
+        return self._labels.copy()
+
+    def _trace_labels(self) -> np.ndarray:
         size = self.spec.render.resolution
         with dr.suspend_grad():
             idx = dr.arange(mi.UInt32, size * size)
