@@ -65,7 +65,8 @@ def scene_spec(material: Mapping, renderer: Mapping):
     from drgan.scene.scene import RenderSettings, SceneSpec, TopLight, TorusLight
 
     material, renderer = _plain(material), _plain(renderer)
-    known = {"variant", "integrator", "max_depth", "resolution", "spp", "grad_spp", "filter_stddev", "camera_distance"}
+    known = {"variant", "integrator", "max_depth", "resolution", "spp", "grad_spp", "grad_seed", "filter_stddev",
+             "camera_distance"}
     unknown = sorted(set(renderer) - known)
     if unknown:
         raise ConfigError(f"renderer: unknown key(s) {unknown}; expected some of {sorted(known)}")
@@ -73,6 +74,8 @@ def scene_spec(material: Mapping, renderer: Mapping):
         resolution=int(renderer.get("resolution", material.get("view_width", 256))),
         spp=renderer.get("spp", material.get("spp", 16)),
         grad_spp=renderer.get("grad_spp"),
+        # absent (a checkpoint saved before the setting existed): RenderSettings' default
+        **({"grad_seed": renderer["grad_seed"]} if renderer.get("grad_seed") is not None else {}),
         filter_stddev=float(renderer.get("filter_stddev", material.get("filter_stddev", 0.5))),
         integrator=renderer.get("integrator", "prb_basic"),
         max_depth=int(renderer.get("max_depth", 2)),

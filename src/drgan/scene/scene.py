@@ -32,6 +32,7 @@ mi = backend.mi
 
 INTEGRATORS = ("prb_basic", "direct_projective", "prb")
 LIGHT_SHAPES = ("band", "torus")
+GRAD_SEEDS = ("independent", "same")  # renderer.grad_seed: see RenderSettings and `adjoint_seed`
 
 
 @dataclass(frozen=True)
@@ -88,11 +89,28 @@ class RenderSettings:
     integrator: str = "prb"
     max_depth: int = 2  # 2 = direct illumination, all that BSDF-parameter gradients need here
     camera_distance: float = 10.0  # x view_width; far camera = nearly orthographic view
+    # Which samples the adjoint (gradient) pass uses, i.e. which gradient estimator training gets (`adjoint_seed`):
+    # "independent": a seed derived from, and never equal to, the image's seed. Its gradient is unbiased for
+    #   the derivative of the *expected* image: E[grad] = E[dL/dI(I_noisy)] . dE[I]/dtheta. For a linear loss
+    #   that is the exact gradient of E[L(I)] = L(E[I]); for a non-linear loss it is the gradient of neither
+    #   L(E[I]) nor E[L(I_noisy)] (the chain rule's first factor is still taken at the noisy image), but it
+    #   carries no term from the Monte Carlo grain itself. Mitsuba's choice for inverse rendering
+    #   (`mi.render` refuses seed_grad == seed).
+    # "same": the image's own seed (drgan before this setting). With grad_spp == spp the adjoint replays the
+    #   image's own paths, so for parameters that do not steer sampling (colours, sheen) the gradient is the
+    #   derivative of the realised noisy image, unbiased for d/dtheta E[L(I_noisy)], the expected loss of noisy
+    #   renders, grain included: the generator is also rewarded for reshaping its own sampling noise. For
+    #   roughness, which steers BSDF sampling, Mitsuba's adjoint holds the sampled directions fixed, so the
+    #   replay is unbiased for neither objective in general. With grad_spp < spp the adjoint replays only part
+    #   of the image's samples (by accident of the sampler). Numbers: experiments/gradient_estimator/README.md.
+    grad_seed: str = "same"
 
     def __post_init__(self):
         check_spp(self.spp, "renderer.spp")
         if self.grad_spp is not None:
             check_spp(self.grad_spp, "renderer.grad_spp")
+        if self.grad_seed not in GRAD_SEEDS:
+            raise ConfigError(f"renderer.grad_seed={self.grad_seed!r}: expected one of {', '.join(GRAD_SEEDS)}")
         if int(self.resolution) < 1:
             raise ConfigError(f"renderer.resolution={self.resolution}: expected a positive integer")
         if not (self.filter_stddev > 0 and math.isfinite(self.filter_stddev)):
@@ -425,13 +443,35 @@ class ParticleScene:
             return np.asarray(labels, dtype=np.int32).reshape(size, size)
 
 
+def adjoint_seed(seed: int, grad_seed: str) -> int:
+    """The seed of the adjoint pass for an image rendered with ``seed`` (32-bit), per ``renderer.grad_seed``.
+
+    "same" returns ``seed``. "independent" returns a fixed mix of it: xor with the golden-ratio constant
+    0x9E3779B9, then MurmurHash3's 32-bit finaliser (a bijection that scatters neighbouring seeds, so the
+    adjoint seed of step k is not the image seed of step k + 1 as a plain offset would make it); in the rare
+    case that the result equals ``seed``, its lowest bit is flipped. Deterministic, and never equal to ``seed``.
+    """
+    seed = int(seed) & 0xFFFFFFFF
+    if grad_seed == "same":
+        return seed
+    if grad_seed != "independent":
+        raise ConfigError(f"renderer.grad_seed={grad_seed!r}: expected one of {', '.join(GRAD_SEEDS)}")
+    h = seed ^ 0x9E3779B9
+    h = ((h ^ (h >> 16)) * 0x85EBCA6B) & 0xFFFFFFFF
+    h = ((h ^ (h >> 13)) * 0xC2B2AE35) & 0xFFFFFFFF
+    h ^= h >> 16
+    return h ^ 1 if h == seed else h
+
+
 class _RenderFunction(torch.autograd.Function):
     """torch <-> Dr.Jit bridge that stays correct when several renders precede one backward pass.
 
     Forward renders the primal image without an AD graph. Backward restores the layout and parameter
-    values of *this* render and replays its samples (same seed) with Mitsuba's adjoint pass
-    (``render_backward``). A plain ``dr.wrap`` around ``mi.render`` would replay every render's adjoint
-    with the scene state of the *last* forward call, which silently breaks batches and accumulation.
+    values of *this* render and runs Mitsuba's adjoint pass (``render_backward``) with ``grad_spp`` samples
+    and the seed that ``renderer.grad_seed`` names (`adjoint_seed`): the image's own ("same", which replays
+    its samples) or one derived from it ("independent"). A plain ``dr.wrap`` around ``mi.render`` would
+    replay every render's adjoint with the scene state of the *last* forward call, which silently breaks
+    batches and accumulation.
     """
 
     @staticmethod
@@ -440,7 +480,8 @@ class _RenderFunction(torch.autograd.Function):
             scene._assign(values, grad=False)
             image = mi.render(scene.scene, scene.params, seed=seed, spp=spp)
             out = torch.from_numpy(np.array(image, dtype=np.float32, copy=True))
-        ctx.scene, ctx.seed, ctx.grad_spp = scene, seed, grad_spp
+        ctx.scene, ctx.grad_spp = scene, grad_spp
+        ctx.grad_seed = adjoint_seed(seed, scene.spec.render.grad_seed)  # fixed now: a later spec change cannot alter it
         ctx.layout = scene.layout.copy()
         ctx.save_for_backward(values)
         return out.to(values.device)
@@ -455,7 +496,7 @@ class _RenderFunction(torch.autograd.Function):
             scene.set_layout(ctx.layout)
         variables = scene._assign(values, grad=True)
         grad_in = mi.TensorXf(np.ascontiguousarray(grad_image.detach().cpu().numpy(), dtype=np.float32))
-        scene.scene.integrator().render_backward(scene.scene, scene.params, grad_in, seed=ctx.seed, spp=ctx.grad_spp)
+        scene.scene.integrator().render_backward(scene.scene, scene.params, grad_in, seed=ctx.grad_seed, spp=ctx.grad_spp)
         grads = torch.tensor([float(dr.grad(v)[0]) for v in variables], dtype=values.dtype, device=values.device)
         for v in variables:
             dr.disable_grad(v)
