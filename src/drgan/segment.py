@@ -61,7 +61,8 @@ def segment(cfg: DictConfig) -> dict:
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     from drgan.segmentation.module import SegmenterModule
-    from drgan.train import flat_config, instantiate_loggers, resolve_checkpoint
+    from drgan.callbacks.resume import ResumeCheckpoint
+    from drgan.train import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
 
     wall_start = time.perf_counter()
     with open_dict(cfg):
@@ -78,9 +79,12 @@ def segment(cfg: DictConfig) -> dict:
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
     tags = {"name": str(cfg.name), "output_dir": str(out), **{str(t): "1" for t in cfg.get("tags") or []}}
     loggers = instantiate_loggers(cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags)
+    # last.ckpt at every epoch end (ResumeCheckpoint), before validation-free epoch-end work; ModelCheckpoint keeps
+    # the latest epoch's file.
     checkpoint = ModelCheckpoint(dirpath=out / "checkpoints", filename="epoch_{epoch:03d}", auto_insert_metric_name=False,
-                                 save_last=True, save_top_k=1)
-    trainer = instantiate(cfg.trainer, callbacks=[checkpoint], logger=loggers or False)
+                                 save_last=False, save_top_k=1)
+    trainer = instantiate(cfg.trainer, callbacks=[ResumeCheckpoint(), checkpoint], logger=loggers or False)
+    start_loggers(loggers)
 
     params = flat_config(cfg)
     params.update({"data/n_train_pairs": n_train, "data/n_val_pairs": n_val,

@@ -45,11 +45,16 @@ def _targets(group) -> list:
 
 
 def instantiate_callbacks(cfg: DictConfig | None) -> list:
-    return _targets(cfg)
+    """The `callbacks` group's objects, in order, except that ResumeCheckpoint goes first: its epoch-end write
+    must come before the other epoch-end work (FID, plots), which a kill may interrupt."""
+    from drgan.callbacks.resume import ResumeCheckpoint
+
+    callbacks = _targets(cfg)
+    return sorted(callbacks, key=lambda c: not isinstance(c, ResumeCheckpoint))  # stable: the rest keep their order
 
 
 def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, tags: dict) -> list:
-    """Loggers of the `logger` group. An MLflow logger of a resumed run continues the run's MLflow run."""
+    """Loggers of the `logger` group, built without contacting a tracking store (see ``start_loggers``)."""
     from hydra.utils import instantiate
 
     loggers = []
@@ -58,16 +63,33 @@ def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, 
             continue
         if entry._target_.endswith("MLFlowLogger"):
             id_file = output_dir / MLFLOW_RUN_ID_FILE
-            run_id = id_file.read_text().strip() if resume and id_file.is_file() else None
-            with _store_lock(str(entry.tracking_uri)):
-                logger = instantiate(entry, run_id=run_id, tags={**tags, **(entry.get("tags") or {})})
-                run = logger.run_id  # creates the experiment and run now, under the lock (None on DDP ranks > 0)
-            if run:
-                write_bytes(id_file, run.encode())
+            previous = id_file.read_text().strip() if id_file.is_file() else None
+            logger = instantiate(entry, run_id=previous if resume else None, tags={**tags, **(entry.get("tags") or {})})
+            logger._drgan_previous_run = None if resume else previous
+            logger._drgan_id_file = id_file
         else:
             logger = instantiate(entry)
         loggers.append(logger)
     return loggers
+
+
+def start_loggers(loggers: list) -> None:
+    """Open the MLflow run of each MLflow logger (a resumed run continues its own, whose id is kept in the run
+    folder). A fresh start in a folder whose earlier run was killed before its first checkpoint marks that
+    earlier MLflow run KILLED rather than leaving it RUNNING for ever."""
+    from drgan.loggers import mark_killed
+
+    for logger in loggers:
+        id_file = getattr(logger, "_drgan_id_file", None)
+        if id_file is None:
+            continue
+        with _store_lock(str(logger._tracking_uri)):
+            previous = logger._drgan_previous_run
+            if previous and mark_killed(logger._tracking_uri, previous):
+                log.warning("MLflow run %s of this folder was left RUNNING (killed before its first checkpoint); marked KILLED", previous)
+            run = logger.run_id  # creates the experiment and run now, under the lock (None on DDP ranks > 0)
+        if run:
+            write_bytes(id_file, run.encode())
 
 
 @contextmanager
@@ -134,15 +156,14 @@ def train(cfg: DictConfig) -> dict:
     with open_dict(cfg):  # absolute project root: every path of the run derives from it
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
     output_dir = Path(cfg.paths.output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(int(cfg.seed), workers=True)
 
-    # Data first: a bad folder, split or patch size fails here, before scenes are built or steps spent.
+    # Everything that needs no pixels is built or checked first (seconds): the data settings, folder and split,
+    # then scene, meshes, renderer and model, the checkpoint to resume, init_from, callbacks, loggers, trainer.
+    # Only then are the patches mined (20-70 s for the TiO2 SEM images), and only then does training start.
     datamodule = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
-    datamodule.setup("fit")
-    m = cfg.model.get("n_constellations") or datamodule.n_train
-    model = GANModule(cfg, m=int(m), base_dir=cfg.paths.root_dir)
-
+    datamodule.resolve_ids()
+    model = GANModule(cfg, base_dir=cfg.paths.root_dir)  # phi bank: after mining, when m is the number of patches
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
     if cfg.get("init_from") and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights
         copied = model.load_weights(Path(cfg.init_from).expanduser())
@@ -152,6 +173,13 @@ def train(cfg: DictConfig) -> dict:
     loggers = instantiate_loggers(cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags)
     callbacks = instantiate_callbacks(cfg.get("callbacks"))
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+
+    output_dir.mkdir(parents=True, exist_ok=True)
+    datamodule.setup("fit")
+    m = cfg.model.get("n_constellations") or datamodule.n_train
+    if len(model.phi_bank) != int(m):
+        model.set_constellations(int(m))
+    start_loggers(loggers)
 
     params = flat_config(cfg)
     params.update({"data/n_train_patches": datamodule.n_train, "model/m": int(m)})

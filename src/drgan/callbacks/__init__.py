@@ -2,10 +2,12 @@
 
 from drgan.callbacks.best_epoch import BestEpochCallback, parameter_spread, select_best
 from drgan.callbacks.fid import FIDCallback, RandomProjectionFeatures
+from drgan.callbacks.resume import ResumeCheckpoint
 from drgan.callbacks.visuals import ParameterHistogramCallback, SampleGridCallback
 
 __all__ = [
     "FIDCallback",
+    "ResumeCheckpoint",
     "RandomProjectionFeatures",
     "BestEpochCallback",
     "parameter_spread",

@@ -3,12 +3,14 @@ a PatchGAN discriminator, with manual optimisation.
 
 One step renders once: ``fake = G(phi)``; D learns on ``fake.detach()`` against a real batch, then G
 learns through D on the same ``fake`` (a render is by far the most expensive part of a step).
-A step whose loss or gradient is not finite changes no weights; it is counted, and after
+A step whose loss or gradient is not finite changes no weights (D's half of it is undone when G's half
+fails); it is counted, and after
 ``max_consecutive_nonfinite`` such steps in a row training stops with a RuntimeError.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
@@ -95,14 +97,23 @@ class GANModule(LightningModule):
         self.discriminator = PatchDiscriminator(1, int(disc.get("filters", 64)), int(disc.get("n_layers", 3)), float(disc.get("slope", 0.2)))
         self.discriminator.check_size(self.generator.scene.spec.render.resolution)
 
+        # The phi bank: m constellations drawn once. m defaults to the number of training patches, known only
+        # after mining, so drgan.train builds (and so checks) the module first and calls set_constellations later.
+        self.register_buffer("phi_bank", torch.zeros(0, self.generator.scene.n_particles, 4))
         m = m if m is not None else model.get("n_constellations")
-        if m is None or int(m) < 1:
-            raise ConfigError(f"GANModule: m={m} constellations; expected >= 1 (default: the number of training patches)")
-        self.register_buffer("phi_bank", torch.as_tensor(build.sample_phi(cfg, int(m), seed=self.seed), dtype=torch.float32))
+        if m is not None:
+            self.set_constellations(m)
         # phi indices come from a generator of their own (per rank, saved in checkpoints), not the global RNG.
         self.phi_rng = torch.Generator().manual_seed(self.seed)
         self.skipped_steps = 0
         self.consecutive_nonfinite = 0
+
+    def set_constellations(self, m: int) -> None:
+        """Draw the phi bank of ``m`` constellations (seeded by ``seed``); saved with the hyperparameters."""
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or int(m) < 1:
+            raise ConfigError(f"model.n_constellations={m!r}: expected an integer >= 1 (default: the number of training patches)")
+        self.phi_bank = torch.as_tensor(build.sample_phi(self.cfg, int(m), seed=self.seed), dtype=torch.float32)
+        self.hparams["m"] = int(m)  # load_from_checkpoint rebuilds a bank of this size
 
     @property
     def learned_keys(self) -> list[str]:
@@ -149,6 +160,8 @@ class GANModule(LightningModule):
     # --- the step -----------------------------------------------------------------------------------------
 
     def draw_phi(self, batch_size: int) -> torch.Tensor:
+        if len(self.phi_bank) == 0:
+            raise RuntimeError("GANModule: no phi bank yet; call set_constellations(m) before training")
         index = torch.randint(len(self.phi_bank), (batch_size,), generator=self.phi_rng)
         return self.phi_bank[index.to(self.phi_bank.device)]
 
@@ -189,6 +202,9 @@ class GANModule(LightningModule):
         render_s = time.perf_counter() - render_start
 
         # D: real -> 1, detached fake -> 0. G: fake through the (just updated) D -> 1.
+        # D learns first, so a step whose G half fails must undo D's half: D (weights, batch-norm statistics) and
+        # its optimiser state are kept until the step is known to be good.
+        d_before = _snapshot(self.discriminator, opt_d)
         d_real_logits = self.discriminator(real)
         d_fake_logits = self.discriminator(fake.detach())
         d_loss = 0.5 * (self.adversarial_loss(d_real_logits, True) + self.adversarial_loss(d_fake_logits, False))
@@ -197,6 +213,8 @@ class GANModule(LightningModule):
         if ok:  # a failed D step skips the whole step: G would learn against a broken verdict
             g_loss = self.adversarial_loss(self.discriminator(fake), True)
             ok = self._optimise(opt_g, self.generator, g_loss)
+        if not ok:
+            _restore(self.discriminator, opt_d, d_before)
         self._count(ok, d_loss, g_loss)
         if self.lr_decay is not None:  # per training step, skipped ones included: the schedule follows the step count
             for scheduler in self.lr_schedulers():  # [G's, D's]
@@ -304,6 +322,24 @@ class GANModule(LightningModule):
         if "phi_rng_state" in state:
             self.phi_rng.set_state(state["phi_rng_state"])
         self.skipped_steps = int(state.get("skipped_steps", 0))
+
+
+def _raw_optimizer(optimizer) -> torch.optim.Optimizer:
+    return getattr(optimizer, "optimizer", optimizer)  # Lightning wraps optimisers in LightningOptimizer
+
+
+def _snapshot(module: torch.nn.Module, optimizer) -> tuple[dict, dict]:
+    """Copies of a module's state (parameters and buffers) and of its optimiser's state, for ``_restore``."""
+    state = {k: v.detach().clone() for k, v in module.state_dict().items()}
+    return state, copy.deepcopy(_raw_optimizer(optimizer).state_dict())
+
+
+def _restore(module: torch.nn.Module, optimizer, snapshot: tuple[dict, dict]) -> None:
+    state, optimizer_state = snapshot
+    with torch.no_grad():
+        for key, value in module.state_dict().items():
+            value.copy_(state[key])
+    _raw_optimizer(optimizer).load_state_dict(optimizer_state)
 
 
 def _fmt(value: torch.Tensor) -> str:

@@ -1,0 +1,171 @@
+"""``last.ckpt`` that a killed run resumes from, losing at most the epoch in progress.
+
+Lightning's ``ModelCheckpoint(save_last=True)`` rewrites ``last.ckpt`` only in epochs where it also saves a
+top-k file, and only after every other epoch-end callback (FID, best epoch, plots: minutes at real sizes).
+A run killed in between restarted from an older epoch or from scratch. This callback owns ``last.ckpt``:
+
+1. At every epoch end, *before* the other epoch-end callbacks (it must come first in the callback list; see
+   conf/callbacks/default.yaml), it writes the full training state atomically: weights, optimisers,
+   schedulers, loop counters, the phi bank and its generator, the global RNG states, the callbacks' state
+   (FID history) and the MLflow run id (kept beside it in the run folder). The checkpoint records that the
+   epoch-end work of that epoch is still *pending*.
+2. When that work is done (at the start of the next epoch, or at the end of training) it writes the file
+   again with nothing pending.
+3. A run resumed from a checkpoint with pending epoch-end work first redoes that work for that epoch (FID,
+   best epoch, plots, the top-k checkpoint), logging its metrics at that epoch's step, then trains on.
+
+The epoch-end work is made neutral for the global RNG (its state is restored after it), so a resumed run
+draws the same dropout masks, data order and augmentations as one that was never interrupted.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+from lightning.pytorch import Callback, LightningModule, Trainer
+
+from drgan.callbacks.fid import checkpoint_dir
+
+log = logging.getLogger(__name__)
+
+
+def rng_state() -> dict:
+    """torch, numpy and Python global RNG states, as plain tensors and lists (loadable with weights_only)."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    version, internal, gauss = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
+                  "has_gauss": int(has_gauss), "cached": float(cached)},
+        "python": {"version": int(version), "internal": list(internal), "gauss": gauss},
+    }
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    n = state["numpy"]
+    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"]))
+    p = state["python"]
+    random.setstate((p["version"], tuple(p["internal"]), p["gauss"]))
+
+
+@contextmanager
+def rng_neutral():
+    """Run a block without changing the global RNG states seen by what follows it."""
+    state = rng_state()
+    try:
+        yield
+    finally:
+        set_rng_state(state)
+
+
+class ResumeCheckpoint(Callback):
+    """filename: written in the checkpoint folder (ModelCheckpoint's ``dirpath``, else ``<run>/checkpoints``)."""
+
+    def __init__(self, filename: str = "last.ckpt"):
+        self.filename = str(filename)
+        self.pending_epoch: int | None = None  # epoch whose epoch-end work is not done yet
+        self._epoch_end_rng: dict | None = None  # global RNG states when that epoch's steps ended
+        self._restored_pending: int | None = None
+
+    @property
+    def state_key(self) -> str:
+        return type(self).__name__
+
+    def path(self, trainer: Trainer) -> Path:
+        return checkpoint_dir(trainer) / self.filename
+
+    def save(self, trainer: Trainer) -> None:
+        # Trainer.save_checkpoint writes through the strategy (rank 0 under DDP, collective call on every rank);
+        # the checkpoint IO writes the file whole, and we rename it into place so a kill never leaves half a file.
+        path = self.path(trainer)
+        tmp = path.with_name(f".{path.name}.partial")
+        trainer.save_checkpoint(tmp)
+        if trainer.is_global_zero:
+            tmp.replace(path)
+        trainer.strategy.barrier("drgan_resume_checkpoint")
+
+    # --- the two writes ----------------------------------------------------------------------------------------
+
+    def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        if trainer.sanity_checking or trainer.fast_dev_run:
+            return
+        self.pending_epoch = trainer.current_epoch
+        self._epoch_end_rng = rng_state()
+        self.save(trainer)
+
+    def _finish_pending(self, trainer: Trainer) -> None:
+        if self.pending_epoch is None:
+            return
+        if self._epoch_end_rng is not None:  # whatever the epoch-end work drew, the next epoch starts as if it drew nothing
+            set_rng_state(self._epoch_end_rng)
+        self.pending_epoch = None
+        self.save(trainer)
+
+    def on_train_epoch_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        self._finish_pending(trainer)
+
+    def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        self._finish_pending(trainer)
+
+    # --- resuming ----------------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        return {"pending_epoch": self.pending_epoch, "rng": self._epoch_end_rng if self.pending_epoch is not None else rng_state()}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self._restored_pending = state_dict.get("pending_epoch")
+        self.pending_epoch = self._restored_pending
+        if state_dict.get("rng") is not None:
+            self._epoch_end_rng = state_dict["rng"]
+            set_rng_state(state_dict["rng"])
+
+    def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        epoch, self._restored_pending = self._restored_pending, None
+        if epoch is None:
+            return
+        log.info("resume: epoch %d ended before its epoch-end work (FID, best epoch, plots) finished; redoing it", epoch)
+        with rng_neutral():
+            replay_epoch_end(trainer, pl_module, epoch, skip=self)
+        self._finish_pending(trainer)
+
+
+def replay_epoch_end(trainer: Trainer, pl_module: LightningModule, epoch: int, skip: Callback | None = None) -> dict:
+    """Run every callback's ``on_train_epoch_end`` again for ``epoch`` (already trained and counted as done).
+
+    The callbacks see ``trainer.current_epoch == epoch``; what they log with ``pl_module.log`` is collected and
+    sent to the loggers at the step where Lightning logged that epoch's metrics, and put in
+    ``trainer.callback_metrics`` for the checkpoint callbacks (which run last, as in a normal epoch end).
+    Returns the metrics logged.
+    """
+    progress = trainer.fit_loop.epoch_progress.current
+    if progress.completed != epoch + 1:
+        raise RuntimeError(f"replay_epoch_end: epoch {epoch} is not the last completed one ({progress.completed - 1})")
+    logged: dict[str, float] = {}
+
+    def collect(name, value, *args, **kwargs):
+        logged[name] = float(value.detach().float().mean()) if torch.is_tensor(value) else float(value)
+
+    progress.completed -= 1  # trainer.current_epoch reads this counter
+    pl_module.log = collect  # an instance attribute shadows LightningModule.log for the replay only
+    try:
+        ordinary = [c for c in trainer.callbacks if c is not skip and c not in trainer.checkpoint_callbacks]
+        for callback in ordinary:
+            callback.on_train_epoch_end(trainer, pl_module)
+        trainer.callback_metrics.update({k: torch.tensor(v) for k, v in logged.items()})
+        for callback in trainer.checkpoint_callbacks:
+            if callback is not skip:
+                callback.on_train_epoch_end(trainer, pl_module)
+    finally:
+        del pl_module.log
+        progress.completed += 1
+    step = max(trainer.fit_loop.epoch_loop._batches_that_stepped - 1, 0)  # the step Lightning gives epoch metrics
+    if trainer.is_global_zero and logged:
+        for logger in trainer.loggers:
+            logger.log_metrics(logged, step=step)
+    return logged
