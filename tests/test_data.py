@@ -303,3 +303,42 @@ def test_mine_real_tio2_sem(tmp_path, request):
     assert 100 <= summary["n_train"] <= 150  # the paper hand-picked 124
     assert summary["n_background"] == 200
     assert set(ps.train_ids) <= set(ids)
+
+
+# --- too few patches: refused right after mining ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "settings, found, needed",
+    [
+        ({"min_particles": 2}, "only 1 24 px patch", 2),  # 3 images, 1 patch: no FID covariance
+        ({"min_particles": 1, "batch_size": 8}, r"only 5 24 px patch", 8),  # 5 patches, not one batch of 8
+        ({"min_particles": 9}, "no 24 px patch", 2),
+    ],
+)
+def test_too_few_patches_fail_at_setup_naming_count_images_and_settings(settings, found, needed, tmp_path):
+    from test_train import datamodule, make_images
+
+    folder = make_images(tmp_path / "images", n=3, size=40, seed=2)
+    dm = datamodule(folder, tmp_path, stride=8, **settings)
+    with pytest.raises(DataError) as error:
+        dm.setup("fit")
+    message = str(error.value)
+    assert f"data.dir {folder}: {found}" in message and "in the 3 training image(s)" in message
+    assert f"training needs at least {needed}" in message
+    for setting in ("data.stride (now 8", f"data.min_particles (now {settings['min_particles']})", "data.patch_size", "more images"):
+        assert setting in message
+    assert dm.patches is None
+    enough = datamodule(folder, tmp_path / "ok", stride=8, min_particles=1, batch_size=5)  # 5 patches: exactly enough
+    enough.setup("fit")
+    assert enough.n_train == 5
+
+
+def test_train_with_too_few_patches_stops_before_fit(tmp_path, monkeypatch):
+    import lightning.pytorch as L
+    from test_train import make_images, run_train, tiny_overrides
+
+    monkeypatch.setattr(L.Trainer, "fit", lambda *a, **k: pytest.fail("training started on too few patches"))
+    folder = make_images(tmp_path / "images", n=3, size=40, seed=2)
+    with pytest.raises(DataError, match=r"only 1 24 px patch.*training needs at least 2.*data\.stride"):
+        run_train(tiny_overrides(folder, tmp_path / "run", extra=["data.min_particles=2"]))

@@ -190,14 +190,30 @@ class RealPatchDataModule(LightningDataModule):
         leaked = sorted(set(patches.train_ids) & set(self.test_ids))
         if leaked:
             raise DataError(f"data: patches of test image(s) {leaked[:5]} reached the training set")
-        if len(patches.train) == 0:
-            raise DataError(
-                f"data.dir {self.dir}: no {self.patch_size} px patch of the {len(ids)} training image(s) shows >= "
-                f"{self.min_particles} fully displayed particles (lower data.min_particles or data.stride, or check "
-                "data.segment against your particle sizes)"
-            )
+        self._check_enough(patches, len(ids))
         self.patches = patches
         log.info("data: %s", json.dumps(patches.summary()))
+
+    def min_train_patches(self) -> int:
+        """Fewest training patches a run can use: 2 for the real FID statistics (a covariance needs two
+        images), and one full batch (data.batch_size) for a training step."""
+        return max(2, self.batch_size)
+
+    def _check_enough(self, patches: PatchSet, n_images: int) -> None:
+        """Refuse a patch set too small to train on, right after mining: otherwise the run would find out only at
+        its first FID, after a whole epoch of rendering."""
+        found, needed = len(patches.train), self.min_train_patches()
+        if found >= needed:
+            return
+        what = f"no {self.patch_size} px patch" if found == 0 else f"only {found} {self.patch_size} px patch(es)"
+        sheet = f"; the mined patches are shown in {self.cache_dir / 'contact_sheet.png'}" if self.cache_dir and found else ""
+        raise DataError(
+            f"data.dir {self.dir}: {what} with >= {self.min_particles} fully displayed particles in the {n_images} "
+            f"training image(s); training needs at least {needed} (2 for the FID statistics, data.batch_size="
+            f"{self.batch_size} for one batch){sheet}. Lower data.stride (now {self.stride}: more, overlapping windows) or "
+            f"data.min_particles (now {self.min_particles}), use a smaller data.patch_size (with renderer.resolution "
+            "and material.view_width), add more images, or check data.segment against your particle sizes"
+        )
 
     # --- what the GAN sees --------------------------------------------------------------------------------
 
