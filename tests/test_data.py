@@ -342,3 +342,30 @@ def test_train_with_too_few_patches_stops_before_fit(tmp_path, monkeypatch):
     folder = make_images(tmp_path / "images", n=3, size=40, seed=2)
     with pytest.raises(DataError, match=r"only 1 24 px patch.*training needs at least 2.*data\.stride"):
         run_train(tiny_overrides(folder, tmp_path / "run", extra=["data.min_particles=2"]))
+
+
+# --- user settings converted with their key named -------------------------------------------------------------
+
+
+def test_setting_int_and_float_name_the_key():
+    from drgan.errors import setting_float, setting_int
+
+    assert setting_int("k", 3) == 3 and setting_int("k", 4.0) == 4 and setting_int("k", " 5 ") == 5
+    assert setting_int("k", np.int64(6), 1) == 6 and setting_float("k", "0.5") == 0.5 and setting_float("k", 2) == 2.0
+    for bad in ("abc", 3.5, True, None, [1]):
+        with pytest.raises(ConfigError, match=r"^k=.*: expected an integer$"):
+            setting_int("k", bad)
+    with pytest.raises(ConfigError, match=r"^k=0: expected an integer >= 1$"):
+        setting_int("k", 0, 1)
+    for bad in ("abc", float("nan"), float("inf"), None, False):
+        with pytest.raises(ConfigError, match=r"^k=.*: expected a finite number$"):
+            setting_float("k", bad)
+
+
+def test_n_particles_not_a_number_is_named_before_mining(tmp_path):
+    from test_train import make_images, run_train, tiny_overrides
+
+    folder = make_images(tmp_path / "images", n=1, size=40)
+    with pytest.raises(ConfigError, match=r"^material\.n_particles='abc': expected an integer >= 1$"):
+        run_train(tiny_overrides(folder, tmp_path / "run", extra=["material.n_particles=abc"]))
+    assert not (tmp_path / "run" / "patches").exists()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -376,3 +377,59 @@ def test_local_thickness_of_a_strip():
     t = local_thickness(strip)
     assert t[15, 30] == pytest.approx(10.0, abs=1.0) and t[0, 0] == 0
     assert not local_thickness(np.zeros((5, 5), bool)).any() and np.isfinite(local_thickness(np.ones((5, 5), bool))).all()
+
+
+# --- messages that name the real cause ----------------------------------------------------------------------
+
+
+def test_mask_of_another_size_is_reported_with_both_sizes_not_as_a_crop_problem(tmp_path):
+    from drgan.evaluate import evaluate
+
+    # The default crop_rows [712, 768] of evaluate and segment: the image has 770 rows, its mask half of them.
+    image, mask = np.full((770, 16), 0.5), np.zeros((385, 8), np.uint8)
+    data = make_real(tmp_path / "real", {"a": image}, {"a": mask}, {"train": [], "test": ["a"]})
+    cfg = compose([f"data_dir={data}", f"out={tmp_path / 'out'}"], config_name="evaluate")
+    assert list(cfg.crop_rows) == [712, 768]
+    with pytest.raises(DataError) as caught:
+        evaluate(cfg, predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
+    message = str(caught.value)
+    assert "a_m.tif: size 8 x 385 px (W x H) differs from its image" in message and "a.tif: 16 x 770 px" in message
+    assert "crop_rows" not in message
+    # Same-size files with a crop that does not fit them: that one is a crop_rows problem, and says so.
+    small = make_real(tmp_path / "small", {"a": np.full((20, 16), 0.5)}, {"a": np.zeros((20, 16), np.uint8)},
+                      {"train": [], "test": ["a"]})
+    with pytest.raises(DataError, match=r"a\.tif: crop_rows .*inside its 20 rows"):
+        evaluate(compose([f"data_dir={small}", f"out={tmp_path / 'out'}"], config_name="evaluate"),
+                 predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
+
+
+@pytest.mark.parametrize("key, entry", [("real", "segment"), ("data_dir", "segment"), ("data_dir", "evaluate")])
+def test_missing_dataset_folder_is_named_with_its_setting(key, entry, tmp_path):
+    from drgan.evaluate import evaluate
+    from drgan.segment import segment
+
+    missing = tmp_path / "nowhere"
+    spelled = "real" if key == "real" else "data"  # the command line's `data=` is `data_dir=` inside
+    cfg = compose([f"{key}={missing}", f"out={tmp_path / 'out'}", *(["logger=none"] if entry == "segment" else [])], config_name=entry)
+    run = segment if entry == "segment" else lambda c: evaluate(c, predictors={"x": lambda im: im})
+    with pytest.raises(DataError, match=rf"^{spelled}={missing}: no such folder \(expected a") as caught:
+        run(cfg)
+    assert "split.json: no such file" not in str(caught.value) and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("loader.crop=abc", "loader.crop='abc': expected an integer >= 1"),
+    ("loader.batch_size=0", "loader.batch_size=0: expected an integer >= 1"),
+    ("loader.brightness=lots", "loader.brightness='lots': expected a finite number >= 0.0"),
+    ("contour_px=1.5", "contour_px=1.5: expected an integer >= 0"),
+])
+def test_segment_loader_settings_are_named_when_not_numbers(setting, message, tmp_path):
+    from drgan.errors import ConfigError
+    from drgan.segment import segment
+
+    data = make_real(tmp_path / "real", {"a": np.full((16, 16), 0.5)}, {"a": np.zeros((16, 16), np.uint8)},
+                     {"train": ["a"], "test": []})
+    out = tmp_path / "out"
+    with pytest.raises(ConfigError, match=f"^{re.escape(message)}$"):
+        segment(compose([f"real={data}", "crop_rows=null", f"out={out}", "logger=none", setting], config_name="segment"))
+    assert not out.exists()

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, setting_float, setting_int
 from drgan.scene import layout, meshes
 from drgan.scene.parameters import MaterialParameters
 
@@ -50,7 +50,8 @@ def load_particle_meshes(mesh_cfg: Mapping, base_dir: str | Path | None = None) 
             path = Path(base_dir) / path
         return meshes.load_mesh_set(path)
     params = mesh_cfg.get("params") or {}
-    return meshes.generate_meshes(mesh_cfg["kind"], int(mesh_cfg["count"]), int(mesh_cfg.get("seed", 0)), **params)
+    count = setting_int("material.meshes.count", mesh_cfg["count"], 1)
+    return meshes.generate_meshes(mesh_cfg["kind"], count, setting_int("material.meshes.seed", mesh_cfg.get("seed", 0)), **params)
 
 
 def material_parameters(material: Mapping) -> MaterialParameters:
@@ -71,14 +72,14 @@ def scene_spec(material: Mapping, renderer: Mapping):
     if unknown:
         raise ConfigError(f"renderer: unknown key(s) {unknown}; expected some of {sorted(known)}")
     settings = RenderSettings(
-        resolution=int(renderer.get("resolution", material.get("view_width", 256))),
+        resolution=setting_int("renderer.resolution", renderer.get("resolution", material.get("view_width", 256)), 1),
         spp=renderer.get("spp", material.get("spp", 16)),
         grad_spp=renderer.get("grad_spp"),
         # absent (a checkpoint saved before the setting existed): RenderSettings' default
         **({"grad_seed": renderer["grad_seed"]} if renderer.get("grad_seed") is not None else {}),
         filter_stddev=float(renderer.get("filter_stddev", material.get("filter_stddev", 0.5))),
         integrator=renderer.get("integrator", "prb_basic"),
-        max_depth=int(renderer.get("max_depth", 2)),
+        max_depth=setting_int("renderer.max_depth", renderer.get("max_depth", 2), 1),
         camera_distance=float(renderer.get("camera_distance", 10.0)),
     )
     elements = material.get("scene") or {}
@@ -98,7 +99,7 @@ def scene_spec(material: Mapping, renderer: Mapping):
     return SceneSpec(
         parameters=material_parameters(material),
         render=settings,
-        view_width=float(material.get("view_width", 256)),
+        view_width=setting_float("material.view_width", material.get("view_width", 256)),
         stage=bool(elements.get("stage", True)),
         torus_light=light(TorusLight, "torus_light"),
         top_light=light(TopLight, "top_light"),
@@ -111,7 +112,8 @@ def build_scene(cfg: DictConfig, base_dir: str | Path | None = None):
 
     spec = scene_spec(cfg.material, cfg.renderer)
     unit_meshes = load_particle_meshes(cfg.material.meshes, base_dir)
-    return ParticleScene(unit_meshes, int(cfg.material.n_particles), spec, variant=cfg.renderer.get("variant", "auto"))
+    n = setting_int("material.n_particles", cfg.material.n_particles, 1)
+    return ParticleScene(unit_meshes, n, spec, variant=cfg.renderer.get("variant", "auto"))
 
 
 def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: int = 0):
@@ -123,9 +125,9 @@ def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: i
     model = cfg.get("model") or {}
     return Generator(
         build_scene(cfg, base_dir),
-        hidden=int(model.get("hidden", 128)),
-        blocks=int(model.get("blocks", 4)),
-        dropout=float(model.get("dropout", 0.1)),
+        hidden=setting_int("model.hidden", model.get("hidden", 128), 1),
+        blocks=setting_int("model.blocks", model.get("blocks", 4), 0),
+        dropout=setting_float("model.dropout", model.get("dropout", 0.1), 0.0),
         seed=seed,
     )
 
@@ -135,11 +137,11 @@ def sample_phi(cfg: DictConfig, m: int, seed: int) -> np.ndarray:
     ``material.n_particles_min`` each constellation shows n_particles_min..n_particles of them."""
     size = layout.size_from_config(_plain(cfg.size))
     placement = layout.placement_from_config(_plain(cfg.placement))
-    n, n_min = int(cfg.material.n_particles), cfg.material.get("n_particles_min")
+    n, n_min = setting_int("material.n_particles", cfg.material.n_particles, 1), cfg.material.get("n_particles_min")
     if n_min is not None and (isinstance(n_min, bool) or not isinstance(n_min, int) or not 1 <= n_min <= n):
         raise ConfigError(f"material.n_particles_min={n_min!r}: expected null or an integer in 1..material.n_particles ({n})")
     return layout.sample_layouts(
-        m, n, size, placement, view_width=float(cfg.material.view_width), seed=seed, n_min=n_min
+        m, n, size, placement, view_width=setting_float("material.view_width", cfg.material.view_width), seed=seed, n_min=n_min
     )
 
 

@@ -15,3 +15,39 @@ class MeshError(DrganError):
 
 class DataError(DrganError):
     """An input image, mask or split file is missing, unreadable or of the wrong kind."""
+
+
+def setting_int(key: str, value: object, minimum: int | None = None) -> int:
+    """A user setting as an int, or a ConfigError naming ``key``: a bare ``int("abc")`` names neither the key
+    nor what was expected. Whole-number floats (3.0) pass; 3.5, booleans and non-numeric text do not."""
+    number = None
+    if not isinstance(value, bool):
+        if isinstance(value, int):
+            number = value
+        elif isinstance(value, float) and value.is_integer():
+            number = int(value)
+        elif isinstance(value, str):
+            try:
+                number = int(value.strip())
+            except ValueError:
+                number = None
+        elif hasattr(value, "__index__"):  # numpy integers
+            number = int(value)
+    bound = "" if minimum is None else f" >= {minimum}"
+    if number is None or (minimum is not None and number < minimum):
+        raise ConfigError(f"{key}={value!r}: expected an integer{bound}")
+    return number
+
+
+def setting_float(key: str, value: object, minimum: float | None = None) -> float:
+    """A user setting as a finite float, or a ConfigError naming ``key`` (see ``setting_int``)."""
+    number = None
+    if not isinstance(value, bool):
+        try:
+            number = float(value)  # int, float, numpy scalars, numeric text
+        except (TypeError, ValueError):
+            number = None
+    bound = "" if minimum is None else f" >= {minimum}"
+    if number is None or number != number or number in (float("inf"), float("-inf")) or (minimum is not None and number < minimum):
+        raise ConfigError(f"{key}={value!r}: expected a finite number{bound}")
+    return number

@@ -104,10 +104,11 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     """Score every model on the test ids; returns {"runs": {run: {score: value}}, "mean": {...}, "std": {...}}.
 
     predictors: optional {run name: f(image) -> class map} instead of cfg.models (tests)."""
-    from drgan.segmentation.data import load_real, real_ids
+    from drgan.segmentation.data import REAL_DATASET, check_dataset_folder, load_real, real_ids
 
     if not cfg.get("data_dir"):
         raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")
+    data_dir = check_dataset_folder(cfg.data_dir, "data", REAL_DATASET)  # before any checkpoint is read
     if predictors is None:
         models = list(cfg.get("models") or [])
         if not models:
@@ -122,8 +123,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
         how = ", ".join(f"{k} {v}" for k, v in inf.items())
     else:
         model_names, how = {r: r for r in predictors}, ""
-    data_dir = Path(cfg.data_dir)
-    ids = real_ids(data_dir, cfg.get("split"), str(cfg.subset))
+    ids = real_ids(data_dir, cfg.get("split"), str(cfg.subset), setting="data")
     samples = load_real(data_dir, ids, cfg.get("crop_rows"))  # every image/mask read and checked first
 
     out = Path(cfg.out)

@@ -18,7 +18,7 @@ import hydra
 from omegaconf import DictConfig, open_dict
 
 from drgan import build  # noqa: F401  (registers the ${mlflow_uri:} resolver of the logger config)
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, setting_float, setting_int
 from drgan.io import write_json
 
 log = logging.getLogger(__name__)
@@ -29,11 +29,27 @@ def load_training_pairs(cfg: DictConfig):
 
     if bool(cfg.get("data_dir")) == bool(cfg.get("real")):
         raise ConfigError("segment: give exactly one of data=DIR (generated pairs) or real=DATASET (real baseline)")
+    loader_settings(cfg)  # a bad loader.* value fails before any image is read
     if cfg.get("data_dir"):
-        return load_generated_pairs(cfg.data_dir)
+        return load_generated_pairs(cfg.data_dir, setting="data")
     real = Path(cfg.real)
-    ids = real_ids(real, cfg.get("split"), "train")
-    return load_real_pairs(real, ids, int(cfg.contour_px), cfg.get("crop_rows"))
+    ids = real_ids(real, cfg.get("split"), "train", setting="real")
+    return load_real_pairs(real, ids, setting_int("contour_px", cfg.contour_px, 0), cfg.get("crop_rows"))
+
+
+def loader_settings(cfg: DictConfig) -> dict:
+    """The `loader` group (and seed, val_fraction) as numbers; a ConfigError names the key of a bad value."""
+    ld = cfg.loader
+    return {
+        "crop": setting_int("loader.crop", ld.crop, 1),
+        "samples_per_pair": setting_int("loader.samples_per_pair", ld.samples_per_pair, 1),
+        "batch_size": setting_int("loader.batch_size", ld.batch_size, 1),
+        "num_workers": setting_int("loader.num_workers", ld.num_workers, 0),
+        "brightness": setting_float("loader.brightness", ld.brightness, 0.0),
+        "contrast": setting_float("loader.contrast", ld.contrast, 0.0),
+        "seed": setting_int("seed", cfg.seed),
+        "val_fraction": setting_float("val_fraction", cfg.val_fraction),
+    }
 
 
 def dataloaders(cfg: DictConfig, pairs):
@@ -41,16 +57,16 @@ def dataloaders(cfg: DictConfig, pairs):
 
     from drgan.segmentation.data import CropDataset, split_pairs
 
-    train_pairs, val_pairs = split_pairs(pairs, float(cfg.val_fraction), int(cfg.seed))
-    ld = cfg.loader
-    kw = dict(crop=int(ld.crop), brightness=float(ld.brightness), contrast=float(ld.contrast), seed=int(cfg.seed),
+    ld = loader_settings(cfg)
+    train_pairs, val_pairs = split_pairs(pairs, ld["val_fraction"], ld["seed"])
+    kw = dict(crop=ld["crop"], brightness=ld["brightness"], contrast=ld["contrast"], seed=ld["seed"],
               normalize=str(cfg.model.get("normalize", "none")))
-    train = DataLoader(CropDataset(train_pairs, augment=True, samples_per_pair=int(ld.samples_per_pair), **kw),
-                       batch_size=int(ld.batch_size), shuffle=True, drop_last=len(train_pairs) * int(ld.samples_per_pair) > int(ld.batch_size),
-                       num_workers=int(ld.num_workers), persistent_workers=int(ld.num_workers) > 0)
+    train = DataLoader(CropDataset(train_pairs, augment=True, samples_per_pair=ld["samples_per_pair"], **kw),
+                       batch_size=ld["batch_size"], shuffle=True, drop_last=len(train_pairs) * ld["samples_per_pair"] > ld["batch_size"],
+                       num_workers=ld["num_workers"], persistent_workers=ld["num_workers"] > 0)
     val = None
     if val_pairs:
-        val = DataLoader(CropDataset(val_pairs, augment=False, **kw), batch_size=int(ld.batch_size), num_workers=0)
+        val = DataLoader(CropDataset(val_pairs, augment=False, **kw), batch_size=ld["batch_size"], num_workers=0)
     return train, val, len(train_pairs), len(val_pairs)
 
 

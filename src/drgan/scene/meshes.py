@@ -47,11 +47,10 @@ def validate_mesh(mesh: trimesh.Trimesh, name: str) -> trimesh.Trimesh:
         raise MeshError(f"mesh {name!r}: expected a triangle mesh (trimesh.Trimesh), got {type(mesh).__name__}")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces)
-    if len(vertices) == 0 or len(faces) == 0:
-        raise MeshError(
-            f"mesh {name!r} is empty ({len(vertices)} vertices, {len(faces)} faces); "
-            "expected at least one triangle"
-        )
+    if len(vertices) == 0:
+        raise MeshError(f"mesh {name!r} is empty (0 vertices, {len(faces)} faces); expected at least one triangle")
+    if len(faces) == 0:
+        raise MeshError(f"mesh {name!r}: {len(vertices)} vertices but no faces: expected a triangle mesh")
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise MeshError(
             f"mesh {name!r}: expected vertices of shape (V, 3) and triangle faces of shape (F, 3), "
@@ -376,7 +375,17 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
         raise MeshError(f"mesh file {str(path)!r} has unsupported suffix {path.suffix!r}; expected one of {MESH_SUFFIXES}")
     try:
         # process=False: validate the file's own data before trimesh silently repairs or drops any of it
-        mesh = trimesh.load(path, force="mesh", process=False)
+        mesh = trimesh.load(path, process=False)
+        # Faceless geometry (a PLY of vertices only) loads as a point cloud, which force="mesh" would turn into an
+        # empty mesh: its vertices are counted here so that the message says what the file holds.
+        parts = list(mesh.geometry.values()) if isinstance(mesh, trimesh.Scene) else [mesh]
+        if parts and all(isinstance(part, trimesh.PointCloud) for part in parts):
+            n_vertices = sum(len(part.vertices) for part in parts)
+            raise MeshError(f"mesh file {str(path)!r}: {n_vertices} vertices but no faces: expected a triangle mesh")
+        if not isinstance(mesh, trimesh.Trimesh):
+            mesh = trimesh.load(path, force="mesh", process=False)  # several parts: concatenated
+    except MeshError:
+        raise
     except Exception as error:  # trimesh raises many kinds for bad files
         raise MeshError(f"mesh file {str(path)!r} could not be read: {type(error).__name__}: {error}") from error
     if isinstance(mesh, trimesh.Scene):  # an empty scene is all force='mesh' can give back

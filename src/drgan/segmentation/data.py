@@ -72,17 +72,26 @@ def read_raw_mask(path: Path, crop_rows=None) -> np.ndarray:
         arr = arr[..., 0]
     if arr.ndim != 2 or not (arr.dtype == bool or np.issubdtype(arr.dtype, np.integer)):
         raise DataError(f"mask {path}: expected a 2-D integer mask, got shape {arr.shape}, dtype {arr.dtype}")
-    if crop_rows is not None:
-        start, stop = (int(v) for v in crop_rows)
-        if not 0 <= start < stop <= arr.shape[0]:
-            raise DataError(f"mask {path}: crop_rows {tuple(crop_rows)} is not a row range inside its {arr.shape[0]} rows")
-        arr = np.concatenate([arr[:start], arr[stop:]], axis=0)
-    return arr
+    return _drop_mask_rows(arr, crop_rows, path)
 
 
-def _check_same_size(image: np.ndarray, mask: np.ndarray, image_path: Path, mask_path: Path) -> None:
-    if image.shape != mask.shape:
-        raise DataError(f"mask {mask_path}: size {mask.shape[::-1]} (w x h) differs from its image {image_path} {image.shape[::-1]}")
+def _drop_mask_rows(arr: np.ndarray, crop_rows, path: Path) -> np.ndarray:
+    if crop_rows is None:
+        return arr
+    start, stop = (int(v) for v in crop_rows)
+    if not 0 <= start < stop <= arr.shape[0]:
+        raise DataError(f"mask {path}: crop_rows {tuple(crop_rows)} is not a row range inside its {arr.shape[0]} rows")
+    return np.concatenate([arr[:start], arr[stop:]], axis=0)
+
+
+def _check_same_size(image_shape, mask_shape, image_path: Path, mask_path: Path) -> None:
+    """Image and mask files must be the same size; compared before any crop, which drops the same rows of both."""
+    if tuple(image_shape) != tuple(mask_shape):
+        (mh, mw), (ih, iw) = mask_shape, image_shape
+        raise DataError(
+            f"mask {mask_path}: size {mw} x {mh} px (W x H) differs from its image {image_path}: {iw} x {ih} px "
+            "(a mask must have its image's size)"
+        )
 
 
 def binary_mask(raw: np.ndarray, path: Path) -> np.ndarray:
@@ -109,13 +118,29 @@ def real_mask_path(masks_dir: Path, image_id: str) -> Path:
     raise DataError(f"mask folder {masks_dir}: no mask for image id {image_id!r} (expected {image_id}_m.tif or similar)")
 
 
-def real_ids(data_dir: Path, split: str | Path | None, subset: str) -> list[str]:
-    """Ids of one subset ('train' or 'test') of a real dataset folder (images/, masks/, split.json)."""
+def real_ids(data_dir: Path, split: str | Path | None, subset: str, setting: str = "real") -> list[str]:
+    """Ids of one subset ('train' or 'test') of a real dataset folder (images/, masks/, split.json).
+    setting: the command-line key that named the folder, for the message when it is missing."""
+    data_dir = check_dataset_folder(data_dir, setting, REAL_DATASET)
     split_path = Path(split) if split else data_dir / "split.json"
     ids = read_split(split_path)
     if subset not in ids:
         raise ConfigError(f"split file {split_path}: no subset {subset!r} (has {sorted(ids)})")
     return ids[subset]
+
+
+def check_dataset_folder(data_dir, setting: str, what: str) -> Path:
+    """``data_dir`` as a Path, or a DataError naming the setting (``real=``, ``data=``) when it is no folder: a
+    missing folder would otherwise be reported as the first missing file inside it (split.json, images/)."""
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        kind = "a file, not a folder" if data_dir.exists() else "no such folder"
+        raise DataError(f"{setting}={data_dir}: {kind} (expected {what})")
+    return data_dir
+
+
+REAL_DATASET = "a real dataset folder with images/, masks/ and split.json"
+GENERATED_DATASET = "a folder written by drgan.generate, with images/ID.png and masks/ID.png"
 
 
 def load_real(data_dir, ids, crop_rows=(712, 768)) -> list[tuple[str, np.ndarray, np.ndarray]]:
@@ -128,8 +153,12 @@ def load_real(data_dir, ids, crop_rows=(712, 768)) -> list[tuple[str, np.ndarray
     for image_path, image_id in zip(list_images(images_dir, ids), ids):
         image = read_grey(image_path, crop_rows=tuple(crop_rows) if crop_rows else None)
         mask_path = real_mask_path(masks_dir, image_id)
-        raw = read_raw_mask(mask_path, crop_rows)
-        _check_same_size(image, raw, image_path, mask_path)
+        raw = read_raw_mask(mask_path)
+        # The files' own sizes are compared (the image's rows before the crop), so a mask of another size is
+        # reported as such and not as a crop_rows range that does not fit it.
+        dropped = int(crop_rows[1]) - int(crop_rows[0]) if crop_rows else 0
+        _check_same_size((image.shape[0] + dropped, image.shape[1]), raw.shape, image_path, mask_path)
+        raw = _drop_mask_rows(raw, crop_rows, mask_path)
         out.append((image_id, image, instance_labels(binary_mask(raw, mask_path))))
     return out
 
@@ -138,9 +167,9 @@ def load_real_pairs(data_dir, ids, contour_px: int, crop_rows=(712, 768)) -> lis
     return [Pair(i, img, class_mask(lab, contour_px)) for i, img, lab in load_real(data_dir, ids, crop_rows)]
 
 
-def load_generated_pairs(data_dir) -> list[Pair]:
+def load_generated_pairs(data_dir, setting: str = "data") -> list[Pair]:
     """DIR/images/ID.png + DIR/masks/ID.png (uint8 classes 0/1/2), paired by file name."""
-    data_dir = Path(data_dir)
+    data_dir = check_dataset_folder(data_dir, setting, GENERATED_DATASET)
     images_dir, masks_dir = data_dir / "images", data_dir / "masks"
     for d in (images_dir, masks_dir):
         if not d.is_dir():
@@ -154,7 +183,7 @@ def load_generated_pairs(data_dir) -> list[Pair]:
     for image_path, mask_path in zip(image_paths, list_images(masks_dir, [p.stem for p in image_paths])):
         image = read_grey(image_path)
         mask = read_raw_mask(mask_path)
-        _check_same_size(image, mask, image_path, mask_path)
+        _check_same_size(image.shape, mask.shape, image_path, mask_path)
         bad = sorted(set(np.unique(mask).tolist()) - {0, 1, 2})
         if bad:
             raise DataError(f"mask {mask_path}: unexpected values {bad[:5]} (expected classes 0 background, 1 particle, 2 contour)")
