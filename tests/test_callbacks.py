@@ -91,7 +91,7 @@ def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(ima
 
     from drgan.models.gan_module import GANModule
 
-    best = GANModule.load_from_checkpoint(ckpts / "best.ckpt")
+    best = GANModule.load_from_checkpoint(ckpts / "best.ckpt", weights_only=True)
     assert best.phi_bank.shape[1:] == (3, 4)
 
     client = mlflow.MlflowClient(tracking_uri=uri)

@@ -233,7 +233,7 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
 
     from drgan.models.gan_module import GANModule
 
-    module = GANModule.load_from_checkpoint(out / "checkpoints" / "last.ckpt")
+    module = GANModule.load_from_checkpoint(out / "checkpoints" / "last.ckpt", weights_only=True)
     assert module.phi_bank.shape[1:] == (3, 4)
     samples = module.parameter_samples(module.phi_bank[:2])
     assert samples.shape == (2, len(module.learned_keys)) and np.isfinite(samples).all()
@@ -241,7 +241,7 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
 
 def test_init_from_starts_a_fresh_run_from_another_runs_weights(images, tmp_path):
     def weights(run):
-        state = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+        state = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)["state_dict"]
         return {k: v for k, v in state.items() if k.startswith(("generator.regressor.", "discriminator.")) and "running" not in k
                 and "num_batches" not in k}
 
@@ -294,7 +294,7 @@ def test_lr_decay_follows_steps_across_resume(images, tmp_path):
     base = tiny_overrides(images, out, extra=decay)
 
     def lrs():
-        state = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+        state = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
         return [opt["param_groups"][0]["lr"] for opt in state["optimizer_states"]]
 
     run_train(base + ["trainer.max_epochs=1"])
@@ -343,7 +343,7 @@ def test_ddp_on_two_cpu_processes_scores_the_same_fid_images(images, tmp_path):
     fid_ddp = json.loads((out / "checkpoints" / "best_epoch.json").read_text())["history"][0]["fid"]
     assert json.loads((out / "metrics.json").read_text())["val/fid"] == pytest.approx(fid_ddp)
 
-    module = GANModule.load_from_checkpoint(out / "checkpoints" / "last.ckpt", map_location="cpu")
+    module = GANModule.load_from_checkpoint(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     module.eval()
     extractor = RandomProjectionFeatures(dim=16)
     real = FeatureStats.from_features(extractor.features(PatchSet.load(out / "patches").train))

@@ -153,12 +153,9 @@ def resolve_checkpoint(ckpt) -> tuple[Path, Path | None]:
 
 def checkpoint_config(ckpt_file: Path) -> dict:
     """The model config (material, size, placement, renderer, model, seed) saved with a GANModule checkpoint."""
-    import torch
+    from drgan.checkpoint_io import load_checkpoint
 
-    try:
-        checkpoint = torch.load(ckpt_file, map_location="cpu", weights_only=False)
-    except Exception as error:
-        raise ConfigError(f"ckpt={ckpt_file}: unreadable checkpoint ({type(error).__name__}: {error})") from error
+    checkpoint = load_checkpoint(ckpt_file, "ckpt", expected="a .ckpt written by drgan.train")
     cfg = (checkpoint.get("hyper_parameters") or {}).get("cfg")
     if not isinstance(cfg, dict) or "material" not in cfg:
         raise ConfigError(f"ckpt={ckpt_file}: no drgan model config in its hyperparameters (not a GANModule checkpoint?)")
@@ -173,9 +170,11 @@ def effective_renderer(saved: dict, overrides) -> dict:
 
 def load_module(ckpt_file: Path, model_cfg: dict):
     """GANModule in eval mode, rebuilt with ``model_cfg`` (the saved one, renderer possibly overridden)."""
+    from drgan.checkpoint_io import refusing_unsafe
     from drgan.models.gan_module import GANModule
 
-    module = GANModule.load_from_checkpoint(ckpt_file, map_location="cpu", cfg=model_cfg)
+    with refusing_unsafe("ckpt", ckpt_file):
+        module = GANModule.load_from_checkpoint(ckpt_file, map_location="cpu", cfg=model_cfg, weights_only=True)
     module.eval()
     return module
 

@@ -112,7 +112,7 @@ def segment(cfg: DictConfig) -> dict:
             log.warning("%s: params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
     log.info("segmenter %s: %d train / %d val pairs, run folder %s", cfg.name, n_train, n_val, out)
-    trainer.fit(model, train_dataloaders=train_loader, val_dataloaders=val_loader, ckpt_path=ckpt_path)
+    trainer.fit(model, train_dataloaders=train_loader, val_dataloaders=val_loader, ckpt_path=ckpt_path, weights_only=True)
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     metrics["time/wall_s"] = time.perf_counter() - wall_start

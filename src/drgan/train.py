@@ -114,17 +114,21 @@ def _store_lock(tracking_uri: str):
 
 
 def resolve_checkpoint(ckpt_path: str | None, output_dir: Path) -> str | None:
+    from drgan.checkpoint_io import load_checkpoint
+
     if ckpt_path in (None, "", "null"):
         return None
     if ckpt_path == "last":
         last = output_dir / "checkpoints" / "last.ckpt"
         if last.is_file():
+            load_checkpoint(last, "ckpt_path")  # refused now (code in it, damaged), not after mining
             return str(last)
         log.warning("ckpt_path=last: no %s yet; starting a fresh run", last)
         return None
     path = Path(ckpt_path)
     if not path.is_file():
         raise ConfigError(f"ckpt_path={ckpt_path}: no such checkpoint file (or use ckpt_path=last to resume this run folder)")
+    load_checkpoint(path, "ckpt_path")
     return str(path)
 
 
@@ -190,7 +194,7 @@ def train(cfg: DictConfig) -> dict:
             log.warning("%s: config params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
     log.info("training %s: %d real patches, m=%d constellations, run folder %s", cfg.material.name, datamodule.n_train, m, output_dir)
-    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)  # drgan.checkpoint_io: no code runs
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     metrics["time/wall_s"] = time.perf_counter() - wall_start

@@ -285,14 +285,10 @@ class GANModule(LightningModule):
         width is 4 x material.n_particles, its output the number of learned parameters. Returns the number
         of tensors copied.
         """
+        from drgan.checkpoint_io import load_checkpoint
+
         path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"init_from={path}: no such checkpoint file (a .ckpt written by drgan.train)")
-        try:
-            checkpoint = torch.load(path, map_location="cpu", weights_only=False)
-            source = checkpoint["state_dict"]
-        except Exception as error:  # not a Lightning checkpoint, or a damaged file
-            raise ConfigError(f"init_from={path}: not a readable drgan.train checkpoint ({type(error).__name__}: {error})") from None
+        source = load_checkpoint(path, "init_from", expected="a .ckpt written by drgan.train")["state_dict"]
         target = {k: v for k, v in self.state_dict().items() if k.startswith(self.WARM_START_PREFIXES)}
         missing = sorted(set(target) - set(source))
         if missing:

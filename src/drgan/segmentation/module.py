@@ -13,6 +13,7 @@ import lightning.pytorch as L
 import torch
 import torch.nn.functional as F
 
+from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import DataError
 from drgan.segmentation.data import check_normalize
 from drgan.segmentation.unet import UNet
@@ -72,18 +73,13 @@ class SegmenterModule(L.LightningModule):
 def load_segmenter(path: str | Path) -> SegmenterModule:
     """A trained segmenter from a Lightning checkpoint, in eval mode on the CPU.
 
-    Refuses (DataError) missing files, files that are not checkpoints and checkpoints of other models
-    (e.g. a GAN checkpoint from drgan.train)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"model {path}: no such checkpoint file")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:
-        raise DataError(f"model {path}: not a readable PyTorch checkpoint ({type(exc).__name__}: {exc})") from exc
-    hparams = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
-    if not isinstance(hparams, dict) or hparams.get("kind") != KIND or "state_dict" not in ckpt:
-        raise DataError(f"model {path}: not a drgan segmenter checkpoint (expected one written by `python -m drgan.segment`)")
+    Refuses (DataError) missing files, files that hold code (``drgan.checkpoint_io``: nothing in them runs),
+    files that are not checkpoints and checkpoints of other models (e.g. a GAN checkpoint from drgan.train)."""
+    expected = "a segmenter checkpoint written by `python -m drgan.segment`"
+    ckpt = load_checkpoint(path, "model", expected=expected, error=DataError)
+    hparams = ckpt.get("hyper_parameters")
+    if not isinstance(hparams, dict) or hparams.get("kind") != KIND:
+        raise DataError(f"model={path}: not a drgan segmenter checkpoint (expected one written by `python -m drgan.segment`)")
     model = SegmenterModule(**{k: v for k, v in hparams.items() if not k.startswith("_")})
     model.load_state_dict(ckpt["state_dict"])
     return model.eval()
