@@ -152,8 +152,8 @@ def segmenter_run(tmp_path_factory) -> Path:
     data = make_generated(root / "gen", n=4)
     out = root / "run"
     segment(compose([f"data_dir={data}", f"out={out}", f"paths.root_dir={root}", "model.depth=2", "model.base=4",
-                     "loader.crop=32", "loader.batch_size=4", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false",
-                     "logger=none", "trainer.max_epochs=1"], config_name="segment"))
+                     "loader.crop=32", "loader.batch_size=4", "trainer.accelerator=cpu",
+                     "trainer.enable_progress_bar=false", "logger=none", "trainer.max_epochs=1"], config_name="segment"))
     return out
 
 

@@ -56,7 +56,8 @@ def refusing_unsafe(what: str, path, error: type[DrganError] = ConfigError):
         raise _refusal(refused, what, path, error) from None
 
 
-def load_checkpoint(path, what: str, *, expected: str = "a .ckpt written by drgan", error: type[DrganError] = ConfigError) -> dict:
+def load_checkpoint(path, what: str, *, expected: str = "a .ckpt written by drgan",
+                    error: type[DrganError] = ConfigError) -> dict:
     """The checkpoint dict at ``path`` (on the CPU), loaded with ``weights_only=True``.
 
     ``what`` names the setting that gave the path (``ckpt``, ``init_from``, ``ckpt_path``, ``model``) and
