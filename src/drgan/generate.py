@@ -16,7 +16,8 @@ IDs: ``syn_000123`` (123 = the index; dropped indices leave gaps), ``bg_0000``.
 Reproducible and resumable: index i uses seeds from ``SeedSequence([seed, i])`` only, so its image does not
 depend on which process renders it or when. ``meta/ID.json`` (kept) or ``dropped/ID.json`` is written last
 and marks an index done; a re-run with the same settings skips done indices and completes a partial
-dataset. A re-run with different settings (checkpoint, seed, filter, renderer, ...) into the same folder is
+dataset; it first removes what a killed run left of its own indices (temporary files, PNGs of an index
+without its record), so no image is ever left without its mask. A re-run with different settings (checkpoint, seed, filter, renderer, ...) into the same folder is
 refused; n and n_background may grow.
 
 Sharding: ``shard=i/k`` renders only indices with index % k == i; all shards write into one DIR (a shared
@@ -35,6 +36,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -52,6 +54,8 @@ log = logging.getLogger(__name__)
 
 SYN, BG = "syn", "bg"
 FILE_KINDS = ("images", "masks", "labels")  # PNGs; meta/ID.json comes last
+# drgan.io.atomic_path's temporary name for a file NAME: ".NAME.<random>.tmp<suffix of NAME>".
+_TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[A-Za-z0-9_]+\.tmp(\.[A-Za-z0-9]+)?$")
 # Settings that decide what each index holds: a dataset folder is only ever completed with the same ones.
 FIXED_SETTINGS = ("ckpt", "material", "seed", "contour_px", "min_contrast", "min_background", "renderer", "backgrounds")
 
@@ -246,6 +250,39 @@ class DatasetFolder:
     def write_dropped(self, item: str, record: dict) -> None:
         io.write_json(self.root / "dropped" / f"{item}.json", {"id": item, **record})
 
+    def remove_partial(self, owns) -> dict[str, int]:
+        """Remove what a killed run left of the items this process owns (``owns(item) -> bool``): temporary files
+        of drgan.io's atomic writes (a SIGKILL skips their clean-up), and the PNGs of items without their
+        meta/ID.json or dropped/ID.json record (killed between an item's files: meta comes last). Such an item
+        is not done, so this run renders it again; removing its files first means that no image is ever left
+        without its mask, whatever n the next run asks for. Returns the counts removed, by kind."""
+        removed = {"temporary": 0, "unpaired": 0}
+        for folder in (*FILE_KINDS, "meta", "dropped"):
+            directory = self.root / folder
+            if not directory.is_dir():
+                continue
+            for entry in os.scandir(directory):
+                temp = _TEMP_NAME.match(entry.name)
+                if temp:
+                    if owns(Path(temp["target"]).stem):
+                        os.unlink(entry.path)
+                        removed["temporary"] += 1
+                elif folder in FILE_KINDS and entry.name.endswith(".png"):
+                    item = entry.name[: -len(".png")]
+                    recorded = (self.root / "meta" / f"{item}.json").is_file() or (self.root / "dropped" / f"{item}.json").is_file()
+                    if owns(item) and not recorded:
+                        os.unlink(entry.path)
+                        removed["unpaired"] += 1
+        for entry in os.scandir(self.root) if self.root.is_dir() else ():
+            temp = _TEMP_NAME.match(entry.name)
+            if temp and owns(Path(temp["target"]).stem):  # config.json, manifest*.json
+                os.unlink(entry.path)
+                removed["temporary"] += 1
+        if any(removed.values()):
+            log.warning("%s: removed %d temporary file(s) and %d file(s) of unfinished items left by an interrupted run",
+                        self.root, removed["temporary"], removed["unpaired"])
+        return removed
+
     def check_settings(self, settings: dict) -> None:
         """Record the settings at first use; refuse to complete a folder made with other ones."""
         path = self.root / "config.json"
@@ -271,6 +308,18 @@ def dataset_cutoff(outcomes: dict[int, bool], n: int) -> tuple[int | None, int]:
             return i, i + 1
         i += 1
     return None, i
+
+
+def owned_by(item: str, shard: Shard) -> bool:
+    """Whether ``shard`` is the only writer of ``item`` (a file stem): its synthetic indices, the backgrounds for
+    shard 0, manifest_shard_i for shard i; manifest.json and config.json only when there is one process."""
+    if item.startswith(SYN + "_") and item[len(SYN) + 1 :].isdigit():
+        return int(item[len(SYN) + 1 :]) % shard.count == shard.index
+    if item.startswith(BG + "_"):
+        return shard.index == 0
+    if item.startswith("manifest_shard_"):
+        return item == f"manifest_shard_{shard.index}"
+    return shard.count == 1
 
 
 def kept_below(outcomes: dict[int, bool], j: int) -> int:
@@ -425,6 +474,7 @@ def generate(cfg: DictConfig) -> dict:
     folder.check_settings(settings)
     if cfg.get("merge"):
         return write_manifest(folder, settings, stats=None, required=True)
+    folder.remove_partial(lambda item: owned_by(item, shard))
 
     model_cfg = OmegaConf.create(settings["model_cfg"])
     module = load_module(Path(settings["ckpt"]), settings["model_cfg"])
