@@ -17,8 +17,8 @@ Reproducible and resumable: index i uses seeds from ``SeedSequence([seed, i])`` 
 depend on which process renders it or when. ``meta/ID.json`` (kept) or ``dropped/ID.json`` is written last
 and marks an index done; a re-run with the same settings skips done indices and completes a partial
 dataset; it first removes what a killed run left of its own indices (temporary files, PNGs of an index
-without its record), so no image is ever left without its mask. A re-run with different settings (checkpoint, seed, filter, renderer, ...) into the same folder is
-refused; n and n_background may grow.
+without its record), so no image is ever left without its mask. A re-run with different settings
+(checkpoint, seed, filter, renderer, ...) into the same folder is refused; n and n_background may grow.
 
 Sharding: ``shard=i/k`` renders only indices with index % k == i; all shards write into one DIR (a shared
 file system). The dataset is the first n kept indices (as in a single process), so a shard stops at index j
