@@ -301,3 +301,10 @@ def test_cli_rejects_unknown_kind(tmp_path):
     result = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert result.returncode != 0
     assert "pyramid" in result.stderr and not (tmp_path / "x").exists()
+
+
+def test_missing_meshes_dir_is_named_as_the_setting(tmp_path):
+    from drgan.build import load_particle_meshes
+
+    with pytest.raises(MeshError, match=r"^material\.meshes\.dir=nowhere: no such folder or mesh file \(.*nowhere\)$"):
+        load_particle_meshes({"dir": "nowhere"}, base_dir=tmp_path)

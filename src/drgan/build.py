@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError, setting_float, setting_int
+from drgan.errors import ConfigError, MeshError, setting_float, setting_int
 from drgan.scene import layout, meshes
 from drgan.scene.parameters import MaterialParameters
 
@@ -48,6 +48,8 @@ def load_particle_meshes(mesh_cfg: Mapping, base_dir: str | Path | None = None) 
         path = Path(folder)
         if not path.is_absolute() and base_dir is not None:
             path = Path(base_dir) / path
+        if not path.exists():
+            raise MeshError(f"material.meshes.dir={folder}: no such folder or mesh file ({path})")
         return meshes.load_mesh_set(path)
     params = mesh_cfg.get("params") or {}
     count = setting_int("material.meshes.count", mesh_cfg["count"], 1)
