@@ -326,7 +326,8 @@ def test_too_few_patches_fail_at_setup_naming_count_images_and_settings(settings
     message = str(error.value)
     assert f"data.dir {folder}: {found}" in message and "in the 3 training image(s)" in message
     assert f"training needs at least {needed}" in message
-    for setting in ("data.stride (now 8", f"data.min_particles (now {settings['min_particles']})", "data.patch_size", "more images"):
+    min_particles = f"data.min_particles (now {settings['min_particles']})"
+    for setting in ("data.stride (now 8", min_particles, "data.patch_size", "more images"):
         assert setting in message
     assert dm.patches is None
     enough = datamodule(folder, tmp_path / "ok", stride=8, min_particles=1, batch_size=5)  # 5 patches: exactly enough

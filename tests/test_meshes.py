@@ -236,8 +236,8 @@ def test_bad_ply_files_raise_mesh_error_naming_the_file(tmp_path, name, vertices
 def test_ply_of_vertices_without_faces_reports_its_vertices(tmp_path):
     with_empty_faces = _ascii_ply(tmp_path / "points.ply", TETRAHEDRON, [])  # "element face 0"
     no_face_element = tmp_path / "cloud.ply"
-    no_face_element.write_text("\n".join(["ply", "format ascii 1.0", "element vertex 4", "property float x", "property float y",
-                                          "property float z", "end_header", *(" ".join(map(str, v)) for v in TETRAHEDRON)]) + "\n")
+    header = ["ply", "format ascii 1.0", "element vertex 4", "property float x", "property float y", "property float z", "end_header"]
+    no_face_element.write_text("\n".join([*header, *(" ".join(map(str, v)) for v in TETRAHEDRON)]) + "\n")
     for path in (with_empty_faces, no_face_element):
         with pytest.raises(MeshError, match=rf"{path.name}'?: 4 vertices but no faces: expected a triangle mesh"):
             load_mesh(path)

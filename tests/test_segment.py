@@ -410,7 +410,8 @@ def test_missing_dataset_folder_is_named_with_its_setting(key, entry, tmp_path):
 
     missing = tmp_path / "nowhere"
     spelled = "real" if key == "real" else "data"  # the command line's `data=` is `data_dir=` inside
-    cfg = compose([f"{key}={missing}", f"out={tmp_path / 'out'}", *(["logger=none"] if entry == "segment" else [])], config_name=entry)
+    no_logger = ["logger=none"] if entry == "segment" else []
+    cfg = compose([f"{key}={missing}", f"out={tmp_path / 'out'}", *no_logger], config_name=entry)
     run = segment if entry == "segment" else lambda c: evaluate(c, predictors={"x": lambda im: im})
     with pytest.raises(DataError, match=rf"^{spelled}={missing}: no such folder \(expected a") as caught:
         run(cfg)

@@ -214,8 +214,8 @@ def run(row: Row, base: Path) -> dict:
     if (w / "code_ran").exists():
         text += "  **[the checkpoint's code ran]**"
     shown = " ".join(a.replace(str(w), "$W").replace(str(DATA), "$DRGAN_DATA") for a in args)
-    return {"row": row, "command": f"python {shown}" if args[0] == "-c" else f"python -m {shown}", "message": text, "done": work_done(w), "seconds": seconds,
-            "rc": result.returncode}
+    return {"row": row, "command": f"python {shown}" if args[0] == "-c" else f"python -m {shown}", "message": text,
+            "done": work_done(w), "seconds": seconds, "rc": result.returncode}
 
 
 def cell(text: str) -> str:

@@ -48,6 +48,7 @@ def setting_float(key: str, value: object, minimum: float | None = None) -> floa
         except (TypeError, ValueError):
             number = None
     bound = "" if minimum is None else f" >= {minimum}"
-    if number is None or number != number or number in (float("inf"), float("-inf")) or (minimum is not None and number < minimum):
+    finite = number is not None and number == number and number not in (float("inf"), float("-inf"))
+    if not finite or (minimum is not None and number < minimum):
         raise ConfigError(f"{key}={value!r}: expected a finite number{bound}")
     return number

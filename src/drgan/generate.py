@@ -269,7 +269,7 @@ class DatasetFolder:
                         removed["temporary"] += 1
                 elif folder in FILE_KINDS and entry.name.endswith(".png"):
                     item = entry.name[: -len(".png")]
-                    recorded = (self.root / "meta" / f"{item}.json").is_file() or (self.root / "dropped" / f"{item}.json").is_file()
+                    recorded = any((self.root / kind / f"{item}.json").is_file() for kind in ("meta", "dropped"))
                     if owns(item) and not recorded:
                         os.unlink(entry.path)
                         removed["unpaired"] += 1

@@ -62,7 +62,8 @@ def dataloaders(cfg: DictConfig, pairs):
     kw = dict(crop=ld["crop"], brightness=ld["brightness"], contrast=ld["contrast"], seed=ld["seed"],
               normalize=str(cfg.model.get("normalize", "none")))
     train = DataLoader(CropDataset(train_pairs, augment=True, samples_per_pair=ld["samples_per_pair"], **kw),
-                       batch_size=ld["batch_size"], shuffle=True, drop_last=len(train_pairs) * ld["samples_per_pair"] > ld["batch_size"],
+                       batch_size=ld["batch_size"], shuffle=True,
+                       drop_last=len(train_pairs) * ld["samples_per_pair"] > ld["batch_size"],
                        num_workers=ld["num_workers"], persistent_workers=ld["num_workers"] > 0)
     val = None
     if val_pairs:
