@@ -98,11 +98,22 @@ def resolve_variant(requested: str = "auto") -> str:
     return requested
 
 
+THREADS_ENV = "DRGAN_RENDER_THREADS"  # Dr.Jit CPU threads; unset: one per core
+
+
 def use_variant(requested: str = "auto") -> str:
     """Set Mitsuba's variant (once per process; switching later invalidates built scenes)."""
     variant = resolve_variant(requested)
     if mi.variant() != variant:
         mi.set_variant(variant)
+    threads = os.environ.get(THREADS_ENV)
+    if threads and variant.startswith("llvm"):
+        # The adjoint pass sums gradients from many threads in no fixed order, so two runs with the same seeds
+        # differ in the last bits (~1e-6 in the weights after a few steps). One thread makes runs bitwise
+        # repeatable (the fault tests compare resumed and uninterrupted runs bitwise), at the cost of speed.
+        if not threads.isdigit() or int(threads) < 1:
+            raise ValueError(f"{THREADS_ENV}={threads!r}: expected a positive integer (Dr.Jit CPU threads)")
+        dr.set_thread_count(int(threads))
     return variant
 
 
