@@ -9,8 +9,9 @@ A run killed in between restarted from an older epoch or from scratch. This call
    schedulers, loop counters, the phi bank and its generator, the global RNG states, the callbacks' state
    (FID history) and the MLflow run id (kept beside it in the run folder). The checkpoint records that the
    epoch-end work of that epoch is still *pending*.
-2. When that work is done (at the start of the next epoch, or at the end of training) it writes the file
-   again with nothing pending.
+2. When that work is done it writes the file again with nothing pending. (Lightning runs checkpoint callbacks
+   after all others at an epoch end, so a companion ``Checkpoint`` that this callback adds to the trainer
+   makes this second write, after ModelCheckpoint's.)
 3. A run resumed from a checkpoint with pending epoch-end work first redoes that work for that epoch (FID,
    best epoch, plots, the top-k checkpoint), logging its metrics at that epoch's step, then trains on.
 
@@ -28,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
+from lightning.pytorch.callbacks import Checkpoint
 
 from drgan.callbacks.fid import checkpoint_dir
 
@@ -99,16 +101,17 @@ class ResumeCheckpoint(Callback):
         self._epoch_end_rng = rng_state()
         self.save(trainer)
 
-    def _finish_pending(self, trainer: Trainer) -> None:
+    def _finish_pending(self, trainer: Trainer, restore_rng: bool = True) -> None:
         if self.pending_epoch is None:
             return
-        if self._epoch_end_rng is not None:  # whatever the epoch-end work drew, the next epoch starts as if it drew nothing
+        if restore_rng and self._epoch_end_rng is not None:  # whatever the epoch-end work drew, the next epoch starts as if it drew nothing
             set_rng_state(self._epoch_end_rng)
         self.pending_epoch = None
         self.save(trainer)
 
-    def on_train_epoch_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        self._finish_pending(trainer)
+    def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
+        if not any(isinstance(c, _EpochEndDone) and c.owner is self for c in trainer.callbacks):
+            trainer.callbacks.append(_EpochEndDone(self))  # last: after every other epoch-end hook
 
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         self._finish_pending(trainer)
@@ -132,13 +135,35 @@ class ResumeCheckpoint(Callback):
         log.info("resume: epoch %d ended before its epoch-end work (FID, best epoch, plots) finished; redoing it", epoch)
         with rng_neutral():
             replay_epoch_end(trainer, pl_module, epoch, skip=self)
-        self._finish_pending(trainer)
+        # The RNG states came from the checkpoint, and Lightning has already drawn from them (the data loader's
+        # first batch is fetched before on_train_start): resetting them here would repeat those draws.
+        self._finish_pending(trainer, restore_rng=False)
+
+
+def _lightnings_own(callback: Callback) -> bool:
+    return type(callback).__module__.startswith(("lightning.", "pytorch_lightning."))
+
+
+class _EpochEndDone(Checkpoint):
+    """The second write of ``ResumeCheckpoint``: a ``Checkpoint`` so that Lightning calls its epoch-end hook in
+    the last group (after ModelCheckpoint), when every other epoch-end hook has run."""
+
+    def __init__(self, owner: ResumeCheckpoint):
+        self.owner = owner
+
+    @property
+    def state_key(self) -> str:
+        return "ResumeCheckpoint.done"
+
+    def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        self.owner._finish_pending(trainer)
 
 
 def replay_epoch_end(trainer: Trainer, pl_module: LightningModule, epoch: int, skip: Callback | None = None) -> dict:
     """Run every callback's ``on_train_epoch_end`` again for ``epoch`` (already trained and counted as done).
 
-    The callbacks see ``trainer.current_epoch == epoch``; what they log with ``pl_module.log`` is collected and
+    Replayed: the project's callbacks (FID, best epoch, plots; not Lightning's own progress bars and monitors,
+    which track the live loop) and then the checkpoint callbacks. The callbacks see ``trainer.current_epoch == epoch``; what they log with ``pl_module.log`` is collected and
     sent to the loggers at the step where Lightning logged that epoch's metrics, and put in
     ``trainer.callback_metrics`` for the checkpoint callbacks (which run last, as in a normal epoch end).
     Returns the metrics logged.
@@ -154,13 +179,13 @@ def replay_epoch_end(trainer: Trainer, pl_module: LightningModule, epoch: int, s
     progress.completed -= 1  # trainer.current_epoch reads this counter
     pl_module.log = collect  # an instance attribute shadows LightningModule.log for the replay only
     try:
-        ordinary = [c for c in trainer.callbacks if c is not skip and c not in trainer.checkpoint_callbacks]
-        for callback in ordinary:
-            callback.on_train_epoch_end(trainer, pl_module)
-        trainer.callback_metrics.update({k: torch.tensor(v) for k, v in logged.items()})
-        for callback in trainer.checkpoint_callbacks:
-            if callback is not skip:
+        checkpoints = [c for c in trainer.checkpoint_callbacks if not isinstance(c, _EpochEndDone)]
+        for callback in trainer.callbacks:
+            if callback is not skip and not isinstance(callback, Checkpoint) and not _lightnings_own(callback):
                 callback.on_train_epoch_end(trainer, pl_module)
+        trainer.callback_metrics.update({k: torch.tensor(v) for k, v in logged.items()})
+        for callback in checkpoints:
+            callback.on_train_epoch_end(trainer, pl_module)
     finally:
         del pl_module.log
         progress.completed += 1
