@@ -378,3 +378,33 @@ def test_sweep_makes_two_mlflow_runs(launcher, images, tmp_path):
     assert sorted(r.data.params["model/lr_g"] for r in runs) == ["0.0001", "0.0002"]
     assert all({"train/g_loss", "train/d_loss", "train/g_loss_epoch"} <= set(r.data.metrics) for r in runs)
     assert sorted(p.name for p in (tmp_path / "multirun" / "tio2_sem" / "sweep").iterdir() if p.is_dir() and p.name[0] != ".") == ["0", "1"]
+
+
+def test_a_step_whose_generator_gradient_is_not_finite_changes_no_weights(images, tmp_path, monkeypatch):
+    """Finite losses, but the renderer's gradient is NaN: G's half fails after D's half succeeded, and D's update
+    (weights, batch-norm statistics, Adam state) must be undone."""
+    from drgan.models.gan_module import GANModule
+    from drgan.scene import scene
+
+    backward = scene._RenderFunction.backward
+
+    def nan_gradient(ctx, grad_image):
+        grads, *rest = backward(ctx, grad_image)
+        return (grads * float("nan"), *rest)
+
+    monkeypatch.setattr(scene._RenderFunction, "backward", staticmethod(nan_gradient))
+    seen = []
+    step = GANModule.training_step
+
+    def recording_step(self, batch, batch_idx):
+        before = {k: v.clone() for k, v in self.discriminator.state_dict().items()}
+        opt_d = self.optimizers()[1].optimizer
+        step(self, batch, batch_idx)
+        seen.append((before, {k: v.clone() for k, v in self.discriminator.state_dict().items()}, len(opt_d.state)))
+
+    monkeypatch.setattr(GANModule, "training_step", recording_step)
+    metrics = run_train(tiny_overrides(images, tmp_path / "run", extra=["trainer.max_epochs=1", "trainer.limit_train_batches=2"]))
+    assert metrics["train/skipped_steps_total"] == 2 and len(seen) == 2
+    for before, after, adam_entries in seen:
+        assert all(torch.equal(before[k], after[k]) for k in before), "D changed in a skipped step"
+        assert adam_entries == 0  # no Adam moment was ever stored: D's optimiser state rolled back too
