@@ -275,6 +275,7 @@ def test_background_texture_reaches_training_and_needs_background_patches(images
     assert np.isfinite(metrics["train/g_loss"]) and len(seen) == 1 and len(seen[0]) == 2  # data.n_background=2
     with pytest.raises(ConfigError, match="background_texture.enabled: no real background patches.*data.n_background > 0"):
         run_train(tiny_overrides(images, tmp_path / "none", extra=[*texture, "data.n_background=0", "trainer.fast_dev_run=1"]))
+    assert not (tmp_path / "none" / "patches").exists()  # refused before any patch was mined
 
 
 def test_lr_decay_factor_and_bad_settings():

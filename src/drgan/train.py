@@ -172,6 +172,9 @@ def train(cfg: DictConfig) -> dict:
     if cfg.get("init_from") and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights
         copied = model.load_weights(Path(cfg.init_from).expanduser())
         log.info("init_from=%s: %d weight tensors of the FCN and discriminator copied; a fresh run from epoch 0", cfg.init_from, copied)
+    if model.textured and int(cfg.data.get("n_background") or 0) < 1:  # the texture comes from mined background patches
+        raise ConfigError("material.background_texture.enabled: no real background patches to take the texture from "
+                          f"(data.n_background={cfg.data.get('n_background')}; set data.n_background > 0)")
     tags = {"material": str(cfg.material.name), "output_dir": str(output_dir)}
     tags.update({str(t): "1" for t in cfg.get("tags") or []})
     loggers = instantiate_loggers(cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags)
