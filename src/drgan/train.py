@@ -64,7 +64,8 @@ def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, 
         if entry._target_.endswith("MLFlowLogger"):
             id_file = output_dir / MLFLOW_RUN_ID_FILE
             previous = id_file.read_text().strip() if id_file.is_file() else None
-            logger = instantiate(entry, run_id=previous if resume else None, tags={**tags, **(entry.get("tags") or {})})
+            with _store_lock(str(entry.tracking_uri)):  # its client creates a SQLite store's schema: parallel sweep jobs race
+                logger = instantiate(entry, run_id=previous if resume else None, tags={**tags, **(entry.get("tags") or {})})
             logger._drgan_previous_run = None if resume else previous
             logger._drgan_id_file = id_file
         else:
