@@ -19,6 +19,7 @@ from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
 from drgan.data.images import list_images, read_grey, read_split
+from drgan.data.polarity import check_polarity, detect_polarity
 from drgan.data.patches import PatchSet, SegmentParams, contact_sheet, dihedral_augment, mine_patches
 from drgan.io import write_with
 from drgan.errors import ConfigError, DataError
@@ -52,7 +53,9 @@ class RealPatchDataModule(LightningDataModule):
     "auto" uses ``dir/split.json`` or ``dir/../split.json`` when present; null trains on every image of
     the folder. crop_rows: [start, stop) rows to drop (an info bar), or null. patch_size must equal the
     renderer's resolution (``resolution``): the discriminator compares real and rendered patches pixel
-    by pixel. cache_dir: where the mined patches are written (the run folder's ``patches/``).
+    by pixel. polarity: "bright" or "dark" particles, or "auto" to detect it from the training images
+    (drgan.data.polarity); the detected value is in ``polarity`` after setup and in the patches' summary.
+    cache_dir: where the mined patches are written (the run folder's ``patches/``).
     """
 
     def __init__(
@@ -71,8 +74,17 @@ class RealPatchDataModule(LightningDataModule):
         augment: bool = True,
         cache_dir: str | None = None,
         resolution: int | None = None,
+        polarity: str = "auto",
     ):
         super().__init__()
+        if dir is None or str(dir) in ("", "None", "null"):
+            raise ConfigError(
+                "data.dir is not set: point it at the folder of your real images (python -m drgan.train data.dir=/path/to/images); "
+                "python -m drgan.profile data.dir=/path/to/images name=NAME proposes a material for them"
+            )
+        self.polarity_setting = check_polarity(polarity, allow_auto=True)
+        self.polarity: str | None = None if polarity == "auto" else polarity
+        self.polarity_estimate: dict | None = None
         self.dir = Path(dir)
         self.split = split
         self.crop_rows = tuple(int(v) for v in crop_rows) if crop_rows is not None else None
@@ -145,6 +157,7 @@ class RealPatchDataModule(LightningDataModule):
             "n_background": self.n_background,
             "background_stride": self.background_stride,
             "segment": self.segment.__dict__,
+            "polarity": self.polarity_setting,
         }
 
     def _load_cache(self, source: dict) -> PatchSet | None:
@@ -172,6 +185,7 @@ class RealPatchDataModule(LightningDataModule):
         patches = self._load_cache(source)
         if patches is None:
             images = [read_grey(p, self.crop_rows) for p in paths]
+            self.resolve_polarity(images)
             patches = mine_patches(
                 images,
                 ids,
@@ -181,8 +195,10 @@ class RealPatchDataModule(LightningDataModule):
                 n_background=self.n_background,
                 background_stride=self.background_stride,
                 segment=self.segment,
+                polarity=self.polarity,
                 progress=False,
             )
+            patches.params["polarity_estimate"] = self.polarity_estimate
             if self.cache_dir is not None:
                 patches.save(self.cache_dir)
                 contact_sheet(patches, self.cache_dir / "contact_sheet.png")
@@ -191,8 +207,18 @@ class RealPatchDataModule(LightningDataModule):
         if leaked:
             raise DataError(f"data: patches of test image(s) {leaked[:5]} reached the training set")
         self._check_enough(patches, len(ids))
+        self.polarity = patches.params.get("polarity", "bright")
+        self.polarity_estimate = patches.params.get("polarity_estimate")
         self.patches = patches
         log.info("data: %s", json.dumps(patches.summary()))
+
+    def resolve_polarity(self, images: Sequence[np.ndarray]) -> str:
+        """The particles' polarity: the setting, or detected from ``images`` when it is "auto" (logged)."""
+        if self.polarity is None:
+            estimate = detect_polarity(images)
+            self.polarity, self.polarity_estimate = estimate.polarity, estimate.as_dict()
+            log.info("data: particles are %s (data.polarity=auto: %s)", self.polarity, json.dumps(self.polarity_estimate))
+        return self.polarity
 
     def min_train_patches(self) -> int:
         """Fewest training patches a run can use: 2 for the real FID statistics (a covariance needs two

@@ -31,6 +31,7 @@ from skimage.filters import gaussian, threshold_otsu
 from skimage.segmentation import watershed
 from tqdm import tqdm
 
+from drgan.data.polarity import check_polarity, to_bright
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_with
 
@@ -66,15 +67,17 @@ class SegmentParams:
             raise ConfigError(f"SegmentParams.min_separability={self.min_separability}: expected in [0, 1)")
 
 
-def segment_particles(image: np.ndarray, params: SegmentParams | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Segment bright particles on a darker background.
+def segment_particles(
+    image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright"
+) -> tuple[np.ndarray, np.ndarray]:
+    """Segment particles: brighter than the background (polarity "bright") or darker ("dark").
 
     Returns (labels, foreground): int32 labels (0 = none) of the watershed segments, and the bool
     foreground mask: everything above the threshold except connected specks smaller than min_area
     (it keeps agglomerates too large to count as particles).
     """
     params = params or SegmentParams()
-    image = np.asarray(image, dtype=np.float32)
+    image = to_bright(image, polarity)
     smooth = gaussian(image, sigma=params.sigma, preserve_range=True) if params.sigma > 0 else image
     foreground = _otsu_foreground(smooth, params.min_separability)
     # Specks below min_area (noise, contamination on the substrate) belong to the background.
@@ -130,9 +133,9 @@ def full_particle_counts(boxes: np.ndarray, rows: np.ndarray, cols: np.ndarray, 
     return inside_rows.astype(np.int64) @ inside_cols.T.astype(np.int64)
 
 
-def count_particles(patch: np.ndarray, params: SegmentParams | None = None) -> int:
+def count_particles(patch: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> int:
     """Fully displayed particles in one patch segmented on its own (mining segments whole images instead)."""
-    labels, _ = segment_particles(patch, params)
+    labels, _ = segment_particles(patch, params, polarity)
     height, width = labels.shape
     return int(full_particle_counts(particle_boxes(labels, params), np.array([0]), np.array([0]), height, width)[0, 0])
 
@@ -328,13 +331,15 @@ def mine_patches(
     segment: SegmentParams | None = None,
     max_overlap: float = 0.5,
     min_corr_distance: float = 0.05,
+    polarity: str = "bright",
     progress: bool = True,
 ) -> PatchSet:
     """Select training patches with >= min_particles fully displayed particles, and n_background empty ones.
 
     images: grey float images (H, W) in [0, 1], info bars already cropped (see read_grey); ids: one name
-    each. Windows lie on a grid with the given stride (background_stride for background, default size // 4:
-    a fine grid finds the empty corners between agglomerates).
+    each. polarity: "bright" or "dark" particles (drgan.data.polarity); patches keep the images' own
+    values. Windows lie on a grid with the given stride (background_stride for background, default
+    size // 4: a fine grid finds the empty corners between agglomerates).
     Near-duplicates: overlap with a kept window of the same image above max_overlap (fraction of patch
     area), or correlation with any kept patch above 1 - min_corr_distance. Training patches are taken
     best first (most particles); background patches emptiest first. If fewer than n_background windows
@@ -342,6 +347,7 @@ def mine_patches(
     empty and the largest foreground fraction taken (also in PatchSet.params["background_report"]).
     """
     segment = segment or SegmentParams()
+    check_polarity(polarity, "mine_patches polarity")
     background_stride = background_stride or max(1, size // 4)
     if len(images) != len(ids):
         raise ConfigError(f"mine_patches: {len(images)} images but {len(ids)} ids")
@@ -362,7 +368,7 @@ def mine_patches(
     train_candidates: list[_Candidate] = []
     background_candidates: list[_Candidate] = []
     for index, image in enumerate(tqdm(images, desc="segmenting images", unit="image", disable=not progress)):
-        labels, foreground = segment_particles(image, segment)
+        labels, foreground = segment_particles(image, segment, polarity)
         height, width = image.shape
         rows, cols = window_starts(height, size, stride), window_starts(width, size, stride)
         counts = full_particle_counts(particle_boxes(labels, segment), rows, cols, size, size)
@@ -419,6 +425,7 @@ def mine_patches(
         "max_overlap": max_overlap,
         "min_corr_distance": min_corr_distance,
         "segment": asdict(segment),
+        "polarity": polarity,
         "background_report": report,
     }
     return PatchSet(
