@@ -61,7 +61,9 @@ def _parse_parameter(surface: str, name: str, spec, where: str) -> Parameter:
     if not isinstance(spec, Mapping):
         raise ConfigError(f"{where}: expected {{min: a, max: b}} (learned) or {{value: v}} (fixed), got {spec!r}")
     keys = set(spec)
-    if keys == {"value"}:
+    if "value" in keys and keys <= {"value", "min", "max"}:
+        # A material that inherits another and fixes one of its learned parameters ({value: v} over the parent's
+        # {min, max}): Hydra merges the two mappings into {min, max, value}; the value, written last, wins.
         value = float(spec["value"])
         if not math.isfinite(value) or value < 0:
             raise ConfigError(f"{where}.value={spec['value']!r}: expected a finite number >= 0")
