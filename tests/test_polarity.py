@@ -105,3 +105,70 @@ def test_the_datamodule_detects_and_records_dark_particles(tmp_path, field):
 def test_an_unset_data_dir_says_how_to_set_it():
     with pytest.raises(ConfigError, match="data.dir is not set.*drgan.profile"):
         RealPatchDataModule(None)
+
+
+# --- a material knows its data ------------------------------------------------------------------------------
+
+
+def write_field(folder, image, n=2):
+    import tifffile
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for k in range(n):
+        tifffile.imwrite(folder / f"f{k}.tif", (np.roll(image, 16 * k, axis=1) * 255).astype(np.uint8))
+    return folder
+
+
+def train_overrides(folder, tmp_path, *extra):
+    from test_train import tiny_overrides
+
+    return [o for o in tiny_overrides(folder, tmp_path / "run") if not o.startswith("data.check_material")] + list(extra)
+
+
+@pytest.fixture
+def no_mining(monkeypatch):
+    import drgan.data.datamodule as dm
+
+    monkeypatch.setattr(dm, "mine_patches", lambda *a, **k: pytest.fail("patches mined before the material was checked"))
+
+
+def test_a_bright_particle_material_is_refused_on_dark_particle_images(tmp_path, field, no_mining):
+    from test_train import run_train
+
+    folder = write_field(tmp_path / "tsem", dark_twin(field[0]))
+    with pytest.raises(ConfigError) as caught:
+        run_train(train_overrides(folder, tmp_path, "material.particle_size_px=12"))
+    message = str(caught.value)
+    assert "material=tio2_sem is made for bright particles" in message and "are darker than their background" in message
+    assert "material=tio2_tsem" in message and "drgan.profile" in message and "data.check_material=false" in message
+
+
+def test_a_material_whose_particles_are_over_twice_the_datas_is_refused(tmp_path, field, no_mining):
+    from test_train import run_train
+
+    folder = write_field(tmp_path / "sem", field[0])  # discs of 13 px equivalent diameter
+    with pytest.raises(ConfigError, match=r"particles of 30 px \(material.particle_size_px\).*measure 1[23]\.\d px.*0\.4\dx"):
+        run_train(train_overrides(folder, tmp_path))
+
+
+def test_the_material_check_passes_data_that_fits_and_records_what_it_compared(tmp_path, field):
+    folder = write_field(tmp_path / "sem", field[0])
+    dm = RealPatchDataModule(str(folder), split=None, crop_rows=None, patch_size=SIZE)
+    report = dm.check_fits({"name": "m", "polarity": "bright", "particle_size_px": 14})
+    assert report["data_polarity"] == "bright" and 0.8 < report["size_ratio"] < 1.0
+    off = RealPatchDataModule(str(folder), split=None, crop_rows=None, patch_size=SIZE, check_material=False)
+    assert off.check_fits({"name": "m", "polarity": "dark", "particle_size_px": 100}) is None
+    assert off.polarity == "bright"  # still detected: mining needs it
+
+
+def test_a_material_without_shipped_images_asks_for_them_before_anything_runs(tmp_path):
+    from test_train import run_train
+
+    from conftest import compose
+
+    cfg = compose(["material=sio2_him", "placement=poisson"], config_name="train")
+    assert cfg.data.dir is None  # never another material's images by default
+    assert compose([], config_name="train").data.dir.endswith("tio2_sem/images")  # the default material's own
+    with pytest.raises(ConfigError, match=r"data.dir is not set: material=sio2_him is made for SiO2 nanoparticles in HIM.*"
+                                          r"material=sio2_him data.dir=/path/to/images"):
+        run_train(["material=sio2_him", "placement=poisson", f"paths.output_dir={tmp_path / 'run'}", "logger=none"])

@@ -11,6 +11,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import tifffile
 import pytest
 import torch
 from PIL import Image
@@ -385,22 +386,51 @@ def test_local_thickness_of_a_strip():
 def test_mask_of_another_size_is_reported_with_both_sizes_not_as_a_crop_problem(tmp_path):
     from drgan.evaluate import evaluate
 
-    # The default crop_rows [712, 768] of evaluate and segment: the image has 770 rows, its mask half of them.
+    # A TiO2-style crop [712, 768]: the image has 770 rows, its mask half of them.
     image, mask = np.full((770, 16), 0.5), np.zeros((385, 8), np.uint8)
     data = make_real(tmp_path / "real", {"a": image}, {"a": mask}, {"train": [], "test": ["a"]})
-    cfg = compose([f"data_dir={data}", f"out={tmp_path / 'out'}"], config_name="evaluate")
-    assert list(cfg.crop_rows) == [712, 768]
+    cfg = compose([f"data_dir={data}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate")
     with pytest.raises(DataError) as caught:
         evaluate(cfg, predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
     message = str(caught.value)
     assert "a_m.tif: size 8 x 385 px (W x H) differs from its image" in message and "a.tif: 16 x 770 px" in message
-    assert "crop_rows" not in message
+    assert "or, without its info bar, 16 x 714 px" in message and "crop_rows" not in message
     # Same-size files with a crop that does not fit them: that one is a crop_rows problem, and says so.
     small = make_real(tmp_path / "small", {"a": np.full((20, 16), 0.5)}, {"a": np.zeros((20, 16), np.uint8)},
                       {"train": [], "test": ["a"]})
     with pytest.raises(DataError, match=r"a\.tif: crop_rows .*inside its 20 rows"):
-        evaluate(compose([f"data_dir={small}", f"out={tmp_path / 'out'}"], config_name="evaluate"),
+        evaluate(compose([f"data_dir={small}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate"),
                  predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
+
+
+def with_info_bar(image, rows=12):
+    """The image above a black info bar with a line of white 'text' (as microscopes write them)."""
+    bar = np.zeros((rows, image.shape[1]))
+    bar[rows // 2, 2 : image.shape[1] // 3] = 1.0
+    return np.concatenate([image, bar])
+
+
+def test_info_bars_are_found_and_masks_published_without_them_are_accepted(tmp_path):
+    """TSEM's layout: image with its info bar, mask already without it and named like the image (no _m)."""
+    from drgan.data.images import info_bar_rows
+    from drgan.segmentation.data import load_real
+
+    rng = np.random.default_rng(0)
+    field = np.clip(0.7 + rng.normal(0, 0.05, (48, 40)), 0.01, 0.99)
+    field[10:20, 10:20] = 0.2  # one dark particle
+    assert info_bar_rows(field) is None
+    assert info_bar_rows(with_info_bar(field)) == (48, 60)
+    assert info_bar_rows(with_info_bar(field[::-1])[::-1]) == (0, 12)  # a bar along the top
+    mask = np.zeros((48, 40), np.uint8)
+    mask[10:20, 10:20] = 255
+    data = make_real(tmp_path / "tsem", {"a": with_info_bar(field)}, {}, {"train": ["a"], "test": []})
+    tifffile.imwrite(data / "masks" / "a.tif", mask)  # TSEM names: ID.tif
+    (_, image, labels), = load_real(data, ["a"])  # crop_rows auto, mask_suffix auto
+    assert image.shape == (48, 40) and labels.max() == 1 and (labels > 0).sum() == 100
+    with pytest.raises(DataError, match=r"a\.tif: size 40 x 48 px \(W x H\) differs from its image"):
+        load_real(data, ["a"], crop_rows=None, mask_suffix="")  # no crop: the mask does not fit the whole image
+    with pytest.raises(DataError, match=r"no mask for image id 'a' \(expected a_lbl\.tif"):
+        load_real(data, ["a"], mask_suffix="_lbl")
 
 
 @pytest.mark.parametrize("key, entry", [("real", "segment"), ("data_dir", "segment"), ("data_dir", "evaluate")])

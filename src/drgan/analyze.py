@@ -96,7 +96,8 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
         from drgan.segmentation.module import load_segmenter
 
         predictor = make_predictor(load_segmenter(cfg.ckpt), cfg.inference)
-    crop = tuple(cfg.crop_rows) if cfg.get("crop_rows") else None
+    crop = cfg.get("crop_rows")
+    crop = crop if crop is None or isinstance(crop, str) else tuple(crop)
     images = [(p.stem, read_grey(p, crop)) for p in paths]  # all read (and checked) before predicting
 
     out = Path(cfg.out)

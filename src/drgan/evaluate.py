@@ -124,7 +124,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     else:
         model_names, how = {r: r for r in predictors}, ""
     ids = real_ids(data_dir, cfg.get("split"), str(cfg.subset), setting="data")
-    samples = load_real(data_dir, ids, cfg.get("crop_rows"))  # every image/mask read and checked first
+    samples = load_real(data_dir, ids, cfg.get("crop_rows"), cfg.get("mask_suffix", "auto"), cfg.get("masks", "masks"))  # every image/mask read and checked first
 
     out = Path(cfg.out)
     rows = []

@@ -34,7 +34,8 @@ def load_training_pairs(cfg: DictConfig):
         return load_generated_pairs(cfg.data_dir, setting="data")
     real = Path(cfg.real)
     ids = real_ids(real, cfg.get("split"), "train", setting="real")
-    return load_real_pairs(real, ids, setting_int("contour_px", cfg.contour_px, 0), cfg.get("crop_rows"))
+    return load_real_pairs(real, ids, setting_int("contour_px", cfg.contour_px, 0), cfg.get("crop_rows"),
+                           cfg.get("mask_suffix", "auto"), cfg.get("masks", "masks"))
 
 
 def loader_settings(cfg: DictConfig) -> dict:

@@ -166,8 +166,16 @@ def train(cfg: DictConfig) -> dict:
     # Everything that needs no pixels is built or checked first (seconds): the data settings, folder and split,
     # then scene, meshes, renderer and model, the checkpoint to resume, init_from, callbacks, loggers, trainer.
     # Only then are the patches mined (20-70 s for the TiO2 SEM images), and only then does training start.
+    if not cfg.data.get("dir"):
+        raise ConfigError(
+            f"data.dir is not set: material={cfg.material.name} is made for "
+            f"{cfg.material.get('made_for') or 'images drgan does not ship'}, and no such images are configured. Point "
+            f"it at your images: python -m drgan.train material={cfg.material.name} data.dir=/path/to/images (check the "
+            "material fits them first: python -m drgan.profile data.dir=/path/to/images name=my_particles writes one)"
+        )
     datamodule = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
     datamodule.resolve_ids()
+    datamodule.check_fits(cfg.material)  # polarity and particle size against the material: seconds, before mining
     model = GANModule(cfg, base_dir=cfg.paths.root_dir)  # phi bank: after mining, when m is the number of patches
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
     if cfg.get("init_from") and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights

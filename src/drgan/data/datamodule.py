@@ -20,7 +20,14 @@ from torch.utils.data import DataLoader, Dataset
 
 from drgan.data.images import list_images, read_grey, read_split
 from drgan.data.polarity import check_polarity, detect_polarity
-from drgan.data.patches import PatchSet, SegmentParams, contact_sheet, dihedral_augment, mine_patches
+from drgan.data.patches import (
+    PatchSet,
+    SegmentParams,
+    check_image_sizes,
+    contact_sheet,
+    dihedral_augment,
+    mine_patches,
+)
 from drgan.io import write_with
 from drgan.errors import ConfigError, DataError
 
@@ -51,10 +58,11 @@ class RealPatchDataModule(LightningDataModule):
 
     dir: folder of real images (TIFF/PNG/JPEG). split: a split.json ({"train": [...], "test": [...]});
     "auto" uses ``dir/split.json`` or ``dir/../split.json`` when present; null trains on every image of
-    the folder. crop_rows: [start, stop) rows to drop (an info bar), or null. patch_size must equal the
+    the folder. crop_rows: [start, stop) rows to drop (an info bar), "auto" (the bar found in each image) or null. patch_size must equal the
     renderer's resolution (``resolution``): the discriminator compares real and rendered patches pixel
     by pixel. polarity: "bright" or "dark" particles, or "auto" to detect it from the training images
     (drgan.data.polarity); the detected value is in ``polarity`` after setup and in the patches' summary.
+    check_material: whether `check_fits` refuses a material made for other images (polarity, particle size).
     cache_dir: where the mined patches are written (the run folder's ``patches/``).
     """
 
@@ -75,6 +83,7 @@ class RealPatchDataModule(LightningDataModule):
         cache_dir: str | None = None,
         resolution: int | None = None,
         polarity: str = "auto",
+        check_material: bool = True,
     ):
         super().__init__()
         if dir is None or str(dir) in ("", "None", "null"):
@@ -85,9 +94,12 @@ class RealPatchDataModule(LightningDataModule):
         self.polarity_setting = check_polarity(polarity, allow_auto=True)
         self.polarity: str | None = None if polarity == "auto" else polarity
         self.polarity_estimate: dict | None = None
+        self.check_material = bool(check_material)
         self.dir = Path(dir)
         self.split = split
-        self.crop_rows = tuple(int(v) for v in crop_rows) if crop_rows is not None else None
+        if isinstance(crop_rows, str) and crop_rows != "auto":
+            raise ConfigError(f"data.crop_rows={crop_rows!r}: expected [start, stop), auto or null")
+        self.crop_rows = crop_rows if crop_rows is None or isinstance(crop_rows, str) else tuple(int(v) for v in crop_rows)
         self.patch_size = int(patch_size)
         self.stride = int(stride)
         self.min_particles = int(min_particles)
@@ -128,7 +140,8 @@ class RealPatchDataModule(LightningDataModule):
     def resolve_ids(self) -> tuple[list[Path], list[str], list[str]]:
         """(train image paths, train ids, test ids); raises DataError on a missing image or a leaked test id."""
         if not self.dir.is_dir():
-            raise DataError(f"data.dir {self.dir}: no such folder (expected a folder of real images)")
+            raise DataError(f"data.dir={self.dir}: no such folder (expected a folder of real images: "
+                            "data.dir=/path/to/your/images)")
         split_path = self._split_path()
         if split_path is None:
             paths = list_images(self.dir)
@@ -150,7 +163,7 @@ class RealPatchDataModule(LightningDataModule):
         return {
             "dir": str(self.dir.resolve()),
             "train_ids": ids,
-            "crop_rows": list(self.crop_rows) if self.crop_rows else None,
+            "crop_rows": list(self.crop_rows) if isinstance(self.crop_rows, tuple) else self.crop_rows,
             "patch_size": self.patch_size,
             "stride": self.stride,
             "min_particles": self.min_particles,
@@ -185,6 +198,7 @@ class RealPatchDataModule(LightningDataModule):
         patches = self._load_cache(source)
         if patches is None:
             images = [read_grey(p, self.crop_rows) for p in paths]
+            check_image_sizes(images, ids, self.patch_size)
             self.resolve_polarity(images)
             patches = mine_patches(
                 images,
@@ -219,6 +233,19 @@ class RealPatchDataModule(LightningDataModule):
             self.polarity, self.polarity_estimate = estimate.polarity, estimate.as_dict()
             log.info("data: particles are %s (data.polarity=auto: %s)", self.polarity, json.dumps(self.polarity_estimate))
         return self.polarity
+
+    def check_fits(self, material: Mapping) -> dict | None:
+        """Refuse a material whose polarity or particle size contradicts these images (`drgan.data.consistency`),
+        looking at a few training images (seconds, before mining); None when data.check_material is false."""
+        from drgan.data.consistency import N_IMAGES, check_material_fits_data, data_particle_size
+
+        paths, ids, _ = self.resolve_ids()
+        images = [read_grey(p, self.crop_rows) for p in paths[:N_IMAGES]]
+        check_image_sizes(images, ids, self.patch_size)
+        polarity = self.resolve_polarity(images)
+        if not self.check_material:
+            return None
+        return check_material_fits_data(material, polarity, data_particle_size(images, polarity, self.segment), self.dir)
 
     def min_train_patches(self) -> int:
         """Fewest training patches a run can use: 2 for the real FID statistics (a covariance needs two

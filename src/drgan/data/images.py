@@ -30,11 +30,12 @@ _TIFF_SUFFIXES = (".tif", ".tiff")
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float64)
 
 
-def read_grey(path: str | Path, crop_rows: tuple[int, int] | None = None) -> np.ndarray:
+def read_grey(path: str | Path, crop_rows: tuple[int, int] | str | None = None) -> np.ndarray:
     """Read a TIFF, PNG or JPEG image as float32 (H, W) grey values in [0, 1].
 
     crop_rows: a row range [start, stop) to drop, e.g. a microscope's info bar; the TiO2 SEM images
-    carry theirs in rows 712-767, so crop_rows=(712, 768) keeps rows 0-711.
+    carry theirs in rows 712-767, so crop_rows=(712, 768) keeps rows 0-711. "auto": drop the info bar
+    that `info_bar_rows` finds in this image, if any.
     """
     path = Path(path)
     if not path.is_file():
@@ -49,9 +50,58 @@ def read_grey(path: str | Path, crop_rows: tuple[int, int] | None = None) -> np.
     except Exception as exc:  # corrupt or truncated files raise many kinds of errors in tifffile and PIL
         raise DataError(f"image {path}: cannot be read as a {suffix[1:].upper()} image ({type(exc).__name__}: {exc})") from exc
     grey = _to_unit_grey(raw, path)
+    crop_rows = resolve_crop_rows(crop_rows, grey, path)
     if crop_rows is not None:
         grey = _drop_rows(grey, crop_rows, path)
     return grey
+
+
+# An info bar (scale bar, magnification, detector) is a band of rows along the top or bottom edge, most of whose
+# pixels are exactly black or exactly white, with text; image rows have no such plateau (TiO2 SEM and TSEM: at
+# most 33 % of a row's pixels share one value, none at 0 or 1; their bar rows: 85-100 % black).
+_BAR_ROW_FRACTION = 0.5  # least share of a row at exactly 0 or 1 for a bar row
+_BAR_MAX_SHARE = 0.3  # a bar covers at most this share of the image's rows
+_BAR_MIN_ROWS = 8
+_BAR_EDGE_ROWS = 4  # image rows between a bar and the image edge that still go with the bar (TiO2: rows 766-767)
+
+
+def info_bar_rows(grey: np.ndarray) -> tuple[int, int] | None:
+    """Rows [start, stop) of an info bar along the bottom (or top) edge of ``grey``, or None when there is none.
+
+    Bar rows have at least half their pixels exactly black (0) or exactly white (1); a bar is a run of such
+    rows (gaps of up to 3 rows allowed: text lines) of at least 8 rows, covering at most 30 % of the image,
+    ending within 4 rows of the edge (those rows are dropped with it).
+    """
+    grey = np.asarray(grey)
+    height = grey.shape[0]
+    extreme = np.maximum((grey == 0).mean(axis=1), (grey == 1).mean(axis=1)) >= _BAR_ROW_FRACTION
+    for rows, flip in ((extreme[::-1], True), (extreme, False)):  # bottom edge first, then top
+        hits = np.flatnonzero(rows[: int(_BAR_MAX_SHARE * height) + _BAR_EDGE_ROWS])
+        if hits.size == 0 or hits[0] > _BAR_EDGE_ROWS:
+            continue
+        end = hits[0]
+        for k in hits[1:]:
+            if k - end > 4:
+                break
+            end = k
+        if end + 1 - hits[0] < _BAR_MIN_ROWS or end + 1 > _BAR_MAX_SHARE * height:
+            continue
+        return (int(height - end - 1), int(height)) if flip else (0, int(end) + 1)
+    return None
+
+
+def resolve_crop_rows(crop_rows, grey: np.ndarray, path: str | Path = "image") -> tuple[int, int] | None:
+    """The [start, stop) rows to drop: ``crop_rows`` as given (a pair or None), or the detected bar for "auto"."""
+    if crop_rows is None:
+        return None
+    if isinstance(crop_rows, str):
+        if crop_rows != "auto":
+            raise DataError(f"image {path}: crop_rows={crop_rows!r}: expected [start, stop), auto or null")
+        return info_bar_rows(grey)
+    rows = tuple(crop_rows)
+    if len(rows) != 2:
+        raise DataError(f"image {path}: crop_rows={list(rows)}: expected two row numbers [start, stop), auto or null")
+    return int(rows[0]), int(rows[1])
 
 
 def _read_tiff(path: Path) -> np.ndarray:

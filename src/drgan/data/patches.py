@@ -133,6 +133,18 @@ def full_particle_counts(boxes: np.ndarray, rows: np.ndarray, cols: np.ndarray, 
     return inside_rows.astype(np.int64) @ inside_cols.T.astype(np.int64)
 
 
+def particle_diameters(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
+    """Equivalent diameters (px) of the segments of plausible area (min_area..max_area) that touch no border."""
+    params = params or SegmentParams()
+    labels, _ = segment_particles(image, params, polarity)
+    areas = np.bincount(labels.ravel())
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    keep = (areas >= params.min_area) & (areas <= params.max_area)
+    keep[0] = False
+    keep[border] = False
+    return 2.0 * np.sqrt(areas[keep] / np.pi)
+
+
 def count_particles(patch: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> int:
     """Fully displayed particles in one patch segmented on its own (mining segments whole images instead)."""
     labels, _ = segment_particles(patch, params, polarity)
@@ -319,6 +331,15 @@ class _DuplicateFilter:
         return True
 
 
+def check_image_sizes(images: Sequence[np.ndarray], ids: Sequence[str], size: int) -> None:
+    """Every image grey (H, W) and at least one patch large; a DataError naming the first that is not."""
+    for image, name in zip(images, ids):
+        if image.ndim != 2:
+            raise DataError(f"image {name!r}: shape {image.shape} (expected one grey channel, (H, W))")
+        if image.shape[0] < size or image.shape[1] < size:
+            raise DataError(f"image {name!r}: {image.shape[1]} x {image.shape[0]} px (W x H) is smaller than a {size} x {size} patch")
+
+
 def mine_patches(
     images: Sequence[np.ndarray],
     ids: Sequence[str],
@@ -359,11 +380,7 @@ def mine_patches(
         raise ConfigError(f"mine_patches: min_particles={min_particles}, n_background={n_background}: expected >= 1 and >= 0")
     if not 0 <= max_overlap < 1 or not 0 <= min_corr_distance < 1:
         raise ConfigError(f"mine_patches: max_overlap={max_overlap}, min_corr_distance={min_corr_distance}: expected in [0, 1)")
-    for image, name in zip(images, ids):
-        if image.ndim != 2:
-            raise DataError(f"image {name!r}: shape {image.shape} (expected one grey channel, (H, W))")
-        if image.shape[0] < size or image.shape[1] < size:
-            raise DataError(f"image {name!r}: {image.shape[1]} x {image.shape[0]} px (W x H) is smaller than a {size} x {size} patch")
+    check_image_sizes(images, ids, size)
 
     train_candidates: list[_Candidate] = []
     background_candidates: list[_Candidate] = []

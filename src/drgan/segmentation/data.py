@@ -4,8 +4,10 @@ Two sources, both giving float32 grey images in [0, 1] and uint8 class masks {0 
 2 contour}:
 - generated data (`python -m drgan.generate`): DIR/images/ID.png + DIR/masks/ID.png (classes), paired by
   file name (DIR/manifest.json, when present, is not needed for pairing);
-- real annotated data: binary masks (0/255, or 0/1) named ID_m.<ext> beside ID.<ext> images; instances are
-  the 4-connected components, turned into classes with `class_mask(labels, contour_px)`.
+- real annotated data: DATASET/images/ID.<ext> and binary masks (0/255, or 0/1) DATASET/masks/ID<suffix>.<ext>
+  (suffix "_m" as in the TiO2 SEM set, or none as in TSEM; `mask_suffix`); a mask has its image's size, or
+  the size left after the image's info bar is cropped (TSEM publishes its masks so). Instances are the
+  4-connected components, turned into classes with `class_mask(labels, contour_px)`.
 Every pair is checked (sizes, mask values) before any training or evaluation starts.
 """
 
@@ -19,7 +21,7 @@ import torch
 from scipy import ndimage
 from torch.utils.data import Dataset
 
-from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split
+from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split, resolve_crop_rows
 from drgan.errors import ConfigError, DataError
 from drgan.scene.labels import class_mask
 
@@ -84,12 +86,14 @@ def _drop_mask_rows(arr: np.ndarray, crop_rows, path: Path) -> np.ndarray:
     return np.concatenate([arr[:start], arr[stop:]], axis=0)
 
 
-def _check_same_size(image_shape, mask_shape, image_path: Path, mask_path: Path) -> None:
-    """Image and mask files must be the same size; compared before any crop, which drops the same rows of both."""
+def _check_same_size(image_shape, mask_shape, image_path: Path, mask_path: Path, cropped=None) -> None:
+    """Image and mask files must be the same size; compared before any crop, which drops the same rows of both.
+    ``cropped``: the image's size after its info bar is dropped, which a mask may also have."""
     if tuple(image_shape) != tuple(mask_shape):
         (mh, mw), (ih, iw) = mask_shape, image_shape
+        also = f" or, without its info bar, {cropped[1]} x {cropped[0]} px" if cropped is not None else ""
         raise DataError(
-            f"mask {mask_path}: size {mw} x {mh} px (W x H) differs from its image {image_path}: {iw} x {ih} px "
+            f"mask {mask_path}: size {mw} x {mh} px (W x H) differs from its image {image_path}: {iw} x {ih} px{also} "
             "(a mask must have its image's size)"
         )
 
@@ -110,12 +114,19 @@ def instance_labels(particle: np.ndarray) -> np.ndarray:
     return labels.astype(np.int32)
 
 
-def real_mask_path(masks_dir: Path, image_id: str) -> Path:
-    for suffix in IMAGE_SUFFIXES:
-        for name in (f"{image_id}_m{suffix}", f"{image_id}{suffix}"):
-            if (masks_dir / name).is_file():
-                return masks_dir / name
-    raise DataError(f"mask folder {masks_dir}: no mask for image id {image_id!r} (expected {image_id}_m.tif or similar)")
+MASK_SUFFIXES = ("_m", "")  # mask_suffix=auto tries these, in order
+
+
+def real_mask_path(masks_dir: Path, image_id: str, mask_suffix: str | None = "auto") -> Path:
+    """masks_dir/ID<mask_suffix>.<ext>; ``mask_suffix`` "auto" (or None) tries ID_m.* then ID.*."""
+    stems = MASK_SUFFIXES if mask_suffix in (None, "auto") else (str(mask_suffix),)
+    for stem in stems:
+        for ext in IMAGE_SUFFIXES:
+            if (masks_dir / f"{image_id}{stem}{ext}").is_file():
+                return masks_dir / f"{image_id}{stem}{ext}"
+    tried = " or ".join(f"{image_id}{stem}.tif" for stem in stems)
+    raise DataError(f"mask folder {masks_dir}: no mask for image id {image_id!r} (expected {tried} or another image "
+                    "type; set mask_suffix if your masks are named otherwise)")
 
 
 def real_ids(data_dir: Path, split: str | Path | None, subset: str, setting: str = "real") -> list[str]:
@@ -143,28 +154,38 @@ REAL_DATASET = "a real dataset folder with images/, masks/ and split.json"
 GENERATED_DATASET = "a folder written by drgan.generate, with images/ID.png and masks/ID.png"
 
 
-def load_real(data_dir, ids, crop_rows=(712, 768)) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(id, image, instance labels) of real images; every file is read and checked before returning."""
+def load_real(data_dir, ids, crop_rows="auto", mask_suffix: str | None = "auto", masks: str = "masks"
+              ) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(id, image, instance labels) of real images; every file is read and checked before returning.
+
+    crop_rows: info-bar rows [start, stop) to drop, "auto" (detected per image, `info_bar_rows`) or None.
+    A mask of the image's full size loses the same rows; a mask already the size of the cropped image is
+    taken as it is; any other size is refused, naming both."""
     data_dir = Path(data_dir)
-    images_dir, masks_dir = data_dir / "images", data_dir / "masks"
+    images_dir, masks_dir = data_dir / "images", data_dir / masks
     if not masks_dir.is_dir():
-        raise DataError(f"real dataset {data_dir}: no masks/ folder")
+        raise DataError(f"real dataset {data_dir}: no {masks}/ folder (expected binary masks named like the images)")
     out = []
     for image_path, image_id in zip(list_images(images_dir, ids), ids):
-        image = read_grey(image_path, crop_rows=tuple(crop_rows) if crop_rows else None)
-        mask_path = real_mask_path(masks_dir, image_id)
+        full = read_grey(image_path)
+        rows = resolve_crop_rows(crop_rows, full, image_path)
+        image = read_grey(image_path, rows) if rows else full
+        mask_path = real_mask_path(masks_dir, image_id, mask_suffix)
         raw = read_raw_mask(mask_path)
         # The files' own sizes are compared (the image's rows before the crop), so a mask of another size is
         # reported as such and not as a crop_rows range that does not fit it.
-        dropped = int(crop_rows[1]) - int(crop_rows[0]) if crop_rows else 0
-        _check_same_size((image.shape[0] + dropped, image.shape[1]), raw.shape, image_path, mask_path)
-        raw = _drop_mask_rows(raw, crop_rows, mask_path)
+        if rows and raw.shape == image.shape:
+            pass  # published without the info bar already
+        else:
+            _check_same_size(full.shape, raw.shape, image_path, mask_path, cropped=image.shape if rows else None)
+            raw = _drop_mask_rows(raw, rows, mask_path)
         out.append((image_id, image, instance_labels(binary_mask(raw, mask_path))))
     return out
 
 
-def load_real_pairs(data_dir, ids, contour_px: int, crop_rows=(712, 768)) -> list[Pair]:
-    return [Pair(i, img, class_mask(lab, contour_px)) for i, img, lab in load_real(data_dir, ids, crop_rows)]
+def load_real_pairs(data_dir, ids, contour_px: int, crop_rows="auto", mask_suffix: str | None = "auto",
+                    masks: str = "masks") -> list[Pair]:
+    return [Pair(i, img, class_mask(lab, contour_px)) for i, img, lab in load_real(data_dir, ids, crop_rows, mask_suffix, masks)]
 
 
 def load_generated_pairs(data_dir, setting: str = "data") -> list[Pair]:
