@@ -97,6 +97,21 @@ def test_contrast_check_hand_made():
     assert gen.contrast_check(np.ones((10, 10)), labels, 0.0, 0.05).reason == "background_fraction"
 
 
+def test_contrast_check_for_dark_particles_asks_for_a_darker_particle_by_the_same_factor():
+    labels = np.zeros((10, 10), np.int32)
+    labels[2:5, 2:5] = 1
+    image = np.full((10, 10), 0.6)
+    image[labels > 0] = 0.4  # the background is 1.5 x the particles
+    dark = gen.contrast_check(image, labels, 1.15, 0.05, polarity="dark")
+    assert dark.kept and dark.contrast == pytest.approx(1.5)
+    bright = gen.contrast_check(image, labels, 1.15, 0.05)  # the same image judged as bright particles: inverted
+    assert bright.reason == "contrast" and bright.contrast == pytest.approx(0.4 / 0.6)
+    image[labels > 0] = 0.55  # 1.09 x: not clearly darker
+    assert gen.contrast_check(image, labels, 1.15, 0.05, polarity="dark").reason == "contrast"
+    with pytest.raises(ConfigError, match="polarity='grey'"):
+        gen.contrast_check(image, labels, 1.15, 0.05, polarity="grey")
+
+
 def test_shard_and_seeds():
     assert gen.Shard.parse("1/3") == gen.Shard(1, 3) and gen.Shard.parse(None) == gen.Shard(0, 1)
     for bad in ("3/2", "2/2", "-1/2", "1/0", "a/b", "1", "1/2/3"):
@@ -176,6 +191,14 @@ def test_filter_that_nothing_passes_stops_with_a_clear_error(tiny_run, tmp_path)
     with pytest.raises(RuntimeError, match=r"only 0 of n=1 images passed the filter in max_attempts=2"):
         run_generate(tiny_run, tmp_path / "data", "min_contrast=1e9", "max_attempts=2", "n_background=0", n=1)
     assert len(list((tmp_path / "data" / "dropped").glob("syn_*.json"))) == 2
+
+
+def test_a_run_whose_first_images_all_fail_the_filter_stops_early_and_says_why(tiny_run, tmp_path, monkeypatch):
+    monkeypatch.setattr(gen, "EARLY_ATTEMPTS", 3)
+    with pytest.raises(RuntimeError, match=r"none of the first 3 images passed the filter .*median contrast .* for dark "
+                                           r"particles.*wrong side of the background"):
+        run_generate(tiny_run, tmp_path / "data", "min_contrast=1e9", "polarity=dark", "n_background=0", n=50)
+    assert len(list((tmp_path / "data" / "dropped").glob("syn_*.json"))) == 3
 
 
 @pytest.mark.parametrize(

@@ -47,6 +47,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from drgan import io
+from drgan.data.polarity import check_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.scene.labels import class_mask
 
@@ -57,7 +58,9 @@ FILE_KINDS = ("images", "masks", "labels")  # PNGs; meta/ID.json comes last
 # drgan.io.atomic_path's temporary name for a file NAME: ".NAME.<random>.tmp<suffix of NAME>".
 _TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[A-Za-z0-9_]+\.tmp(\.[A-Za-z0-9]+)?$")
 # Settings that decide what each index holds: a dataset folder is only ever completed with the same ones.
-FIXED_SETTINGS = ("ckpt", "material", "seed", "contour_px", "min_contrast", "min_background", "renderer", "backgrounds")
+FIXED_SETTINGS = ("ckpt", "material", "seed", "contour_px", "min_contrast", "min_background", "polarity", "renderer",
+                  "backgrounds")
+EARLY_ATTEMPTS = 50  # renders after which a run that kept none stops (the filter and the generator disagree)
 
 
 def syn_id(index: int) -> str:
@@ -105,18 +108,22 @@ class Shard:
 class Check:
     kept: bool
     reason: str | None  # why dropped: "no_particle", "background_fraction", "contrast"
-    contrast: float  # mean particle intensity / mean background intensity
+    contrast: float  # how far particles stand out: particle / background mean (bright), background / particle (dark)
     background_fraction: float
     particles_visible: int
 
 
-def contrast_check(image: np.ndarray, labels: np.ndarray, min_contrast: float, min_background: float) -> Check:
+def contrast_check(image: np.ndarray, labels: np.ndarray, min_contrast: float, min_background: float,
+                   polarity: str = "bright") -> Check:
     """Are the particles of ``image`` (H, W, [0, 1]) clearly distinguishable, given its instance ``labels``?
 
     Dropped when no particle is visible, when less than ``min_background`` of the pixels are background
-    (the contrast would be measured on a few stray pixels), or when the mean particle intensity is below
-    ``min_contrast`` x the mean background intensity (the paper's filter, 1.15).
+    (the contrast would be measured on a few stray pixels), or when the particles do not stand out from the
+    background by the factor ``min_contrast`` in the data's direction (the paper's filter, 1.15): for bright
+    particles the mean particle intensity must reach min_contrast x the mean background intensity, for dark
+    particles (``polarity="dark"``) the mean background intensity must reach min_contrast x the particles'.
     """
+    check_polarity(polarity, "polarity")
     image, labels = np.asarray(image, dtype=np.float64), np.asarray(labels)
     if image.shape != labels.shape:
         raise DataError(f"contrast_check: image {image.shape} and labels {labels.shape} differ in shape")
@@ -128,6 +135,8 @@ def contrast_check(image: np.ndarray, labels: np.ndarray, min_contrast: float, m
     if background_fraction == 0.0:
         return Check(False, "background_fraction", math.nan, background_fraction, visible)
     fg, bg = float(image[particle].mean()), float(image[~particle].mean())
+    if polarity == "dark":
+        fg, bg = bg, fg
     contrast = fg / bg if bg > 0 else (math.inf if fg > 0 else math.nan)
     if background_fraction < min_background:
         return Check(False, "background_fraction", contrast, background_fraction, visible)
@@ -361,6 +370,8 @@ def settings_from(cfg: DictConfig) -> dict:
     if isinstance(contour_px, bool) or int(contour_px) != contour_px or contour_px < 0:
         raise ConfigError(f"contour_px={contour_px!r}: expected an integer >= 0")
     renderer = effective_renderer(saved.get("renderer"), cfg.get("renderer"))
+    polarity = cfg.get("polarity") or saved["material"].get("polarity", "bright")
+    check_polarity(polarity, "polarity" if cfg.get("polarity") else f"the checkpoint's material.polarity")
     backgrounds = cfg.get("backgrounds")
     if backgrounds:
         backgrounds = Path(str(backgrounds)).expanduser().resolve()
@@ -388,6 +399,7 @@ def settings_from(cfg: DictConfig) -> dict:
         "contour_px": int(contour_px),
         "min_contrast": float(cfg.min_contrast),
         "min_background": float(cfg.min_background),
+        "polarity": polarity,
         "max_attempts": max_attempts,
         "renderer": renderer,
         "backgrounds": str(backgrounds) if backgrounds else None,
@@ -402,6 +414,7 @@ class Stats:
         self.render_s = self.label_s = 0.0
         self.start = time.perf_counter()
         self.reasons: Counter = Counter()
+        self.contrasts: list[float] = []  # of the images rendered in this run
 
     def as_dict(self) -> dict:
         wall = time.perf_counter() - self.start
@@ -430,7 +443,7 @@ def render_index(module, sample_phi, settings: dict, index: int):
     labels = np.asarray(sample.labels)
     mask = class_mask(labels, settings["contour_px"])
     label_s = time.perf_counter() - start
-    check = contrast_check(sample.image, labels, settings["min_contrast"], settings["min_background"])
+    check = contrast_check(sample.image, labels, settings["min_contrast"], settings["min_background"], settings["polarity"])
     sigma_key = module.generator.material.noise_sigma.key
     meta = {
         "kind": "synthetic",
@@ -505,6 +518,16 @@ def generate(cfg: DictConfig) -> dict:
                     outcomes = folder.outcomes()  # what the other shards finished meanwhile
                 if kept_below(outcomes, index) >= n:
                     break
+                if stats.rendered >= EARLY_ATTEMPTS and stats.kept == 0 and kept_below(outcomes, index) == 0:
+                    contrasts = np.asarray(stats.contrasts, dtype=np.float64)
+                    median = float(np.nanmedian(contrasts)) if np.isfinite(contrasts).any() else math.nan
+                    raise RuntimeError(
+                        f"none of the first {stats.rendered} images passed the filter (drop reasons: {dict(stats.reasons)}; "
+                        f"median contrast {median:.3f} against min_contrast={settings['min_contrast']} for "
+                        f"{settings['polarity']} particles, min_background={settings['min_background']}). A contrast "
+                        "below 1 means the particles are on the wrong side of the background: check polarity (here "
+                        "from the checkpoint's material) and the epoch (best_epoch.json); or lower min_contrast"
+                    )
                 if index >= settings["max_attempts"]:
                     have = kept_below(outcomes, index)
                     raise RuntimeError(
@@ -520,6 +543,7 @@ def generate(cfg: DictConfig) -> dict:
                     continue
                 image, labels, mask, check, meta, render_s, label_s = render_index(module, sample_phi, settings, index)
                 stats.rendered += 1
+                stats.contrasts.append(check.contrast)
                 stats.render_s += render_s
                 stats.label_s += label_s
                 if check.kept:
