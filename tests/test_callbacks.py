@@ -17,14 +17,52 @@ def test_select_best_prefers_broadest_of_top_k():
     fids = [50, 40, 45, 41, 60, 42, 39]
     spreads = [0.9, 0.05, 0.30, 0.10, 0.95, 0.20, 0.01]
     history = [{"epoch": e, "fid": f, "spread": s} for e, (f, s) in enumerate(zip(fids, spreads))]
-    best, table = select_best(history, top_k=5)
+    best, table = select_best(history, top_k=5, fid_margin=None)
     # Five lowest FIDs: epochs 6 (39), 1 (40), 3 (41), 5 (42), 2 (45); epoch 2 is broadest among them.
     assert [h["epoch"] for h in table] == [6, 1, 3, 5, 2]
     assert best["epoch"] == 2
+    # With the default 10 % margin only FIDs up to 42.9 compete: epoch 2 (45) is out, epoch 5 (42) the broadest left.
+    assert select_best(history, top_k=5)[0]["epoch"] == 5
     # Epochs 0 and 4 are broader but not among the top 5 FIDs; top_k=1 is the plain lowest FID.
     assert select_best(history, top_k=1)[0]["epoch"] == 6
-    assert select_best(history + [{"epoch": 7, "fid": float("nan"), "spread": 1.0}], 5)[0]["epoch"] == 2
+    assert select_best(history + [{"epoch": 7, "fid": float("nan"), "spread": 1.0}], 5, fid_margin=None)[0]["epoch"] == 2
     assert select_best([], 5) == (None, [])
+
+
+def test_in_a_short_run_the_fid_still_weighs():
+    """Three epochs are all among the "5 lowest": before the margin, the broadest won whatever its FID."""
+    history = [{"epoch": 0, "fid": 300.0, "spread": 0.40}, {"epoch": 1, "fid": 150.0, "spread": 0.30},
+               {"epoch": 2, "fid": 100.0, "spread": 0.10}]
+    assert select_best(history, top_k=5, fid_margin=None)[0]["epoch"] == 0
+    assert select_best(history, top_k=5)[0]["epoch"] == 2
+    assert select_best(history, top_k=5, fid_margin=0.5)[0]["epoch"] == 1  # 150 <= 1.5 x 100
+
+
+def test_an_epoch_with_inverted_contrast_never_wins_even_at_the_right_mean_grey():
+    """Dark real particles (0.3) on a bright stage (0.75). Epoch 0's particles are brighter than its stage:
+    whole-image brightness 1.0 x real, lowest FID; particles and stage each within 0.5-2x."""
+    real_p, real_b = 0.3, 0.75
+    inverted = {"epoch": 0, "fid": 80.0, "spread": 0.3, "brightness": 1.0,
+                "particle_brightness": 0.55 / real_p, "background_brightness": 0.50 / real_b, "contrast": 0.50 / 0.55}
+    right = {"epoch": 1, "fid": 85.0, "spread": 0.2, "brightness": 1.0,
+             "particle_brightness": 0.35 / real_p, "background_brightness": 0.70 / real_b, "contrast": 0.70 / 0.35}
+    assert 0.5 <= inverted["particle_brightness"] <= 2.0 and 0.5 <= inverted["background_brightness"] <= 2.0
+    assert select_best([inverted, right], 5, brightness_range=None)[0]["epoch"] == 0
+    assert select_best([inverted, right], 5, brightness_range=(0.5, 2.0))[0]["epoch"] == 1
+    # a stage twice as bright as the real one is out, even if the whole image's mean grey is fine
+    washed = dict(right, epoch=2, fid=70.0, background_brightness=2.2, brightness=1.2)
+    assert select_best([washed, right], 5, brightness_range=(0.5, 2.0))[0]["epoch"] == 1
+
+
+def test_fid_levels_and_contrast_by_hand():
+    from drgan.callbacks.fid import contrast, level_sums, levels
+
+    images = np.array([[[0.2, 0.8], [0.2, 0.2]], [[0.4, 0.4], [0.9, 0.7]]])
+    masks = np.array([[[False, True], [False, False]], [[False, False], [True, True]]])
+    particle, background = levels(level_sums(images, masks))
+    assert particle == pytest.approx((0.8 + 0.9 + 0.7) / 3) and background == pytest.approx((0.2 * 3 + 0.8) / 5)
+    assert contrast(particle, background, "bright") == pytest.approx(particle / background)
+    assert contrast(0.3, 0.75, "dark") == pytest.approx(2.5) and contrast(0.6, 0.5, "dark") < 1
 
 
 def test_select_best_treats_nearly_equal_spreads_as_a_tie():
@@ -40,7 +78,7 @@ def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
                {"epoch": 1, "fid": 290.0, "spread": 0.1, "brightness": 0.9},
                {"epoch": 2, "fid": 300.0, "spread": 0.2, "brightness": 1.1},
                {"epoch": 3, "fid": 250.0, "spread": 0.5, "brightness": 2.5}]
-    assert select_best(history, top_k=5)[0]["epoch"] == 3  # no range: broadest of all
+    assert select_best(history, top_k=5, fid_margin=None)[0]["epoch"] == 3  # no range, no margin: broadest of all
     best, table = select_best(history, top_k=5, brightness_range=(0.5, 2.0))
     assert best["epoch"] == 2 and [h["epoch"] for h in table] == [1, 2]
     assert select_best(history, top_k=1, brightness_range=(0.5, 2.0))[0]["epoch"] == 1

@@ -1,10 +1,13 @@
-"""The best epoch: among the ``top_k`` epochs of lowest FID, the one whose learned parameter distribution is
-broadest.
+"""The best epoch: among the ``top_k`` epochs of lowest FID that lie within ``fid_margin`` of the lowest, the
+one whose learned parameter distribution is broadest.
 
 A GAN's lowest FID is often reached by a generator that collapsed onto a narrow set of material
 parameters; a broad distribution generalises better to downstream segmentation. So the selection is:
-sort evaluated epochs by FID, keep the ``top_k`` lowest, pick the one with the largest *parameter spread*
-(spreads within 5 % of the largest count as tied; the lower FID wins among them).
+sort evaluated epochs by FID, keep the ``top_k`` lowest, and of those the ones whose FID is at most
+(1 + fid_margin) x the lowest (default 10 %), then pick the one with the largest *parameter spread* (spreads
+within 5 % of the largest count as tied; the lower FID wins among them). The margin keeps the FID weighing in
+short runs: with 5 epochs or fewer every epoch is among the "5 lowest", and a run of 5 epochs chose an epoch
+of far higher FID on spread alone.
 
 Parameter spread (``parameter_spread``): for a fixed set of ``n_phi`` constellations (drawn once from the
 configured size and placement distributions), the regressor's learned values are normalised by their
@@ -12,10 +15,11 @@ configured limits, u = (x - low) / (high - low) in [0, 1], and the spread is the
 the (population, ddof=0) standard deviation of u. 0: every constellation gets the same parameters; the
 largest possible value is 0.5 (half at each limit).
 
-Brightness guard: the FID hardly sees global brightness (see drgan.callbacks.fid), so epochs whose images
-are on average far darker or brighter than the real patches (``val/brightness`` outside
-``brightness_range``, default 0.5-2x) do not compete, unless no epoch is inside the range (then all do, with
-a warning). A TiO2 SEM generator with a grazing ring light scored its lowest FID with images 4.6x too dark,
+Brightness guard: the FID hardly sees global brightness (see drgan.callbacks.fid), so epochs whose particles
+or whose background are far darker or brighter than the real ones (``val/particle_brightness`` or
+``val/background_brightness`` outside ``brightness_range``, default 0.5-2x), or whose contrast is inverted
+(``val/contrast`` <= 1: particles on the wrong side of the background), do not compete, unless no epoch
+passes (then all do, with a warning). Entries without the separate values (older runs) use ``val/brightness``. A TiO2 SEM generator with a grazing ring light scored its lowest FID with images 4.6x too dark,
 and a segmenter trained on them found nothing in the real images (experiments/tio2_sem/README.md).
 
 Each epoch's weights are saved to ``<checkpoints>/epochs/epoch_XXX.ckpt`` (weights only); those that fall
@@ -53,29 +57,43 @@ def parameter_spread(values: np.ndarray, low, high) -> float:
 
 
 def within_brightness(entry: dict, brightness_range) -> bool:
-    """True when the entry's brightness (synthetic / real mean grey) is inside [low, high], or unknown, or
-    there is no range."""
-    if brightness_range is None or entry.get("brightness") is None:
+    """True when the entry's particles and background (synthetic / real mean grey of each) are inside [low, high]
+    and its contrast is not inverted (``contrast`` > 1); for entries without those, when its whole-image
+    ``brightness`` is inside; True when unknown or when there is no range."""
+    if brightness_range is None:
         return True
     low, high = brightness_range
+    separate = [entry.get(k) for k in ("particle_brightness", "background_brightness")]
+    if all(v is not None for v in separate):
+        if entry.get("contrast") is not None and not entry["contrast"] > 1.0:  # NaN (no particle pixel) fails too
+            return False
+        return all(low <= v <= high for v in separate)
+    if entry.get("brightness") is None:
+        return True
     return low <= entry["brightness"] <= high
 
 
-def select_best(history: list[dict], top_k: int, brightness_range=None,
-                spread_tolerance: float = 0.05) -> tuple[dict | None, list[dict]]:
+def select_best(history: list[dict], top_k: int, brightness_range=None, spread_tolerance: float = 0.05,
+                fid_margin: float | None = 0.1) -> tuple[dict | None, list[dict]]:
     """history: dicts with epoch, fid, spread (and brightness) -> (best entry, the top_k table sorted by FID).
 
-    Epochs with a non-finite FID are never chosen. Spreads within ``spread_tolerance`` (relative) of the
+    Epochs with a non-finite FID are never chosen. Of the top_k lowest FIDs, only those at most (1 + fid_margin)
+    x the lowest compete on spread (None: all top_k). Spreads within ``spread_tolerance`` (relative) of the
     largest count as tied, and ties go to the lower FID (a TiO2 SEM run otherwise chose FID 148.9 over
     140.0 for a spread larger by 0.0003). With a ``brightness_range`` (low, high), only epochs inside it
-    compete, unless none is (then all do)."""
+    (`within_brightness`) compete, unless none is (then all do)."""
     finite = [h for h in history if math.isfinite(h.get("fid", math.nan)) and math.isfinite(h.get("spread", math.nan))]
     eligible = [h for h in finite if within_brightness(h, brightness_range)]
     table = sorted(eligible or finite, key=lambda h: (h["fid"], h["epoch"]))[: int(top_k)]
     if not table:
         return None, []
-    broadest = max(h["spread"] for h in table)
-    best = min((h for h in table if h["spread"] >= (1.0 - spread_tolerance) * broadest), key=lambda h: (h["fid"], h["epoch"]))
+    contenders = table
+    if fid_margin is not None:
+        limit = table[0]["fid"] + abs(table[0]["fid"]) * float(fid_margin)
+        contenders = [h for h in table if h["fid"] <= limit]
+    broadest = max(h["spread"] for h in contenders)
+    best = min((h for h in contenders if h["spread"] >= (1.0 - spread_tolerance) * broadest),
+               key=lambda h: (h["fid"], h["epoch"]))
     return best, table
 
 
@@ -84,9 +102,14 @@ class BestEpochCallback(Callback):
     those constellations; brightness_range: (low, high) of synthetic / real mean grey for an epoch to
     compete (None: no check). Needs a FIDCallback before it in the callback list."""
 
-    def __init__(self, top_k: int = 5, n_phi: int = 1000, seed: int = 0, brightness_range=(0.5, 2.0)):
+    def __init__(self, top_k: int = 5, n_phi: int = 1000, seed: int = 0, brightness_range=(0.5, 2.0),
+                 fid_margin: float | None = 0.1):
         if int(top_k) < 1 or int(n_phi) < 2:
             raise ConfigError(f"BestEpochCallback: top_k={top_k}, n_phi={n_phi}; expected top_k >= 1 and n_phi >= 2")
+        if fid_margin is not None and not (isinstance(fid_margin, (int, float)) and 0 <= fid_margin < math.inf):
+            raise ConfigError(f"callbacks.best_epoch.fid_margin={fid_margin!r}: expected a number >= 0 (0.1: epochs within "
+                              "10 % of the lowest FID compete on spread) or null")
+        self.fid_margin = None if fid_margin is None else float(fid_margin)
         if brightness_range is not None:
             brightness_range = tuple(float(v) for v in brightness_range)
             if len(brightness_range) != 2 or not 0 < brightness_range[0] < brightness_range[1]:
@@ -128,14 +151,14 @@ class BestEpochCallback(Callback):
 
     def _prune(self, folder: Path) -> None:
         """Delete epoch checkpoints outside the top_k: the best is always among them."""
-        _, table = select_best(self.history, self.top_k, self.brightness_range)
+        _, table = select_best(self.history, self.top_k, self.brightness_range, fid_margin=self.fid_margin)
         keep = {Path(h["checkpoint"]).name for h in table}
         for path in (folder / "epochs").glob("epoch_*.ckpt"):
             if path.name not in keep:
                 path.unlink(missing_ok=True)
 
     def write(self, trainer: Trainer, pl_module: LightningModule) -> dict | None:
-        best, table = select_best(self.history, self.top_k, self.brightness_range)
+        best, table = select_best(self.history, self.top_k, self.brightness_range, fid_margin=self.fid_margin)
         if best is None or not trainer.is_global_zero:
             return best
         folder = checkpoint_dir(trainer)
@@ -146,7 +169,9 @@ class BestEpochCallback(Callback):
             log.warning("best epoch %d: its checkpoint %s is gone; best.ckpt not updated", best["epoch"], src)
         summary = {
             "epoch": best["epoch"], "fid": best["fid"], "kid": best["kid"], "spread": best["spread"],
-            "brightness": best.get("brightness"), "top_k": self.top_k, "n_phi": self.n_phi,
+            "brightness": best.get("brightness"), "particle_brightness": best.get("particle_brightness"),
+            "background_brightness": best.get("background_brightness"), "contrast": best.get("contrast"),
+            "top_k": self.top_k, "fid_margin": self.fid_margin, "n_phi": self.n_phi,
             "brightness_range": None if self.brightness_range is None else list(self.brightness_range),
             "brightness_ok": within_brightness(best, self.brightness_range),
             "spread_definition": "mean over learned parameters of std((x - low) / (high - low)) over n_phi constellations",
@@ -160,13 +185,15 @@ class BestEpochCallback(Callback):
         return best
 
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        best, _ = select_best(self.history, self.top_k, self.brightness_range)
+        best, _ = select_best(self.history, self.top_k, self.brightness_range, fid_margin=self.fid_margin)
         if best is not None and trainer.is_global_zero:
             log.info("best epoch %d: FID %.4g, spread %.4g (of the %d lowest-FID epochs)", best["epoch"], best["fid"], best["spread"], self.top_k)
             if not within_brightness(best, self.brightness_range):
-                log.warning("best epoch %d: its images are %.2f x as bright as the real patches on average, outside %s "
-                            "in every epoch; check the light radiance and BSDF limits before generating data from it",
-                            best["epoch"], best["brightness"], list(self.brightness_range))
+                log.warning("best epoch %d: no epoch had particles and background within %s x the real ones' grey with "
+                            "the real contrast direction (this one: particles %s x, background %s x, contrast %s, whole "
+                            "image %s x); check the material (polarity, lights, limits) before generating data from it",
+                            best["epoch"], list(self.brightness_range), best.get("particle_brightness"),
+                            best.get("background_brightness"), best.get("contrast"), best.get("brightness"))
 
     def state_dict(self) -> dict:
         return {"history": [dict(h) for h in self.history]}

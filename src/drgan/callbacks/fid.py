@@ -7,9 +7,14 @@ of the patch array and its resolution, so a resumed run or a second run on the s
 
 Also the *brightness*: mean grey of the synthetic images / mean grey of the real patches. The FID hardly
 sees a global change of brightness (the real TiO2 SEM patches x 0.25 score 57.7 against themselves, while
-a generator 4-5x too dark gives useless segmentation data), so the best-epoch rule checks it separately.
+a generator 4-5x too dark gives useless segmentation data), so the best-epoch rule checks it separately, for
+particles and background apart: ``val/particle_brightness`` and ``val/background_brightness`` (synthetic /
+real mean grey of particle pixels, of background pixels; synthetic pixels from the exact labels, real ones
+from the classical segmentation the patches were mined with, in the data's polarity), and ``val/contrast``
+(particle / background of the synthetic images in the data's direction, `contrast`: below 1 the contrast is
+inverted). A whole-image mean misses an epoch whose particles are brighter than a dark-particle stage.
 
-Logged: ``val/fid``, ``val/kid`` (mean over subsets), ``val/brightness`` and ``time/fid_s``, through ``pl_module.log`` so that a
+Logged: ``val/fid``, ``val/kid`` (mean over subsets), the brightness values and ``time/fid_s``, through ``pl_module.log`` so that a
 ``ModelCheckpoint(monitor="val/fid")`` sees them. The per-epoch history travels in the checkpoint.
 """
 
@@ -94,22 +99,41 @@ def dataset_key(patches: np.ndarray) -> str:
 
 def render_samples(
     pl_module: LightningModule, n: int, seed_base: int, progress: bool = False, spp: int | None = None,
-    indices: Sequence[int] | None = None,
-) -> np.ndarray:
+    indices: Sequence[int] | None = None, masks: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Images (len, H, W) in [0, 1] without gradients: image i uses constellation ``i % len(phi_bank)`` and
     seed ``seed_base + i``, so it is the same whichever process renders it. ``indices`` None: 0 .. n-1;
-    ``spp`` None renders at the training spp."""
+    ``spp`` None renders at the training spp. ``masks``: also return their particle masks (len, H, W) bool."""
     bank = pl_module.phi_bank
     iterator = range(n) if indices is None else list(indices)
     if progress:
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc="FID renders", unit="img", leave=False)
-    images = [
-        pl_module.generator.sample(bank[i % len(bank)].cpu(), seed=(seed_base + i) & 0xFFFFFFFF, spp=spp).image
-        for i in iterator
-    ]
-    return np.clip(np.stack(images).astype(np.float32), 0.0, 1.0)
+    samples = [pl_module.generator.sample(bank[i % len(bank)].cpu(), seed=(seed_base + i) & 0xFFFFFFFF, spp=spp)
+               for i in iterator]
+    images = np.clip(np.stack([s.image for s in samples]).astype(np.float32), 0.0, 1.0)
+    return (images, np.stack([s.labels > 0 for s in samples])) if masks else images
+
+
+def level_sums(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """Per image (len, 4): sum and count of particle pixels, sum and count of background pixels."""
+    images, masks = np.asarray(images, dtype=np.float64), np.asarray(masks, dtype=bool)
+    return np.stack([(images * masks).sum(axis=(1, 2)), masks.sum(axis=(1, 2)),
+                     (images * ~masks).sum(axis=(1, 2)), (~masks).sum(axis=(1, 2))], axis=1)
+
+
+def levels(sums: np.ndarray) -> tuple[float, float]:
+    """(mean particle grey, mean background grey) over every image of ``level_sums`` rows (NaN when absent)."""
+    total = np.asarray(sums, dtype=np.float64).sum(axis=0)
+    return (float(total[0] / total[1]) if total[1] else math.nan), (float(total[2] / total[3]) if total[3] else math.nan)
+
+
+def contrast(particle: float, background: float, polarity: str) -> float:
+    """How far particles stand out in the data's direction: particle / background for bright particles,
+    background / particle for dark ones; above 1 when they lie on the right side of the background."""
+    ratio = particle / background if polarity == "bright" else background / particle
+    return float(ratio) if math.isfinite(ratio) else math.nan
 
 
 def rank_share(n: int, rank: int, world: int) -> list[int]:
@@ -179,6 +203,7 @@ class FIDCallback(Callback):
         self.history: list[dict] = []  # per evaluated epoch: epoch, fid, kid, kid_std, brightness, n_images, seconds
         self._real: FeatureStats | None = None
         self._real_mean: float | None = None
+        self._real_levels: tuple[float, float] | None = None
 
     @property
     def state_key(self) -> str:
@@ -205,6 +230,18 @@ class FIDCallback(Callback):
             self._real_mean = float(real_patches(trainer).mean(dtype=np.float64))
         return self._real_mean
 
+    def real_levels(self, trainer: Trainer) -> tuple[float, float]:
+        """(particle, background) mean grey of the real training patches, segmented as they were mined."""
+        if self._real_levels is None:
+            from drgan.data.patches import segment_particles
+
+            datamodule = trainer.datamodule
+            polarity, segment = getattr(datamodule, "polarity", None) or "bright", getattr(datamodule, "segment", None)
+            patches = real_patches(trainer)
+            masks = np.stack([segment_particles(p, segment, polarity)[1] for p in patches])
+            self._real_levels = levels(level_sums(patches, masks))
+        return self._real_levels
+
     def latest(self, epoch: int) -> dict | None:
         return next((h for h in reversed(self.history) if h["epoch"] == epoch), None)
 
@@ -221,21 +258,30 @@ class FIDCallback(Callback):
         # Under DDP each rank renders and embeds its share; the features are gathered, so every rank scores
         # the same n images (the same ones as a single process would: seeds follow the image index).
         mine = rank_share(n, trainer.global_rank, trainer.world_size)
-        fake = render_samples(pl_module, n, FID_SEED_BASE + 100_003 * epoch, progress=self.progress and trainer.is_global_zero,
-                              spp=self.spp, indices=mine)
+        fake, fake_masks = render_samples(pl_module, n, FID_SEED_BASE + 100_003 * epoch,
+                                          progress=self.progress and trainer.is_global_zero, spp=self.spp, indices=mine,
+                                          masks=True)
         fake_feats = gather_rows(trainer, np.asarray(self._extractor().features(fake), dtype=np.float64), n)
         grey = gather_rows(trainer, fake.mean(axis=(1, 2), dtype=np.float64), n)  # every image has as many pixels
         fid = FeatureStats.from_features(fake_feats).fid(real)
         kid_mean, kid_std = kid(fake_feats, real.features, self.kid_subsets, self.kid_subset_size, seed=epoch)
         brightness = float(grey.mean()) / max(self.real_mean(trainer), 1e-6)
+        particle, background = levels(gather_rows(trainer, level_sums(fake, fake_masks), n))
+        real_particle, real_background = self.real_levels(trainer)
+        polarity = getattr(trainer.datamodule, "polarity", None) or "bright"
+        tones = {"particle_brightness": particle / real_particle if real_particle > 0 else math.nan,
+                 "background_brightness": background / real_background if real_background > 0 else math.nan,
+                 "contrast": contrast(particle, background, polarity)}
         seconds = time.perf_counter() - start
         self.history = [h for h in self.history if h["epoch"] != epoch]
         self.history.append({"epoch": epoch, "fid": fid, "kid": kid_mean, "kid_std": kid_std, "brightness": brightness,
-                             "n_images": n, "seconds": seconds})
+                             **tones, "n_images": n, "seconds": seconds})
         if trainer.is_global_zero:
-            log.info("epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (%d images, %.1f s)", epoch, fid, kid_mean,
-                     brightness, n, seconds)
-        for key, value in (("val/fid", fid), ("val/kid", kid_mean), ("val/brightness", brightness), ("time/fid_s", seconds)):
+            log.info("epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (particles %.2f x, background %.2f x, "
+                     "contrast %.2f for %s particles; %d images, %.1f s)", epoch, fid, kid_mean, brightness,
+                     tones["particle_brightness"], tones["background_brightness"], tones["contrast"], polarity, n, seconds)
+        for key, value in (("val/fid", fid), ("val/kid", kid_mean), ("val/brightness", brightness),
+                           *((f"val/{k}", v) for k, v in tones.items()), ("time/fid_s", seconds)):
             pl_module.log(key, float(value), on_step=False, on_epoch=True, prog_bar=key == "val/fid", sync_dist=True)
 
     def state_dict(self) -> dict:
