@@ -1,0 +1,389 @@
+"""`python -m drgan.profile data.dir=DIR name=NAME`: profile unannotated particle images, write a material config.
+
+Reads every (train) image, detects the polarity, segments the particles classically (drgan.data.profile), and
+measures background grey, noise sigma and grain, the diameter distribution (normal / lognormal / two-lognormal
+mixture, chosen by BIC), particles per patch, agglomeration, elongation and the pixel size. Writes, in `out`
+(default runs/profile/NAME): profile.json (every number), report.md, sizes.png, particles.png (real images with
+the detected outlines: keep them out of the repository), background_noise.png; and ./drgan_conf/material/NAME.yaml,
+a material inheriting the closest paper material, ready for `python -m drgan.train material=NAME`.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import os
+import re
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from drgan.data import profile as est
+from drgan.data.images import list_images, read_grey, read_split
+from drgan.data.patches import SegmentParams
+from drgan.data.polarity import check_polarity, resolve_polarity
+from drgan.errors import ConfigError, DataError
+from drgan.io import write_bytes, write_json
+
+log = logging.getLogger(__name__)
+
+FIRST_PASS_IMAGES = 8  # images segmented with the default SegmentParams for the first size estimate
+
+
+# --- settings and images ----------------------------------------------------------------------------------
+
+
+def _check_settings(cfg: DictConfig) -> tuple[Path, tuple[int, int] | None, str, int]:
+    if not cfg.get("data") or not cfg.data.get("dir"):
+        raise ConfigError("profile: give data.dir=DIR (a folder of particle images)")
+    name = cfg.get("name")
+    if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
+        raise ConfigError(f"profile: name={name!r}: expected a material name of letters, digits, _ or - "
+                          "(the config is written as drgan_conf/material/NAME.yaml)")
+    folder = Path(str(cfg.data.dir)).expanduser()
+    if not folder.is_dir():
+        raise ConfigError(f"profile: data.dir={folder}: no such folder (expected a folder of images)")
+    crop = cfg.data.get("crop_rows")
+    if crop is not None:
+        crop = list(crop)
+        if len(crop) != 2 or not all(isinstance(v, int) for v in crop) or not 0 <= crop[0] < crop[1]:
+            raise ConfigError(f"profile: data.crop_rows={crop}: expected [start, stop) with 0 <= start < stop")
+        crop = (crop[0], crop[1])
+    polarity = check_polarity(cfg.data.get("polarity", "auto"), "data.polarity", allow_auto=True)
+    patch = cfg.get("patch_size", 256)
+    if not isinstance(patch, int) or patch < 16:
+        raise ConfigError(f"profile: patch_size={patch}: expected an integer >= 16 px")
+    max_images = cfg.get("max_images")
+    if max_images is not None and (not isinstance(max_images, int) or max_images < 1):
+        raise ConfigError(f"profile: max_images={max_images}: expected a positive integer or null")
+    return folder, crop, polarity, patch
+
+
+def resolve_split(folder: Path, split) -> Path | None:
+    """data.split: auto (folder/split.json or folder/../split.json when present), a path, or None."""
+    if split is None or str(split) in ("", "none", "null"):
+        return None
+    if str(split) == "auto":
+        return next((p for p in (folder / "split.json", folder.parent / "split.json") if p.is_file()), None)
+    path = Path(str(split)).expanduser()
+    if not path.is_file():
+        raise ConfigError(f"profile: data.split={split}: no such file (expected a split.json, auto or null)")
+    return path
+
+
+def select_images(folder: Path, split_path: Path | None, max_images: int | None) -> list[Path]:
+    """The images profiled: the split's train ids (never its test ids), else every image of the folder."""
+    if split_path is None:
+        paths = list_images(folder)
+    else:
+        split = read_split(split_path)
+        if not split["train"]:
+            raise DataError(f"split file {split_path}: empty 'train' list")
+        paths = list_images(folder, split["train"])
+        test = set(split["test"])
+        assert not test & {p.stem for p in paths}, "read_split refuses overlapping splits"
+    return paths[:max_images] if max_images else paths
+
+
+# --- the profile ------------------------------------------------------------------------------------------
+
+
+def profile(cfg: DictConfig) -> dict:
+    """Profile the images of cfg.data.dir; write figures, profile.json, report.md and the material config."""
+    folder, crop, polarity_setting, patch = _check_settings(cfg)
+    name = str(cfg.name)
+    conf_path = Path(str(cfg.get("conf_dir", "drgan_conf"))) / "material" / f"{name}.yaml"
+    if conf_path.exists() and not cfg.get("overwrite", False):
+        raise ConfigError(f"profile: {conf_path} exists; choose another name= or set overwrite=true")
+    split_path = resolve_split(folder, cfg.data.get("split", "auto"))
+    paths = select_images(folder, split_path, cfg.get("max_images"))
+    images = [read_grey(p, crop) for p in tqdm(paths, desc="reading", unit="image")]  # checks crop on every image
+    small = [p.name for p, im in zip(paths, images) if min(im.shape) < patch]
+    if small:
+        raise DataError(f"profile: image(s) {small[:3]} are smaller than patch_size={patch} px after cropping")
+
+    polarity, estimate = resolve_polarity(polarity_setting, images)
+    log.info("polarity: %s (%s)", polarity, "detected" if estimate else "set")
+
+    # First pass: default segmentation on a few images -> a size scale for the parameters of the second pass.
+    step = max(1, len(images) // FIRST_PASS_IMAGES)
+    first = []
+    for image in tqdm(images[::step][:FIRST_PASS_IMAGES], desc="first pass", unit="image"):
+        table = est.particle_table(est.segment_image(image, SegmentParams(), polarity)[0])
+        first.append(table["diameter_px"][~table["touches_border"]])
+    first_median = float(np.median(np.concatenate(first))) if sum(map(len, first)) else float("nan")
+    params = est.tune_segment_params(first_median)
+
+    tables, foregrounds, labels_kept, counts, ce = [], [], [], [], []
+    for image in tqdm(images, desc="segmenting", unit="image"):
+        labels, foreground = est.segment_image(image, params, polarity)
+        table = est.particle_table(labels)
+        tables.append(table)
+        foregrounds.append(foreground)
+        labels_kept.append(labels if len(labels_kept) < 4 else None)
+        counts.append(est.patch_counts(table["row"], table["col"], labels.shape, patch))
+        ce.append(est.clark_evans(table["row"], table["col"], labels.size))
+    noise = est.background_noise(images, foregrounds)
+
+    inner = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
+    fits, chosen = est.fit_sizes(inner, seed=int(cfg.get("seed", 0)))
+    counts = np.concatenate(counts)
+    touching = float(np.mean(np.concatenate([t["touches_other"] for t in tables])))
+    ce_values = [c for c in ce if c is not None]
+    ce_median = float(np.median(ce_values)) if ce_values else None
+    ratios = np.concatenate([t["axis_ratio"][~t["touches_border"]] for t in tables])
+    axis_ratio = float(np.median(ratios[np.isfinite(ratios)]))
+    pixel_sizes = [est.pixel_size_nm(p) for p in paths]
+    known = [s for s, _ in pixel_sizes if s is not None]
+
+    result = {
+        "name": name,
+        "data": {"dir": str(folder.resolve()), "crop_rows": list(crop) if crop else None,
+                 "split": str(split_path.resolve()) if split_path else None, "images": len(images),
+                 "ids": [p.stem for p in paths], "shape": list(images[0].shape)},
+        "polarity": {"value": polarity, "setting": polarity_setting, **(estimate.as_dict() if estimate else {})},
+        "segmentation": {"first_pass_median_diameter_px": round(first_median, 3), "params": params.__dict__,
+                         "particles": int(sum(len(t["diameter_px"]) for t in tables)),
+                         "particles_not_touching_border": int(inner.size)},
+        "background": noise.as_dict(),
+        "sizes": {"median_diameter_px": round(float(np.median(inner)), 3),
+                  "mean_diameter_px": round(float(inner.mean()), 3),
+                  "quantiles_px": {q: round(float(np.quantile(inner, float(q))), 3) for q in ("0.1", "0.25", "0.75", "0.9")},
+                  "fits": [f.as_dict() for f in fits], "chosen": chosen.kind,
+                  "criterion": "lowest BIC = k ln(n) - 2 ln(L), likelihoods in diameter space"},
+        "particles_per_patch": {"definition": f"segments (any, border-touching included) whose centroid lies inside a "
+                                              f"{patch} px window; windows on a grid of stride {patch // 2} px",
+                                "patch_size": patch, "windows": int(counts.size),
+                                "mean": round(float(counts.mean()), 3), "median": float(np.median(counts)),
+                                "p10": float(np.quantile(counts, 0.1)), "p90": float(np.quantile(counts, 0.9))},
+        "agglomeration": {"touching_fraction": round(touching, 4),
+                          "clark_evans_median": round(ce_median, 4) if ce_median is not None else None,
+                          "placement": est.placement_kind(touching, ce_median)},
+        "shape": {"axis_ratio_median": round(axis_ratio, 4), "mesh_kind": est.mesh_kind(axis_ratio)},
+        "pixel_size": {"nm_per_px": round(float(np.median(known)), 5) if known else None,
+                       "source": pixel_sizes[0][1] if known else "unknown",
+                       "images_with_size": len(known)},
+    }
+    out = Path(str(cfg.out))
+    result["out"] = str(out.resolve())
+    _write_figures(out, images, labels_kept, inner, fits, chosen, noise, foregrounds, counts, polarity)
+    parent, yaml_text = material_yaml(result, fits, chosen)
+    result["material"] = {"parent": parent, "config": str(conf_path.resolve())}
+    write_json(out / "profile.json", result)
+    write_bytes(out / "report.md", report_markdown(result).encode())
+    write_bytes(conf_path, yaml_text.encode())
+    log.info("wrote %s and %s (parent material %s)", out / "profile.json", conf_path, parent)
+    return result
+
+
+# --- the material config ----------------------------------------------------------------------------------
+
+PAPER_SIZES = {"tio2_sem": 30.0, "tio2_him": 40.0}
+
+
+def choose_parent(polarity: str, kind: str, median_px: float) -> tuple[str, str]:
+    """(paper material, why): dark particles -> tio2_tsem (transmission); bright rods -> agnw_sem, bright spheres
+    -> sio2_him, other bright shapes -> the TiO2 material of the nearer particle size."""
+    if polarity == "dark":
+        return "tio2_tsem", "dark particles on a bright background: the transmission material"
+    if kind == "rod":
+        return "agnw_sem", "bright, elongated (axis ratio > 2.5): the wire material"
+    if kind == "sphere":
+        return "sio2_him", "bright, round (axis ratio < 1.3): the sphere material"
+    parent = min(PAPER_SIZES, key=lambda k: abs(math.log(median_px / PAPER_SIZES[k])))
+    return parent, f"bright, irregular: the TiO2 material of the nearest size ({PAPER_SIZES[parent]:.0f} px)"
+
+
+def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
+    """(parent name, the text of drgan_conf/material/NAME.yaml), every value commented measured or inherited."""
+    name, polarity = result["name"], result["polarity"]["value"]
+    sizes, counts = result["sizes"], result["particles_per_patch"]
+    kind = result["shape"]["mesh_kind"]
+    parent, why = choose_parent(polarity, kind, sizes["median_diameter_px"])
+    by_kind = {f.kind: f for f in fits}
+    if chosen.kind == "normal":
+        size_px, spread = chosen.params["mean"], chosen.params["std"] / chosen.params["mean"]
+        spread_note = "measured: std / mean of the normal fit"
+    else:
+        lognormal = by_kind["lognormal"].params
+        size_px, spread = lognormal["median"], lognormal["sigma"]
+        spread_note = "measured: sigma of log(diameter), lognormal fit"
+    n_max = max(1, int(math.ceil(counts["p90"])))
+    n_min = max(1, min(n_max, int(math.floor(counts["p10"]))))
+    placement = result["agglomeration"]["placement"]
+    data = result["data"]
+    pol_note = "detected" if result["polarity"]["setting"] == "auto" else "set on the command line"
+    lines = [
+        "# @package _global_",
+        f"# Written by `python -m drgan.profile` from {data['images']} image(s) of {data['dir']}",
+        f"# (report: {result['out']}/report.md).",
+        f"# Parent: {parent} ({why}); everything not set here -- BSDF / transmission limits, lights, spp, filter,",
+        "# noise_sigma limits, view_width -- comes from the parent material, unmeasured.",
+        "defaults:",
+        f"  - {parent}",
+        f"  - override /size: {chosen.kind}        # measured: lowest BIC of normal / lognormal / bimodal",
+        f"  - override /placement: {placement}   # measured: touching fraction "
+        f"{result['agglomeration']['touching_fraction']:.2f}, Clark-Evans {result['agglomeration']['clark_evans_median']}",
+        "",
+        "material:",
+        f"  name: {name}",
+        f"  polarity: {polarity}           # {pol_note}",
+        f"  particle_size_px: {size_px:.1f}   # measured: median equivalent diameter of segmented particles, px "
+        "(the parent's is a largest extent, ~1.1x for irregular shapes)",
+        f"  size_spread: {spread:.3f}       # {spread_note}",
+        f"  n_particles: {n_max}           # measured: 90th percentile of particles per {counts['patch_size']} px patch "
+        f"(mean {counts['mean']:.1f})",
+        f"  n_particles_min: {n_min}       # measured: 10th percentile; each constellation draws n_particles_min..n_particles",
+        "  meshes:",
+        f"    kind: {kind}            # measured: median major/minor axis ratio {result['shape']['axis_ratio_median']:.2f}",
+    ]
+    if parent == "tio2_tsem":
+        lines.append(f"  noise_grain_px: {result['background']['grain_px']:.2f}   # measured: lag-1 autocorrelation "
+                     f"{result['background']['lag1_autocorrelation']:.3f} of the background's high-pass residual")
+    lines.append(f"  # measured, for reference: background grey {result['background']['background_grey']:.3f}, noise "
+                 f"sigma {result['background']['noise_sigma']:.4f} (the parent's noise_sigma limits are kept)")
+    if chosen.kind == "bimodal":
+        p = chosen.params
+        m1, s1 = est.lognormal_to_normal(p["median1"], p["sigma1"])
+        m2, s2 = est.lognormal_to_normal(p["median2"], p["sigma2"])
+        lines += [
+            "",
+            "size:                      # measured: the two lognormal components as normals (mean, std), px",
+            f"  mean1: {m1:.2f}",
+            f"  std1: {s1:.2f}",
+            f"  mean2: {m2:.2f}",
+            f"  std2: {s2:.2f}",
+            f"  weight1: {p['weight1']:.3f}",
+        ]
+    lines += [
+        "",
+        "data:",
+        f"  dir: {json.dumps(data['dir'])}",
+        f"  crop_rows: {json.dumps(data['crop_rows'])}   # as profiled",
+        f"  split: {json.dumps(data['split'])}   # as profiled (null: every image trains)",
+        f"  polarity: {polarity}           # {pol_note}",
+        "",
+    ]
+    return parent, "\n".join(lines)
+
+
+# --- report and figures -----------------------------------------------------------------------------------
+
+
+def report_markdown(r: dict) -> str:
+    b, s, c, a = r["background"], r["sizes"], r["particles_per_patch"], r["agglomeration"]
+    fits = "\n".join(
+        f"| {f['kind']}{' (chosen)' if f['kind'] == s['chosen'] else ''} | "
+        + ", ".join(f"{k} {v:g}" for k, v in f["params"].items()) + f" | {f['log_likelihood']:.1f} | {f['bic']:.1f} |"
+        for f in s["fits"])
+    px = r["pixel_size"]
+    return f"""# Profile: {r['name']}
+
+{r['data']['images']} image(s) of `{r['data']['dir']}` (crop_rows {r['data']['crop_rows']}, split {r['data']['split']}).
+Material config: `{r['material']['config']}` (parent `{r['material']['parent']}`).
+
+| quantity | value |
+|---|---|
+| polarity | {r['polarity']['value']} ({r['polarity']['setting']}; confidence {r['polarity'].get('confidence', '-')}) |
+| background grey (median of background pixels) | {b['background_grey']:.4f} |
+| noise sigma (MAD of the high-pass residual, corrected) | {b['noise_sigma']:.4f} |
+| lag-1 autocorrelation of the residual | {b['lag1_autocorrelation']:.3f} |
+| grain (Gaussian stddev, px) | {b['grain_px']:.2f} |
+| particles segmented / not touching the border | {r['segmentation']['particles']} / {r['segmentation']['particles_not_touching_border']} |
+| median / mean equivalent diameter (px) | {s['median_diameter_px']:.2f} / {s['mean_diameter_px']:.2f} |
+| particles per {c['patch_size']} px patch: mean / median (p10-p90) | {c['mean']:.2f} / {c['median']:g} ({c['p10']:g}-{c['p90']:g}) |
+| touching fraction / Clark-Evans ratio | {a['touching_fraction']:.3f} / {a['clark_evans_median']} -> placement {a['placement']} |
+| median axis ratio | {r['shape']['axis_ratio_median']:.3f} -> meshes {r['shape']['mesh_kind']} |
+| pixel size | {px['nm_per_px']} nm ({px['source']}) |
+
+Particles per patch: {c['definition']}.
+Segmentation: drgan.data.patches.segment_particles with {r['segmentation']['params']}
+(first-pass median diameter {r['segmentation']['first_pass_median_diameter_px']} px).
+
+## Diameter fits ({s['criterion']})
+
+| fit | parameters (px; sigma of log d) | log L | BIC |
+|---|---|---|---|
+{fits}
+
+Figures: `sizes.png`, `particles.png` (real images: keep them out of repositories), `background_noise.png`.
+"""
+
+
+def _png(draw) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = draw(plt)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrounds, counts, polarity) -> None:
+    from skimage.segmentation import find_boundaries
+
+    def sizes(plt):
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.hist(diameters, bins=40, density=True, color="0.8", label=f"{diameters.size} particles")
+        x = np.linspace(max(diameters.min() * 0.8, 0.1), diameters.max() * 1.1, 400)
+        for f in fits:
+            best = f.kind == chosen.kind
+            ax.plot(x, f.pdf(x), lw=3 if best else 1.2, label=f"{f.kind} (BIC {f.bic:.0f}){' chosen' if best else ''}")
+        ax.set_xlabel("equivalent diameter (px)")
+        ax.set_ylabel("density")
+        ax.legend()
+        return fig
+
+    def outlines(plt):
+        shown = [(im, lab) for im, lab in zip(images, labels) if lab is not None][:4]
+        fig, axes = plt.subplots(1, len(shown), figsize=(5 * len(shown), 4), squeeze=False)
+        for ax, (im, lab) in zip(axes[0], shown):
+            rgb = np.repeat(im[..., None], 3, axis=2)
+            rgb[find_boundaries(lab, mode="outer")] = (1.0, 0.2, 0.1)
+            ax.imshow(rgb)
+            ax.set_title(f"{int(lab.max() and len(np.unique(lab)) - 1)} segments ({polarity})")
+            ax.axis("off")
+        return fig
+
+    def background(plt):
+        fig, axes = plt.subplots(1, 3, figsize=(14, 3.5))
+        grey = np.concatenate([np.asarray(im)[est.background_mask(fg)] for im, fg in zip(images[:8], foregrounds[:8])])
+        axes[0].hist(grey, bins=100, color="0.5")
+        axes[0].axvline(noise.background_grey, color="r", label=f"median {noise.background_grey:.3f}")
+        axes[0].set_xlabel("background grey")
+        axes[0].legend()
+        residual = np.concatenate([est.highpass(im)[est.background_mask(fg)] for im, fg in zip(images[:8], foregrounds[:8])])
+        lim = 6 * max(noise.residual_sigma, 1e-6)
+        axes[1].hist(residual, bins=100, range=(-lim, lim), density=True, color="0.5")
+        x = np.linspace(-lim, lim, 200)
+        axes[1].plot(x, np.exp(-0.5 * (x / noise.residual_sigma) ** 2) / (noise.residual_sigma * math.sqrt(2 * math.pi)),
+                     "r", label=f"MAD sigma {noise.residual_sigma:.4f}")
+        axes[1].set_xlabel(f"high-pass residual (lag-1 r {noise.lag1_autocorrelation:.2f}, grain {noise.grain_px:.2f} px)")
+        axes[1].legend()
+        axes[2].hist(counts, bins=np.arange(counts.max() + 2) - 0.5, color="0.5")
+        axes[2].set_xlabel("particles per patch (centroid inside)")
+        return fig
+
+    write_bytes(out / "sizes.png", _png(sizes))
+    write_bytes(out / "particles.png", _png(outlines))
+    write_bytes(out / "background_noise.png", _png(background))
+
+
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="profile")
+def main(cfg: DictConfig):
+    OmegaConf.resolve(cfg)
+    profile(cfg)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    main()

@@ -1,0 +1,193 @@
+"""drgan.profile: estimates from unannotated images, on synthetic discs of known sizes, grey, noise and grain."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy import ndimage as ndi
+
+from conftest import compose
+from drgan.data import profile as est
+from drgan.data.patches import SegmentParams
+from drgan.errors import ConfigError, DataError
+
+GREY = {"bright": 0.25, "dark": 0.75}  # background grey level
+CONTRAST = {"bright": 0.4, "dark": -0.4}
+
+
+def synthetic(polarity, rng, size=320, n=30, median=20.0, sigma=0.25, noise=0.03, grain=1.0, diameters=None):
+    """Non-overlapping discs (diameters lognormal unless given) on a noisy background; returns (image, diameters)."""
+    yy, xx = np.mgrid[:size, :size]
+    image = np.full((size, size), GREY[polarity])
+    drawn, centres = [], []
+    wanted = diameters if diameters is not None else np.exp(rng.normal(np.log(median), sigma, n))
+    for d in wanted:
+        r = d / 2
+        for _ in range(200):
+            c = rng.uniform(r + 2, size - r - 2, 2)
+            if all(np.hypot(*(c - c2)) > r + r2 + 3 for c2, r2 in centres):
+                centres.append((c, r))
+                image[(yy - c[0]) ** 2 + (xx - c[1]) ** 2 <= r * r] += CONTRAST[polarity]
+                drawn.append(d)
+                break
+    white = rng.standard_normal((size, size))
+    field = ndi.gaussian_filter(white, grain, mode="wrap") if grain > 0 else white
+    image += noise * field / field.std()
+    return np.clip(image, 0, 1).astype(np.float32), np.asarray(drawn)
+
+
+def measure(images, polarity):
+    params = est.tune_segment_params(20.0)
+    tables, fgs = [], []
+    for image in images:
+        labels, fg = est.segment_image(image, params, polarity)
+        tables.append(est.particle_table(labels))
+        fgs.append(fg)
+    d = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
+    return d, est.background_noise(images, fgs)
+
+
+@pytest.mark.parametrize("polarity", ["bright", "dark"])
+def test_estimates_recover_polarity_background_noise_grain_and_median_diameter(polarity):
+    from drgan.data.polarity import detect_polarity
+
+    rng = np.random.default_rng(1)
+    pairs = [synthetic(polarity, rng) for _ in range(3)]
+    images, truth = [p[0] for p in pairs], np.concatenate([p[1] for p in pairs])
+    assert detect_polarity(images).polarity == polarity
+    d, noise = measure(images, polarity)
+    assert abs(np.median(d) / np.median(truth) - 1) < 0.04
+    assert abs(noise.background_grey - GREY[polarity]) < 0.005
+    assert abs(noise.noise_sigma / 0.03 - 1) < 0.1
+    assert abs(noise.grain_px - 1.0) < 0.2
+
+
+def test_white_noise_reads_as_no_grain():
+    rng = np.random.default_rng(2)
+    image, _ = synthetic("bright", rng, grain=0.0, noise=0.02)
+    _, noise = measure([image], "bright")
+    assert noise.grain_px < 0.35 and abs(noise.noise_sigma / 0.02 - 1) < 0.1
+
+
+def test_the_fit_picks_lognormal_for_lognormal_data_and_bimodal_for_two_sizes():
+    rng = np.random.default_rng(3)
+    fits, chosen = est.fit_sizes(np.exp(rng.normal(np.log(25), 0.3, 400)))
+    assert chosen.kind == "lognormal" and {f.kind for f in fits} == {"normal", "lognormal", "bimodal"}
+    assert abs(chosen.params["median"] / 25 - 1) < 0.05 and abs(chosen.params["sigma"] / 0.3 - 1) < 0.1
+    two = np.concatenate([np.exp(rng.normal(np.log(12), 0.1, 200)), np.exp(rng.normal(np.log(36), 0.1, 200))])
+    _, chosen = est.fit_sizes(two)
+    assert chosen.kind == "bimodal"
+    assert abs(chosen.params["median1"] / 12 - 1) < 0.05 and abs(chosen.params["median2"] / 36 - 1) < 0.05
+    # On the images: discs of two sizes are segmented and fitted as a mixture too.
+    images = [synthetic("bright", rng, diameters=rng.permutation([12.0] * 25 + [32.0] * 12))[0] for _ in range(3)]
+    d, _ = measure(images, "bright")
+    assert est.fit_sizes(d)[1].kind == "bimodal"
+
+
+def test_particles_per_patch_count_centroids_inside_windows():
+    assert list(est.window_starts(712, 256, 128)) == [36, 164, 292, 420]
+    counts = est.patch_counts(np.array([10.0, 300.0, 300.0]), np.array([10.0, 10.0, 200.0]), (512, 512), 256)
+    assert counts.reshape(3, 3).tolist() == [[1, 0, 0], [2, 1, 0], [2, 1, 0]]
+
+
+def test_agglomeration_and_shape_suggestions():
+    labels = np.zeros((40, 40), np.int32)
+    labels[2:8, 2:8], labels[8:14, 2:8], labels[30:33, 10:34] = 1, 2, 3
+    table = est.particle_table(labels)
+    assert table["touches_other"].tolist() == [True, True, False]
+    assert est.mesh_kind(float(table["axis_ratio"][2])) == "rod" and est.mesh_kind(1.0) == "sphere"
+    grid = np.mgrid[5:100:10, 5:100:10].reshape(2, -1)
+    assert est.clark_evans(grid[0], grid[1], 100 * 100) > 1.5  # a lattice is regular
+    assert est.placement_kind(0.5, 1.0) == "poisson" and est.placement_kind(0.05, 1.1) == "random_2d"
+
+
+def test_pixel_size_from_tiff_resolution(tmp_path):
+    import tifffile
+
+    path = tmp_path / "a.tif"
+    tifffile.imwrite(path, np.zeros((8, 8), np.uint8), resolution=(1e6, 1e6), resolutionunit="CENTIMETER")
+    size, source = est.pixel_size_nm(path)
+    assert size == pytest.approx(10.0) and "Resolution" in source
+    tifffile.imwrite(path, np.zeros((8, 8), np.uint8))
+    assert est.pixel_size_nm(path)[0] is None
+
+
+def _folder(tmp_path, polarity, n=3):
+    folder = tmp_path / "images"
+    folder.mkdir()
+    rng = np.random.default_rng(4)
+    for i in range(n):
+        image, _ = synthetic(polarity, rng)
+        bar = np.full((16, image.shape[1]), 1.0, np.float32)  # an info bar to crop
+        Image.fromarray((np.concatenate([image, bar]) * 255).round().astype(np.uint8)).save(folder / f"im{i}.png")
+    return folder
+
+
+def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp_path, monkeypatch):
+    from drgan.profile import profile
+
+    folder = _folder(tmp_path, "bright")
+    monkeypatch.chdir(tmp_path)
+    overrides = [f"data.dir={folder}", "data.crop_rows=[320,336]", "name=my_discs", f"out={tmp_path / 'out'}"]
+    result = profile(compose(overrides, config_name="profile"))
+    assert result["polarity"]["value"] == "bright" and result["data"]["split"] is None
+    for name in ("profile.json", "report.md", "sizes.png", "particles.png", "background_noise.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+    saved = json.loads((tmp_path / "out" / "profile.json").read_text())
+    assert abs(saved["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
+    assert saved["shape"]["mesh_kind"] == "sphere" and saved["material"]["parent"] == "sio2_him"
+
+    cfg = compose(["material=my_discs"], config_name="train")
+    assert cfg.material.name == "my_discs" and cfg.material.meshes.kind == "sphere"
+    assert cfg.material.particle_size_px == pytest.approx(saved["sizes"]["fits"][1]["params"]["median"], abs=0.05)
+    assert cfg.size.kind == saved["sizes"]["chosen"] and cfg.placement.kind == saved["agglomeration"]["placement"]
+    assert cfg.data.dir == str(folder.resolve()) and list(cfg.data.crop_rows) == [320, 336]
+    assert cfg.material.spp == 16  # inherited from the parent
+
+    with pytest.raises(ConfigError, match="exists"):
+        profile(compose(overrides, config_name="profile"))  # no overwrite without overwrite=true
+
+
+def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path, monkeypatch):
+    from drgan.profile import profile
+
+    folder = _folder(tmp_path, "dark", n=2)
+    monkeypatch.chdir(tmp_path)
+    result = profile(compose([f"data.dir={folder}", "data.crop_rows=[320,336]", "name=dark_discs",
+                              f"out={tmp_path / 'out'}"], config_name="profile"))
+    assert result["polarity"]["value"] == "dark" and result["material"]["parent"] == "tio2_tsem"
+    text = (tmp_path / "drgan_conf" / "material" / "dark_discs.yaml").read_text()
+    assert "  - tio2_tsem\n" in text and "noise_grain_px:" in text
+    cfg = compose(["material=dark_discs"], config_name="train")
+    assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark"
+    assert cfg.material.noise_grain_px == pytest.approx(result["background"]["grain_px"], abs=0.01)
+
+
+def test_errors_before_compute(tmp_path, monkeypatch):
+    from drgan.profile import profile
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match="data.dir"):
+        profile(compose(["name=x"], config_name="profile"))
+    with pytest.raises(ConfigError, match="no such folder"):
+        profile(compose([f"data.dir={tmp_path / 'missing'}", "name=x"], config_name="profile"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match="no image files"):
+        profile(compose([f"data.dir={tmp_path / 'empty'}", "name=x"], config_name="profile"))
+    folder = _folder(tmp_path, "bright", n=1)
+    with pytest.raises(DataError, match="crop_rows"):
+        profile(compose([f"data.dir={folder}", "data.crop_rows=[300,400]", "name=x"], config_name="profile"))
+    with pytest.raises(ConfigError, match="name"):
+        profile(compose([f"data.dir={folder}"], config_name="profile"))
+    assert not (tmp_path / "drgan_conf").exists()
+
+
+def test_segment_params_scale_with_the_first_pass_size():
+    assert est.tune_segment_params(24.0) == est.tune_segment_params(30.0)  # the calibrated range
+    big = est.tune_segment_params(80.0)
+    assert big.min_distance > 6 and big.min_area > SegmentParams().min_area
+    with pytest.raises(DataError):
+        est.tune_segment_params(float("nan"))
