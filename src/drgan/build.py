@@ -56,16 +56,48 @@ def load_particle_meshes(mesh_cfg: Mapping, base_dir: str | Path | None = None) 
     return meshes.generate_meshes(mesh_cfg["kind"], count, setting_int("material.meshes.seed", mesh_cfg.get("seed", 0)), **params)
 
 
+IMAGING = ("secondary", "transmission")
+# Keys of a secondary-electron material that a transmission material has no use for (it has no BSDFs or lights).
+SECONDARY_ONLY = ("particle_bsdf", "stage_bsdf", "scene")
+
+
+def imaging(material: Mapping) -> str:
+    """``material.imaging``: "secondary" (SEM/HIM surface contrast; the default) or "transmission"."""
+    material = _plain(material)
+    value = material.get("imaging") or "secondary"
+    if value not in IMAGING:
+        raise ConfigError(f"material.imaging={value!r}: expected one of {', '.join(IMAGING)}")
+    if value == "transmission":
+        present = [key for key in SECONDARY_ONLY if material.get(key) is not None]
+        if present:
+            raise ConfigError(
+                f"material.{present[0]}: a transmission material (material.imaging=transmission) has no BSDFs, "
+                f"stage or lights; remove {', '.join('material.' + key for key in present)} and set "
+                "material.transmission {background, absorption, floor}"
+            )
+    elif material.get("transmission") is not None:
+        raise ConfigError(
+            f"material.transmission is set but material.imaging={value!r}; set material.imaging=transmission "
+            "or remove material.transmission"
+        )
+    return value
+
+
 def material_parameters(material: Mapping) -> MaterialParameters:
     material = _plain(material)
-    return MaterialParameters.from_config(
-        material.get("particle_bsdf") or {}, material.get("stage_bsdf"), material.get("noise_sigma", {"value": 0.0})
-    )
+    sigma = material.get("noise_sigma", {"value": 0.0})
+    if imaging(material) == "transmission":
+        if material.get("transmission") is None:
+            raise ConfigError(
+                "material.transmission: missing; a transmission material needs {background, absorption, floor}"
+            )
+        return MaterialParameters.from_transmission(material["transmission"], sigma)
+    return MaterialParameters.from_config(material.get("particle_bsdf") or {}, material.get("stage_bsdf"), sigma)
 
 
-def scene_spec(material: Mapping, renderer: Mapping):
-    """SceneSpec from the material and renderer groups (imports Mitsuba)."""
-    from drgan.scene.scene import RenderSettings, SceneSpec, TopLight, TorusLight
+def render_settings(material: Mapping, renderer: Mapping):
+    """RenderSettings from the renderer group, falling back to the material's spp, filter and view width."""
+    from drgan.scene.scene import RenderSettings
 
     material, renderer = _plain(material), _plain(renderer)
     known = {"variant", "integrator", "max_depth", "resolution", "spp", "grad_spp", "grad_seed", "filter_stddev",
@@ -73,7 +105,7 @@ def scene_spec(material: Mapping, renderer: Mapping):
     unknown = sorted(set(renderer) - known)
     if unknown:
         raise ConfigError(f"renderer: unknown key(s) {unknown}; expected some of {sorted(known)}")
-    settings = RenderSettings(
+    return RenderSettings(
         resolution=setting_int("renderer.resolution", renderer.get("resolution", material.get("view_width", 256)), 1),
         spp=renderer.get("spp", material.get("spp", 16)),
         grad_spp=renderer.get("grad_spp"),
@@ -84,6 +116,20 @@ def scene_spec(material: Mapping, renderer: Mapping):
         max_depth=setting_int("renderer.max_depth", renderer.get("max_depth", 2), 1),
         camera_distance=float(renderer.get("camera_distance", 10.0)),
     )
+
+
+def scene_spec(material: Mapping, renderer: Mapping):
+    """SceneSpec (secondary imaging) or TransmissionSpec from the material and renderer groups (imports Mitsuba)."""
+    from drgan.scene.scene import SceneSpec, TopLight, TorusLight
+
+    material = _plain(material)
+    kind = imaging(material)
+    settings = render_settings(material, renderer)
+    view_width = setting_float("material.view_width", material.get("view_width", 256))
+    if kind == "transmission":
+        from drgan.scene.transmission import TransmissionSpec
+
+        return TransmissionSpec(parameters=material_parameters(material), render=settings, view_width=view_width)
     elements = material.get("scene") or {}
     unknown = sorted(set(elements) - {"stage", "torus_light", "top_light"})
     if unknown:
@@ -101,7 +147,7 @@ def scene_spec(material: Mapping, renderer: Mapping):
     return SceneSpec(
         parameters=material_parameters(material),
         render=settings,
-        view_width=setting_float("material.view_width", material.get("view_width", 256)),
+        view_width=view_width,
         stage=bool(elements.get("stage", True)),
         torus_light=light(TorusLight, "torus_light"),
         top_light=light(TopLight, "top_light"),
@@ -109,13 +155,23 @@ def scene_spec(material: Mapping, renderer: Mapping):
 
 
 def build_scene(cfg: DictConfig, base_dir: str | Path | None = None):
-    """ParticleScene of ``cfg.material`` rendered with ``cfg.renderer``."""
-    from drgan.scene.scene import ParticleScene
-
+    """ParticleScene (material.imaging secondary) or TransmissionScene of ``cfg.material`` with ``cfg.renderer``."""
     spec = scene_spec(cfg.material, cfg.renderer)
     unit_meshes = load_particle_meshes(cfg.material.meshes, base_dir)
     n = setting_int("material.n_particles", cfg.material.n_particles, 1)
-    return ParticleScene(unit_meshes, n, spec, variant=cfg.renderer.get("variant", "auto"))
+    if imaging(cfg.material) == "transmission":
+        from drgan.scene.transmission import TransmissionScene as Scene
+    else:
+        from drgan.scene.scene import ParticleScene as Scene
+    return Scene(unit_meshes, n, spec, variant=cfg.renderer.get("variant", "auto"))
+
+
+def noise_grain_px(material: Mapping) -> float:
+    """``material.noise_grain_px``: stddev (render px) of the Gaussian that correlates the noise; 0 = white."""
+    value = _plain(material).get("noise_grain_px", 0.0)
+    if value is None:
+        return 0.0
+    return setting_float("material.noise_grain_px", value, 0.0)
 
 
 def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: int = 0):
@@ -131,6 +187,7 @@ def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: i
         blocks=setting_int("model.blocks", model.get("blocks", 4), 0),
         dropout=setting_float("model.dropout", model.get("dropout", 0.1), 0.0),
         seed=seed,
+        noise_grain_px=noise_grain_px(cfg.material),
     )
 
 

@@ -1,6 +1,7 @@
 """The DiffRenderGAN generator: G(phi_i) = noise(render(FCN(phi_i), scene(phi_i)) [+ stage texture], sigma).
 
-Only the FCN learns. Its outputs set the learned Principled-BSDF parameters and the noise sigma; the
+Only the FCN learns. Its outputs set the scene's learned parameters (Principled-BSDF values, or a transmission
+scene's background, absorption and floor) and the noise sigma; the
 differentiable renderer turns them into an image, and gradients flow back through it to the FCN.
 Optionally (``material.background_texture``) the stage pixels also receive the fine texture of a real
 background patch: a constant added to the image, so it changes no gradient and no label.
@@ -16,7 +17,7 @@ from torch import nn
 
 from drgan.errors import ConfigError
 from drgan.models.regressor import ParameterRegressor
-from drgan.scene.scene import ParticleScene
+from drgan.scene.scene import MeshParticles, gaussian_kernel
 
 
 def clamp_straight_through(x: torch.Tensor) -> torch.Tensor:
@@ -29,12 +30,41 @@ def clamp_straight_through(x: torch.Tensor) -> torch.Tensor:
     return x + (x.clamp(0.0, 1.0) - x).detach()
 
 
-def add_noise(image: torch.Tensor, sigma: torch.Tensor, seed: int | None = None) -> torch.Tensor:
+def grained_noise(
+    shape: tuple[int, int], grain_px: float, generator: torch.Generator | None, dtype=torch.float32, device=None
+) -> torch.Tensor:
+    """(H, W) noise of unit variance: white (``grain_px`` 0) or white noise blurred by a Gaussian of stddev
+    ``grain_px`` px, as real detectors' noise is spatially correlated.
+
+    The white field is drawn ``radius`` px larger on each side and blurred without padding, so every pixel has
+    the same variance: sum(kernel^2) per axis of the separable blur, sum(kernel^2)^2 in all. Dividing by
+    sum(kernel^2) restores unit variance exactly (in expectation), and ``sigma`` keeps meaning the noise's
+    standard deviation.
+    """
+    if grain_px < 0:
+        raise ConfigError(f"material.noise_grain_px={grain_px}: expected >= 0 (px)")
+    if grain_px == 0:
+        return torch.randn(shape, generator=generator, dtype=dtype, device=device)
+    kernel = gaussian_kernel(grain_px, dtype, device)
+    radius = (len(kernel) - 1) // 2
+    white = torch.randn((shape[0] + 2 * radius, shape[1] + 2 * radius), generator=generator, dtype=dtype, device=device)
+    rows = torch.nn.functional.conv2d(white[None, None], kernel.view(1, 1, 1, -1))
+    blurred = torch.nn.functional.conv2d(rows, kernel.view(1, 1, -1, 1))[0, 0]
+    return blurred / kernel.square().sum()
+
+
+def add_noise(image: torch.Tensor, sigma: torch.Tensor, seed: int | None = None, grain_px: float = 0.0) -> torch.Tensor:
     """clamp -> + sigma * N(0, 1) -> clamp: images stay in [0, 1]; sigma and the render stay differentiable.
-    ``seed`` draws the noise from a generator of its own (None: torch's global generator)."""
+    ``seed`` draws the noise from a generator of its own (None: torch's global generator). ``grain_px`` > 0
+    correlates the noise spatially (`grained_noise`; still unit variance before sigma)."""
     clean = clamp_straight_through(image)
     generator = None if seed is None else torch.Generator(device=clean.device).manual_seed(int(seed))
-    noise = torch.randn(clean.shape, generator=generator, dtype=clean.dtype, device=clean.device)
+    if clean.dim() != 2:
+        if grain_px:
+            raise ConfigError(f"add_noise: noise grain needs an (H, W) image, got shape {tuple(clean.shape)}")
+        noise = torch.randn(clean.shape, generator=generator, dtype=clean.dtype, device=clean.device)
+    else:
+        noise = grained_noise(tuple(clean.shape), grain_px, generator, clean.dtype, clean.device)
     return clamp_straight_through(clean + sigma * noise)
 
 
@@ -95,8 +125,14 @@ class Sample:
 class Generator(nn.Module):
     """FCN + scene + noise. ``forward(phi)`` maps (B, n, 4) constellations to (B, 1, H, W) images."""
 
-    def __init__(self, scene: ParticleScene, hidden: int = 128, blocks: int = 4, dropout: float = 0.1, seed: int = 0):
+    def __init__(
+        self, scene: MeshParticles, hidden: int = 128, blocks: int = 4, dropout: float = 0.1, seed: int = 0,
+        noise_grain_px: float = 0.0,
+    ):
         super().__init__()
+        if isinstance(noise_grain_px, bool) or not isinstance(noise_grain_px, (int, float)) or not noise_grain_px >= 0:
+            raise ConfigError(f"material.noise_grain_px={noise_grain_px!r}: expected a number of px >= 0")
+        self.noise_grain_px = float(noise_grain_px)  # stddev of the noise's spatial correlation (`grained_noise`)
         self.scene = scene
         self.material = scene.spec.parameters
         self.learned = self.material.learned
@@ -149,7 +185,7 @@ class Generator(nn.Module):
         if self.background is not None:  # stage pixels only: labels and gradients stay those of the render
             stage = torch.from_numpy(self.scene.instance_labels() == 0).to(radiance.dtype)
             radiance = radiance + self.background.for_seed(seed).to(radiance.dtype) * stage
-        return add_noise(radiance, sigma, seed=seed).unsqueeze(0)  # one seed fixes the image: paths, texture, noise
+        return add_noise(radiance, sigma, seed=seed, grain_px=self.noise_grain_px).unsqueeze(0)  # one seed fixes the image: paths, texture, noise
 
     def render_batch(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, n, 4) -> images (B, 1, H, W) and the learned values (B, k) they were rendered with."""

@@ -1,9 +1,11 @@
-"""Material parameters: which Principled-BSDF values and noise level are learned, within which limits.
+"""Material parameters: which scene values (Principled-BSDF values, or the transmission scene's background,
+absorption and floor) and noise level are learned, within which limits.
 
 A parameter is *learned* when the configuration gives limits ``{min: a, max: b}`` and *fixed* when it
 gives a value (``{value: v}`` or a bare number). Learned parameters are what the generator's FCN outputs,
 squashed into [0, 1] by a sigmoid and rescaled into [min, max]; only they carry gradients in the scene.
-Ordering follows the paper's reference implementation: stage parameters, particle parameters, noise sigma.
+Ordering follows the paper's reference implementation: stage parameters, particle parameters, noise sigma
+(transmission: background, absorption, floor, noise sigma).
 """
 
 from __future__ import annotations
@@ -29,12 +31,16 @@ PRINCIPLED_PARAMETERS = (
     "anisotropic",
     "spec_trans",
 )
-SURFACES = ("stage", "particle")
+SURFACES = ("stage", "particle", "transmission")
+# Transmission imaging (drgan.scene.transmission): grey of the bare film, absorption per px of path length
+# through a particle, and the grey behind an opaque particle (detector offset). Also the FCN output order.
+TRANSMISSION_PARAMETERS = ("background", "absorption", "floor")
+TRANSMISSION_DEFAULTS = {"floor": 0.0}  # absent: a detector without offset
 
 
 @dataclass(frozen=True)
 class Parameter:
-    """One scalar of the scene: ``surface`` is 'stage', 'particle' or 'noise'."""
+    """One scalar of the scene: ``surface`` is 'stage', 'particle', 'transmission' or 'noise'."""
 
     surface: str
     name: str
@@ -80,9 +86,20 @@ def _parse_parameter(surface: str, name: str, spec, where: str) -> Parameter:
     return Parameter(surface, name, low=low, high=high)
 
 
+def _parse_sigma(noise_sigma) -> Parameter:
+    sigma = _parse_parameter("noise", "sigma", noise_sigma, "noise_sigma")
+    if sigma.learned and sigma.high > 1.0:
+        raise ConfigError(f"noise_sigma.max={sigma.high}: expected <= 1 (images are in [0, 1])")
+    return sigma
+
+
 @dataclass(frozen=True)
 class MaterialParameters:
-    """All scalars of a material: BSDF values per surface plus the noise sigma."""
+    """All scalars of a material: scene values per surface plus the noise sigma.
+
+    ``bsdf`` holds the scene's values: Principled-BSDF values of the stage and particle surfaces
+    (secondary-electron imaging) or the "transmission" surface's `TRANSMISSION_PARAMETERS`.
+    """
 
     bsdf: tuple[Parameter, ...]
     noise_sigma: Parameter
@@ -98,10 +115,29 @@ class MaterialParameters:
                         f"{', '.join(PRINCIPLED_PARAMETERS)}"
                     )
                 params.append(_parse_parameter(surface, name, spec, f"{surface}_bsdf.{name}"))
-        sigma = _parse_parameter("noise", "sigma", noise_sigma, "noise_sigma")
-        if sigma.learned and sigma.high > 1.0:
-            raise ConfigError(f"noise_sigma.max={sigma.high}: expected <= 1 (images are in [0, 1])")
-        return cls(tuple(params), sigma)
+        return cls(tuple(params), _parse_sigma(noise_sigma))
+
+    @classmethod
+    def from_transmission(cls, transmission: Mapping, noise_sigma) -> "MaterialParameters":
+        """``material.transmission`` ({background, absorption, floor}, each {min, max} or {value}) and sigma."""
+        if not isinstance(transmission, Mapping):
+            raise ConfigError(
+                f"material.transmission: expected a mapping of {', '.join(TRANSMISSION_PARAMETERS)}, got {transmission!r}"
+            )
+        unknown = sorted(set(transmission) - set(TRANSMISSION_PARAMETERS))
+        if unknown:
+            raise ConfigError(
+                f"material.transmission: unknown parameter(s) {unknown}; expected {', '.join(TRANSMISSION_PARAMETERS)}"
+            )
+        params = []
+        for name in TRANSMISSION_PARAMETERS:
+            spec = transmission.get(name, TRANSMISSION_DEFAULTS.get(name))
+            if spec is None:
+                raise ConfigError(
+                    f"material.transmission.{name}: missing; expected {{min: a, max: b}} (learned) or {{value: v}}"
+                )
+            params.append(_parse_parameter("transmission", name, spec, f"material.transmission.{name}"))
+        return cls(tuple(params), _parse_sigma(noise_sigma))
 
     @property
     def learned_bsdf(self) -> tuple[Parameter, ...]:
@@ -109,7 +145,7 @@ class MaterialParameters:
 
     @property
     def learned(self) -> tuple[Parameter, ...]:
-        """Every learned scalar in FCN output order: stage, particle, then sigma (when learned)."""
+        """Every learned scalar in FCN output order: stage, particle (or transmission), then sigma (when learned)."""
         return self.learned_bsdf + ((self.noise_sigma,) if self.noise_sigma.learned else ())
 
     def surface(self, surface: str) -> tuple[Parameter, ...]:

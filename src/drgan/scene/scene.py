@@ -155,6 +155,14 @@ def check_spp(spp, name: str = "spp") -> int:
     return int(spp)
 
 
+def gaussian_kernel(sigma: float, dtype=torch.float32, device=None) -> torch.Tensor:
+    """Normalised 1-D Gaussian of stddev ``sigma`` px, truncated at 4 sigma (radius at least 1): 2 radius + 1 taps."""
+    radius = max(1, int(math.ceil(4.0 * sigma)))
+    x = torch.arange(-radius, radius + 1, dtype=dtype, device=device)
+    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+    return kernel / kernel.sum()
+
+
 def reconstruction_blur(image: torch.Tensor, stddev: float) -> torch.Tensor:
     """The Gaussian reconstruction filter, applied to the box-filtered render as a separable blur.
 
@@ -165,11 +173,8 @@ def reconstruction_blur(image: torch.Tensor, stddev: float) -> torch.Tensor:
     variance = stddev * stddev - 1.0 / 12.0
     if variance <= 1e-6:
         return image
-    sigma = math.sqrt(variance)
-    radius = max(1, int(math.ceil(4.0 * sigma)))
-    x = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
-    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
-    kernel = kernel / kernel.sum()
+    kernel = gaussian_kernel(math.sqrt(variance), image.dtype, image.device)
+    radius = (len(kernel) - 1) // 2
     padded = torch.nn.functional.pad(image[None, None], (radius, radius, radius, radius), mode="replicate")
     rows = torch.nn.functional.conv2d(padded, kernel.view(1, 1, 1, -1))
     return torch.nn.functional.conv2d(rows, kernel.view(1, 1, -1, 1))[0, 0]
@@ -240,13 +245,42 @@ def _principled(parameters: Sequence[Parameter]) -> dict:
     return bsdf
 
 
-class ParticleScene:
-    """A Mitsuba scene of n particles, re-posed per layout and rendered differentiably from torch.
+def camera_sensor_dict(render: RenderSettings, view_width: float) -> dict:
+    """The camera of every drgan scene: straight down from ``camera_distance`` x view width onto the view square."""
+    distance = render.camera_distance * view_width
+    fov = 2.0 * math.degrees(math.atan(0.5 * view_width / distance))
+    return {
+        "type": "perspective",
+        "fov": fov,
+        "fov_axis": "x",
+        "near_clip": 0.5 * distance,
+        "far_clip": 2.0 * distance,
+        "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, distance], target=[0, 0, 0], up=[0, 1, 0]),
+        "sampler": {"type": "stratified", "sample_count": render.spp},
+        "film": {
+            "type": "hdrfilm",
+            "width": render.resolution,
+            "height": render.resolution,
+            "pixel_format": "rgb",
+            # Box here, Gaussian afterwards in torch (see `reconstruction_blur`): splatting every sample
+            # into a (8 stddev + 1)^2 footprint made the Gaussian filter the main cost of a render
+            # (stddev 3.0: 5.7 s vs 0.41 s per forward+backward at 256 px, 16 spp, 40 particles).
+            "rfilter": {"type": "box"},
+        },
+    }
+
+
+class MeshParticles:
+    """What every drgan scene shares: n particle meshes merged into one Mitsuba mesh, re-posed per layout,
+    the straight-down camera, and the exact instance labels traced through it.
 
     ``meshes`` are unit meshes (largest extent 1, centred); particle k uses ``meshes[k % len(meshes)]``.
+    A subclass gives the rest of its Mitsuba scene (`_scene_dict`, which must hold ``self.particles`` under
+    the key "particles"), the scene parameters a render changes (`_render_keys`) and, optionally, the
+    particles' BSDF (`_particle_bsdf`); `_layout_changed` drops whatever it caches per layout.
     """
 
-    def __init__(self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: SceneSpec, variant: str = "auto"):
+    def __init__(self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec, variant: str = "auto"):
         if n_particles < 1:
             raise ConfigError(f"n_particles={n_particles}: expected >= 1")
         if not meshes:
@@ -265,40 +299,123 @@ class ParticleScene:
         self._face_label = mi.UInt32(np.repeat(np.arange(1, self.n_particles + 1), face_counts).astype(np.uint32))
 
         self.particles = _mitsuba_mesh("particles", self._unit_vertices, faces)
-        self.particles.set_bsdf(mi.load_dict(_principled(spec.parameters.surface("particle"))))
+        bsdf = self._particle_bsdf()
+        if bsdf is not None:
+            self.particles.set_bsdf(mi.load_dict(bsdf))
         self.scene = mi.load_dict(self._scene_dict())
         self.params = mi.traverse(self.scene)
-        self._learned = spec.parameters.learned_bsdf
-        self._learned_keys = [self._bsdf_key(p) for p in self._learned]
         # Keep only what a render changes; everything else stays as loaded.
-        self.params.keep(self._learned_keys + ["particles.vertex_positions"])
+        self.params.keep(list(self._render_keys()) + ["particles.vertex_positions"])
         self._layout = None
         self._labels = None  # instance labels of the current layout, traced once per layout
 
-    # -- building -------------------------------------------------------------------------------
+    # -- hooks ----------------------------------------------------------------------------------
+    def _particle_bsdf(self) -> dict | None:
+        return None
+
+    def _scene_dict(self) -> dict:
+        raise NotImplementedError
+
+    def _render_keys(self) -> Sequence[str]:
+        return ()
+
+    def _layout_changed(self) -> None:
+        pass
+
     def _sensor_dict(self) -> dict:
-        r, w = self.spec.render, self.spec.view_width
-        distance = r.camera_distance * w
-        fov = 2.0 * math.degrees(math.atan(0.5 * w / distance))
-        return {
-            "type": "perspective",
-            "fov": fov,
-            "fov_axis": "x",
-            "near_clip": 0.5 * distance,
-            "far_clip": 2.0 * distance,
-            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, distance], target=[0, 0, 0], up=[0, 1, 0]),
-            "sampler": {"type": "stratified", "sample_count": r.spp},
-            "film": {
-                "type": "hdrfilm",
-                "width": r.resolution,
-                "height": r.resolution,
-                "pixel_format": "rgb",
-                # Box here, Gaussian afterwards in torch (see `reconstruction_blur`): splatting every sample
-                # into a (8 stddev + 1)^2 footprint made the Gaussian filter the main cost of a render
-                # (stddev 3.0: 5.7 s vs 0.41 s per forward+backward at 256 px, 16 spp, 40 particles).
-                "rfilter": {"type": "box"},
-            },
-        }
+        return camera_sensor_dict(self.spec.render, self.spec.view_width)
+
+    # -- state ----------------------------------------------------------------------------------
+    def set_layout(self, phi_i) -> None:
+        """Move the particles to one constellation phi_i (n x 4: x, y, z, scale) in one buffer write.
+
+        An all-zero row is an absent particle (``sample_layouts(n_min=...)``): its mesh collapses to one
+        point below the stage, where its zero-area triangles can neither be hit nor cast a shadow.
+        """
+        phi_i = np.asarray(phi_i.detach().cpu() if isinstance(phi_i, torch.Tensor) else phi_i, dtype=np.float32)
+        if phi_i.shape != (self.n_particles, 4):
+            raise ConfigError(f"phi_i: expected shape ({self.n_particles}, 4) (x, y, z, scale), got {phi_i.shape}")
+        if not np.isfinite(phi_i).all():
+            raise ConfigError("phi_i: contains non-finite values")
+        absent = ~phi_i.any(axis=1)
+        if (phi_i[~absent, 3] <= 0).any():
+            raise ConfigError("phi_i: particle scales (column 3) must be > 0 (an absent particle is an all-zero row)")
+        placed = phi_i.copy()
+        placed[absent] = (0.0, 0.0, -self.spec.view_width, 0.0)
+        per_vertex = placed[self._vertex_owner]
+        vertices = self._unit_vertices * per_vertex[:, 3:4] + per_vertex[:, :3]
+        self.params["particles.vertex_positions"] = mi.Float(vertices.ravel())
+        self.params.update()
+        self._layout = phi_i
+        self._labels = None
+        self._layout_changed()
+
+    @property
+    def layout(self) -> np.ndarray | None:
+        return self._layout
+
+    # -- tracing --------------------------------------------------------------------------------
+    def camera_rays(self, offsets) -> tuple:
+        """Rays of the scene's camera through every pixel, at sub-pixel ``offsets`` ((k, 2) numbers in [0, 1)).
+
+        Returns (rays, k): ray i * k + j passes pixel i (row-major, as the render's rows and columns) at
+        offset j. Build them under ``dr.suspend_grad()``.
+        """
+        size = self.spec.render.resolution
+        offsets = np.asarray(offsets, dtype=np.float32).reshape(-1, 2)
+        k = len(offsets)
+        idx = dr.arange(mi.UInt32, size * size * k)
+        pixel, sub = idx // k, idx % k
+        row, col = pixel // size, pixel % size
+        dx = dr.gather(mi.Float, mi.Float(offsets[:, 0]), sub)
+        dy = dr.gather(mi.Float, mi.Float(offsets[:, 1]), sub)
+        position = mi.Point2f((mi.Float(col) + dx) / size, (mi.Float(row) + dy) / size)
+        sensor = self.scene.sensors()[0]
+        ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5, 0.5))
+        return ray, k
+
+    def instance_labels(self) -> np.ndarray:
+        """Instance label image of the current layout (0 background, k = particle k), pixel-aligned.
+
+        One ray through each pixel centre of the same camera: occlusion-correct and far cheaper than
+        a second high-spp render. Traced once per layout (a textured render needs the stage mask, and the
+        sample then needs the labels); each call returns its own copy.
+        """
+        if self._layout is None:
+            raise RuntimeError("set_layout(phi_i) before instance_labels()")
+        if self._labels is None:
+            self._labels = self._trace_labels()
+        return self._labels.copy()
+
+    def _trace_labels(self) -> np.ndarray:
+        size = self.spec.render.resolution
+        with dr.suspend_grad():
+            ray, _ = self.camera_rays([(0.5, 0.5)])
+            si = self.scene.ray_intersect(ray)
+            hit = si.is_valid() & (si.shape == mi.ShapePtr(self.particles))
+            labels = dr.select(hit, dr.gather(mi.UInt32, self._face_label, si.prim_index, hit), 0)
+            return np.asarray(labels, dtype=np.int32).reshape(size, size)
+
+
+class ParticleScene(MeshParticles):
+    """A Mitsuba scene of n particles, re-posed per layout and rendered differentiably from torch.
+
+    Secondary-electron contrast: Principled BSDFs on particles and stage, a ring light and a top light,
+    rendered by a Mitsuba integrator. ``meshes`` are unit meshes (largest extent 1, centred); particle k
+    uses ``meshes[k % len(meshes)]``.
+    """
+
+    def __init__(self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: SceneSpec, variant: str = "auto"):
+        self._learned = spec.parameters.learned_bsdf
+        self._learned_keys = [self._bsdf_key(p) for p in self._learned]
+        super().__init__(meshes, n_particles, spec, variant)
+
+    # -- building -------------------------------------------------------------------------------
+    def _particle_bsdf(self) -> dict:
+        return _principled(self.spec.parameters.surface("particle"))
+
+    def _render_keys(self) -> list[str]:
+        return self._learned_keys
 
     def _integrator_dict(self) -> dict:
         r = self.spec.render
@@ -352,33 +469,6 @@ class ParticleScene:
     def learned_bsdf(self) -> tuple[Parameter, ...]:
         return self._learned
 
-    def set_layout(self, phi_i) -> None:
-        """Move the particles to one constellation phi_i (n x 4: x, y, z, scale) in one buffer write.
-
-        An all-zero row is an absent particle (``sample_layouts(n_min=...)``): its mesh collapses to one
-        point below the stage, where its zero-area triangles can neither be hit nor cast a shadow.
-        """
-        phi_i = np.asarray(phi_i.detach().cpu() if isinstance(phi_i, torch.Tensor) else phi_i, dtype=np.float32)
-        if phi_i.shape != (self.n_particles, 4):
-            raise ConfigError(f"phi_i: expected shape ({self.n_particles}, 4) (x, y, z, scale), got {phi_i.shape}")
-        if not np.isfinite(phi_i).all():
-            raise ConfigError("phi_i: contains non-finite values")
-        absent = ~phi_i.any(axis=1)
-        if (phi_i[~absent, 3] <= 0).any():
-            raise ConfigError("phi_i: particle scales (column 3) must be > 0 (an absent particle is an all-zero row)")
-        placed = phi_i.copy()
-        placed[absent] = (0.0, 0.0, -self.spec.view_width, 0.0)
-        per_vertex = placed[self._vertex_owner]
-        vertices = self._unit_vertices * per_vertex[:, 3:4] + per_vertex[:, :3]
-        self.params["particles.vertex_positions"] = mi.Float(vertices.ravel())
-        self.params.update()
-        self._layout = phi_i
-        self._labels = None
-
-    @property
-    def layout(self) -> np.ndarray | None:
-        return self._layout
-
     # -- rendering ------------------------------------------------------------------------------
     def _assign(self, values: torch.Tensor, grad: bool) -> list:
         """Write learned values into the scene (as Dr.Jit arrays: no Python float is baked into kernels)."""
@@ -417,32 +507,6 @@ class ParticleScene:
         image = _RenderFunction.apply(values, self, int(seed) & 0xFFFFFFFF, spp, grad_spp)
         grey = image.mean(dim=-1)  # grey lights and grey BSDFs: R = G = B
         return reconstruction_blur(grey, self.spec.render.filter_stddev)
-
-    def instance_labels(self) -> np.ndarray:
-        """Instance label image of the current layout (0 background, k = particle k), pixel-aligned.
-
-        One ray through each pixel centre of the same camera: occlusion-correct and far cheaper than
-        a second high-spp render. Traced once per layout (a textured render needs the stage mask, and the
-        sample then needs the labels); each call returns its own copy.
-        """
-        if self._layout is None:
-            raise RuntimeError("set_layout(phi_i) before instance_labels()")
-        if self._labels is None:
-            self._labels = self._trace_labels()
-        return self._labels.copy()
-
-    def _trace_labels(self) -> np.ndarray:
-        size = self.spec.render.resolution
-        with dr.suspend_grad():
-            idx = dr.arange(mi.UInt32, size * size)
-            row, col = idx // size, idx % size
-            position = mi.Point2f((mi.Float(col) + 0.5) / size, (mi.Float(row) + 0.5) / size)
-            sensor = self.scene.sensors()[0]
-            ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5, 0.5))
-            si = self.scene.ray_intersect(ray)
-            hit = si.is_valid() & (si.shape == mi.ShapePtr(self.particles))
-            labels = dr.select(hit, dr.gather(mi.UInt32, self._face_label, si.prim_index, hit), 0)
-            return np.asarray(labels, dtype=np.int32).reshape(size, size)
 
 
 def adjoint_seed(seed: int, grad_seed: str) -> int:
