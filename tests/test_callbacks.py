@@ -152,3 +152,32 @@ def test_random_projection_features_are_fixed():
     imgs = np.random.default_rng(0).random((3, 8, 8))
     a, b = RandomProjectionFeatures(dim=5).features(imgs), RandomProjectionFeatures(dim=5).features(imgs)
     assert a.shape == (3, 5) and np.array_equal(a, b)
+
+
+def test_fid_settings_that_cannot_work_fail_before_the_data_are_mined(tmp_path, monkeypatch):
+    import drgan.data.datamodule as dm
+    from test_train import make_images, run_train, tiny_overrides
+
+    monkeypatch.setattr(dm, "mine_patches", lambda *a, **k: pytest.fail("patches mined before the FID settings were checked"))
+    folder = make_images(tmp_path / "images", n=3, size=40, seed=2)
+    with pytest.raises(ConfigError, match=r"kid_subset_size=9 exceeds callbacks.fid.n_images=4"):
+        run_train(tiny_overrides(folder, tmp_path / "run", extra=["+callbacks.fid.kid_subset_size=9"]))
+    # the Inception network's file is read and its hash checked before mining too
+    from drgan.errors import DataError
+
+    bad = tmp_path / "inception.pt"
+    bad.write_bytes(b"not the network")
+    overrides = [o for o in tiny_overrides(folder, tmp_path / "run2") if not o.startswith("callbacks.fid.extractor")]
+    with pytest.raises(DataError, match="SHA-256"):
+        run_train(overrides + [f"callbacks.fid.extractor={{_target_:drgan.metrics.fid.InceptionFeatures,weights_path:{bad}}}"])
+
+
+def test_a_kid_subset_larger_than_the_mined_patches_stops_before_the_first_step(tmp_path, monkeypatch):
+    import lightning.pytorch as L
+    from test_train import make_images, run_train, tiny_overrides
+
+    monkeypatch.setattr(L.LightningModule, "training_step", lambda *a, **k: pytest.fail("trained with an impossible KID"))
+    folder = make_images(tmp_path / "images", n=3, size=40, seed=2)
+    with pytest.raises(ConfigError, match=r"kid_subset_size=500 exceeds the \d+ images of each KID sample"):
+        run_train(tiny_overrides(folder, tmp_path / "run", extra=["+callbacks.fid.kid_subset_size=500",
+                                                                  "callbacks.fid.n_images=null"]))

@@ -188,6 +188,8 @@ def train(cfg: DictConfig) -> dict:
     tags.update({str(t): "1" for t in cfg.get("tags") or []})
     loggers = instantiate_loggers(cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags)
     callbacks = instantiate_callbacks(cfg.get("callbacks"))
+    for callback in callbacks:  # e.g. the FID network's file and hash: before mining, not at the first FID
+        getattr(callback, "check_ready", lambda: None)()
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
 
     output_dir.mkdir(parents=True, exist_ok=True)

@@ -242,6 +242,26 @@ class FIDCallback(Callback):
             self._real_levels = levels(level_sums(patches, masks))
         return self._real_levels
 
+    def check_ready(self) -> None:
+        """Everything this callback can check before data are mined: the feature network (its file and hash
+        for Inception) loads, and a fixed KID subset fits the fixed number of images. Called by drgan.train."""
+        if self.kid_subset_size is not None and self.n_images is not None and self.kid_subset_size > self.n_images:
+            raise ConfigError(f"callbacks.fid.kid_subset_size={self.kid_subset_size} exceeds callbacks.fid.n_images="
+                              f"{self.n_images}: a subset is drawn from the images without replacement")
+        network = getattr(self._extractor(), "network", None)  # loads (and checks) the Inception file now, seconds
+        del network
+
+    def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
+        """After mining, before the first step: a fixed KID subset must fit the real patches."""
+        if self.kid_subset_size is None or getattr(getattr(trainer, "datamodule", None), "real_patches", None) is None:
+            return
+        n_real = len(real_patches(trainer))
+        n = min(self.n_images or n_real, n_real)
+        if self.kid_subset_size is not None and self.kid_subset_size > n:
+            raise ConfigError(f"callbacks.fid.kid_subset_size={self.kid_subset_size} exceeds the {n} images of each "
+                              "KID sample (real training patches / callbacks.fid.n_images); lower it or leave it null "
+                              "(half the sample)")
+
     def latest(self, epoch: int) -> dict | None:
         return next((h for h in reversed(self.history) if h["epoch"] == epoch), None)
 
