@@ -160,7 +160,9 @@ def profile(cfg: DictConfig) -> dict:
                                               f"{patch} px window; windows on a grid of stride {patch // 2} px",
                                 "patch_size": patch, "windows": int(counts.size),
                                 "mean": round(float(counts.mean()), 3), "median": float(np.median(counts)),
-                                "p10": float(np.quantile(counts, 0.1)), "p90": float(np.quantile(counts, 0.9))},
+                                "p10": float(np.quantile(counts, 0.1)), "p90": float(np.quantile(counts, 0.9)),
+                                # The windows training keeps (data.min_particles: 3 by default): the scene's range.
+                                "with_3_or_more": _quantiles(counts[counts >= 3])},
         "agglomeration": {"touching_fraction": round(touching, 4),
                           "clark_evans_median": round(ce_median, 4) if ce_median is not None else None,
                           "placement": est.placement_kind(touching, ce_median)},
@@ -179,6 +181,12 @@ def profile(cfg: DictConfig) -> dict:
     write_bytes(conf_path, yaml_text.encode())
     log.info("wrote %s and %s (parent material %s)", out / "profile.json", conf_path, parent)
     return result
+
+
+def _quantiles(counts: np.ndarray) -> dict:
+    if counts.size == 0:
+        return {"windows": 0, "p10": None, "p90": None}
+    return {"windows": int(counts.size), "p10": float(np.quantile(counts, 0.1)), "p90": float(np.quantile(counts, 0.9))}
 
 
 # --- the material config ----------------------------------------------------------------------------------
@@ -213,8 +221,9 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
         lognormal = by_kind["lognormal"].params
         size_px, spread = lognormal["median"], lognormal["sigma"]
         spread_note = "measured: sigma of log(diameter), lognormal fit"
-    n_max = max(1, int(math.ceil(counts["p90"])))
-    n_min = max(1, min(n_max, int(math.floor(counts["p10"]))))
+    kept = counts["with_3_or_more"] if counts["with_3_or_more"]["windows"] else counts
+    n_max = max(1, int(math.ceil(kept["p90"])))
+    n_min = max(1, min(n_max, int(math.floor(kept["p10"]))))
     placement = result["agglomeration"]["placement"]
     data = result["data"]
     pol_note = "detected" if result["polarity"]["setting"] == "auto" else "set on the command line"
@@ -237,8 +246,8 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
         "(the parent's is a largest extent, ~1.1x for irregular shapes)",
         f"  size_spread: {spread:.3f}       # {spread_note}",
         f"  n_particles: {n_max}           # measured: 90th percentile of particles per {counts['patch_size']} px patch "
-        f"(mean {counts['mean']:.1f})",
-        f"  n_particles_min: {n_min}       # measured: 10th percentile; each constellation draws n_particles_min..n_particles",
+        f"among patches with >= 3 (those training keeps; mean over all patches {counts['mean']:.1f})",
+        f"  n_particles_min: {n_min}       # measured: 10th percentile (same patches); each constellation draws n_particles_min..n_particles",
         "  meshes:",
         f"    kind: {kind}            # measured: median major/minor axis ratio {result['shape']['axis_ratio_median']:.2f}",
     ]
