@@ -153,7 +153,8 @@ def profile(cfg: DictConfig) -> dict:
         "background": noise.as_dict(),
         "sizes": {"median_diameter_px": round(float(np.median(inner)), 3),
                   "mean_diameter_px": round(float(inner.mean()), 3),
-                  "quantiles_px": {q: round(float(np.quantile(inner, float(q))), 3) for q in ("0.1", "0.25", "0.75", "0.9")},
+                  "quantiles_px": {q: round(float(np.quantile(inner, float(q))), 3)
+                                   for q in ("0.1", "0.25", "0.75", "0.9")},
                   "fits": [f.as_dict() for f in fits], "chosen": chosen.kind,
                   "criterion": "lowest BIC = k ln(n) - 2 ln(L), likelihoods in diameter space"},
         "particles_per_patch": {"definition": f"segments (any, border-touching included) whose centroid lies inside a "
@@ -224,32 +225,36 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
     kept = counts["with_3_or_more"] if counts["with_3_or_more"]["windows"] else counts
     n_max = max(1, int(math.ceil(kept["p90"])))
     n_min = max(1, min(n_max, int(math.floor(kept["p10"]))))
-    placement = result["agglomeration"]["placement"]
+    agg = result["agglomeration"]
+    placement = agg["placement"]
     data = result["data"]
     pol_note = "detected" if result["polarity"]["setting"] == "auto" else "set on the command line"
     lines = [
         "# @package _global_",
         f"# Written by `python -m drgan.profile` from {data['images']} image(s) of {data['dir']}",
         f"# (report: {result['out']}/report.md).",
-        f"# Parent: {parent} ({why}); everything not set here -- BSDF / transmission limits, lights, spp, filter,",
-        "# noise_sigma limits, view_width -- comes from the parent material, unmeasured.",
+        f"# Parent: {parent} ({why}).",
+        "# Everything not set here (BSDF / transmission limits, lights, spp, filter, noise_sigma limits, view_width)",
+        "# comes from the parent material, unmeasured.",
         "defaults:",
         f"  - {parent}",
         f"  - override /size: {chosen.kind}        # measured: lowest BIC of normal / lognormal / bimodal",
         f"  - override /placement: {placement}   # measured: touching fraction "
-        f"{result['agglomeration']['touching_fraction']:.2f}, Clark-Evans {result['agglomeration']['clark_evans_median']}",
+        f"{agg['touching_fraction']:.2f}, Clark-Evans {agg['clark_evans_median']}",
         "",
         "material:",
         f"  name: {name}",
         f"  polarity: {polarity}           # {pol_note}",
-        f"  particle_size_px: {size_px:.1f}   # measured: median equivalent diameter of segmented particles, px "
-        "(the parent's is a largest extent, ~1.1x for irregular shapes)",
+        f"  particle_size_px: {size_px:.1f}   # measured: median equivalent diameter of segmented particles, px",
+        "                           # (the parent's is a largest extent, ~1.1x for irregular shapes)",
         f"  size_spread: {spread:.3f}       # {spread_note}",
-        f"  n_particles: {n_max}           # measured: 90th percentile of particles per {counts['patch_size']} px patch "
-        f"among patches with >= 3 (those training keeps; mean over all patches {counts['mean']:.1f})",
-        f"  n_particles_min: {n_min}       # measured: 10th percentile (same patches); each constellation draws n_particles_min..n_particles",
+        f"  n_particles: {n_max}           # measured: p90 of particles per {counts['patch_size']} px patch over the "
+        "patches with >= 3",
+        f"                           # (those training keeps; mean over all patches {counts['mean']:.1f})",
+        f"  n_particles_min: {n_min}       # measured: p10 (same patches); a constellation draws min..n_particles",
         "  meshes:",
-        f"    kind: {kind}            # measured: median major/minor axis ratio {result['shape']['axis_ratio_median']:.2f}",
+        f"    kind: {kind}            # measured: median major/minor axis ratio "
+        f"{result['shape']['axis_ratio_median']:.2f}",
     ]
     if parent == "tio2_tsem":
         lines.append(f"  noise_grain_px: {result['background']['grain_px']:.2f}   # measured: lag-1 autocorrelation "
@@ -286,6 +291,7 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
 
 def report_markdown(r: dict) -> str:
     b, s, c, a = r["background"], r["sizes"], r["particles_per_patch"], r["agglomeration"]
+    seg = r["segmentation"]
     fits = "\n".join(
         f"| {f['kind']}{' (chosen)' if f['kind'] == s['chosen'] else ''} | "
         + ", ".join(f"{k} {v:g}" for k, v in f["params"].items()) + f" | {f['log_likelihood']:.1f} | {f['bic']:.1f} |"
@@ -303,10 +309,12 @@ Material config: `{r['material']['config']}` (parent `{r['material']['parent']}`
 | noise sigma (MAD of the high-pass residual, corrected) | {b['noise_sigma']:.4f} |
 | lag-1 autocorrelation of the residual | {b['lag1_autocorrelation']:.3f} |
 | grain (Gaussian stddev, px) | {b['grain_px']:.2f} |
-| particles segmented / not touching the border | {r['segmentation']['particles']} / {r['segmentation']['particles_not_touching_border']} |
+| particles segmented / not touching the border | {seg['particles']} / {seg['particles_not_touching_border']} |
 | median / mean equivalent diameter (px) | {s['median_diameter_px']:.2f} / {s['mean_diameter_px']:.2f} |
-| particles per {c['patch_size']} px patch: mean / median (p10-p90) | {c['mean']:.2f} / {c['median']:g} ({c['p10']:g}-{c['p90']:g}) |
-| touching fraction / Clark-Evans ratio | {a['touching_fraction']:.3f} / {a['clark_evans_median']} -> placement {a['placement']} |
+| particles per {c['patch_size']} px patch: mean / median (p10-p90) | {c['mean']:.2f} / {c['median']:g} \
+({c['p10']:g}-{c['p90']:g}) |
+| touching fraction / Clark-Evans ratio | {a['touching_fraction']:.3f} / {a['clark_evans_median']} \
+-> placement {a['placement']} |
 | median axis ratio | {r['shape']['axis_ratio_median']:.3f} -> meshes {r['shape']['mesh_kind']} |
 | pixel size | {px['nm_per_px']} nm ({px['source']}) |
 
@@ -370,13 +378,16 @@ def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrou
         axes[0].axvline(noise.background_grey, color="r", label=f"median {noise.background_grey:.3f}")
         axes[0].set_xlabel("background grey")
         axes[0].legend()
-        residual = np.concatenate([est.highpass(im)[est.background_mask(fg)] for im, fg in zip(images[:8], foregrounds[:8])])
+        residual = np.concatenate([est.highpass(im)[est.background_mask(fg)]
+                                   for im, fg in zip(images[:8], foregrounds[:8])])
         lim = 6 * max(noise.residual_sigma, 1e-6)
         axes[1].hist(residual, bins=100, range=(-lim, lim), density=True, color="0.5")
         x = np.linspace(-lim, lim, 200)
-        axes[1].plot(x, np.exp(-0.5 * (x / noise.residual_sigma) ** 2) / (noise.residual_sigma * math.sqrt(2 * math.pi)),
+        gauss = np.exp(-0.5 * (x / noise.residual_sigma) ** 2) / (noise.residual_sigma * math.sqrt(2 * math.pi))
+        axes[1].plot(x, gauss,
                      "r", label=f"MAD sigma {noise.residual_sigma:.4f}")
-        axes[1].set_xlabel(f"high-pass residual (lag-1 r {noise.lag1_autocorrelation:.2f}, grain {noise.grain_px:.2f} px)")
+        axes[1].set_xlabel(f"high-pass residual (lag-1 r {noise.lag1_autocorrelation:.2f}, "
+                           f"grain {noise.grain_px:.2f} px)")
         axes[1].legend()
         axes[2].hist(counts, bins=np.arange(counts.max() + 2) - 0.5, color="0.5")
         axes[2].set_xlabel("particles per patch (centroid inside)")
