@@ -9,6 +9,9 @@ x, y, z, scale) moves them in one vectorised write of the vertex buffer, so ever
 compiled kernels (no Python scalar is baked into them), and a ray's primitive index tells which particle it
 hit, which gives exact, occlusion-correct instance labels (`instance_labels`).
 
+`MeshParticles` holds what every drgan scene shares (merged mesh, layouts, camera, labels); `ParticleScene`
+adds the secondary-electron picture below, drgan.scene.transmission.TransmissionScene the transmission one.
+
 Only BSDF parameters get gradients. Uniform scaling and translation keep vertex normals' directions, and
 Mitsuba recomputes them from the new positions anyway.
 """

@@ -80,13 +80,14 @@ class TransmissionScene(MeshParticles):
             raise ConfigError(f"TransmissionScene: expected a TransmissionSpec, got {type(spec).__name__}")
         self._learned = spec.parameters.learned_bsdf
         self._thickness: dict[int, torch.Tensor] = {}  # spp -> (H * W, spp) path lengths of the current layout
+        self._covered: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # spp -> pixels some ray of which hits, their t
         super().__init__([outward(m, i) for i, m in enumerate(meshes)], n_particles, spec, variant)
 
     def _scene_dict(self) -> dict:
         return {"type": "scene", "sensor": self._sensor_dict(), "particles": self.particles}
 
     def _layout_changed(self) -> None:
-        self._thickness = {}
+        self._thickness, self._covered = {}, {}
 
     @property
     def learned_bsdf(self) -> tuple[Parameter, ...]:
@@ -143,6 +144,16 @@ class TransmissionScene(MeshParticles):
             size = self.spec.render.resolution
             return torch.from_numpy(np.array(total, dtype=np.float32).reshape(size * size, spp))
 
+    def _covered_thickness(self, spp: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(indices of the pixels that some ray crosses a particle in, their (k, spp) path lengths): the bare film
+        transmits 1 exactly, so only these pixels need exp() and its gradient."""
+        spp = self.spec.render.spp if spp is None else check_spp(spp, "spp")
+        if spp not in self._covered:
+            t = self.thickness(spp)
+            index = torch.nonzero((t > 0).any(dim=1)).squeeze(1)
+            self._covered[spp] = (index, t[index])
+        return self._covered[spp]
+
     # -- rendering ------------------------------------------------------------------------------
     def transmission_values(self, values: torch.Tensor) -> dict[str, torch.Tensor]:
         """background, absorption, floor as 0-d tensors: learned ones from ``values``, fixed ones as constants."""
@@ -168,8 +179,9 @@ class TransmissionScene(MeshParticles):
                 f"got {tuple(values.shape)}"
             )
         size = self.spec.render.resolution
-        t = self.thickness(spp).to(device=values.device, dtype=dtype)
+        index, t = (x.to(values.device) for x in self._covered_thickness(spp))
         v = self.transmission_values(values)
-        transmitted = torch.exp(-v["absorption"] * t).mean(dim=1).reshape(size, size)
-        image = v["floor"] + (v["background"] - v["floor"]) * transmitted
+        covered = torch.exp(-v["absorption"] * t.to(dtype)).mean(dim=1)
+        transmitted = torch.ones(size * size, dtype=dtype, device=values.device).index_put((index,), covered)
+        image = v["floor"] + (v["background"] - v["floor"]) * transmitted.reshape(size, size)
         return reconstruction_blur(image, self.spec.render.filter_stddev)
