@@ -59,7 +59,8 @@ def time_scene(material: str, resolution: int, n_particles: int, repeats: int, w
     return {
         "material": material,
         "scene": type(scene).__name__,
-        "settings": f"spp {spec.spp}" + (f", grad_spp {spec.grad_spp}, {spec.integrator}" if material != "tio2_tsem" else ""),
+        "settings": f"spp {spec.spp}"
+        + (f", grad_spp {spec.grad_spp}, {spec.integrator}" if material != "tio2_tsem" else ""),
         **{key: statistics.median(value) for key, value in times.items()},
     }
 

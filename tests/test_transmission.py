@@ -11,7 +11,9 @@ from conftest import compose
 
 from drgan.errors import ConfigError
 
-LIMITS = {"background": {"min": 0.3, "max": 1.0}, "absorption": {"min": 0.001, "max": 0.5}, "floor": {"min": 0.0, "max": 0.5}}
+LIMITS = {
+    "background": {"min": 0.3, "max": 1.0}, "absorption": {"min": 0.001, "max": 0.5}, "floor": {"min": 0.0, "max": 0.5}
+}
 SIGMA = {"min": 0.001, "max": 0.2}
 VIEW = 64.0
 

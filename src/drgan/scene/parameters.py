@@ -122,7 +122,8 @@ class MaterialParameters:
         """``material.transmission`` ({background, absorption, floor}, each {min, max} or {value}) and sigma."""
         if not isinstance(transmission, Mapping):
             raise ConfigError(
-                f"material.transmission: expected a mapping of {', '.join(TRANSMISSION_PARAMETERS)}, got {transmission!r}"
+                f"material.transmission: expected a mapping of {', '.join(TRANSMISSION_PARAMETERS)}, "
+                f"got {transmission!r}"
             )
         unknown = sorted(set(transmission) - set(TRANSMISSION_PARAMETERS))
         if unknown:

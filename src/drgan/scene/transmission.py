@@ -75,12 +75,15 @@ class TransmissionScene(MeshParticles):
     """n particle meshes seen in transmission; the interface of `ParticleScene` (set_layout, render,
     instance_labels, learned_bsdf: the learned ones of background, absorption, floor, in that order)."""
 
-    def __init__(self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: TransmissionSpec, variant: str = "auto"):
+    def __init__(
+        self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: TransmissionSpec, variant: str = "auto"
+    ):
         if not isinstance(spec, TransmissionSpec):
             raise ConfigError(f"TransmissionScene: expected a TransmissionSpec, got {type(spec).__name__}")
         self._learned = spec.parameters.learned_bsdf
         self._thickness: dict[int, torch.Tensor] = {}  # spp -> (H * W, spp) path lengths of the current layout
-        self._covered: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # spp -> pixels some ray of which hits, their t
+        # spp -> (pixels some ray of which crosses a particle, their path lengths)
+        self._covered: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         super().__init__([outward(m, i) for i, m in enumerate(meshes)], n_particles, spec, variant)
 
     def _scene_dict(self) -> dict:
@@ -138,7 +141,9 @@ class TransmissionScene(MeshParticles):
                 keep = dr.compress(hit)
                 if dr.width(keep) == 0:
                     break
-                index, origin, direction, start = (dr.gather(type(v), v, keep) for v in (index, origin, direction, start))
+                index, origin, direction, start = (
+                    dr.gather(type(v), v, keep) for v in (index, origin, direction, start)
+                )
                 length, depth, last = (dr.gather(mi.Float, v, keep) for v in (length, depth, t))
                 ray = mi.Ray3f(start, direction)
             size = self.spec.render.resolution
@@ -162,7 +167,9 @@ class TransmissionScene(MeshParticles):
             p.name: next(learned) if p.learned else values.new_tensor(p.value) for p in self.spec.parameters.bsdf
         }
 
-    def render(self, values: torch.Tensor, seed: int, spp: int | None = None, grad_spp: int | None = None) -> torch.Tensor:
+    def render(
+        self, values: torch.Tensor, seed: int, spp: int | None = None, grad_spp: int | None = None
+    ) -> torch.Tensor:
         """The image of the current layout: (H, W), float32 (float64 when ``values`` is), differentiable w.r.t.
         ``values`` (the learned ones of background, absorption, floor, in ``learned_bsdf`` order).
 
