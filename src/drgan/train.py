@@ -15,12 +15,10 @@ one command serves a first start and every restart (e.g. a preempted cluster job
 
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import os
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import hydra
@@ -28,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from drgan import build  # noqa: F401  (registers the ${mul:} and ${mlflow_uri:} config resolvers)
 from drgan.errors import ConfigError
-from drgan.io import write_bytes, write_json
+from drgan.io import write_json
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +52,11 @@ def instantiate_callbacks(cfg: DictConfig | None) -> list:
 
 
 def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, tags: dict) -> list:
-    """Loggers of the `logger` group, built without contacting a tracking store (see ``start_loggers``)."""
+    """Loggers of the `logger` group, built without contacting a tracking store (see ``start_loggers``). An MLflow
+    logger keeps its run id in the run folder: a resumed run continues its own MLflow run."""
     from hydra.utils import instantiate
+
+    from drgan.loggers import MLFlowLogger, store_lock
 
     loggers = []
     for entry in (cfg or {}).values():
@@ -64,10 +65,10 @@ def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, 
         if entry._target_.endswith("MLFlowLogger"):
             id_file = output_dir / MLFLOW_RUN_ID_FILE
             previous = id_file.read_text().strip() if id_file.is_file() else None
-            with _store_lock(str(entry.tracking_uri)):  # its client creates a SQLite store's schema: parallel sweep jobs race
+            with store_lock(str(entry.tracking_uri)):  # its client creates a SQLite store's schema: parallel sweep jobs race
                 logger = instantiate(entry, run_id=previous if resume else None, tags={**tags, **(entry.get("tags") or {})})
-            logger._drgan_previous_run = None if resume else previous
-            logger._drgan_id_file = id_file
+            if isinstance(logger, MLFlowLogger):
+                logger.attach_run_folder(id_file, None if resume else previous)
         else:
             logger = instantiate(entry)
         loggers.append(logger)
@@ -75,43 +76,9 @@ def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, 
 
 
 def start_loggers(loggers: list) -> None:
-    """Open the MLflow run of each MLflow logger (a resumed run continues its own, whose id is kept in the run
-    folder). A fresh start in a folder whose earlier run was killed before its first checkpoint marks that
-    earlier MLflow run KILLED rather than leaving it RUNNING for ever."""
-    from drgan.loggers import mark_killed
-
+    """Open the run of each logger that starts explicitly (drgan.loggers.MLFlowLogger.start)."""
     for logger in loggers:
-        id_file = getattr(logger, "_drgan_id_file", None)
-        if id_file is None:
-            continue
-        with _store_lock(str(logger._tracking_uri)):
-            previous = logger._drgan_previous_run
-            if previous and mark_killed(logger._tracking_uri, previous):
-                log.warning("MLflow run %s of this folder was left RUNNING (killed before its first checkpoint); marked KILLED", previous)
-            run = logger.run_id  # creates the experiment and run now, under the lock (None on DDP ranks > 0)
-        if run:
-            write_bytes(id_file, run.encode())
-
-
-@contextmanager
-def _store_lock(tracking_uri: str):
-    """Serialise first contact with a local MLflow store: parallel sweep jobs (joblib) would otherwise race
-    to create the SQLite schema or the experiment. Remote stores (http://...) need no lock."""
-    local = None
-    if tracking_uri.startswith("sqlite:///"):
-        local = Path(tracking_uri[len("sqlite:///") :]).parent
-    elif tracking_uri.startswith("file:"):
-        local = Path(tracking_uri[len("file:") :])
-    if local is None:
-        yield
-        return
-    local.mkdir(parents=True, exist_ok=True)
-    with open(local / ".drgan.lock", "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+        getattr(logger, "start", lambda: None)()
 
 
 def resolve_checkpoint(ckpt_path: str | None, output_dir: Path) -> str | None:
