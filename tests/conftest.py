@@ -44,6 +44,19 @@ def one_torch_thread():
     torch.set_num_threads(threads)
 
 
+@pytest.fixture
+def one_render_thread():
+    """Bitwise-repeatable adjoint passes: Dr.Jit sums a gradient from its threads in no fixed order, so two
+    identical renders' gradients differ in the last float32 bits (up to ~1e-4 relative on a 32 px render)."""
+    from drgan import backend
+
+    backend.use_variant("auto")
+    threads = backend.dr.thread_count()
+    backend.dr.set_thread_count(1)
+    yield
+    backend.dr.set_thread_count(threads)
+
+
 @pytest.fixture(scope="session")
 def tiny_scene():
     scene = make_scene()
