@@ -26,10 +26,12 @@ from drgan.metrics.fid import (
 from drgan.metrics.segmentation import (
     ap50,
     binarize_and_label,
+    class_averaged_pq,
     dice,
     match_instances,
     panoptic_quality,
     segmentation_scores,
+    semantic_pq,
 )
 
 # ------------------------------------------------------------------------------------------------
@@ -349,6 +351,11 @@ def test_fid_from_images_needs_two(extractor):
 #   IoU(6, B) = 12/16 = 3/4.  TP = 2, FP = 1, FN = 0.
 #   AP50 = 2/3.  SQ = (1 + 3/4)/2 = 7/8.  RQ = 2 / (2 + 1/2) = 4/5.  PQ = 7/10.
 #   DSC: |P| = 20, |T| = 20, |P & T| = 4 + 12 = 16 -> 32/40 = 4/5.
+# Background as a stuff class (64 px): split case: background 40 px predicted, 44 true, 40 shared -> IoU 10/11;
+#   partial case: 44 and 44 px, 40 shared -> IoU 40/48 = 5/6.
+#   PQ_classes = (PQ_background + PQ): split (10/11 + 1/3)/2 = 41/66; partial (5/6 + 7/10)/2 = 23/30.
+#   Particle pixels as stuff: split IoU 20/24 = 5/6, partial 16/24 = 2/3;
+#   PQ_semantic: split (10/11 + 5/6)/2 = 115/132; partial (5/6 + 2/3)/2 = 3/4.
 
 
 def true_labels():
@@ -390,6 +397,8 @@ def test_split_case_iou_exactly_half_not_matched():
     assert scores["sq"] == approx(1)
     assert scores["rq"] == approx(Fraction(1, 3))
     assert scores["pq"] == approx(Fraction(1, 3))
+    assert scores["pq_classes"] == approx(Fraction(41, 66))
+    assert scores["pq_semantic"] == approx(Fraction(115, 132))
 
 
 def test_partial_case_exact_fractions():
@@ -400,6 +409,8 @@ def test_partial_case_exact_fractions():
     assert (pq, sq, rq) == (approx(Fraction(7, 10)), approx(Fraction(7, 8)), approx(Fraction(4, 5)))
     m = match_instances(pred, true)
     assert m.pairs == [(5, 1), (6, 2)] and m.ious.tolist() == [1.0, 0.75]
+    assert class_averaged_pq(pred, true) == approx(Fraction(23, 30))
+    assert semantic_pq(pred, true) == approx(Fraction(3, 4))
 
 
 def test_low_threshold_matching_is_one_to_one():
@@ -412,11 +423,63 @@ def test_low_threshold_matching_is_one_to_one():
 def test_empty_images():
     empty = np.zeros((8, 8), dtype=np.int32)
     assert segmentation_scores(empty, empty) == {
-        "dsc": 1.0, "ap50": 1.0, "pq": 1.0, "sq": 1.0, "rq": 1.0, "tp": 0, "fp": 0, "fn": 0
+        "dsc": 1.0, "ap50": 1.0, "pq": 1.0, "sq": 1.0, "rq": 1.0, "pq_classes": 1.0, "pq_semantic": 1.0,
+        "tp": 0, "fp": 0, "fn": 0,
     }
     scores = segmentation_scores(empty, true_labels())  # nothing predicted
     assert (scores["tp"], scores["fp"], scores["fn"]) == (0, 0, 2)
     assert scores["dsc"] == 0.0 and scores["ap50"] == 0.0 and scores["pq"] == 0.0 and scores["sq"] == 0.0
+    # Background IoU 44/64 = 11/16 > 0.5; the particle class scores 0 either way.
+    assert scores["pq_classes"] == approx(Fraction(11, 32)) and scores["pq_semantic"] == approx(Fraction(11, 32))
+    full = np.ones((8, 8), dtype=np.int32)  # no background anywhere: the particle class alone
+    assert class_averaged_pq(full, full) == 1.0 and semantic_pq(full, full) == 1.0
+
+
+def random_blobs(rng, size, n, jitter_of=None):
+    """Label image of n random discs (later ones overwrite earlier ones). With jitter_of = a list of
+    (row, col, radius), each disc is that one moved by up to 2 px and resized by up to 1 px, or dropped."""
+    labels = np.zeros((size, size), dtype=np.int32)
+    rows, cols = np.mgrid[:size, :size]
+    discs = []
+    for k in range(n):
+        if jitter_of is None:
+            r, c, rad = rng.integers(0, size), rng.integers(0, size), rng.integers(2, 6)
+        else:
+            if k >= len(jitter_of) or rng.random() < 0.2:
+                r, c, rad = rng.integers(0, size), rng.integers(0, size), rng.integers(2, 6)  # a stray one
+                if k < len(jitter_of):
+                    continue  # dropped
+            else:
+                r0, c0, rad0 = jitter_of[k]
+                r, c, rad = r0 + rng.integers(-2, 3), c0 + rng.integers(-2, 3), max(1, rad0 + rng.integers(-1, 2))
+        discs.append((int(r), int(c), int(rad)))
+        labels[(rows - r) ** 2 + (cols - c) ** 2 <= rad**2] = int(rng.integers(1, 1000))
+    return labels, discs
+
+
+def torchmetrics_pq(pred, true, things, stuffs, per_class=False):
+    torch = pytest.importorskip("torch")  # a dependency of drgan: always there
+    from torchmetrics.functional.detection import panoptic_quality as tm_pq
+
+    def panoptic(labels):  # (1, H, W, 2): category 1 = particle (instance = label), 0 = background
+        t = torch.from_numpy(labels.astype(np.int64))
+        return torch.stack([(t > 0).long(), t], dim=-1)[None]
+
+    return tm_pq(panoptic(pred), panoptic(true), things=things, stuffs=stuffs, return_per_class=per_class)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_panoptic_qualities_match_torchmetrics(seed):
+    rng = np.random.default_rng(seed)
+    true, discs = random_blobs(rng, 32, int(rng.integers(3, 8)))
+    pred, _ = random_blobs(rng, 32, len(discs) + int(rng.integers(0, 3)), jitter_of=discs)
+    m = match_instances(pred, true)
+    per_class = torchmetrics_pq(pred, true, things={1}, stuffs={0}, per_class=True)[0]  # things first
+    assert panoptic_quality(pred, true)[0] == pytest.approx(float(per_class[0]), abs=1e-6)  # float32 IoUs
+    assert class_averaged_pq(pred, true) == pytest.approx(float(torchmetrics_pq(pred, true, {1}, {0})), abs=1e-6)
+    assert semantic_pq(pred, true) == pytest.approx(float(torchmetrics_pq(pred, true, set(), {0, 1})), abs=1e-6)
+    if seed == 0:  # the random cases reach both sides of the IoU threshold
+        assert m.tp > 0 and m.fp + m.fn > 0
 
 
 def test_mismatched_shapes_and_bad_labels():

@@ -236,14 +236,16 @@ def eval_cfg(data, out, extra=()):
 
 
 def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
-    from drgan.evaluate import GREEN, RED, YELLOW, evaluate
+    from drgan.evaluate import GREEN, RED, YELLOW, SCORES, evaluate
 
     data, predictors = _hand_case(tmp_path)
     result = evaluate(eval_cfg(data, tmp_path / "out", ["overlay_alpha=1.0"]), predictors=predictors)
     part = result["runs"]["partial"]
     assert part["dsc"] == pytest.approx(32 / 52) and part["ap50"] == pytest.approx(1 / 3)
     assert part["pq"] == pytest.approx(0.5) and part["sq"] == pytest.approx(1.0) and part["rq"] == pytest.approx(0.5)
-    assert result["runs"]["perfect"] == {k: pytest.approx(1.0) for k in ("dsc", "ap50", "pq", "sq", "rq")}
+    # Background (stuff): IoU 364/384 = 91/96; particle pixels: IoU 16/36 < 0.5 -> 0 as a stuff class.
+    assert part["pq_classes"] == pytest.approx((91 / 96 + 0.5) / 2) and part["pq_semantic"] == pytest.approx(91 / 192)
+    assert result["runs"]["perfect"] == {k: pytest.approx(1.0) for k in SCORES}
     assert result["mean"]["ap50"] == pytest.approx((1 / 3 + 1) / 2)
     assert result["std"]["pq"] == pytest.approx(np.std([0.5, 1.0], ddof=1))
     rows = list(csv.DictReader((tmp_path / "out" / "results.csv").open()))

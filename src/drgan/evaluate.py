@@ -7,7 +7,10 @@ particle", so the contour separates touching particles) -> 4-connected component
 - DSC: Dice of particle pixels;
 - AP50: TP / (TP + FP + FN) with a match at IoU > 0.5 (the paper's single-threshold "AP", as in the Data
   Science Bowl 2018 / StarDist accuracy; no precision-recall curve);
-- PQ = SQ * RQ of the particle class.
+- PQ = SQ * RQ of the particle class (the standard, things-only PQ);
+- PQ classes: PQ averaged over background (a stuff class: one segment, PQ = its IoU when > 0.5, else 0) and
+  particle; PQ semantic: the same with particle also a stuff class (pixel IoU, instances ignored), the only
+  one of the three that can reach the DiffRenderGAN paper's PQ at its AP50 (drgan.metrics.segmentation).
 Test-set value of a run = the mean over its test images (every image weighs the same, whatever its particle
 count). Over several runs (one checkpoint each): mean +- sample std (ddof = 1) of the runs' test-set values.
 
@@ -34,7 +37,8 @@ from drgan.metrics.segmentation import binarize_and_label, match_instances, segm
 
 log = logging.getLogger(__name__)
 
-SCORES = ("dsc", "ap50", "pq", "sq", "rq")
+SCORES = ("dsc", "ap50", "pq", "sq", "rq", "pq_classes", "pq_semantic")
+HEADERS = {"pq_classes": "PQ classes", "pq_semantic": "PQ semantic"}  # markdown column names; others upper-case
 COUNTS = ("tp", "fp", "fn")
 GREEN, RED, YELLOW = (0, 200, 0), (230, 0, 0), (255, 220, 0)
 
@@ -56,6 +60,10 @@ def overlay(image: np.ndarray, pred_labels: np.ndarray, true_labels: np.ndarray,
 def score_image(class_map: np.ndarray, true_labels: np.ndarray) -> tuple[dict, np.ndarray]:
     pred_labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
     return segmentation_scores(pred_labels, true_labels), pred_labels
+
+
+def _header(score: str) -> str:
+    return HEADERS.get(score, score.upper())
 
 
 def _mean_std(values) -> tuple[float, float]:
@@ -82,14 +90,16 @@ def tables(rows: list[dict], runs: list[str], ids: list[str], inference: str = "
 
     md = ["# Segmentation on real test images", "",
           f"{len(ids)} test image(s), {len(runs)} run(s). Particle class only (contour = background), 4-connected instances, "
-          "match at IoU > 0.5. AP50 = TP / (TP + FP + FN); PQ = SQ x RQ. A run's test-set value is the mean over its "
+          "match at IoU > 0.5. AP50 = TP / (TP + FP + FN); PQ = SQ x RQ (particle class). PQ classes = mean PQ of "
+          "background (stuff) and particle (things); PQ semantic = mean over background and particle both as stuff "
+          "(IoU when > 0.5, else 0). A run's test-set value is the mean over its "
           "images; values below are mean +- sample std over runs." + (f" Inference: {inference}." if inference else ""), "",
-          "## Test set", "", "| | " + " | ".join(s.upper() for s in SCORES) + " |", "|---|" + "---|" * len(SCORES)]
+          "## Test set", "", "| | " + " | ".join(_header(s) for s in SCORES) + " |", "|---|" + "---|" * len(SCORES)]
     overall = {k: _mean_std([run_means[r][k] for r in runs]) for k in SCORES}
     md.append("| **all runs** | " + " | ".join(f"{m:.3f} +- {s:.3f}" for m, s in overall.values()) + " |")
     for run in runs:
         md.append(f"| {run} | " + " | ".join(f"{run_means[run][k]:.3f}" for k in SCORES) + " |")
-    md += ["", "## Per image", "", "| image | " + " | ".join(s.upper() for s in SCORES) + " | TP | FP | FN |",
+    md += ["", "## Per image", "", "| image | " + " | ".join(_header(s) for s in SCORES) + " | TP | FP | FN |",
            "|---|" + "---|" * (len(SCORES) + 3)]
     for i in ids:
         mine = [r for r in rows if r["image"] == i]
