@@ -160,15 +160,14 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
 
     folder = _folder(tmp_path, "dark", n=2)
     monkeypatch.chdir(tmp_path)
-    result = profile(compose([f"data.dir={folder}", "data.crop_rows=[320,336]", "name=dark_discs",
-                              f"out={tmp_path / 'out'}"], config_name="profile"))
+    result = profile(compose([f"data.dir={folder}", "name=dark_discs", f"out={tmp_path / 'out'}"],
+                             config_name="profile"))  # crop_rows auto: the white bar found and dropped
     assert result["polarity"]["value"] == "dark" and result["material"]["parent"] == "tio2_tsem"
+    assert result["data"]["crop_rows"] == "auto" and abs(result["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
     text = (tmp_path / "drgan_conf" / "material" / "dark_discs.yaml").read_text()
     assert "  - tio2_tsem\n" in text and "noise_grain_px:" in text
-    if not (Path(__file__).resolve().parents[1] / "conf" / "material" / "tio2_tsem.yaml").is_file():
-        pytest.skip("conf/material/tio2_tsem.yaml (the transmission material) is not there yet")
     cfg = compose(["material=dark_discs"], config_name="train")
-    assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark"
+    assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark" and cfg.data.crop_rows == "auto"
     assert cfg.material.noise_grain_px == pytest.approx(result["background"]["grain_px"], abs=0.01)
 
 

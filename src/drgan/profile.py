@@ -51,7 +51,9 @@ def _check_settings(cfg: DictConfig) -> tuple[Path, tuple[int, int] | None, str,
     if not folder.is_dir():
         raise ConfigError(f"profile: data.dir={folder}: no such folder (expected a folder of images)")
     crop = cfg.data.get("crop_rows")
-    if crop is not None:
+    if isinstance(crop, str) and crop != "auto":
+        raise ConfigError(f"profile: data.crop_rows={crop!r}: expected [start, stop), auto or null")
+    if crop is not None and crop != "auto":
         crop = list(crop)
         if len(crop) != 2 or not all(isinstance(v, int) for v in crop) or not 0 <= crop[0] < crop[1]:
             raise ConfigError(f"profile: data.crop_rows={crop}: expected [start, stop) with 0 <= start < stop")
@@ -145,7 +147,7 @@ def profile(cfg: DictConfig) -> dict:
 
     result = {
         "name": name,
-        "data": {"dir": str(folder.resolve()), "crop_rows": list(crop) if crop else None,
+        "data": {"dir": str(folder.resolve()), "crop_rows": list(crop) if isinstance(crop, tuple) else crop,
                  "split": str(split_path.resolve()) if split_path else None, "images": len(images),
                  "ids": [p.stem for p in paths], "shape": list(images[0].shape)},
         "polarity": {"value": polarity, "setting": polarity_setting, **(estimate.as_dict() if estimate else {})},
@@ -285,7 +287,8 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
         "",
         "data:",
         f"  dir: {json.dumps(data['dir'])}",
-        f"  crop_rows: {json.dumps(data['crop_rows'])}   # as profiled",
+        f"  crop_rows: {json.dumps(data['crop_rows'])}   # as profiled" if data["crop_rows"] != "auto" else
+        "  crop_rows: auto   # as profiled: the info bar found in each image",
         f"  split: {json.dumps(data['split'])}   # as profiled (null: every image trains)",
         f"  polarity: {polarity}           # {pol_note}",
         "",
