@@ -168,6 +168,10 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     cfg = compose(["material=dark_discs"], config_name="train")
     assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark" and cfg.data.crop_rows == "auto"
     assert cfg.material.noise_grain_px == pytest.approx(result["background"]["grain_px"], abs=0.01)
+    from drgan.profile import NOISE_LIMIT_FACTOR  # the background shows the detector noise: it bounds the learned one
+
+    measured = result["background"]["noise_sigma"]
+    assert cfg.material.noise_sigma.max == pytest.approx(max(0.01, NOISE_LIMIT_FACTOR * measured), abs=1e-4)
 
 
 def test_errors_before_compute(tmp_path, monkeypatch):

@@ -38,6 +38,7 @@ FIRST_PASS_IMAGES = 8  # images segmented with the default SegmentParams for the
 # --- settings and images ----------------------------------------------------------------------------------
 
 
+NOISE_LIMIT_FACTOR, NOISE_LIMIT_FLOOR = 2.2, 0.01  # transmission materials: noise_sigma.max = 2.2 x measured
 EXTENT_PER_DIAMETER = 1.1  # largest extent / equivalent diameter of a particle seen from above (TiO2: 30 / 26.5 px)
 
 def _check_settings(cfg: DictConfig) -> tuple[Path, tuple[int, int] | None, str, int]:
@@ -267,6 +268,11 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
     if parent == "tio2_tsem":
         lines.append(f"  noise_grain_px: {result['background']['grain_px']:.2f}   # measured: lag-1 autocorrelation "
                      f"{result['background']['lag1_autocorrelation']:.3f} of the background's high-pass residual")
+        # A transmission render has no Monte Carlo noise: the image's noise is the detector's, which the background
+        # shows. Limits around it (tio2_tsem: 0.018 measured; 0.001-0.2 made the first epoch far too grainy).
+        high = max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * result["background"]["noise_sigma"])
+        lines.append(f"  noise_sigma: {{min: 0.001, max: {high:.4f}}}   # measured: {NOISE_LIMIT_FACTOR} x the "
+                     "background's noise sigma")
     lines.append(f"  # measured, for reference: background grey {result['background']['background_grey']:.3f}, noise "
                  f"sigma {result['background']['noise_sigma']:.4f} (the parent's noise_sigma limits are kept)")
     if chosen.kind == "bimodal":
