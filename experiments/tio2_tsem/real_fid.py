@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import textwrap
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -191,21 +192,23 @@ def table(info: dict, rows: dict[str, list[tuple]]) -> str:
         lo, hi = min(values), max(values)
         return str(lo) if lo == hi else f"{lo}-{hi}"
 
-    lines = [f"{info['dataset']}: {info['n_train']} train patches from {info['train_images']} train images, "
+    header = (f"{info['dataset']}: {info['n_train']} train patches from {info['train_images']} train images, "
              f"{info['n_test']} test patches from {info['test_images_with_patches']} of {info['test_images']} test "
              f"images; polarity {info['polarity']}; 256 px, stride 288, >= 3 particles; images after crop_rows auto "
              f"(rows, cols): train {info['train_image_shapes']}, test {info['test_image_shapes']}. "
              f"Mining {info['mined_s']} s, features {info['features_s']} s"
-             f"{' (read from the cache: ' + ', '.join(info['cache_hits']) + ')' if info['cache_hits'] else ''}.",
-             "", "| comparison | runs | n (a) | n (b) | FID (mean +- std) | KID x 1000 (mean +- std) |",
+             f"{' (read from the cache: ' + ', '.join(info['cache_hits']) + ')' if info['cache_hits'] else ''}.")
+    lines = [textwrap.fill(header, 120), "",
+             "| comparison | runs | n (a) | n (b) | FID (mean +- std) | KID x 1000 (mean +- std) |",
              "|---|---|---|---|---|---|"]
     for name, r in rows.items():
         a, b, f, k = zip(*r)
         lines.append(f"| {name} | {len(r)} | {n(a)} | {n(b)} | {pm(f)} | {pm(np.asarray(k) * 1000)} |")
     at_n, at_inf = extrapolate(rows, info["n_train"])
-    lines += ["", f"1/n extrapolation of the by-image quarter and half values (FID = c + k (1/n_a + 1/n_b)): "
-              f"{at_n:.1f} at {info['n_train']} vs {info['n_train']} (the training comparison's sizes), "
-              f"{at_inf:.1f} at infinite n."]
+    lines += ["", textwrap.fill("1/n extrapolation of the by-image quarter and half values "
+                                f"(FID = c + k (1/n_a + 1/n_b)): {at_n:.1f} at {info['n_train']} vs "
+                                f"{info['n_train']} (the training comparison's sizes), {at_inf:.1f} at infinite n.",
+                                120)]
     return "\n".join(lines)
 
 
@@ -223,7 +226,7 @@ def main() -> None:
     cache = args.cache or Path("/tmp/real_fid") / args.dataset.resolve().name
     info, rows = measure(args.dataset, args.splits, args.seed, cache, args.batch_size)
     print(table(info, rows))
-    print("\n<!-- " + json.dumps(info) + " -->")
+    print("\n<!--\n" + json.dumps(info, indent=1) + "\n-->")
 
 
 if __name__ == "__main__":
