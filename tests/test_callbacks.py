@@ -41,16 +41,20 @@ def test_in_a_short_run_the_fid_still_weighs():
 def test_an_epoch_with_inverted_contrast_never_wins_even_at_the_right_mean_grey():
     """Dark real particles (0.3) on a bright stage (0.75). Epoch 0's particles are brighter than its stage:
     whole-image brightness 1.0 x real, lowest FID; particles and stage each within 0.5-2x."""
-    real_p, real_b = 0.3, 0.75
-    inverted = {"epoch": 0, "fid": 80.0, "spread": 0.3, "brightness": 1.0,
-                "particle_brightness": 0.55 / real_p, "background_brightness": 0.50 / real_b, "contrast": 0.50 / 0.55}
-    right = {"epoch": 1, "fid": 85.0, "spread": 0.2, "brightness": 1.0,
-             "particle_brightness": 0.35 / real_p, "background_brightness": 0.70 / real_b, "contrast": 0.70 / 0.35}
+    from drgan.callbacks.fid import contrast, level_ratio
+
+    def entry(epoch, fid, spread, particle, background):
+        return {"epoch": epoch, "fid": fid, "spread": spread, "brightness": 1.0, "contrast": contrast(particle, background, "dark"),
+                "particle_brightness": level_ratio(particle, 0.3, "dark"),
+                "background_brightness": level_ratio(background, 0.75, "dark")}
+
+    inverted, right = entry(0, 80.0, 0.3, 0.55, 0.50), entry(1, 85.0, 0.2, 0.35, 0.70)
     assert 0.5 <= inverted["particle_brightness"] <= 2.0 and 0.5 <= inverted["background_brightness"] <= 2.0
+    assert inverted["contrast"] < 1 < right["contrast"]
     assert select_best([inverted, right], 5, brightness_range=None)[0]["epoch"] == 0
     assert select_best([inverted, right], 5, brightness_range=(0.5, 2.0))[0]["epoch"] == 1
-    # a stage twice as bright as the real one is out, even if the whole image's mean grey is fine
-    washed = dict(right, epoch=2, fid=70.0, background_brightness=2.2, brightness=1.2)
+    # a washed-out film (0.95 against 0.75: its negative 0.2 x the real one's) is out, even at a fine mean grey
+    washed = entry(2, 70.0, 0.3, 0.35, 0.95)
     assert select_best([washed, right], 5, brightness_range=(0.5, 2.0))[0]["epoch"] == 1
 
 
@@ -63,6 +67,11 @@ def test_fid_levels_and_contrast_by_hand():
     assert particle == pytest.approx((0.8 + 0.9 + 0.7) / 3) and background == pytest.approx((0.2 * 3 + 0.8) / 5)
     assert contrast(particle, background, "bright") == pytest.approx(particle / background)
     assert contrast(0.3, 0.75, "dark") == pytest.approx(2.5) and contrast(0.6, 0.5, "dark") < 1
+    from drgan.callbacks.fid import level_ratio  # dark particles: ratios of the negatives, stable near black
+
+    assert level_ratio(0.08, 0.03, "bright") == pytest.approx(0.08 / 0.03)
+    assert level_ratio(0.08, 0.03, "dark") == pytest.approx(0.92 / 0.97)
+    assert level_ratio(0.95, 0.75, "dark") == pytest.approx(0.2)  # a washed-out film is far off
 
 
 def test_select_best_treats_nearly_equal_spreads_as_a_tie():
