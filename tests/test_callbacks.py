@@ -130,6 +130,9 @@ def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(ima
     assert summary["epoch"] in (0, 1) and (ckpts / "best.ckpt").is_file()
     assert all(0.0 <= h["spread"] <= 0.5 for h in summary["history"])
     assert all(h["brightness"] > 0 for h in summary["history"]) and summary["brightness_range"] == [0.5, 2.0]
+    # the guard sees particles and background apart, and the contrast's direction (bright particles here)
+    assert all(h["particle_brightness"] > 0 and h["background_brightness"] > 0 and h["contrast"] > 0
+               for h in summary["history"])
     for name in ("params_epoch_000.png", "params_epoch_001.png", "samples_epoch_000.png", "samples_epoch_001.png", "fid.png"):
         assert (out / "plots" / name).is_file(), name
     assert list((out / "fid_cache").glob("real_*_RandomProjectionFeatures_clean_24x24.npz"))

@@ -142,8 +142,9 @@ class BestEpochCallback(Callback):
         folder = checkpoint_dir(trainer)
         ckpt = folder / "epochs" / f"epoch_{epoch:03d}.ckpt"
         trainer.save_checkpoint(ckpt, weights_only=True)  # collective under DDP: every rank calls it
-        entry = {"epoch": epoch, "fid": scores["fid"], "kid": scores["kid"], "brightness": scores.get("brightness"),
-                 "spread": self.spread(pl_module), "checkpoint": str(ckpt)}
+        entry = {"epoch": epoch, "fid": scores["fid"], "kid": scores["kid"], "spread": self.spread(pl_module),
+                 "checkpoint": str(ckpt),
+                 **{k: scores.get(k) for k in ("brightness", "particle_brightness", "background_brightness", "contrast")}}
         self.history = [h for h in self.history if h["epoch"] != epoch] + [entry]
         if trainer.is_global_zero:
             self._prune(folder)
