@@ -40,3 +40,16 @@ def test_a_user_material_inherits_a_paper_material_and_fixes_one_learned_paramet
 def test_a_parameter_with_value_and_stray_keys_is_still_refused():
     with pytest.raises(ConfigError, match="expected keys"):
         material_parameters({"particle_bsdf": {"sheen": {"value": 0.0, "mean": 1.0}}})
+
+
+def test_render_finds_a_user_material_too(tmp_path, monkeypatch):
+    write_material(tmp_path, "my_render", """\
+        # @package _global_
+        defaults:
+          - sio2_him
+        material:
+          name: my_render
+        """)
+    monkeypatch.chdir(tmp_path)
+    cfg = compose(["material=my_render"], config_name="render")
+    assert cfg.material.name == "my_render" and cfg.material.meshes.kind == "sphere"
