@@ -24,7 +24,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.errors import ConfigError
-from drgan.io import write_bytes
+from drgan.io import figure_png, write_bytes
 from drgan.metrics.segmentation import binarize_and_label
 
 log = logging.getLogger(__name__)
@@ -66,19 +66,6 @@ def local_thickness(particle: np.ndarray) -> np.ndarray:
     return 2.0 * radius * particle
 
 
-def _figure_png(draw) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig = draw(plt)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
-    return buf.getvalue()
-
-
 def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | None = None) -> list[dict]:
     """Analyse every image of cfg.images; returns the particle rows. predictor: image -> class map (tests)."""
     from drgan.data.images import list_images, read_grey
@@ -109,7 +96,7 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
         if cfg.get("wires"):
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (float(nm) if nm else 1.0))
-            png = _figure_png(lambda plt, im=image, t=thick: _thickness_map(plt, im, t, nm))
+            png = figure_png(lambda plt, im=image, t=thick: _thickness_map(plt, im, t, nm))
             write_bytes(out / "thickness" / f"{image_id}.png", png)
         log.info("%s: %d particles", image_id, sum(r["image"] == image_id for r in rows))
 
@@ -119,10 +106,10 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
     writer.writeheader()
     writer.writerows(rows)
     write_bytes(out / "particles.csv", buf.getvalue().encode())
-    write_bytes(out / "histograms.png", _figure_png(lambda plt: _histograms(plt, rows, nm, int(cfg.bins))))
+    write_bytes(out / "histograms.png", figure_png(lambda plt: _histograms(plt, rows, nm, int(cfg.bins))))
     if cfg.get("wires"):
         values = np.concatenate(thickness_values) if thickness_values else np.zeros(0)
-        write_bytes(out / "thickness_histogram.png", _figure_png(lambda plt: _thickness_histogram(plt, values, nm, int(cfg.bins))))
+        write_bytes(out / "thickness_histogram.png", figure_png(lambda plt: _thickness_histogram(plt, values, nm, int(cfg.bins))))
     log.info("wrote %s: %d particles in %d images", out / "particles.csv", len(rows), len(images))
     return rows
 

@@ -63,3 +63,19 @@ def write_png(path: str | os.PathLike, array: np.ndarray) -> None:
     buffer = io.BytesIO()
     Image.fromarray(array).save(buffer, format="PNG")
     write_bytes(path, buffer.getvalue())
+
+
+def figure_png(draw) -> bytes:
+    """PNG bytes of the matplotlib figure that ``draw(plt)`` returns (Agg backend; the figure is closed)."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = draw(plt)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()

@@ -10,7 +10,6 @@ a material inheriting the closest paper material, ready for `python -m drgan.tra
 
 from __future__ import annotations
 
-import io
 import json
 import logging
 import math
@@ -28,7 +27,7 @@ from drgan.data.images import list_images, read_grey, read_split
 from drgan.data.patches import SegmentParams
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.errors import ConfigError, DataError
-from drgan.io import write_bytes, write_json
+from drgan.io import figure_png, write_bytes, write_json
 
 log = logging.getLogger(__name__)
 
@@ -348,19 +347,6 @@ Figures: `sizes.png`, `particles.png` (real images: keep them out of repositorie
 """
 
 
-def _png(draw) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig = draw(plt)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
-    return buf.getvalue()
-
-
 def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrounds, counts, polarity) -> None:
     from skimage.segmentation import find_boundaries
 
@@ -409,9 +395,9 @@ def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrou
         axes[2].set_xlabel("particles per patch (centroid inside)")
         return fig
 
-    write_bytes(out / "sizes.png", _png(sizes))
-    write_bytes(out / "particles.png", _png(outlines))
-    write_bytes(out / "background_noise.png", _png(background))
+    write_bytes(out / "sizes.png", figure_png(sizes))
+    write_bytes(out / "particles.png", figure_png(outlines))
+    write_bytes(out / "background_noise.png", figure_png(background))
 
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="profile")
