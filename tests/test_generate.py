@@ -113,13 +113,15 @@ def test_contrast_check_for_dark_particles_asks_for_a_darker_particle_by_the_sam
 
 
 def test_shard_and_seeds():
-    assert gen.Shard.parse("1/3") == gen.Shard(1, 3) and gen.Shard.parse(None) == gen.Shard(0, 1)
+    from drgan.dataset.shards import Shard, dataset_cutoff
+
+    assert Shard.parse("1/3") == Shard(1, 3) and Shard.parse(None) == Shard(0, 1)
     for bad in ("3/2", "2/2", "-1/2", "1/0", "a/b", "1", "1/2/3"):
         with pytest.raises(ConfigError, match="expected 'i/k'"):
-            gen.Shard.parse(bad)
+            Shard.parse(bad)
     assert gen.index_seeds(0, 5) == gen.index_seeds(0, 5) != gen.index_seeds(0, 6) != gen.index_seeds(1, 5)
-    assert gen.dataset_cutoff({0: True, 1: False, 2: True, 4: True}, 2) == (2, 3)
-    assert gen.dataset_cutoff({0: True, 1: False, 3: True}, 2) == (None, 2)
+    assert dataset_cutoff({0: True, 1: False, 2: True, 4: True}, 2) == (2, 3)
+    assert dataset_cutoff({0: True, 1: False, 3: True}, 2) == (None, 2)
 
 
 # --- generation ---------------------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """`python -m drgan.export_nnunet data=DIR out=NNUNET_RAW dataset_id=501 name=TiO2SEM`: nnU-Net v2 raw layout.
 
-Reads the dataset that drgan.generate lists in DIR/manifest.json (synthetic pairs and backgrounds) and writes
+Reads the dataset that drgan.generate lists in DIR/manifest.json (synthetic pairs and backgrounds; read and
+checked by drgan.dataset.manifest) and writes
 
     NNUNET_RAW/Dataset501_TiO2SEM/imagesTr/{case}_0000.png   the grey image (one channel, "SEM")
     NNUNET_RAW/Dataset501_TiO2SEM/labelsTr/{case}.png        the mask: 0 background, 1 particle, 2 contour
@@ -23,7 +24,8 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from drgan import io
-from drgan.errors import ConfigError, DataError
+from drgan.dataset.manifest import check_files, manifest_entries, read_manifest
+from drgan.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -37,16 +39,6 @@ def dataset_folder_name(dataset_id: int, name: str) -> str:
     if not re.fullmatch(r"[A-Za-z0-9_-]+", str(name or "")):
         raise ConfigError(f"name={name!r}: expected letters, digits, '_' or '-' (it becomes Dataset{dataset_id:03d}_<name>)")
     return f"Dataset{dataset_id:03d}_{name}"
-
-
-def read_manifest(data: Path) -> dict:
-    path = data / "manifest.json"
-    if not path.is_file():
-        raise DataError(f"data={data}: no manifest.json (expected a folder written by drgan.generate; if its shards are done, run it with merge=true)")
-    manifest = json.loads(path.read_text())
-    if not manifest.get("entries"):
-        raise DataError(f"data={data}: manifest.json lists no entries")
-    return manifest
 
 
 def dataset_json(manifest: dict, n_cases: int, channel_names: dict, labels: dict, name: str, description: str | None) -> dict:
@@ -77,20 +69,16 @@ def export(cfg: DictConfig) -> Path:
     labels = OmegaConf.to_container(cfg.labels) if isinstance(cfg.labels, DictConfig) else dict(cfg.labels)
     if not channel_names:
         raise ConfigError("channel_names: expected at least one channel, e.g. {'0': 'SEM'}")
-    manifest = read_manifest(data)
-    entries = manifest["entries"]
-    for entry in entries:
-        for key in ("image", "mask"):
-            if not (data / entry["files"][key]).is_file():
-                raise DataError(f"data={data}: {entry['files'][key]} of {entry['id']} is missing")
+    manifest = read_manifest(data, setting="data")
+    entries = manifest_entries(manifest)
+    check_files(data, entries, ("image", "mask"), setting="data")
     description = dataset_json(manifest, len(entries), channel_names, labels, str(cfg.name), cfg.get("description"))
 
     target = out / folder_name
-    _check_target(out, target, cfg.dataset_id, description, {e["id"] for e in entries})
+    _check_target(out, target, cfg.dataset_id, description, {e.id for e in entries})
     for entry in entries:
-        case = entry["id"]
-        _copy(data / entry["files"]["image"], target / "imagesTr" / f"{case}{CHANNEL}.png")
-        _copy(data / entry["files"]["mask"], target / "labelsTr" / f"{case}.png")
+        _copy(data / entry.files["image"], target / "imagesTr" / f"{entry.id}{CHANNEL}.png")
+        _copy(data / entry.files["mask"], target / "labelsTr" / f"{entry.id}.png")
     io.write_json(target / "dataset.json", description)  # last: a complete export has a dataset.json
     log.info("wrote %s: %d cases", target, len(entries))
     print(f"{target}: {len(entries)} training cases")

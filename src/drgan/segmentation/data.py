@@ -2,8 +2,9 @@
 
 Two sources, both giving float32 grey images in [0, 1] and uint8 class masks {0 background, 1 particle,
 2 contour}:
-- generated data (`python -m drgan.generate`): DIR/images/ID.png + DIR/masks/ID.png (classes), paired by
-  file name (DIR/manifest.json, when present, is not needed for pairing);
+- generated data (`python -m drgan.generate`): the items DIR/manifest.json lists, images/ID.png + masks/ID.png
+  (classes), read through drgan.dataset; a folder of such pairs without a manifest (made by hand) is paired by
+  file name, and a folder that is neither is refused, naming it;
 - real annotated data: DATASET/images/ID.<ext> and binary masks (0/255, or 0/1) DATASET/masks/ID<suffix>.<ext>
   (suffix "_m" as in the TiO2 SEM set, or none as in TSEM; `mask_suffix`); a mask has its image's size, or
   the size left after the image's info bar is cropped (TSEM publishes its masks so). Instances are the
@@ -22,6 +23,7 @@ from scipy import ndimage
 from torch.utils.data import Dataset
 
 from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split, resolve_crop_rows
+from drgan.dataset.manifest import image_mask_pairs
 from drgan.errors import ConfigError, DataError
 from drgan.scene.labels import class_mask
 
@@ -151,7 +153,6 @@ def check_dataset_folder(data_dir, setting: str, what: str) -> Path:
 
 
 REAL_DATASET = "a real dataset folder with images/, masks/ and split.json"
-GENERATED_DATASET = "a folder written by drgan.generate, with images/ID.png and masks/ID.png"
 
 
 def load_real(data_dir, ids, crop_rows="auto", mask_suffix: str | None = "auto", masks: str = "masks"
@@ -189,26 +190,18 @@ def load_real_pairs(data_dir, ids, contour_px: int, crop_rows="auto", mask_suffi
 
 
 def load_generated_pairs(data_dir, setting: str = "data") -> list[Pair]:
-    """DIR/images/ID.png + DIR/masks/ID.png (uint8 classes 0/1/2), paired by file name."""
-    data_dir = check_dataset_folder(data_dir, setting, GENERATED_DATASET)
-    images_dir, masks_dir = data_dir / "images", data_dir / "masks"
-    for d in (images_dir, masks_dir):
-        if not d.is_dir():
-            raise DataError(f"generated dataset {data_dir}: no {d.name}/ folder (expected images/ID.png and masks/ID.png)")
-    image_paths = list_images(images_dir)
-    mask_stems = {p.stem for p in masks_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
-    missing = [p.stem for p in image_paths if p.stem not in mask_stems]
-    if missing:
-        raise DataError(f"generated dataset {data_dir}: no mask for {len(missing)} image(s), e.g. {missing[0]!r}")
+    """The items of a generated dataset (drgan.dataset: those its manifest.json lists; a folder of hand-made
+    images/ID.png + masks/ID.png pairs without manifest: paired by file name), sorted by id; masks are uint8
+    classes 0/1/2. Every pair is read and checked before returning."""
     pairs = []
-    for image_path, mask_path in zip(image_paths, list_images(masks_dir, [p.stem for p in image_paths])):
+    for item, image_path, mask_path in image_mask_pairs(data_dir, setting):
         image = read_grey(image_path)
         mask = read_raw_mask(mask_path)
         _check_same_size(image.shape, mask.shape, image_path, mask_path)
         bad = sorted(set(np.unique(mask).tolist()) - {0, 1, 2})
         if bad:
             raise DataError(f"mask {mask_path}: unexpected values {bad[:5]} (expected classes 0 background, 1 particle, 2 contour)")
-        pairs.append(Pair(image_path.stem, image, mask.astype(np.uint8)))
+        pairs.append(Pair(item, image, mask.astype(np.uint8)))
     return pairs
 
 

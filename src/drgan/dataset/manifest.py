@@ -1,0 +1,223 @@
+"""manifest.json: what a dataset folder holds, written once it is complete and read by every consumer.
+
+    {"config": the generation settings (shard: null), "counts": {...}, "throughput": {...},
+     "entries": [{"id": "syn_000000", "kind": "synthetic", "index": 0, "files": {"image": ..., "mask": ...,
+                  "label": ..., "meta": ...}}, ..., {"id": "bg_0000", "kind": "background", "files": {...}}]}
+
+Synthetic entries come first, by index, then the backgrounds. A shard writes its own part to
+manifest_shard_I.json; whichever process finds the dataset complete writes manifest.json (atomically).
+``read_manifest`` checks a folder before anything is done with it and names the folder when it is not a
+dataset written by drgan.generate.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter
+from pathlib import Path
+
+from drgan import io
+from drgan.dataset.backgrounds import backgrounds_exhausted
+from drgan.dataset.layout import (
+    BACKGROUND,
+    CONFIG,
+    FILE_KINDS,
+    MANIFEST,
+    SYNTHETIC,
+    DatasetFolder,
+    Entry,
+    bg_id,
+    syn_id,
+)
+from drgan.dataset.shards import Shard, dataset_cutoff, kept_below, shard_manifest_name
+from drgan.errors import ConfigError, DataError
+
+log = logging.getLogger(__name__)
+
+GENERATED_DATASET = "a dataset folder written by drgan.generate (manifest.json, images/, masks/, labels/, meta/)"
+
+
+def public_config(settings: dict) -> dict:
+    """The settings as a manifest records them (without the model config, which the checkpoint holds)."""
+    return {k: v for k, v in settings.items() if k != "model_cfg"}
+
+
+# --- writing ------------------------------------------------------------------------------------------------
+
+
+def write_shard_manifest(folder: DatasetFolder, settings: dict, shard: Shard, stats: dict) -> None:
+    """manifest_shard_I.json: the kept indices of one shard found on disk, and its throughput."""
+    outcomes = folder.outcomes()
+    mine = sorted(i for i, kept in outcomes.items() if kept and shard.owns_index(i))
+    io.write_json(folder.root / shard_manifest_name(shard), {
+        "shard": str(shard),
+        "config": public_config(settings),
+        "entries": [Entry.synthetic(i).to_json() for i in mine],
+        "throughput": stats,
+    })  # fmt: skip
+
+
+def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, required: bool) -> dict | None:
+    """manifest.json of the first n kept indices and the backgrounds, when all are done.
+
+    Incomplete: a ConfigError naming what is missing when ``required`` (single process, merge=true),
+    else None (a shard whose siblings are still running)."""
+    outcomes = folder.outcomes()
+    n, n_background = settings["n"], settings["n_background"]
+    cutoff, missing = dataset_cutoff(outcomes, n)
+    backgrounds = [bg_id(k) for k in range(n_background) if folder.done(bg_id(k))]
+    problem = None
+    if cutoff is None:
+        problem = (f"synthetic index {missing} ({syn_id(missing)}) is not done yet "
+                   f"({kept_below(outcomes, missing)} of n={n} kept below it)")
+    elif len(backgrounds) < n_background and not backgrounds_exhausted(settings["backgrounds"], len(backgrounds)):
+        problem = f"{len(backgrounds)} of n_background={n_background} background patches are done (shard 0 writes them)"
+    if problem:
+        if required:
+            raise ConfigError(f"{folder.root}: dataset incomplete: {problem}; run the shards (same command, without merge=true)")
+        log.info("manifest.json not written yet: %s", problem)
+        return None
+    kept = [i for i in range(cutoff + 1) if outcomes[i]]
+    dropped = [i for i in range(cutoff + 1) if not outcomes[i]]
+    reasons = Counter(folder.dropped_reason(i) for i in dropped)
+    entries = [Entry.synthetic(i).to_json() for i in kept] + [Entry.background(b).to_json() for b in backgrounds]
+    shards = []
+    for path in sorted(folder.root.glob("manifest_shard_*.json")):
+        record = json.loads(path.read_text())
+        if record.get("config", {}).get("ckpt") == settings["ckpt"]:
+            shards.append({"shard": record.get("shard"), **record.get("throughput", {})})
+    surplus = sum(1 for i, k in outcomes.items() if k and i > cutoff)
+    manifest = {
+        "config": {**public_config(settings), "shard": None},
+        "counts": {
+            "synthetic": len(kept),
+            "background": len(backgrounds),
+            "kept": len(kept),
+            "dropped": len(dropped),
+            "drop_reasons": dict(reasons),
+            "attempted": cutoff + 1,
+            "surplus_kept_not_listed": surplus,
+        },
+        "throughput": {"this_run": stats, "shards": shards},
+        "entries": entries,
+    }
+    io.write_json(folder.root / MANIFEST, manifest)
+    log.info("manifest.json: %d synthetic (%d dropped) + %d background", len(kept), len(dropped), len(backgrounds))
+    return manifest
+
+
+# --- reading ------------------------------------------------------------------------------------------------
+
+
+def is_generated(root: str | Path) -> bool:
+    """Whether ``root`` was made by drgan.generate (complete or not): it holds manifest.json or config.json."""
+    root = Path(root)
+    return (root / MANIFEST).is_file() or (root / CONFIG).is_file()
+
+
+def read_manifest(root: str | Path, setting: str = "data") -> dict:
+    """The checked manifest.json of a complete dataset folder, or a DataError naming ``setting=root`` and what
+    is wrong: no such folder, a folder of another kind, a dataset whose shards are not merged yet, or a
+    manifest that is not one (unreadable, no entries, entries without an image or mask)."""
+    root = Path(root)
+    if not root.is_dir():
+        kind = "a file, not a folder" if root.exists() else "no such folder"
+        raise DataError(f"{setting}={root}: {kind} (expected {GENERATED_DATASET})")
+    path = root / MANIFEST
+    if not path.is_file():
+        if (root / CONFIG).is_file():
+            raise DataError(
+                f"{setting}={root}: a drgan.generate folder without manifest.json, so the dataset is not complete: "
+                "run the same generate command again (it resumes), or with merge=true once all its shards are done"
+            )
+        raise DataError(f"{setting}={root}: not a drgan dataset: no manifest.json (holds {_listing(root)}; "
+                        f"expected {GENERATED_DATASET})")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        raise DataError(f"{setting}={root}: manifest.json cannot be read ({type(err).__name__}: {err})") from err
+    entries = manifest.get("entries") if isinstance(manifest, dict) else None
+    if not isinstance(entries, list):
+        raise DataError(f"{setting}={root}: manifest.json has no 'entries' list (expected {GENERATED_DATASET})")
+    if not entries:
+        raise DataError(f"{setting}={root}: manifest.json lists no entries")
+    for k, entry in enumerate(entries):
+        files = entry.get("files") if isinstance(entry, dict) else None
+        if not isinstance(files, dict) or not isinstance(entry.get("id"), str) or not {"image", "mask"} <= set(files):
+            raise DataError(f"{setting}={root}: manifest.json entry {k} ({str(entry)[:80]}) is not an item with "
+                            "'id' and 'files' holding 'image' and 'mask'")
+        if entry.get("kind") not in (SYNTHETIC, BACKGROUND):
+            raise DataError(f"{setting}={root}: manifest.json entry {entry['id']} has kind {entry.get('kind')!r} "
+                            f"(expected {SYNTHETIC!r} or {BACKGROUND!r})")
+    return manifest
+
+
+def _listing(root: Path, shown: int = 6) -> str:
+    """A few names of what a folder holds, for a message."""
+    names = sorted(p.name + ("/" if p.is_dir() else "") for p in root.iterdir())
+    if not names:
+        return "nothing"
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
+def manifest_entries(manifest: dict) -> list[Entry]:
+    """The entries of a manifest read by ``read_manifest``, in its order."""
+    return [Entry(e["id"], e["kind"], dict(e["files"]), e.get("index")) for e in manifest["entries"]]
+
+
+def check_files(root: str | Path, entries: list[Entry], roles=("image", "mask"), setting: str = "data") -> None:
+    """A DataError naming the first missing file of an entry (by ``roles``), before any of them is used."""
+    root = Path(root)
+    for entry in entries:
+        for role in roles:
+            if not (root / entry.files[role]).is_file():
+                raise DataError(f"{setting}={root}: {entry.files[role]} of {entry.id} is missing")
+
+
+def unlisted_items(root: str | Path, entries: list[Entry]) -> list[str]:
+    """Ids of images on disk that the manifest does not list (e.g. kept by a shard beyond the n-th)."""
+    listed = {e.id for e in entries}
+    images = Path(root) / FILE_KINDS[0]
+    on_disk = {p.stem for p in images.glob("*.png") if not p.name.startswith(".")} if images.is_dir() else set()
+    return sorted(on_disk - listed)
+
+
+
+# --- image/mask pairs for a segmenter -----------------------------------------------------------------------
+
+
+def image_mask_pairs(root: str | Path, setting: str = "data") -> list[tuple[str, Path, Path]]:
+    """(id, image file, mask file) of every item of a dataset folder, sorted by id.
+
+    A folder written by drgan.generate: the items its manifest.json lists (each file checked to exist; images on
+    disk that it does not list, e.g. kept by a shard beyond the n-th, are left out); without its manifest it is
+    not complete and refused. A folder of hand-made pairs (images/ID.<ext> and masks/ID.<ext>, no manifest or
+    config.json): paired by file name. Anything else: a DataError naming ``setting=root``."""
+    root = Path(root)
+    if root.is_dir() and not is_generated(root):
+        if (root / "images").is_dir() and (root / "masks").is_dir():
+            return _pairs_by_name(root, setting)
+        raise DataError(f"{setting}={root}: not a drgan dataset: no manifest.json, and no images/ and masks/ folders "
+                        f"(holds {_listing(root)}; expected {GENERATED_DATASET}, or image/mask pairs images/ID.png "
+                        "and masks/ID.png)")
+    entries = manifest_entries(read_manifest(root, setting))
+    check_files(root, entries, ("image", "mask"), setting)
+    unlisted = unlisted_items(root, entries)
+    if unlisted:
+        log.info("%s=%s: %d image(s) on disk not listed in manifest.json (e.g. %s) are left out",
+                 setting, root, len(unlisted), unlisted[0])
+    return [(e.id, root / e.files["image"], root / e.files["mask"]) for e in sorted(entries, key=lambda e: e.id)]
+
+
+def _pairs_by_name(root: Path, setting: str) -> list[tuple[str, Path, Path]]:
+    from drgan.data.images import IMAGE_SUFFIXES, list_images
+
+    images_dir, masks_dir = root / "images", root / "masks"
+    image_paths = list_images(images_dir)
+    mask_stems = {p.stem for p in masks_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+    missing = [p.stem for p in image_paths if p.stem not in mask_stems]
+    if missing:
+        raise DataError(f"{setting}={root}: no mask for {len(missing)} image(s) in masks/, e.g. {missing[0]!r}")
+    mask_paths = list_images(masks_dir, [p.stem for p in image_paths])
+    return [(image.stem, image, mask) for image, mask in zip(image_paths, mask_paths)]

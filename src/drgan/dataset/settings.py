@@ -1,0 +1,103 @@
+"""The settings of a generation run, checked and resolved against the checkpoint before anything is built.
+
+``FIXED_SETTINGS`` decide what each index holds: config.json records them at a folder's first use, and a folder
+is only ever completed with the same ones (n and n_background may grow). The rest (n, max_attempts, shard)
+only decide how much is made and by whom.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from drgan.data.polarity import check_polarity
+from drgan.dataset.shards import Shard
+from drgan.dataset.source import checkpoint_config, effective_renderer, generator_checkpoint
+from drgan.errors import ConfigError
+
+FIXED_SETTINGS = ("ckpt", "material", "seed", "contour_px", "min_contrast", "min_background", "polarity", "renderer",
+                  "backgrounds")
+
+
+def fixed_settings(settings: dict) -> dict:
+    """The part of ``settings`` that config.json records and every later run must repeat."""
+    return {k: settings[k] for k in FIXED_SETTINGS}
+
+
+def settings_from(cfg: DictConfig) -> dict:
+    """Checked, resolved settings of a run (conf/generate.yaml); raises before any model is built or image rendered.
+
+    Keys (in the order manifests record them): ckpt, material, n, n_background, seed, contour_px, min_contrast,
+    min_background, polarity, max_attempts, renderer, backgrounds, shard, and model_cfg (the checkpoint's config
+    with the effective renderer, which is not recorded)."""
+    n = cfg.n
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ConfigError(f"n={n!r}: expected an integer >= 1 (synthetic images to keep)")
+    n_background = cfg.n_background
+    if isinstance(n_background, bool) or not isinstance(n_background, int) or n_background < 0:
+        raise ConfigError(f"n_background={n_background!r}: expected an integer >= 0")
+    shard = Shard.parse(cfg.get("shard"))
+    for key in ("min_contrast", "min_background"):
+        if not isinstance(cfg[key], (int, float)) or isinstance(cfg[key], bool) or cfg[key] < 0:
+            raise ConfigError(f"{key}={cfg[key]!r}: expected a number >= 0")
+    if cfg.min_background >= 1:
+        raise ConfigError(f"min_background={cfg.min_background}: expected a fraction below 1")
+    max_attempts = cfg.get("max_attempts")
+    max_attempts = 10 * n + 100 if max_attempts is None else int(max_attempts)
+    if max_attempts < n:
+        raise ConfigError(f"max_attempts={max_attempts}: expected >= n={n}")
+    if cfg.get("out") in (None, ""):
+        raise ConfigError("out: expected the dataset folder")
+
+    ckpt_file, run_dir = generator_checkpoint(cfg.ckpt)
+    saved = checkpoint_config(ckpt_file)
+    material = str(saved["material"].get("name"))
+    wanted = OmegaConf.select(cfg, "material.name")
+    if wanted is not None and str(wanted) != material:
+        raise ConfigError(f"checkpoint {ckpt_file} was trained for material {material}, not {wanted}")
+    contour_px = cfg.get("contour_px")
+    contour_px = saved["material"].get("contour_px", 1) if contour_px is None else contour_px
+    if isinstance(contour_px, bool) or int(contour_px) != contour_px or contour_px < 0:
+        raise ConfigError(f"contour_px={contour_px!r}: expected an integer >= 0")
+    renderer = effective_renderer(saved.get("renderer"), cfg.get("renderer"))
+    polarity = cfg.get("polarity") or saved["material"].get("polarity", "bright")
+    check_polarity(polarity, "polarity" if cfg.get("polarity") else "the checkpoint's material.polarity")
+    backgrounds = background_source(cfg.get("backgrounds"), run_dir)
+    if n_background and backgrounds is None:
+        raise ConfigError(f"n_background={n_background}: the checkpoint has no run folder with patches/; give backgrounds=PATCHSET_FOLDER or n_background=0")
+    from drgan.build import textured
+
+    if textured(saved["material"]) and backgrounds is None:
+        raise ConfigError(
+            f"checkpoint {ckpt_file} was trained with material.background_texture, which takes its texture from real "
+            "background patches, and it has no run folder with patches/; give backgrounds=PATCHSET_FOLDER"
+        )
+    return {
+        "ckpt": str(ckpt_file),
+        "material": material,
+        "n": n,
+        "n_background": n_background,
+        "seed": int(cfg.seed),
+        "contour_px": int(contour_px),
+        "min_contrast": float(cfg.min_contrast),
+        "min_background": float(cfg.min_background),
+        "polarity": polarity,
+        "max_attempts": max_attempts,
+        "renderer": renderer,
+        "backgrounds": str(backgrounds) if backgrounds else None,
+        "shard": str(shard),
+        "model_cfg": {**saved, "renderer": renderer},
+    }
+
+
+def background_source(given, run_dir: Path | None) -> Path | None:
+    """The PatchSet folder of the background items: ``backgrounds=`` when given, else <run folder>/patches."""
+    if given:
+        path = Path(str(given)).expanduser().resolve()
+        if not path.is_dir():
+            raise ConfigError(f"backgrounds={given}: no such folder (expected a PatchSet folder, e.g. <run>/patches)")
+        return path
+    if run_dir is not None and (run_dir / "patches").is_dir():
+        return run_dir / "patches"
+    return None

@@ -1,0 +1,211 @@
+"""drgan.dataset: the folder of a synthetic dataset, written and read without a renderer (hand-made arrays).
+
+The render loop that fills it (drgan.generate) is tested in tests/test_generate.py and tests/test_faults_generate.py.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from drgan import io
+from drgan.dataset import manifest as mf
+from drgan.dataset.layout import DatasetFolder, bg_id, syn_id, syn_index
+from drgan.dataset.settings import FIXED_SETTINGS, fixed_settings
+from drgan.dataset.shards import Shard, owned_by
+from drgan.errors import ConfigError, DataError
+
+SIZE = 12
+
+
+def settings(n: int, n_background: int = 1) -> dict:
+    """What drgan.dataset.settings.settings_from returns, in its key order (no checkpoint needed here)."""
+    return {
+        "ckpt": "/runs/x/checkpoints/best.ckpt", "material": "tio2_sem", "n": n, "n_background": n_background,
+        "seed": 0, "contour_px": 1, "min_contrast": 0.0, "min_background": 0.05, "polarity": "bright",
+        "max_attempts": 10 * n + 100, "renderer": {"spp": 1, "resolution": SIZE}, "backgrounds": None,
+        "shard": "0/1", "model_cfg": {"material": {"name": "tio2_sem"}},
+    }  # fmt: skip
+
+
+def item_arrays(index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A deterministic (image in [0, 1], 3-class mask, instance labels) for an index: one square particle."""
+    labels = np.zeros((SIZE, SIZE), np.int32)
+    y = index % (SIZE - 4)
+    labels[y : y + 4, 2:6] = 1
+    mask = (labels > 0).astype(np.uint8)
+    mask[y, 2:6] = 2
+    image = np.where(labels > 0, 0.8, 0.1 + 0.01 * index).astype(np.float32)
+    return image, mask, labels
+
+
+def write_synthetic(folder: DatasetFolder, index: int, kept: bool = True) -> None:
+    if kept:
+        image, mask, labels = item_arrays(index)
+        folder.write(syn_id(index), image, mask, labels, {"kind": "synthetic", "index": index})
+    else:
+        folder.write_dropped(syn_id(index), {"reason": "contrast", "kind": "synthetic", "index": index})
+
+
+def write_background(folder: DatasetFolder, k: int) -> None:
+    zeros = np.zeros((SIZE, SIZE), np.uint8)
+    folder.write(bg_id(k), np.full((SIZE, SIZE), 0.2, np.float32), zeros, zeros, {"kind": "background", "index": k})
+
+
+def read_png(path: Path) -> np.ndarray:
+    with Image.open(path) as image:
+        return np.asarray(image)
+
+
+def test_ids_and_files():
+    assert syn_id(12) == "syn_000012" and bg_id(3) == "bg_0003"
+    assert syn_index("syn_000012") == 12 and syn_index("bg_0003") is None and syn_index("syn_x") is None
+    assert mf.Entry.synthetic(5).to_json() == {
+        "id": "syn_000005", "kind": "synthetic", "index": 5,
+        "files": {"image": "images/syn_000005.png", "mask": "masks/syn_000005.png",
+                  "label": "labels/syn_000005.png", "meta": "meta/syn_000005.json"},
+    }  # fmt: skip
+    assert list(mf.Entry.background("bg_0000").to_json()) == ["id", "kind", "files"]
+
+
+def test_write_read_roundtrip(tmp_path):
+    """Items written by DatasetFolder come back from the manifest, pixel for pixel, in id order."""
+    from drgan.segmentation.data import load_generated_pairs
+
+    folder = DatasetFolder(tmp_path / "data")
+    folder.check_settings(fixed_settings(settings(3)))
+    for index, kept in ((0, True), (1, False), (2, True), (3, True)):
+        write_synthetic(folder, index, kept)
+    write_background(folder, 0)
+    assert folder.outcomes() == {0: True, 1: False, 2: True, 3: True}
+    written = mf.write_manifest(folder, settings(3), stats={"rendered": 4}, required=True)
+
+    manifest = mf.read_manifest(folder.root)
+    assert manifest == written == json.loads((folder.root / "manifest.json").read_text())
+    assert "model_cfg" not in manifest["config"] and manifest["config"]["shard"] is None
+    assert manifest["counts"] == {"synthetic": 3, "background": 1, "kept": 3, "dropped": 1,
+                                  "drop_reasons": {"contrast": 1}, "attempted": 4, "surplus_kept_not_listed": 0}
+    entries = mf.manifest_entries(manifest)
+    assert [e.id for e in entries] == ["syn_000000", "syn_000002", "syn_000003", "bg_0000"]
+    assert [e.index for e in entries] == [0, 2, 3, None]
+    for entry in entries[:3]:
+        image, mask, labels = item_arrays(entry.index)
+        np.testing.assert_array_equal(read_png(folder.root / entry.files["mask"]), mask)
+        np.testing.assert_array_equal(read_png(folder.root / entry.files["label"]), labels)
+        np.testing.assert_array_equal(read_png(folder.root / entry.files["image"]), np.round(image * 255).astype(np.uint8))
+        meta = json.loads((folder.root / entry.files["meta"]).read_text())
+        assert meta["id"] == entry.id and meta["files"] == entry.files
+
+    pairs = load_generated_pairs(folder.root)
+    assert [p.id for p in pairs] == ["bg_0000", "syn_000000", "syn_000002", "syn_000003"]  # sorted by id
+    np.testing.assert_array_equal(pairs[1].mask, item_arrays(0)[1])
+    assert pairs[1].image.dtype == np.float32 and pairs[1].image.max() == pytest.approx(0.8, abs=1 / 255)
+    assert not [p for p in folder.root.rglob("*") if ".tmp" in p.name]  # every write atomic
+
+
+def test_other_settings_are_refused_and_n_may_grow(tmp_path):
+    folder = DatasetFolder(tmp_path / "data")
+    folder.check_settings(fixed_settings(settings(3)))
+    assert list(json.loads((folder.root / "config.json").read_text())["fixed"]) == list(FIXED_SETTINGS)
+    folder.check_settings(fixed_settings(settings(30, n_background=5)))  # n, n_background: not fixed
+    with pytest.raises(ConfigError, match=r"generated with other settings \(seed: 0 there, 7 now\)"):
+        folder.check_settings(fixed_settings({**settings(3), "seed": 7}))
+
+
+def test_resume_of_a_half_written_shard(tmp_path):
+    """Shard 1/2 killed mid-item: its leftovers go, shard 0's do not; the dataset is complete only when
+    the missing index is done, and then lists the first n kept indices whoever rendered them."""
+    folder = DatasetFolder(tmp_path / "data")
+    s = settings(4, n_background=0)
+    for index in (0, 2, 4):  # shard 0 is done with its part
+        write_synthetic(folder, index)
+    write_synthetic(folder, 1)
+    # Shard 1 was killed in index 3: image and mask written, labels in flight, no meta record.
+    image, mask, _ = item_arrays(3)
+    io.write_png(folder.root / "images" / "syn_000003.png", image)
+    io.write_png(folder.root / "masks" / "syn_000003.png", mask)
+    in_flight = folder.root / "labels" / ".syn_000003.png.k1ll3d.tmp.png"
+    in_flight.write_bytes(b"\x89PNG half")
+    other = folder.root / "images" / ".syn_000006.png.r4nn1ng.tmp.png"  # shard 0's write, still running
+    other.write_bytes(b"\x89PNG")
+    shard = Shard.parse("1/2")
+    assert not folder.done(syn_id(3)) and 3 not in folder.outcomes()
+
+    # Shard 0 finishing meanwhile cannot write the manifest yet; merge=true says which index is missing.
+    assert mf.write_manifest(folder, s, stats=None, required=False) is None
+    with pytest.raises(ConfigError, match=r"synthetic index 3 \(syn_000003\) is not done yet \(3 of n=4 kept below it\)"):
+        mf.write_manifest(folder, s, stats=None, required=True)
+
+    removed = folder.remove_partial(lambda item: owned_by(item, shard))
+    assert removed == {"temporary": 1, "unpaired": 2}
+    assert not in_flight.exists() and other.exists()
+    assert not (folder.root / "images" / "syn_000003.png").exists() and (folder.root / "images" / "syn_000002.png").exists()
+
+    write_synthetic(folder, 3)  # the resumed shard renders the index again
+    mf.write_shard_manifest(folder, s, shard, {"rendered": 1})
+    shard_record = json.loads((folder.root / "manifest_shard_1.json").read_text())
+    assert [e["id"] for e in shard_record["entries"]] == ["syn_000001", "syn_000003"]
+    manifest = mf.write_manifest(folder, s, stats={"rendered": 1}, required=False)
+    assert [e["id"] for e in manifest["entries"]] == [syn_id(i) for i in range(4)]
+    assert manifest["counts"]["surplus_kept_not_listed"] == 1  # index 4, kept by shard 0 beyond the 4th
+    assert manifest["throughput"]["shards"] == [{"shard": "1/2", "rendered": 1}]
+    # A reader takes the manifest's items, not every image on disk.
+    assert [item for item, _, _ in mf.image_mask_pairs(folder.root)] == [syn_id(i) for i in range(4)]
+    assert mf.unlisted_items(folder.root, mf.manifest_entries(manifest)) == ["syn_000004"]
+
+
+def test_foreign_and_unfinished_folders_are_named(tmp_path):
+    from drgan.segmentation.data import load_generated_pairs
+
+    real = tmp_path / "tio2_like"  # a real dataset: images and split, binary masks under another name
+    (real / "images").mkdir(parents=True)
+    (real / "split.json").write_text("{}")
+    with pytest.raises(DataError, match=rf"^data={real}: not a drgan dataset: no manifest.json.*holds images/, split.json"):
+        load_generated_pairs(real)
+    with pytest.raises(DataError, match=rf"^data={real}: not a drgan dataset: no manifest.json"):
+        mf.read_manifest(real)
+    with pytest.raises(DataError, match=rf"^data={tmp_path / 'nowhere'}: no such folder \(expected a dataset folder"):
+        load_generated_pairs(tmp_path / "nowhere")
+
+    unfinished = DatasetFolder(tmp_path / "unfinished")  # generate started there, no manifest yet
+    unfinished.check_settings(fixed_settings(settings(2)))
+    write_synthetic(unfinished, 0)
+    with pytest.raises(DataError, match=r"without manifest.json, so the dataset is not complete.*merge=true"):
+        load_generated_pairs(unfinished.root)
+
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "manifest.json").write_text('{"entries": [')
+    with pytest.raises(DataError, match=rf"^data={broken}: manifest.json cannot be read"):
+        mf.read_manifest(broken)
+    (broken / "manifest.json").write_text(json.dumps({"entries": [{"id": "a", "kind": "synthetic", "files": {}}]}))
+    with pytest.raises(DataError, match=r"entry 0 .* is not an item with 'id' and 'files' holding 'image' and 'mask'"):
+        mf.read_manifest(broken)
+    (broken / "manifest.json").write_text(json.dumps({"entries": []}))
+    with pytest.raises(DataError, match="manifest.json lists no entries"):
+        mf.read_manifest(broken)
+
+
+def test_missing_file_of_a_listed_item_is_named(tmp_path):
+    folder = DatasetFolder(tmp_path / "data")
+    write_synthetic(folder, 0)
+    mf.write_manifest(folder, settings(1, n_background=0), stats=None, required=True)
+    (folder.root / "masks" / "syn_000000.png").unlink()
+    with pytest.raises(DataError, match=r"masks/syn_000000.png of syn_000000 is missing"):
+        mf.image_mask_pairs(folder.root)
+
+
+def test_hand_made_pairs_without_manifest_are_paired_by_name(tmp_path):
+    root = tmp_path / "pairs"
+    for name in ("b", "a"):
+        image, mask, _ = item_arrays(1)
+        io.write_png(root / "images" / f"{name}.png", image)
+        io.write_png(root / "masks" / f"{name}.png", mask)
+    assert [(i, p.name, m.name) for i, p, m in mf.image_mask_pairs(root)] == [("a", "a.png", "a.png"), ("b", "b.png", "b.png")]
+    (root / "masks" / "b.png").unlink()
+    with pytest.raises(DataError, match=rf"data={root}: no mask for 1 image\(s\) in masks/, e.g. 'b'"):
+        mf.image_mask_pairs(root)
