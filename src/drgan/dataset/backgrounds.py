@@ -22,17 +22,20 @@ def load_backgrounds(path: Path | None, n: int, resolution: int) -> tuple[list[n
     from drgan.data.patches import PatchSet
 
     if path is None:
-        raise ConfigError(f"n_background={n}: no background patches found; give backgrounds=PATCHSET_FOLDER (a run's patches/) or n_background=0")
+        raise ConfigError(f"n_background={n}: no background patches found; give backgrounds=PATCHSET_FOLDER "
+                          "(a run's patches/) or n_background=0")
     patches = PatchSet.load(path)
     if len(patches.background) < n:
-        log.warning("backgrounds=%s holds %d background patches, fewer than n_background=%d: using all", path, len(patches.background), n)
+        log.warning("backgrounds=%s holds %d background patches, fewer than n_background=%d: using all",
+                    path, len(patches.background), n)
     images, sources = [], []
     for k in range(min(n, len(patches.background))):
         patch = np.asarray(patches.background[k], dtype=np.float32)
         if patch.shape != (resolution, resolution):
             from PIL import Image
 
-            patch = np.asarray(Image.fromarray(patch, mode="F").resize((resolution, resolution), Image.BICUBIC), dtype=np.float32)
+            resized = Image.fromarray(patch, mode="F").resize((resolution, resolution), Image.BICUBIC)
+            patch = np.asarray(resized, dtype=np.float32)
         images.append(np.clip(patch, 0.0, 1.0))
         sources.append({
             "patchset": str(path),

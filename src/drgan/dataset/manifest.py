@@ -75,7 +75,8 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
         problem = f"{len(backgrounds)} of n_background={n_background} background patches are done (shard 0 writes them)"
     if problem:
         if required:
-            raise ConfigError(f"{folder.root}: dataset incomplete: {problem}; run the shards (same command, without merge=true)")
+            raise ConfigError(f"{folder.root}: dataset incomplete: {problem}; "
+                              "run the shards (same command, without merge=true)")
         log.info("manifest.json not written yet: %s", problem)
         return None
     kept = [i for i in range(cutoff + 1) if outcomes[i]]
@@ -147,10 +148,19 @@ def read_manifest(root: str | Path, setting: str = "data") -> dict:
         if not isinstance(files, dict) or not isinstance(entry.get("id"), str) or not {"image", "mask"} <= set(files):
             raise DataError(f"{setting}={root}: manifest.json entry {k} ({str(entry)[:80]}) is not an item with "
                             "'id' and 'files' holding 'image' and 'mask'")
+        outside = [f for f in files.values() if not isinstance(f, str) or not _inside(f)]
+        if outside:
+            raise DataError(f"{setting}={root}: manifest.json entry {entry['id']} names {outside[0]!r} "
+                            "(expected a path inside the dataset folder, e.g. images/ID.png)")
         if entry.get("kind") not in (SYNTHETIC, BACKGROUND):
             raise DataError(f"{setting}={root}: manifest.json entry {entry['id']} has kind {entry.get('kind')!r} "
                             f"(expected {SYNTHETIC!r} or {BACKGROUND!r})")
     return manifest
+
+
+def _inside(relative: str) -> bool:
+    """Whether a manifest's file path stays inside the dataset folder (relative, no "..")."""
+    return not Path(relative).is_absolute() and ".." not in Path(relative).parts
 
 
 def _listing(root: Path, shown: int = 6) -> str:

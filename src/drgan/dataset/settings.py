@@ -65,7 +65,8 @@ def settings_from(cfg: DictConfig) -> dict:
     check_polarity(polarity, "polarity" if cfg.get("polarity") else "the checkpoint's material.polarity")
     backgrounds = background_source(cfg.get("backgrounds"), run_dir)
     if n_background and backgrounds is None:
-        raise ConfigError(f"n_background={n_background}: the checkpoint has no run folder with patches/; give backgrounds=PATCHSET_FOLDER or n_background=0")
+        raise ConfigError(f"n_background={n_background}: the checkpoint has no run folder with patches/; "
+                          "give backgrounds=PATCHSET_FOLDER or n_background=0")
     from drgan.build import textured
 
     if textured(saved["material"]) and backgrounds is None:
