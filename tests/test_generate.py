@@ -268,6 +268,31 @@ def test_export_nnunet_passes_nnunet_integrity_check(dataset, tmp_path):
         verify_dataset_integrity(str(target), num_processes=1)
 
 
+def test_export_and_segment_read_the_dataset_through_its_manifest(dataset, tmp_path):
+    from drgan.errors import DataError
+    from drgan.segmentation.data import load_generated_pairs
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    extra = "syn_999999"  # kept on disk beyond the n-th (a shard's surplus): not in the manifest
+    for kind in ("images", "masks", "labels"):
+        shutil.copyfile(data / kind / f"{ids(dataset)[0]}.png", data / kind / f"{extra}.png")
+    pairs = load_generated_pairs(data)
+    assert [p.id for p in pairs] == sorted(ids(dataset)) and extra not in {p.id for p in pairs}
+    target = export(data, tmp_path / "raw")
+    assert not (target / "labelsTr" / f"{extra}.png").exists()
+
+    (data / "manifest.json").unlink()  # an unfinished generate folder (config.json, no manifest)
+    with pytest.raises(DataError, match=rf"^data={data}: a drgan.generate folder without manifest.json"):
+        load_generated_pairs(data)
+    with pytest.raises(DataError, match=rf"^data={data}: a drgan.generate folder without manifest.json"):
+        export(data, tmp_path / "raw2")
+    foreign = tmp_path / "foreign"
+    (foreign / "images").mkdir(parents=True)
+    with pytest.raises(DataError, match=rf"^data={foreign}: not a drgan dataset: no manifest.json \(holds images/"):
+        export(foreign, tmp_path / "raw3")
+
+
 # --- a generator trained with the real background texture -----------------------------------------------------
 
 
