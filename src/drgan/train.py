@@ -120,6 +120,7 @@ def train(cfg: DictConfig) -> dict:
     import lightning.pytorch as L
     from hydra.utils import instantiate
 
+    from drgan.callbacks.early_stop import stop_reason
     from drgan.models.gan_module import GANModule
 
     wall_start = time.perf_counter()
@@ -180,10 +181,19 @@ def train(cfg: DictConfig) -> dict:
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     metrics["time/wall_s"] = time.perf_counter() - wall_start
     metrics["train/skipped_steps_total"] = float(model.skipped_steps)
+    kind, why = stop_reason(trainer)
     for logger in loggers:
         logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
+        if hasattr(logger, "run_id") and trainer.is_global_zero:  # MLflow: the run says why it ended
+            try:
+                logger.experiment.set_tag(logger.run_id, "stop_reason", kind)
+                logger.experiment.set_tag(logger.run_id, "stop_message", why[:5000])
+            except Exception as error:  # an unreachable store must not lose the run's files
+                log.warning("MLflow stop_reason not tagged: %s", str(error).splitlines()[0])
     if trainer.is_global_zero:  # under DDP every rank returns here; one writes
-        write_json(output_dir / "metrics.json", {"epoch": trainer.current_epoch, "global_step": trainer.global_step, **metrics})
+        write_json(output_dir / "metrics.json", {"epoch": trainer.current_epoch, "global_step": trainer.global_step,
+                                                 "stop_reason": kind, "stop_message": why, **metrics})
+    log.info("stopped (%s): %s", kind, why)
     log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
     return metrics
 

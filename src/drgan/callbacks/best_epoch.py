@@ -137,7 +137,7 @@ class BestEpochCallback(Callback):
             raise ConfigError("BestEpochCallback needs a FIDCallback (callbacks.fid) in the callback list")
         epoch = trainer.current_epoch
         scores = fid_callback.latest(epoch)
-        if scores is None:  # FID not evaluated this epoch (every_n_epochs > 1)
+        if scores is None or not math.isfinite(scores["fid"]):  # not evaluated (every_n_epochs > 1), or screened out
             return
         folder = checkpoint_dir(trainer)
         ckpt = folder / "epochs" / f"epoch_{epoch:03d}.ckpt"

@@ -17,6 +17,14 @@ inverted). A whole-image mean misses an epoch whose particles are brighter than 
 
 Logged: ``val/fid``, ``val/kid`` (mean over subsets), the brightness values and ``time/fid_s``, through ``pl_module.log`` so that a
 ``ModelCheckpoint(monitor="val/fid")`` sees them. The per-epoch history travels in the checkpoint.
+
+**The screen** (``screen_images``, e.g. 48): an evaluation first renders only the first ``screen_images`` of its
+images and scores them with KID (unbiased at any sample size, unlike FID); only an epoch whose screen KID is at
+most (1 + ``screen_margin``) x the lowest screen KID so far goes on to the full FID, rendering the remaining
+images (the screen's images are the first of the full set, same seeds: the full FID is the one the callback
+computes without a screen). An epoch screened out logs ``val/fid`` = NaN (never the best; an early-stopping
+patience counts it as no improvement) and ``val/screen_kid``. It saves most of the evaluation where a run has
+stopped improving, which is where an early stop needs its evaluations (experiments/early_stop/).
 """
 
 from __future__ import annotations
@@ -146,6 +154,11 @@ def contrast(particle: float, background: float, polarity: str) -> float:
     return float(ratio) if math.isfinite(ratio) else math.nan
 
 
+def training_steps(trainer: Trainer) -> int:
+    """Training iterations done (batches): ``trainer.global_step`` counts optimizer steps, two per iteration here."""
+    return int(trainer.fit_loop.epoch_loop.batch_progress.total.completed)
+
+
 def rank_share(n: int, rank: int, world: int) -> list[int]:
     """Image indices rendered by ``rank`` of ``world``: rank, rank + world, ... (ceil(n / world) of them, so
     that every rank renders as many; indices >= n are padding, dropped after the gather)."""
@@ -183,7 +196,8 @@ class FIDCallback(Callback):
     statistics cache (None: ``<run>/fid_cache``); extractor: an object with ``features(images) -> (N, D)``
     (None: the TF-Inception network); kid_subsets/kid_subset_size: KID's random subsets (size None: half the smaller
     of the synthetic and real samples, see ``drgan.metrics.fid.kid``); spp: samples per
-    pixel of the FID renders (None: the training spp; fix it to compare runs trained at different spp)."""
+    pixel of the FID renders (None: the training spp; fix it to compare runs trained at different spp);
+    screen_images / screen_margin: the KID screen of the module docstring (None: every evaluation is a full FID)."""
 
     def __init__(
         self,
@@ -196,6 +210,8 @@ class FIDCallback(Callback):
         kid_subset_size: int | None = None,
         progress: bool = True,
         spp: int | None = None,
+        screen_images: int | None = None,
+        screen_margin: float = 0.2,
     ):
         if int(every_n_epochs) < 1:
             raise ConfigError(f"FIDCallback.every_n_epochs={every_n_epochs}: expected >= 1")
@@ -210,6 +226,14 @@ class FIDCallback(Callback):
         self.kid_subset_size = None if kid_subset_size is None else int(kid_subset_size)
         self.progress = bool(progress)
         self.spp = None if spp is None else check_spp(spp, "callbacks.fid.spp")
+        if screen_images is not None and int(screen_images) < 4:
+            raise ConfigError(f"callbacks.fid.screen_images={screen_images}: expected >= 4 (KID on halves of the screen) "
+                              "or null (no screen: every evaluation a full FID)")
+        if not (isinstance(screen_margin, (int, float)) and 0 <= screen_margin < math.inf):
+            raise ConfigError(f"callbacks.fid.screen_margin={screen_margin!r}: expected a number >= 0 (0.2: epochs whose "
+                              "screen KID is within 20 % of the lowest go on to the full FID)")
+        self.screen_images = None if screen_images is None else int(screen_images)
+        self.screen_margin = float(screen_margin)
         self.history: list[dict] = []  # per evaluated epoch: epoch, fid, kid, kid_std, brightness, n_images, seconds
         self._real: FeatureStats | None = None
         self._real_mean: float | None = None
@@ -285,33 +309,69 @@ class FIDCallback(Callback):
         start = time.perf_counter()
         real = self.real_stats(trainer)
         n = self.n_images or real.n
+        seed_base = FID_SEED_BASE + 100_003 * epoch
+        progress = self.progress and trainer.is_global_zero
+        screen = self.screen_images if self.screen_images is not None and self.screen_images < n else None
         # Under DDP each rank renders and embeds its share; the features are gathered, so every rank scores
         # the same n images (the same ones as a single process would: seeds follow the image index).
-        mine = rank_share(n, trainer.global_rank, trainer.world_size)
-        fake, fake_masks = render_samples(pl_module, n, FID_SEED_BASE + 100_003 * epoch,
-                                          progress=self.progress and trainer.is_global_zero, spp=self.spp, indices=mine,
+        feats, sums, grey = self._render_part(trainer, pl_module, 0, screen or n, seed_base, progress)
+        screen_kid = None
+        if screen is not None:
+            screen_kid = kid(feats, real.features, self.kid_subsets, None, seed=epoch)[0]
+            lowest = min((h["screen_kid"] for h in self.history if h.get("screen_kid") is not None), default=math.inf)
+            if screen_kid > lowest + abs(lowest) * self.screen_margin:
+                self._record(trainer, pl_module, epoch, start, math.nan, math.nan, math.nan, grey, sums, screen,
+                             screen_kid)
+                return
+            more = self._render_part(trainer, pl_module, screen, n, seed_base, progress)
+            feats, sums, grey = (np.concatenate([a, b]) for a, b in zip((feats, sums, grey), more))
+        fid = FeatureStats.from_features(feats).fid(real)
+        kid_mean, kid_std = kid(feats, real.features, self.kid_subsets, self.kid_subset_size, seed=epoch)
+        self._record(trainer, pl_module, epoch, start, fid, kid_mean, kid_std, grey, sums, n, screen_kid)
+
+    def _render_part(self, trainer: Trainer, pl_module: LightningModule, first: int, stop: int, seed_base: int,
+                     progress: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Images first .. stop-1 of an evaluation (this rank's share, gathered): their features, level sums, greys."""
+        count = stop - first
+        mine = [first + i for i in rank_share(count, trainer.global_rank, trainer.world_size)]
+        fake, fake_masks = render_samples(pl_module, stop, seed_base, progress=progress, spp=self.spp, indices=mine,
                                           masks=True)
-        fake_feats = gather_rows(trainer, np.asarray(self._extractor().features(fake), dtype=np.float64), n)
-        grey = gather_rows(trainer, fake.mean(axis=(1, 2), dtype=np.float64), n)  # every image has as many pixels
-        fid = FeatureStats.from_features(fake_feats).fid(real)
-        kid_mean, kid_std = kid(fake_feats, real.features, self.kid_subsets, self.kid_subset_size, seed=epoch)
+        feats = gather_rows(trainer, np.asarray(self._extractor().features(fake), dtype=np.float64), count)
+        sums = gather_rows(trainer, level_sums(fake, fake_masks), count)
+        grey = gather_rows(trainer, fake.mean(axis=(1, 2), dtype=np.float64), count)  # every image has as many pixels
+        return feats, sums, grey
+
+    def _record(self, trainer: Trainer, pl_module: LightningModule, epoch: int, start: float, fid: float,
+                kid_mean: float, kid_std: float, grey: np.ndarray, sums: np.ndarray, n: int,
+                screen_kid: float | None) -> None:
+        """History entry, log line and logged metrics of one evaluation (FID NaN: screened out)."""
         brightness = float(grey.mean()) / max(self.real_mean(trainer), 1e-6)
-        particle, background = levels(gather_rows(trainer, level_sums(fake, fake_masks), n))
+        particle, background = levels(sums)
         real_particle, real_background = self.real_levels(trainer)
         polarity = getattr(trainer.datamodule, "polarity", None) or "bright"
         tones = {"particle_brightness": level_ratio(particle, real_particle, polarity),
                  "background_brightness": level_ratio(background, real_background, polarity),
                  "contrast": contrast(particle, background, polarity)}
         seconds = time.perf_counter() - start
-        self.history = [h for h in self.history if h["epoch"] != epoch]
-        self.history.append({"epoch": epoch, "fid": fid, "kid": kid_mean, "kid_std": kid_std, "brightness": brightness,
-                             **tones, "n_images": n, "seconds": seconds})
+        entry = {"epoch": epoch, "step": training_steps(trainer), "fid": fid, "kid": kid_mean, "kid_std": kid_std,
+                 "brightness": brightness, **tones, "n_images": n, "seconds": seconds}
+        if screen_kid is not None:
+            entry["screen_kid"] = float(screen_kid)
+        self.history = [h for h in self.history if h["epoch"] != epoch] + [entry]
         if trainer.is_global_zero:
-            log.info("epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (particles %.2f x, background %.2f x, "
-                     "contrast %.2f for %s particles; %d images, %.1f s)", epoch, fid, kid_mean, brightness,
-                     tones["particle_brightness"], tones["background_brightness"], tones["contrast"], polarity, n, seconds)
-        for key, value in (("val/fid", fid), ("val/kid", kid_mean), ("val/brightness", brightness),
-                           *((f"val/{k}", v) for k, v in tones.items()), ("time/fid_s", seconds)):
+            if math.isfinite(fid):
+                log.info("epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (particles %.2f x, background %.2f x, "
+                         "contrast %.2f for %s particles; %d images, %.1f s)", epoch, fid, kid_mean, brightness,
+                         tones["particle_brightness"], tones["background_brightness"], tones["contrast"], polarity, n,
+                         seconds)
+            else:
+                log.info("epoch %d: screened out (KID of %d images %.4g, above the lowest so far by more than %g %%): "
+                         "no full FID (%.1f s)", epoch, n, screen_kid, 100 * self.screen_margin, seconds)
+        metrics = [("val/fid", fid), ("val/kid", kid_mean), ("val/brightness", brightness),
+                   *((f"val/{k}", v) for k, v in tones.items()), ("time/fid_s", seconds)]
+        if screen_kid is not None:
+            metrics.append(("val/screen_kid", screen_kid))
+        for key, value in metrics:
             pl_module.log(key, float(value), on_step=False, on_epoch=True, prog_bar=key == "val/fid", sync_dist=True)
 
     def state_dict(self) -> dict:

@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +63,13 @@ def plot_parameter_histograms(values: np.ndarray, learned, title: str):
 def plot_fid_curve(history: list[dict]):
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.2))
-    ax.plot([h["epoch"] for h in history], [h["fid"] for h in history], marker="o")
+    full = [h for h in history if math.isfinite(h["fid"])]
+    ax.plot([h["epoch"] for h in full], [h["fid"] for h in full], marker="o", label="FID")
+    screened = [h["epoch"] for h in history if not math.isfinite(h["fid"])]
+    if screened:  # the KID screen found them no better: no full FID (drgan.callbacks.fid)
+        ax.plot(screened, [max((h["fid"] for h in full), default=0.0)] * len(screened), "x", color="grey",
+                label="screened out (KID)")
+        ax.legend(fontsize=7)
     ax.set_xlabel("epoch")
     ax.set_ylabel("FID")
     fig.tight_layout()
