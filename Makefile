@@ -30,8 +30,11 @@ test-slow: setup
 train: setup
 	$(PYTHON) -m drgan.train experiment=tio2_sem $(ARGS)
 
+# Serves the store `make train` logs to (MLFLOW_TRACKING_URI, else <project>/mlruns/mlflow.db) and prints each
+# experiment's runs table address. ARGS: train overrides that pick the store, e.g. ARGS=material=tio2_tsem.
+MLFLOW_PORT ?= 5000
 mlflow-ui: setup
-	mlflow ui --backend-store-uri sqlite:///mlruns/mlflow.db --port 5000
+	$(PYTHON) -m drgan.loggers --port $(MLFLOW_PORT) $(ARGS)
 
 render: setup
 	$(PYTHON) -m drgan.render material=tio2_sem out=runs/render

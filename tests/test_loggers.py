@@ -1,0 +1,90 @@
+"""MLflow as a user meets it: sweep jobs told apart by their run names, and the UI helper's store and addresses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from drgan.loggers import MLFlowLogger, SweepJob, describe_runs, runs_url, sweep_run_name, tracking_store
+
+
+def hydra_jobs(command_line: list[str]) -> list[SweepJob]:
+    """The jobs Hydra's basic sweeper makes of a `-m` command line, with the sweep's overrides as typed."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(command_line)
+    jobs = [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+    return [SweepJob(num, tuple(job), tuple(command_line), "/x/multirun/tio2_sem/sweep") for num, job in enumerate(jobs)]
+
+
+def test_the_jobs_of_a_sweep_get_distinct_run_names_from_their_own_overrides():
+    jobs = hydra_jobs(["debug=fast", "logger=mlflow", "seed=0,1", "model.lr_g=1e-4,2e-4"])
+    names = [sweep_run_name("2026-11-23_23-44-47", job) for job in jobs]  # run_name: the default timestamp
+    assert names == ["seed=0,model.lr_g=0.0001", "seed=0,model.lr_g=0.0002", "seed=1,model.lr_g=0.0001",
+                     "seed=1,model.lr_g=0.0002"]  # fmt: skip
+    # A run name given on the command line stays in front; unknown sweep overrides: all of the job's, still distinct.
+    named = [sweep_run_name("lr", job) for job in hydra_jobs(["run_name=lr", "debug=fast", "seed=0,1"])]
+    assert named == ["lr/seed=0", "lr/seed=1"]
+    unknown = [sweep_run_name("t", SweepJob(j.num, j.overrides, None, j.sweep_dir)) for j in jobs]
+    assert len(set(unknown)) == 4 and unknown[0] == "debug=fast,logger=mlflow,seed=0,model.lr_g=0.0001"
+    assert sweep_run_name("t", SweepJob(3, ("seed=0",), ("seed=0",), "/x")) == "job3"  # -m without a sweep
+
+
+@pytest.fixture
+def hydra_job(tmp_path):
+    """Hydra's state in job 1 of `-m debug=fast seed=0,1`, as Hydra sets it in a job process; reset after."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.hydra_config import HydraConfig
+
+    from drgan.configs import conf_dir
+
+    sweep_dir = tmp_path / "multirun" / "tio2_sem" / "2026-11-23_23-44-47"
+    sweep_dir.mkdir(parents=True)
+    OmegaConf.save({"hydra": {"overrides": {"task": ["debug=fast", "seed=0,1"]}}}, sweep_dir / "multirun.yaml")
+    overrides = ["debug=fast", "seed=1", "hydra.mode=MULTIRUN", "hydra.job.num=1", f"hydra.sweep.dir={sweep_dir}"]
+    with initialize_config_dir(version_base="1.3", config_dir=str(conf_dir())):
+        HydraConfig.instance().set_config(hydra_compose("train", overrides=overrides, return_hydra_config=True))
+    yield sweep_dir
+    HydraConfig.instance().cfg = None
+
+
+def test_the_logger_of_a_sweep_job_names_its_run_after_the_job(hydra_job, tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
+    logger = MLFlowLogger(experiment_name="tio2_sem", run_name="2026-11-23_23-44-47", tracking_uri=uri, tags={"a": "1"})
+    assert logger._run_name == "seed=1"
+    assert logger.tags == {"a": "1", "sweep": "2026-11-23_23-44-47", "sweep_job": "1"}
+    resumed = MLFlowLogger(experiment_name="tio2_sem", run_name="keep", tracking_uri=uri, run_id="abc")
+    assert resumed._run_name == "keep"  # a resumed run is not renamed
+
+
+def test_a_single_run_keeps_its_run_name(tmp_path):
+    logger = MLFlowLogger(experiment_name="tio2_sem", run_name="sem_a", tracking_uri=f"sqlite:///{tmp_path}/m.db")
+    assert logger._run_name == "sem_a" and logger.tags is None
+
+
+def test_the_ui_serves_the_store_train_logs_to_and_links_each_runs_table(tmp_path):
+    import mlflow
+
+    import drgan.build
+
+    if drgan.build._USER_TRACKING_URI is None:  # the default store: <project>/mlruns, absolute, as drgan.train has it
+        assert tracking_store() == (f"sqlite:///{Path.cwd().resolve()}/mlruns/mlflow.db", "tio2_sem")
+    uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
+    assert tracking_store([f"logger.mlflow.tracking_uri={uri}", "material=tio2_tsem"]) == (uri, "tio2_tsem")
+    with pytest.raises(Exception, match="logger=mlflow"):
+        tracking_store(["logger=none"])
+
+    text = describe_runs(uri, "tio2_sem", "http://localhost:5000")
+    assert "no runs yet" in text and not (tmp_path / "mlruns" / "mlflow.db").exists()  # looking creates no store
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    other, mine = client.create_experiment("other"), client.create_experiment("tio2_sem")
+    for experiment in (other, other, mine):
+        client.create_run(experiment)
+    lines = describe_runs(uri, "tio2_sem", "http://localhost:5000").splitlines()
+    assert lines[0] == f"MLflow store {uri}: runs tables (open one in a browser):"
+    assert lines[1].split() == ["tio2_sem", "1", "runs", runs_url("http://localhost:5000", mine)]  # its own first
+    assert lines[2].split() == ["other", "2", "runs", f"http://localhost:5000/#/experiments/{other}/runs?workflowType=machine_learning"]
