@@ -40,13 +40,11 @@ def hydra_job(tmp_path):
     from hydra import initialize_config_dir
     from hydra.core.hydra_config import HydraConfig
 
-    from drgan.configs import conf_dir
-
     sweep_dir = tmp_path / "multirun" / "tio2_sem" / "2026-11-23_23-44-47"
     sweep_dir.mkdir(parents=True)
     OmegaConf.save({"hydra": {"overrides": {"task": ["debug=fast", "seed=0,1"]}}}, sweep_dir / "multirun.yaml")
     overrides = ["debug=fast", "seed=1", "hydra.mode=MULTIRUN", "hydra.job.num=1", f"hydra.sweep.dir={sweep_dir}"]
-    with initialize_config_dir(version_base="1.3", config_dir=str(conf_dir())):
+    with initialize_config_dir(version_base="1.3", config_dir=str(Path(__file__).resolve().parents[1] / "conf")):
         HydraConfig.instance().set_config(hydra_compose("train", overrides=overrides, return_hydra_config=True))
     yield sweep_dir
     HydraConfig.instance().cfg = None
