@@ -170,7 +170,7 @@ def test_real_checkpoints_need_no_allow_listed_class(tiny_run, segmenter_run):  
 
 def test_real_checkpoints_load_at_every_site(tiny_run, segmenter_run, tmp_path):  # noqa: F811
     from drgan.segmentation.module import load_segmenter
-    from drgan.train import resolve_checkpoint
+    from drgan.runtime import resolve_checkpoint
 
     best, last = tiny_run / "checkpoints" / "best.ckpt", tiny_run / "checkpoints" / "last.ckpt"
     saved = gen.checkpoint_config(best)

@@ -80,7 +80,7 @@ def segment(cfg: DictConfig) -> dict:
 
     from drgan.segmentation.module import SegmenterModule
     from drgan.callbacks.resume import ResumeCheckpoint
-    from drgan.train import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
+    from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
 
     wall_start = time.perf_counter()
     with open_dict(cfg):

@@ -15,105 +15,27 @@ one command serves a first start and every restart (e.g. a preempted cluster job
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, open_dict
 
 from drgan import build  # noqa: F401  (registers the ${mul:} and ${mlflow_uri:} config resolvers)
 from drgan.errors import ConfigError
 from drgan.io import write_json
+from drgan.runtime import (  # noqa: F401  (resolve_checkpoint, MLFLOW_RUN_ID_FILE: imported from here by older code)
+    MLFLOW_RUN_ID_FILE,
+    flat_config,
+    instantiate_callbacks,
+    instantiate_loggers,
+    resolve_checkpoint,
+    start_loggers,
+)
 
 log = logging.getLogger(__name__)
-
-MLFLOW_RUN_ID_FILE = "mlflow_run_id.txt"
-
-
-def _targets(group) -> list:
-    """Every `_target_` entry of a config group, in order (entries without one are ignored)."""
-    from hydra.utils import instantiate
-
-    if not group:
-        return []
-    return [instantiate(entry) for entry in group.values() if isinstance(entry, DictConfig) and "_target_" in entry]
-
-
-def instantiate_callbacks(cfg: DictConfig | None) -> list:
-    """The `callbacks` group's objects, in order, except that ResumeCheckpoint goes first: its epoch-end write
-    must come before the other epoch-end work (FID, plots), which a kill may interrupt."""
-    from drgan.callbacks.resume import ResumeCheckpoint
-
-    callbacks = _targets(cfg)
-    return sorted(callbacks, key=lambda c: not isinstance(c, ResumeCheckpoint))  # stable: the rest keep their order
-
-
-def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, tags: dict) -> list:
-    """Loggers of the `logger` group, built without contacting a tracking store (see ``start_loggers``). An MLflow
-    logger keeps its run id in the run folder: a resumed run continues its own MLflow run."""
-    from hydra.utils import instantiate
-
-    from drgan.loggers import MLFlowLogger, store_lock
-
-    loggers = []
-    for entry in (cfg or {}).values():
-        if not isinstance(entry, DictConfig) or "_target_" not in entry:
-            continue
-        if entry._target_.endswith("MLFlowLogger"):
-            id_file = output_dir / MLFLOW_RUN_ID_FILE
-            previous = id_file.read_text().strip() if id_file.is_file() else None
-            with store_lock(str(entry.tracking_uri)):  # its client creates a SQLite store's schema: parallel sweep jobs race
-                logger = instantiate(entry, run_id=previous if resume else None, tags={**tags, **(entry.get("tags") or {})})
-            if isinstance(logger, MLFlowLogger):
-                logger.attach_run_folder(id_file, None if resume else previous)
-        else:
-            logger = instantiate(entry)
-        loggers.append(logger)
-    return loggers
-
-
-def start_loggers(loggers: list) -> None:
-    """Open the run of each logger that starts explicitly (drgan.loggers.MLFlowLogger.start)."""
-    for logger in loggers:
-        getattr(logger, "start", lambda: None)()
-
-
-def resolve_checkpoint(ckpt_path: str | None, output_dir: Path) -> str | None:
-    from drgan.checkpoint_io import load_checkpoint
-
-    if ckpt_path in (None, "", "null"):
-        return None
-    if ckpt_path == "last":
-        last = output_dir / "checkpoints" / "last.ckpt"
-        if last.is_file():
-            load_checkpoint(last, "ckpt_path")  # refused now (code in it, damaged), not after mining
-            return str(last)
-        log.warning("ckpt_path=last: no %s yet; starting a fresh run", last)
-        return None
-    path = Path(ckpt_path)
-    if not path.is_file():
-        raise ConfigError(f"ckpt_path={ckpt_path}: no such checkpoint file (or use ckpt_path=last to resume this run folder)")
-    load_checkpoint(path, "ckpt_path")
-    return str(path)
-
-
-def flat_config(cfg: DictConfig) -> dict:
-    """The composed config as flat "group/key" -> value pairs (MLflow params)."""
-    out: dict = {}
-
-    def walk(node, prefix):
-        if isinstance(node, dict):
-            for k, v in node.items():
-                walk(v, f"{prefix}{k}/")
-        else:
-            out[prefix[:-1]] = node if isinstance(node, (int, float, str, bool)) or node is None else json.dumps(node)
-
-    walk(OmegaConf.to_container(cfg, resolve=True), "")
-    return out
-
 
 def train(cfg: DictConfig) -> dict:
     """Fit one run; return its final metrics (last step/epoch values, plus time/wall_s)."""
