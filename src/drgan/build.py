@@ -6,7 +6,6 @@ means the same scene everywhere. Inputs are checked here, before any render is s
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -15,23 +14,12 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from drgan.errors import ConfigError, MeshError, setting_float, setting_int
+from drgan.resolvers import _USER_TRACKING_URI  # noqa: F401  (the resolvers are registered on import of drgan)
 from drgan.scene import layout, meshes
 from drgan.scene.parameters import MaterialParameters
 
 if TYPE_CHECKING:
     from drgan.models.generator import BackgroundTexture
-
-# `${mul:a,b}` lets size configs scale the material's typical particle size (e.g. std = 0.25 x size).
-if not OmegaConf.has_resolver("mul"):
-    OmegaConf.register_new_resolver("mul", lambda a, b: float(a) * float(b))
-
-# `${mlflow_uri:default}`: the user's MLFLOW_TRACKING_URI as it was when drgan was imported, else default.
-# Read once because mlflow.set_tracking_uri (which Lightning's MLFlowLogger calls) overwrites the variable
-# for the rest of the process: a second run in the same process (tests, in-process sweeps) would otherwise
-# log into the first run's store.
-_USER_TRACKING_URI = os.environ.get("MLFLOW_TRACKING_URI") or None
-if not OmegaConf.has_resolver("mlflow_uri"):
-    OmegaConf.register_new_resolver("mlflow_uri", lambda default: _USER_TRACKING_URI or default)
 
 
 def _plain(cfg) -> dict:

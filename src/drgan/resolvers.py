@@ -1,0 +1,20 @@
+"""The config resolvers of drgan's YAML files, registered when drgan is imported (drgan/__init__.py): every CLI,
+test and script that composes a config has them without importing anything else."""
+
+from __future__ import annotations
+
+import os
+
+from omegaconf import OmegaConf
+
+# `${mul:a,b}` lets size configs scale the material's typical particle size (e.g. std = 0.25 x size).
+if not OmegaConf.has_resolver("mul"):
+    OmegaConf.register_new_resolver("mul", lambda a, b: float(a) * float(b))
+
+# `${mlflow_uri:default}`: the user's MLFLOW_TRACKING_URI as it was when drgan was imported, else default.
+# Read once because mlflow.set_tracking_uri (which Lightning's MLFlowLogger calls) overwrites the variable
+# for the rest of the process: a second run in the same process (tests, in-process sweeps) would otherwise
+# log into the first run's store.
+_USER_TRACKING_URI = os.environ.get("MLFLOW_TRACKING_URI") or None
+if not OmegaConf.has_resolver("mlflow_uri"):
+    OmegaConf.register_new_resolver("mlflow_uri", lambda default: _USER_TRACKING_URI or default)
