@@ -17,7 +17,6 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, open_dict
 
-from drgan import build  # noqa: F401  (registers the ${mlflow_uri:} resolver of the logger config)
 from drgan.errors import ConfigError, setting_float, setting_int
 from drgan.io import write_json
 

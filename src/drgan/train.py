@@ -23,7 +23,6 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, open_dict
 
-from drgan import build  # noqa: F401  (registers the ${mul:} and ${mlflow_uri:} config resolvers)
 from drgan.errors import ConfigError
 from drgan.io import write_json
 from drgan.runtime import (  # noqa: F401  (resolve_checkpoint, MLFLOW_RUN_ID_FILE: imported from here by older code)
