@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import fcntl
 import logging
+import os
 import subprocess
 import sys
 import time
@@ -262,7 +263,10 @@ def serve_ui(tracking_uri: str, experiment: str, host: str, port: int, workers: 
     print(f"serving MLflow store {tracking_uri} (where python -m drgan.train logs) at {base_url} ...", flush=True)
     command = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", tracking_uri, "--host", host,
                "--port", str(port), "--workers", str(workers)]  # fmt: skip
-    server = subprocess.Popen(command)
+    # MLflow 3's server also starts job workers (LLM judges' online scoring, trace archival: ~8 processes busy at
+    # start-up on a 2-core machine); drgan's runs use none of them.
+    env = {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false", **os.environ}
+    server = subprocess.Popen(command, env=env)
     try:
         runs = describe_runs(tracking_uri, experiment, base_url)  # read while the server starts
         deadline = time.monotonic() + start_timeout_s
@@ -271,9 +275,12 @@ def serve_ui(tracking_uri: str, experiment: str, host: str, port: int, workers: 
         if server.poll() is None:
             print(runs + "\n(Ctrl-C stops the server)", flush=True)
         return server.wait()
-    except KeyboardInterrupt:
-        server.terminate()
-        return server.wait()
+    except KeyboardInterrupt:  # Ctrl-C reached the server too: let it shut down, then make sure it has
+        try:
+            return server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            server.terminate()
+            return server.wait()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
