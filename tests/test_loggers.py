@@ -7,7 +7,14 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from drgan.loggers import MLFlowLogger, SweepJob, describe_runs, runs_url, sweep_run_name, tracking_store
+from drgan.loggers import (
+    MLFlowLogger,
+    SweepJob,
+    describe_runs,
+    runs_url,
+    sweep_run_name,
+    tracking_store,
+)
 
 
 def hydra_jobs(command_line: list[str]) -> list[SweepJob]:
@@ -17,7 +24,8 @@ def hydra_jobs(command_line: list[str]) -> list[SweepJob]:
 
     parsed = OverridesParser.create().parse_overrides(command_line)
     jobs = [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
-    return [SweepJob(num, tuple(job), tuple(command_line), "/x/multirun/tio2_sem/sweep") for num, job in enumerate(jobs)]
+    sweep_dir = "/x/multirun/tio2_sem/sweep"
+    return [SweepJob(num, tuple(job), tuple(command_line), sweep_dir) for num, job in enumerate(jobs)]
 
 
 def test_the_jobs_of_a_sweep_get_distinct_run_names_from_their_own_overrides():
@@ -85,4 +93,5 @@ def test_the_ui_serves_the_store_train_logs_to_and_links_each_runs_table(tmp_pat
     lines = describe_runs(uri, "tio2_sem", "http://localhost:5000").splitlines()
     assert lines[0] == f"MLflow store {uri}: runs tables (open one in a browser):"
     assert lines[1].split() == ["tio2_sem", "1", "runs", runs_url("http://localhost:5000", mine)]  # its own first
-    assert lines[2].split() == ["other", "2", "runs", f"http://localhost:5000/#/experiments/{other}/runs?workflowType=machine_learning"]
+    other_url = f"http://localhost:5000/#/experiments/{other}/runs?workflowType=machine_learning"
+    assert lines[2].split() == ["other", "2", "runs", other_url]

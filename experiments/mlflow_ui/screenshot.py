@@ -26,8 +26,9 @@ class Browser:
         self.profile = tempfile.TemporaryDirectory()
         to_chrome_r, self.to_chrome = os.pipe()
         self.from_chrome, from_chrome_w = os.pipe()
-        command = ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--remote-debugging-pipe",
-                   f"--user-data-dir={self.profile.name}", f"--window-size={width},{height}", "about:blank"]  # fmt: skip
+        command = ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                   "--remote-debugging-pipe", f"--user-data-dir={self.profile.name}", f"--window-size={width},{height}",
+                   "about:blank"]  # fmt: skip
 
         def child_fds():  # the child's fds 3 and 4 become the pipe ends (copied high first: they may be 3 or 4)
             high = [fcntl.fcntl(fd, fcntl.F_DUPFD, 10) for fd in (to_chrome_r, from_chrome_w)]
@@ -36,7 +37,7 @@ class Browser:
 
         # close_fds=False: only fds 3 and 4 (inheritable after dup2) and the standard ones reach Chromium; Python's
         # own pipe fds are close-on-exec.
-        self.process = subprocess.Popen(command, preexec_fn=child_fds, close_fds=False,
+        self.process = subprocess.Popen(command, preexec_fn=child_fds, close_fds=False,  # noqa: PLW1509 (no threads)
                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
         os.close(to_chrome_r)
         os.close(from_chrome_w)

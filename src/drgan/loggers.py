@@ -53,6 +53,7 @@ class SweepJob:
 
 def current_sweep_job() -> SweepJob | None:
     """This process's Hydra multirun job, or None (a single run, or no Hydra app running)."""
+    import yaml
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
     from omegaconf import OmegaConf
@@ -66,7 +67,7 @@ def current_sweep_job() -> SweepJob | None:
     sweep_overrides = None
     try:  # the launcher writes the sweep's config, overrides as typed, before it starts the jobs
         sweep_overrides = tuple(OmegaConf.load(Path(sweep_dir) / "multirun.yaml").hydra.overrides.task)
-    except Exception as error:  # missing or unreadable: the run name then lists all the job's overrides
+    except (OSError, ValueError, AttributeError, yaml.YAMLError) as error:  # then: all the job's overrides
         log.debug("sweep overrides not read from %s/multirun.yaml: %s", sweep_dir, error)
     return SweepJob(int(hydra_cfg.job.num), tuple(hydra_cfg.overrides.task), sweep_overrides, sweep_dir)
 
@@ -94,7 +95,8 @@ class MLFlowLogger(_LightningMLFlowLogger):
         job = current_sweep_job() if kwargs.get("run_id") is None else None  # a resumed run keeps its name
         if job is not None:  # the jobs of a sweep share run_name: name each after its own overrides
             kwargs["run_name"] = sweep_run_name(kwargs.get("run_name"), job)
-            kwargs["tags"] = {**(kwargs.get("tags") or {}), "sweep": Path(job.sweep_dir).name, "sweep_job": str(job.num)}
+            sweep_tags = {"sweep": Path(job.sweep_dir).name, "sweep_job": str(job.num)}
+            kwargs["tags"] = {**(kwargs.get("tags") or {}), **sweep_tags}
         super().__init__(**kwargs)
         self._resumed = kwargs.get("run_id") is not None
         self._last_step: dict[str, int] | None = None
@@ -202,8 +204,8 @@ def tracking_store(overrides: Sequence[str] = ()) -> tuple[str, str]:
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
     entry = (cfg.get("logger") or {}).get("mlflow")
     if entry is None:
-        raise ConfigError(f"logger: the train config {' '.join(overrides)} logs to no MLflow store (its logger group has "
-                          f"{sorted(cfg.get('logger') or {}) or 'no logger'}; expected logger=mlflow, the default)")
+        raise ConfigError(f"logger: the train config {' '.join(overrides)} logs to no MLflow store (its logger group "
+                          f"has {sorted(cfg.get('logger') or {}) or 'no logger'}; expected logger=mlflow, the default)")
     return str(entry.tracking_uri), str(entry.experiment_name)
 
 
@@ -250,7 +252,8 @@ def _server_up(base_url: str) -> bool:
         return False
 
 
-def serve_ui(tracking_uri: str, experiment: str, host: str, port: int, workers: int, start_timeout_s: float = 300) -> int:
+def serve_ui(tracking_uri: str, experiment: str, host: str, port: int, workers: int, start_timeout_s: float = 300
+             ) -> int:
     """Serve ``tracking_uri`` with `mlflow ui` until interrupted, printing the runs tables' addresses once it
     answers; a tracking server (http...) is served already: only its addresses are printed. Returns the exit code."""
     if tracking_uri.startswith(("http://", "https://")):
@@ -258,7 +261,8 @@ def serve_ui(tracking_uri: str, experiment: str, host: str, port: int, workers: 
         return 0
     base_url = f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0') else host}:{port}"
     if _server_up(base_url):
-        print(f"something already answers at {base_url}: stop it, or choose another port (make mlflow-ui MLFLOW_PORT=5001)")
+        print(f"something already answers at {base_url}: stop it, or choose another port "
+              "(make mlflow-ui MLFLOW_PORT=5001)")
         return 1
     print(f"serving MLflow store {tracking_uri} (where python -m drgan.train logs) at {base_url} ...", flush=True)
     command = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", tracking_uri, "--host", host,
@@ -288,7 +292,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m drgan.loggers",
         description="Serve the MLflow store that python -m drgan.train logs to; print each experiment's runs table.",
     )
-    parser.add_argument("overrides", nargs="*", help="train config overrides that pick the store, e.g. material=tio2_tsem")
+    parser.add_argument("overrides", nargs="*",
+                        help="train config overrides that pick the store, e.g. material=tio2_tsem")
     parser.add_argument("--host", default="127.0.0.1", help="interface to serve on (default: this machine only)")
     parser.add_argument("--port", type=int, default=5000)
     parser.add_argument("--workers", type=int, default=1, help="server processes (one is plenty for one user)")
