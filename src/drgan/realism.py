@@ -1,0 +1,276 @@
+"""`python -m drgan.realism data.dir=DIR synthetic=SOURCE`: can a small CNN tell synthetic patches from real ones?
+
+A classifier two-sample test (drgan.metrics.two_sample): real training patches (the split's train ids only,
+mined exactly as drgan.train mines them: drgan.data.datamodule.RealPatchDataModule with the same data.* settings)
+against a synthetic source, balanced, k-fold cross-validated, each patch predicted by a network that never
+trained on it. Accuracy near 0.5 = indistinguishable; near 1 = the CNN sees the difference. With its 95 %
+interval, a one-sided binomial p-value against 0.5, and the AUC.
+
+synthetic=
+- ``real``: real against real: the train images split in two halves by image id (seeded), so that one image's
+  patches stay in one half; the calibration of the test (expected 0.5 within its interval);
+- a drgan.generate dataset folder (manifest.json): its synthetic images (the real background patches that
+  generate adds are left out), a seeded random choice of n;
+- a generator checkpoint (.ckpt) or training run folder (its checkpoints/best.ckpt): n renders with the FID
+  callback's ``render_samples`` (the phi bank of the checkpoint, seeds of their own), rounded to 8 bits like the
+  real images and generate's PNGs (render.quantize);
+- any other folder: its images (TIFF / PNG / JPEG), each one patch.
+
+In either case a real image's patches share a cross-validation fold (a network must not score by recognising an
+image whose other patches it trained on). Writes, in ``out``: results.json (everything) and results.md (one
+table line, also printed). Real patches are cached in data.cache_dir (default out/patches, with a contact sheet
+of real patches: keep it out of repositories).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from drgan.errors import ConfigError, DataError, setting_int
+from drgan.io import write_bytes, write_json
+from drgan.metrics.two_sample import ClassifierSettings, two_sample_test
+
+log = logging.getLogger(__name__)
+
+# Renders for the test use seeds of their own, apart from training's and the FID callback's (0x5EED0000 + ...).
+REALISM_SEED_BASE = 0x7EA10000
+HEADER = ("| source | patches per class | accuracy [95 % CI] | p (vs 0.5) | AUC |\n"
+          "|---|---|---|---|---|")
+
+
+# --- the real patches -------------------------------------------------------------------------------------------
+
+
+def real_patches(cfg: DictConfig):
+    """The RealPatchDataModule of cfg.data, set up: its mined patches (train ids only) and ids."""
+    from drgan.data.datamodule import RealPatchDataModule
+
+    data = OmegaConf.to_container(cfg.data, resolve=True) if isinstance(cfg.data, DictConfig) else dict(cfg.data)
+    if not data.get("dir"):
+        raise ConfigError("realism: give data.dir=DIR (the folder of real images; its split.json's train ids are read)")
+    allowed = {"dir", "split", "crop_rows", "patch_size", "stride", "min_particles", "n_background",
+               "background_stride", "segment", "cache_dir", "polarity"}
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise ConfigError(f"realism: data.{unknown[0]} is not a setting here (expected some of {sorted(allowed)})")
+    module = RealPatchDataModule(**data, augment=False, check_material=False)
+    module.setup()
+    patches = module.patches
+    if set(patches.train_ids) & set(module.test_ids):  # RealPatchDataModule refuses this already; the rule is ours too
+        raise DataError("realism: a test image's patches reached the real sample")
+    log.info("real: %d patches of %d px from %d train images of %s (polarity %s)", len(patches.train),
+             module.patch_size, len(set(patches.train_ids)), module.dir, module.polarity)
+    return module
+
+
+# --- the synthetic source ---------------------------------------------------------------------------------------
+
+
+def source_kind(source) -> str:
+    """What ``synthetic=`` names: real, dataset, checkpoint or images (a ConfigError for anything else)."""
+    from drgan.dataset import is_generated
+
+    if source is None or str(source) in ("", "???", "None", "null"):
+        raise ConfigError("realism: give synthetic=real, a drgan.generate dataset folder, a generator checkpoint "
+                          "(.ckpt) or training run folder, or a folder of images")
+    if str(source) == "real":
+        return "real"
+    path = Path(str(source)).expanduser()
+    if path.is_file():
+        if path.suffix != ".ckpt":
+            raise ConfigError(f"synthetic={source}: a file that is not a .ckpt (expected a generator checkpoint, a "
+                              "dataset folder, a folder of images or real)")
+        return "checkpoint"
+    if not path.is_dir():
+        raise ConfigError(f"synthetic={source}: no such file or folder (expected real, a drgan.generate dataset "
+                          "folder, a generator checkpoint or training run folder, or a folder of images)")
+    if is_generated(path):
+        return "dataset"
+    if (path / "checkpoints" / "best.ckpt").is_file():
+        return "checkpoint"
+    return "images"
+
+
+def dataset_images(folder: Path, n: int, seed: int) -> tuple[np.ndarray, list[str]]:
+    """n synthetic images of a drgan.generate dataset, a seeded random choice (all of them when it has fewer)."""
+    from drgan.dataset import SYNTHETIC, check_files, manifest_entries, read_manifest
+
+    entries = [e for e in manifest_entries(read_manifest(folder, "synthetic")) if e.kind == SYNTHETIC]
+    if not entries:
+        raise DataError(f"synthetic={folder}: the dataset lists no synthetic images (only real backgrounds)")
+    chosen = sorted(np.random.default_rng(seed).choice(len(entries), min(n, len(entries)), replace=False))
+    entries = [entries[i] for i in chosen]
+    check_files(folder, entries, ("image",), "synthetic")
+    return _read_all([folder / e.files["image"] for e in entries], "synthetic"), [e.id for e in entries]
+
+
+def folder_images(folder: Path, n: int, seed: int) -> tuple[np.ndarray, list[str]]:
+    from drgan.data.images import list_images
+
+    paths = list_images(folder)
+    chosen = sorted(np.random.default_rng(seed).choice(len(paths), min(n, len(paths)), replace=False))
+    paths = [paths[i] for i in chosen]
+    return _read_all(paths, "synthetic"), [p.stem for p in paths]
+
+
+def _read_all(paths: list[Path], setting: str) -> np.ndarray:
+    from tqdm.auto import tqdm
+
+    from drgan.data.images import read_grey
+
+    images = [read_grey(p) for p in tqdm(paths, desc="reading synthetic images", unit="image", leave=False)]
+    shapes = sorted({im.shape for im in images})
+    if len(shapes) > 1:
+        raise DataError(f"{setting}: images of several sizes {shapes[:3]} "
+                        "(expected one size, that of the real patches)")
+    return np.stack(images).astype(np.float32)
+
+
+def checkpoint_renders(source, n: int, background: np.ndarray, size: int, spp: int | None,
+                       quantize: bool) -> tuple[np.ndarray, dict]:
+    """n renders of a generator checkpoint with the FID callback's render_samples; (images, what rendered them).
+    size: the real patches' size, which the checkpoint's resolution must equal (checked before rendering)."""
+    import torch
+
+    from drgan.callbacks.fid import render_samples
+    from drgan.dataset.source import checkpoint_config, generator_checkpoint, load_module
+
+    ckpt_file, _ = generator_checkpoint(source)
+    model_cfg = checkpoint_config(ckpt_file)
+    module = load_module(ckpt_file, model_cfg)
+    if module.textured:
+        module.use_background_texture(background)
+    render = module.generator.scene.spec.render
+    if int(render.resolution) != size:
+        raise DataError(f"synthetic={source}: the checkpoint renders {render.resolution} px images, but the real "
+                        f"patches are {size} px (data.patch_size): the test compares them at one size")
+    if len(module.phi_bank) == 0:
+        raise ConfigError(f"synthetic={source}: the checkpoint has no constellations (phi bank) to render")
+    with torch.no_grad():
+        images = render_samples(module, n, REALISM_SEED_BASE, progress=True, spp=spp)
+    if quantize:  # the real images are 8 bit, and so are generate's PNGs: a fine-grained tell otherwise
+        images = np.round(images * 255.0) / 255.0
+    return images.astype(np.float32), {"ckpt": str(ckpt_file), "material": model_cfg["material"].get("name"),
+                                       "resolution": int(render.resolution), "spp": spp or int(render.spp),
+                                       "seed_base": REALISM_SEED_BASE, "quantized_8bit": bool(quantize)}
+
+
+def real_halves(ids: list[str], seed: int) -> tuple[set[str], set[str]]:
+    """The image ids split in two halves of equal count (the first one smaller by one for an odd count)."""
+    unique = sorted(set(ids))
+    if len(unique) < 2:
+        raise DataError(f"realism: synthetic=real needs patches from at least 2 images (got {len(unique)})")
+    order = np.random.default_rng(seed).permutation(len(unique))
+    half = len(unique) // 2
+    return {unique[i] for i in order[:half]}, {unique[i] for i in order[half:]}
+
+
+# --- the test ---------------------------------------------------------------------------------------------------
+
+
+def classifier_settings(cfg: DictConfig) -> ClassifierSettings:
+    test = dict(OmegaConf.to_container(cfg.get("test") or {}, resolve=True))
+    allowed = set(ClassifierSettings.__dataclass_fields__) - {"seed"}
+    unknown = sorted(set(test) - allowed)
+    if unknown:
+        raise ConfigError(f"realism: test.{unknown[0]} is not a setting (expected some of {sorted(allowed)})")
+    try:
+        test = {k: float(v) if k in ("lr", "weight_decay") else v for k, v in test.items()}
+    except (TypeError, ValueError):
+        raise ConfigError(f"realism: test.lr / test.weight_decay: expected numbers (got {test})") from None
+    settings = ClassifierSettings(**test, seed=setting_int("seed", cfg.get("seed", 0), 0))
+    settings.check()
+    return settings
+
+
+def realism(cfg: DictConfig) -> dict:
+    """Run the two-sample test of cfg.synthetic against the real train patches of cfg.data; write the results."""
+    import torch
+
+    settings = classifier_settings(cfg)
+    kind = source_kind(cfg.get("synthetic"))
+    n_wanted = cfg.get("n_synthetic")
+    if n_wanted is not None:
+        n_wanted = setting_int("n_synthetic", n_wanted, 2)
+    spp = (cfg.get("render") or {}).get("spp")
+    if spp is not None:
+        spp = setting_int("render.spp", spp, 1)
+    threads = cfg.get("threads")
+    if threads is not None:
+        torch.set_num_threads(setting_int("threads", threads, 1))
+    seed = settings.seed
+
+    module = real_patches(cfg)
+    patches = module.patches
+    real, real_ids = patches.train, list(patches.train_ids)
+    size = real.shape[1]
+    if len(real) < 2 * settings.folds:
+        raise DataError(f"realism: only {len(real)} real patches from data.dir={module.dir}; {settings.folds} folds "
+                        f"need at least {2 * settings.folds}: lower data.stride or data.min_particles, or test.folds")
+    n = n_wanted or len(real)
+    source = str(cfg.synthetic)
+    detail: dict = {}
+    if kind == "real":
+        first, second = real_halves(real_ids, seed)
+        in_first = np.array([i in first for i in real_ids])
+        a, groups_a = real[in_first], [i for i, keep in zip(real_ids, in_first) if keep]
+        b, groups_b = real[~in_first], [i for i, keep in zip(real_ids, in_first) if not keep]
+        label = "real vs real (train images in two halves by id)"
+        detail = {"half_a_ids": sorted(first), "half_b_ids": sorted(second)}
+    else:
+        if kind == "dataset":
+            b, names = dataset_images(Path(source), n, seed)
+            label = f"dataset {source}"
+        elif kind == "images":
+            b, names = folder_images(Path(source), n, seed)
+            label = f"images {source}"
+        else:
+            quantize = bool((cfg.get("render") or {}).get("quantize", True))
+            b, detail = checkpoint_renders(source, n, patches.background, size, spp, quantize)
+            names = [f"render_{i}" for i in range(len(b))]
+            label = f"renders of {source}"
+        if b.shape[1:] != (size, size):
+            raise DataError(f"synthetic={source}: images of {b.shape[2]} x {b.shape[1]} px, but the real patches are "
+                            f"{size} x {size} px (data.patch_size): the test compares them at one size")
+        a, groups_a, groups_b = real, real_ids, names
+        detail["synthetic_read"] = len(b)
+    log.info("two-sample test: %s: %d patches (A) against %d (B), %d px", label, len(a), len(b), size)
+    result = two_sample_test(a, b, settings, groups_a, groups_b, progress=bool(cfg.get("progress", True)))
+    line = markdown_line(label, result)
+    out = Path(str(cfg.out))
+    summary = {
+        "source": {"synthetic": source, "kind": kind, "label": label, **detail},
+        "real": {"dir": str(module.dir.resolve()), "train_ids": module.train_ids, "patches": len(real),
+                 "patch_size": size, "polarity": module.polarity,
+                 "data": OmegaConf.to_container(cfg.data, resolve=True)},
+        "test": result,
+        "markdown": line,
+        "out": str(out.resolve()),
+    }
+    write_json(out / "results.json", summary)
+    write_bytes(out / "results.md", f"{HEADER}\n{line}\n".encode())
+    print(f"{HEADER}\n{line}")
+    log.info("wrote %s", out / "results.json")
+    return summary
+
+
+def markdown_line(label: str, result: dict) -> str:
+    low, high = result["interval"]
+    return (f"| {label} | {result['n_per_class']} | {result['accuracy']:.3f} [{low:.3f}, {high:.3f}] | "
+            f"{result['p_value']:.2g} | {result['auc']:.3f} |")
+
+
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="realism")
+def main(cfg: DictConfig):
+    realism(cfg)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    main()
