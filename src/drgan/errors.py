@@ -1,5 +1,7 @@
 """Errors a user can cause. Each message names the input and what was expected."""
 
+import math
+
 
 class DrganError(ValueError):
     """Base class: bad input detected before compute is spent."""
@@ -52,3 +54,16 @@ def setting_float(key: str, value: object, minimum: float | None = None) -> floa
     if not finite or (minimum is not None and number < minimum):
         raise ConfigError(f"{key}={value!r}: expected a finite number{bound}")
     return number
+
+
+def check_spp(spp, name: str = "spp") -> int:
+    """Samples per pixel for the stratified sampler: a positive perfect square, or a ConfigError naming ``name``
+    (rather than silently rounding up)."""
+    if isinstance(spp, bool) or not isinstance(spp, int) and not hasattr(spp, "__index__") or int(spp) < 1:
+        raise ConfigError(f"{name}={spp!r}: expected a positive integer")
+    root = math.isqrt(int(spp))
+    if root * root != spp:
+        raise ConfigError(
+            f"{name}={spp}: the stratified sampler needs a perfect square; use {root * root} or {(root + 1) ** 2}"
+        )
+    return int(spp)

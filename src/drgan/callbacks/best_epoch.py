@@ -36,7 +36,6 @@ from pathlib import Path
 import numpy as np
 from lightning.pytorch import Callback, LightningModule, Trainer
 
-from drgan import build
 from drgan.callbacks.fid import FIDCallback, atomic_copy, checkpoint_dir, log_artifact
 from drgan.errors import ConfigError
 from drgan.io import write_json
@@ -126,7 +125,7 @@ class BestEpochCallback(Callback):
 
     def spread(self, pl_module: LightningModule) -> float:
         if self._phi is None:
-            self._phi = build.sample_phi(pl_module.cfg, self.n_phi, seed=self.seed)
+            self._phi = pl_module.sample_phi(self.n_phi, seed=self.seed)
         learned = pl_module.generator.learned
         values = pl_module.parameter_samples(self._phi)
         return parameter_spread(values, [p.low for p in learned], [p.high for p in learned])

@@ -41,10 +41,14 @@ import numpy as np
 import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
 
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, check_spp
 from drgan.io import write_with
-from drgan.scene.scene import check_spp
-from drgan.metrics.fid import FeatureStats, InceptionFeatures, cached_reference_stats, kid
+from drgan.metrics.fid import (
+    FeatureStats,
+    InceptionFeatures,
+    cached_reference_stats,
+    kid,
+)
 
 log = logging.getLogger(__name__)
 

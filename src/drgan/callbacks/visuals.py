@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 from lightning.pytorch import Callback, LightningModule, Trainer
 
-from drgan import build
 from drgan.callbacks.fid import FIDCallback, log_artifact, real_patches, render_samples, run_dir
 from drgan.errors import ConfigError
 from drgan.io import write_with
@@ -106,7 +105,7 @@ class ParameterHistogramCallback(Callback):
             return
         epoch = trainer.current_epoch
         if self._phi is None:
-            self._phi = build.sample_phi(pl_module.cfg, self.n_phi, seed=self.seed)
+            self._phi = pl_module.sample_phi(self.n_phi, seed=self.seed)
         plots = run_dir(trainer) / "plots"
         learned = pl_module.generator.learned
         if learned:

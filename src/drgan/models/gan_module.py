@@ -112,8 +112,13 @@ class GANModule(LightningModule):
         """Draw the phi bank of ``m`` constellations (seeded by ``seed``); saved with the hyperparameters."""
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or int(m) < 1:
             raise ConfigError(f"model.n_constellations={m!r}: expected an integer >= 1 (default: the number of training patches)")
-        self.phi_bank = torch.as_tensor(build.sample_phi(self.cfg, int(m), seed=self.seed), dtype=torch.float32)
+        self.phi_bank = torch.as_tensor(self.sample_phi(int(m), seed=self.seed), dtype=torch.float32)
         self.hparams["m"] = int(m)  # load_from_checkpoint rebuilds a bank of this size
+
+    def sample_phi(self, m: int, seed: int) -> np.ndarray:
+        """``m`` constellations (m, n, 4) from this module's size and placement distributions, seeded by ``seed``:
+        what callbacks draw their fixed evaluation sets from."""
+        return build.sample_phi(self.cfg, int(m), seed=int(seed))
 
     @property
     def learned_keys(self) -> list[str]:
