@@ -25,14 +25,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from conftest import compose  # noqa: E402
-
-from drgan import build, io  # noqa: E402
-from drgan.generate import index_seeds  # noqa: E402
-from drgan.models.gan_module import GANModule  # noqa: E402
-from drgan.scene.labels import class_mask  # noqa: E402
+from drgan import build, io
+from drgan.configs import compose
+from drgan.generate import index_seeds
+from drgan.models.gan_module import GANModule
+from drgan.scene.labels import class_mask
 
 
 def time_setting(material: str, spp: int, resolution: int, images: int, seed: int = 0, particles: int | None = None) -> dict:

@@ -18,16 +18,19 @@ import platform
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from drgan.scene import layout, meshes  # noqa: E402
-from drgan.scene.parameters import MaterialParameters  # noqa: E402
-from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec, TopLight, TorusLight  # noqa: E402
+from drgan.scene import layout, meshes
+from drgan.scene.parameters import MaterialParameters
+from drgan.scene.scene import (
+    ParticleScene,
+    RenderSettings,
+    SceneSpec,
+    TopLight,
+    TorusLight,
+)
 
 PARTICLE = {name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")}
 STAGE = {"base_color": {"min": 0.01, "max": 0.4}}
@@ -96,15 +99,22 @@ def elements(args, cube_meshes):
         print(f"| {name} | {n} | {resolution} | {spp} | {fwd:.3f} | {fb:.3f} |", flush=True)
 
 
+# The TiO2 SEM lighting (conf/material/tio2_sem.yaml): a grazing band ring and a dimmer top light.
+SEM_LIGHTS = {"torus_light": TorusLight(radiance=4.0, major_radius=1.0, minor_radius=0.08, height=0.1),
+              "top_light": TopLight(radiance=0.3)}
+
+
 def noise(args, cube_meshes):
     """Noise of the image a discriminator sees: std of (render(seed 1) - render(seed 2)) / sqrt(2) over the
-    particle pixels of one 40-particle layout, and the forward time."""
+    particle pixels (and the stage pixels) of one 40-particle layout, and the forward time. --roughness picks
+    the particles' roughness (the learned range's limits 0.01 and 5.0 are where light or BSDF sampling fail)."""
     sizes, placement = layout.LognormalSize(30.0, 0.4), layout.PoissonAgglomerates()
     phi = layout.sample_layouts(1, args.particles[-1], sizes, placement, view_width=256.0, seed=3)[0]
-    values = torch.tensor([0.15, 0.5, 1.0, 0.5, 0.5, 0.5])
-    for integrator, shape, spp in itertools.product(args.integrator, ("torus", "band"), args.spp):
-        scene = make_scene(len(phi), args.resolution[0], spp, integrator, args.variant[0], cube_meshes,
-                           torus_light=TorusLight(shape=shape))
+    lights = {"torus": {"torus_light": TorusLight(shape="torus")}, "band": {"torus_light": TorusLight(shape="band")},
+              "sem": SEM_LIGHTS}
+    for integrator, shape, roughness, spp in itertools.product(args.integrator, args.lights, args.roughness, args.spp):
+        values = torch.tensor([0.15, roughness, 1.0, 0.5, 0.5, 0.5])
+        scene = make_scene(len(phi), args.resolution[0], spp, integrator, args.variant[0], cube_meshes, **lights[shape])
         scene.set_layout(phi)
         particles = scene.instance_labels() > 0
         with torch.no_grad():
@@ -113,8 +123,9 @@ def noise(args, cube_meshes):
             a = scene.render(values, seed=1).numpy()
             seconds = time.perf_counter() - start
             b = scene.render(values, seed=2).numpy()
-        diff = (a - b)[particles] / np.sqrt(2.0)
-        print(f"| {integrator} | {shape} | {spp} | {a[particles].mean():.3f} | {diff.std():.4f} | {seconds:.3f} |", flush=True)
+        diff = (a - b) / np.sqrt(2.0)
+        print(f"| {integrator} | {shape} | {roughness} | {spp} | {a[particles].mean():.3f} | {diff[particles].std():.4f} | "
+              f"{a[~particles].mean():.3f} | {diff[~particles].std():.4f} | {seconds:.3f} |", flush=True)
 
 
 def main():
@@ -122,19 +133,22 @@ def main():
     parser.add_argument("--spp", type=int, nargs="+", default=[1, 4, 16, 64, 121])
     parser.add_argument("--resolution", type=int, nargs="+", default=[256])
     parser.add_argument("--particles", type=int, nargs="+", default=[10, 40])
-    parser.add_argument("--integrator", nargs="+", default=["prb", "prb_basic", "direct_projective"])
+    parser.add_argument("--integrator", nargs="+", default=["prb", "direct_light", "prb_basic", "direct_projective"])
     parser.add_argument("--variant", nargs="+", default=["llvm_ad_rgb"])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--elements", action="store_true", help="cost of each optional scene element")
     parser.add_argument("--noise", action="store_true", help="particle-pixel noise against integrator, ring light, spp")
+    parser.add_argument("--lights", nargs="+", default=["torus", "band"], choices=["torus", "band", "sem"],
+                        help="--noise: ring light shapes (sem: the TiO2 SEM grazing band ring and top light)")
+    parser.add_argument("--roughness", type=float, nargs="+", default=[0.5], help="--noise: particle roughness")
     args = parser.parse_args()
 
     cube_meshes = meshes.generate_meshes("cube", 40, seed=0)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
     print(f"command: python {' '.join(sys.argv)}\n")
     if args.noise:
-        print("| integrator | ring light | spp | particle mean | particle noise | forward s |")
-        print("|---|---|---|---|---|---|")
+        print("| integrator | lights | roughness | spp | particle mean | particle noise | stage mean | stage noise | forward s |")
+        print("|---|---|---|---|---|---|---|---|---|")
         noise(args, cube_meshes)
     elif args.elements:
         print("| scene | particles | resolution | spp | forward s | forward+backward s |")

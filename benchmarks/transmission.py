@@ -24,10 +24,9 @@ from pathlib import Path
 import torch
 
 from drgan import build
+from drgan.configs import compose
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-from conftest import compose  # noqa: E402
 
 
 def time_scene(material: str, resolution: int, n_particles: int, repeats: int, warmup: int, variant: str) -> dict:

@@ -33,7 +33,11 @@ from drgan.scene.parameters import MaterialParameters, Parameter
 dr = backend.dr
 mi = backend.mi
 
-INTEGRATORS = ("prb_basic", "direct_projective", "prb")
+# direct_light, direct_light_mis: drgan.scene.direct, direct illumination with a one-pass adjoint (max_depth 2 only);
+# _mis samples the BSDF as well as the lights on every surface (prb's estimator), direct_light only where it pays
+# (`ParticleScene._bsdf_sampled_shapes`)
+INTEGRATORS = ("prb_basic", "direct_projective", "prb", "direct_light", "direct_light_mis")
+DIRECT_INTEGRATORS = ("direct_light", "direct_light_mis")
 LIGHT_SHAPES = ("band", "torus")
 GRAD_SEEDS = ("independent", "same")  # renderer.grad_seed: see RenderSettings and `adjoint_seed`
 
@@ -124,6 +128,11 @@ class RenderSettings:
             raise ConfigError(f"renderer.integrator={self.integrator!r}: expected one of {', '.join(INTEGRATORS)}")
         if self.max_depth < 2:
             raise ConfigError(f"renderer.max_depth={self.max_depth}: expected >= 2 (1 sees only emitters)")
+        if self.integrator in DIRECT_INTEGRATORS and self.max_depth != 2:
+            raise ConfigError(
+                f"renderer.max_depth={self.max_depth}: renderer.integrator={self.integrator} computes direct "
+                "illumination only (max_depth 2); use renderer.integrator=prb for more bounces"
+            )
         if self.camera_distance <= 1.0:
             raise ConfigError(f"renderer.camera_distance={self.camera_distance}: expected > 1 (x view_width)")
 
@@ -425,7 +434,25 @@ class ParticleScene(MeshParticles):
         if r.integrator == "direct_projective":
             # Only BSDF parameters are differentiated: no silhouette (projective) samples are needed.
             return {"type": "direct_projective", "sppp": 0, "sppi": 0}
+        if r.integrator in DIRECT_INTEGRATORS:
+            from drgan.scene import direct
+
+            shapes = "*" if r.integrator == "direct_light_mis" else self._bsdf_sampled_shapes()
+            return {"type": direct.register(), "max_depth": r.max_depth, "bsdf_sampling": shapes}
         return {"type": r.integrator, "max_depth": r.max_depth}
+
+    def _bsdf_sampled_shapes(self) -> str:
+        """Shapes on which ``direct_light`` samples the BSDF as well as the lights (MIS).
+
+        The particles' roughness is learned down to near-mirror lobes, where light sampling alone would
+        catch a highlight rarely and with a huge weight. A stage of fixed roughness >= 0.3 (Principled
+        default 0.5) is lit well by light sampling alone, which saves one ray per stage sample.
+        """
+        stage = {p.name: p for p in self.spec.parameters.surface("stage")}
+        roughness = stage.get("roughness")
+        if self.spec.stage and roughness is not None and (roughness.learned or roughness.value < 0.3):
+            return "particles,stage"
+        return "particles"
 
     def _scene_dict(self) -> dict:
         spec, w = self.spec, self.spec.view_width

@@ -1,0 +1,160 @@
+"""renderer.integrator=direct_light / direct_light_mis (drgan.scene.direct): prb's images in expectation,
+gradients against finite differences with a linear and a non-linear loss, settings checked."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import PAPER_PARTICLE, PAPER_SIGMA, PAPER_STAGE, TINY_PHI, make_scene
+
+from drgan.errors import ConfigError
+
+# Learned order: stage.base_color, particle.roughness, base_color, sheen, sheen_tint, spec_tint.
+MID = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6])
+COLOURS = (0, 2, 3, 5)  # parameters that do not steer sampling: smooth estimators under common random numbers
+STEPS = [0.01, 0.1, 0.01, 0.01, 0.01, 0.01]
+
+
+def scene_with(integrator, resolution=16, spp=4, grad_seed="independent", stage=PAPER_STAGE):
+    from drgan.scene import meshes
+    from drgan.scene.parameters import MaterialParameters
+    from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
+
+    params = MaterialParameters.from_config(PAPER_PARTICLE, stage, PAPER_SIGMA)
+    render = RenderSettings(resolution=resolution, spp=spp, integrator=integrator, grad_seed=grad_seed)
+    scene = ParticleScene([meshes.sphere(2)], 4, SceneSpec(params, render, view_width=64.0), variant="llvm_ad_rgb")
+    scene.set_layout(TINY_PHI)
+    return scene
+
+
+def images(scene, values, seeds):
+    with torch.no_grad():
+        return torch.stack([scene.render(values, seed=s) for s in seeds])
+
+
+@pytest.mark.parametrize("integrator", ["direct_light", "direct_light_mis"])
+def test_images_match_prb_in_expectation(integrator):
+    """Mean of 32 renders at spp 16 (512 samples per pixel) against prb's from other seeds.
+
+    Tolerance: per pixel |difference| <= 4 standard errors (from the spread over seeds of both) + 1e-4,
+    with at most 1 % of pixels outside; the image means agree within 1 %. A missing light strategy, a
+    double-counted one or a wrong MIS weight shifts many pixels by far more (direct illumination is 100 %
+    of these images).
+    """
+    values = torch.tensor([0.2, 0.1, 0.8, 0.3, 0.4, 0.6])  # a glossy particle: both strategies matter
+    ours = images(scene_with(integrator, spp=16), values, range(32))
+    prb = images(scene_with("prb", spp=16), values, range(1000, 1032))
+    diff = ours.mean(0) - prb.mean(0)
+    stderr = torch.sqrt(ours.var(0) / len(ours) + prb.var(0) / len(prb))
+    outside = (diff.abs() > 4 * stderr + 1e-4).float().mean()
+    assert outside <= 0.01, f"{float(outside):.3f} of pixels differ beyond 4 standard errors"
+    assert abs(float(ours.mean() / prb.mean()) - 1) < 0.01, (float(ours.mean()), float(prb.mean()))
+    assert float(prb.mean()) > 0.01  # the scene is lit
+
+
+def test_with_mis_everywhere_it_is_prbs_estimator():
+    """direct_light_mis draws the same random numbers for the same strategies as prb at max_depth 2, so each
+    seed gives prb's image (to float rounding): the same image noise, by construction."""
+    ours = images(scene_with("direct_light_mis"), MID, range(3))
+    prb = images(scene_with("prb"), MID, range(3))
+    torch.testing.assert_close(ours, prb, rtol=1e-4, atol=1e-5)
+
+
+def test_direct_light_samples_the_bsdf_on_particles_only():
+    """On the stage (fixed roughness) direct_light samples only the lights: other images per seed than
+    direct_light_mis, the same pixels inside particles (same samples, same MIS there), and the price of the
+    saved ray: a noisier stage (median per-pixel std x1.34 under this scene's 45-degree ring; x1.08 under
+    the TiO2 SEM lights, experiments/benchmarks/train_step.md)."""
+    a, b = scene_with("direct_light", resolution=32), scene_with("direct_light_mis", resolution=32)
+    particles = torch.from_numpy(a.instance_labels() > 0)
+    ours, mis = images(a, MID, range(12)), images(b, MID, range(12))
+    assert not torch.allclose(ours, mis)
+    ratio = ours.std(0) / mis.std(0).clamp_min(1e-6)
+    inner = particles & (torch.nn.functional.max_pool2d((~particles).float()[None], 5, 1, 2)[0] == 0)
+    assert inner.sum() > 10
+    torch.testing.assert_close(ours[:, inner], mis[:, inner])  # pixels inside particles: same samples, same MIS
+    assert 1.0 < float(ratio[~particles].median()) < 1.6
+
+
+def ad_and_fd(scene, loss, seeds, steps=STEPS):
+    """AD gradient and central finite differences with common random numbers (the same seeds both sides)."""
+
+    def total(x):
+        return sum(loss(scene.render(x, seed=s)) for s in seeds)
+
+    x = MID.clone().requires_grad_(True)
+    total(x).backward()
+    fd = []
+    with torch.no_grad():
+        for i, h in enumerate(steps):
+            e = torch.zeros_like(MID)
+            e[i] = h
+            fd.append(float(total(MID + e) - total(MID - e)) / (2 * h))
+    return x.grad.numpy(), np.array(fd)
+
+
+@pytest.mark.parametrize("integrator", ["direct_light", "direct_light_mis"])
+def test_gradient_of_a_linear_loss_matches_finite_differences(integrator):
+    """Weighted sum of the image, the adjoint on its own samples (grad_seed independent, the default), summed
+    over 16 seeds: unbiased for the derivative of the expected image. |AD - FD| <= 8 % of |FD| + 2 % of the
+    largest (colours); roughness, which steers BSDF sampling, within 25 % + 5 % (step 0.1)."""
+    scene = scene_with(integrator, spp=16)
+    weight = torch.rand(16, 16, generator=torch.Generator().manual_seed(4))
+    ad, fd = ad_and_fd(scene, lambda image: (image * weight).sum(), range(16))
+    scale = np.abs(fd).max()
+    for i in COLOURS:
+        assert abs(ad[i] - fd[i]) <= 0.08 * abs(fd[i]) + 0.02 * scale, (i, ad, fd)
+    assert abs(ad[1] - fd[1]) <= 0.25 * abs(fd[1]) + 0.05 * scale, (ad, fd)
+    assert abs(ad[0]) > 0.1 * scale and abs(ad[2]) > 0.1 * scale  # stage and particle colour move the image
+
+
+@pytest.mark.parametrize("integrator", ["direct_light", "direct_light_mis"])
+def test_gradient_of_a_nonlinear_loss_matches_finite_differences(integrator):
+    """Squared distance to a target image. With grad_seed=same the adjoint replays the image's own samples,
+    so for parameters that do not steer sampling the AD gradient is the exact derivative of the realised
+    loss: it must match finite differences with common random numbers closely (2 % + 0.5 % of the largest)."""
+    scene = scene_with(integrator, spp=4, grad_seed="same")
+    target = torch.rand(16, 16, generator=torch.Generator().manual_seed(5)) * 0.3
+    ad, fd = ad_and_fd(scene, lambda image: ((image - target) ** 2).sum(), range(3))
+    scale = np.abs(fd).max()
+    for i in COLOURS:
+        assert abs(ad[i] - fd[i]) <= 0.02 * abs(fd[i]) + 0.005 * scale, (i, ad, fd)
+    assert abs(ad[0]) > 0.05 * scale and abs(ad[2]) > 0.05 * scale
+
+
+@pytest.mark.parametrize("where", ["low", "high"])
+def test_gradients_finite_at_the_limits(where):
+    scene = scene_with("direct_light")
+    values = torch.tensor([p.low if where == "low" else p.high for p in scene.learned_bsdf], requires_grad=True)
+    image = scene.render(values, seed=3)
+    assert torch.isfinite(image).all() and (image >= 0).all()
+    image.square().mean().backward()
+    assert torch.isfinite(values.grad).all(), values.grad
+
+
+def test_bsdf_sampling_follows_the_stage_roughness():
+    fixed_rough = scene_with("direct_light", stage={**PAPER_STAGE, "roughness": {"value": 0.6}})
+    assert fixed_rough._bsdf_sampled_shapes() == "particles"
+    assert scene_with("direct_light")._bsdf_sampled_shapes() == "particles"  # Principled default 0.5
+    glossy = scene_with("direct_light", stage={**PAPER_STAGE, "roughness": {"value": 0.1}})
+    assert glossy._bsdf_sampled_shapes() == "particles,stage"
+    learned = scene_with("direct_light", stage={**PAPER_STAGE, "roughness": {"min": 0.05, "max": 1.0}})
+    assert learned._bsdf_sampled_shapes() == "particles,stage"
+
+
+def test_settings_are_checked():
+    from drgan.backend import mi
+    from drgan.scene import direct
+    from drgan.scene.scene import RenderSettings
+
+    with pytest.raises(ConfigError, match=r"renderer.max_depth=3: renderer.integrator=direct_light computes direct"):
+        RenderSettings(integrator="direct_light", max_depth=3)
+    with pytest.raises(ConfigError, match=r"renderer.integrator='direct': expected one of .*direct_light"):
+        RenderSettings(integrator="direct")
+    make_scene(integrator="direct_light")  # registers the plugin for this variant
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": direct.register(), "bsdf_sampling": "nope"},
+                          "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 4, "height": 4}},
+                          "floor": {"type": "rectangle"}, "light": {"type": "constant"}})
+    with pytest.raises(ValueError, match=r"bsdf_sampling names shapes the scene lacks: \['nope'\]"):
+        scene.integrator().render(scene, seed=0, spp=1)
