@@ -27,7 +27,7 @@ import torch
 import trimesh
 
 from drgan import backend
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, check_spp  # noqa: F401  (check_spp: imported from here too)
 from drgan.scene.parameters import MaterialParameters, Parameter
 
 dr = backend.dr
@@ -153,18 +153,6 @@ class SceneSpec:
             raise ConfigError("scene has no light: enable torus_light or top_light")
         if not self.stage and self.parameters.surface("stage"):
             raise ConfigError("stage_bsdf is configured but scene.stage is false; remove one of them")
-
-
-def check_spp(spp, name: str = "spp") -> int:
-    """The stratified sampler needs a perfect square; say so rather than silently rounding up."""
-    if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
-        raise ConfigError(f"{name}={spp!r}: expected a positive integer")
-    root = math.isqrt(int(spp))
-    if root * root != spp:
-        raise ConfigError(
-            f"{name}={spp}: the stratified sampler needs a perfect square; use {root * root} or {(root + 1) ** 2}"
-        )
-    return int(spp)
 
 
 def gaussian_kernel(sigma: float, dtype=torch.float32, device=None) -> torch.Tensor:
