@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drgan.build import sample_phi
+from drgan.models.build import sample_phi
 from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 from drgan.models.gan_module import GANModule

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drgan import build, io
+from drgan import io
+from drgan.models import build
 from drgan.configs import compose
 from drgan.generate import index_seeds
 from drgan.models.gan_module import GANModule

@@ -10,8 +10,8 @@ fake, backward through D and the renderer's adjoint pass, Adam). Its parts, each
 FCN (parameter regressor forward + backward), primal render (layout, render, noise; no gradient), adjoint render
 (the renderer's backward pass for one image), D (the D step plus the G step's D forward/backward on a detached
 fake). iteration / sum of parts above 1 is what the iteration spends on neither rendering nor the networks.
-Medians of --steps after --warmup steps; wall seconds, and the process's CPU seconds of the iteration (all its
-threads: less sensitive to other work on a shared machine).
+Medians of --steps after --warmup steps; wall seconds, and the process's CPU seconds (all its threads) of the
+iteration and of the parts: CPU time is far less sensitive to other work on a shared machine.
 
 Runs against another checkout too (`PYTHONPATH=/path/to/checkout/src python benchmarks/train_step.py ...`):
 configs are composed from the imported drgan's conf/ folder.
@@ -20,6 +20,7 @@ configs are composed from the imported drgan's conf/ folder.
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import platform
 import statistics
@@ -40,7 +41,13 @@ except ImportError:  # a checkout from before drgan.configs (comparisons against
         from hydra import compose as hydra_compose
         from hydra import initialize_config_dir
 
-        import drgan.build
+        # the ${mul:} resolver: registered by drgan.resolvers (newer) or drgan.build (older checkouts)
+        for name in ("drgan.resolvers", "drgan.build"):
+            try:
+                importlib.import_module(name)
+                break
+            except ModuleNotFoundError:
+                continue
 
         conf = Path(drgan.__file__).resolve().parents[2] / "conf"
         with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
@@ -93,7 +100,7 @@ def time_parts(module: GANModule, steps: int, warmup: int) -> dict[str, float]:
     opt_d = torch.optim.Adam(module.discriminator.parameters(), lr=1e-4, betas=(0.5, 0.999))
     size = scene.spec.render.resolution
     real = torch.rand(1, 1, size, size)
-    parts: dict[str, list[float]] = {"fcn": [], "primal": [], "adjoint": [], "d": []}
+    parts: dict[str, list[float]] = {"fcn": [], "primal": [], "adjoint": [], "d": [], "cpu": []}
     for step in range(warmup + steps):
         phi = module.draw_phi(1)
         with Clock() as fcn:
@@ -118,6 +125,7 @@ def time_parts(module: GANModule, steps: int, warmup: int) -> dict[str, float]:
         if step >= warmup:
             for key, clock in zip(parts, (fcn, primal, adjoint, d)):
                 parts[key].append(clock.wall)
+            parts["cpu"].append(fcn.cpu + primal.cpu + adjoint.cpu + d.cpu)
     return {key: statistics.median(values) for key, values in parts.items()}
 
 
@@ -155,8 +163,8 @@ def main():
     print(f"drgan: {ROOT}")
     print(f"command: python {' '.join(sys.argv)}\n")
     print("| spp | grad_spp | integrator | render s | D step s | G step (incl. adjoint) s | iteration s | iteration CPU s "
-          "| FCN s | primal s | adjoint s | D s | sum of parts s | iteration / sum |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| FCN s | primal s | adjoint s | D s | sum of parts s | iteration / sum | parts CPU s | iteration / sum, CPU |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     module = None
     for integrator in args.integrator:
         for spp in args.spp:
@@ -174,12 +182,12 @@ def main():
                 row = (f"| {spp} | {grad} | {cfg.renderer.integrator} | {t['render']:.3f} | {t['d_step']:.3f} | "
                        f"{t['g_step']:.3f} | {t['iteration']:.3f} | {t['iteration_cpu']:.3f} |")
                 if args.no_parts:
-                    print(row + " | | | | | |", flush=True)
+                    print(row + " | | | | | | | |", flush=True)
                     continue
                 p = time_parts(module, args.steps, args.warmup)
-                total = sum(p.values())
+                total = p["fcn"] + p["primal"] + p["adjoint"] + p["d"]
                 print(row + f" {p['fcn']:.3f} | {p['primal']:.3f} | {p['adjoint']:.3f} | {p['d']:.3f} | {total:.3f} | "
-                      f"{t['iteration'] / total:.2f} |", flush=True)
+                      f"{t['iteration'] / total:.2f} | {p['cpu']:.3f} | {t['iteration_cpu'] / p['cpu']:.2f} |", flush=True)
     if args.fid_images and module is not None:
         render_s, inception_s = time_fid_pass(module, args.fid_images)
         print(f"\nFID pass, {args.fid_images} images at spp {args.spp[-1]}: render {render_s:.1f} s + Inception {inception_s:.1f} s "

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from drgan import build
+from drgan.models import build
 from drgan.configs import compose
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -68,7 +68,7 @@ def compose(overrides=(), config_name="render"):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    import drgan.build  # noqa: F401  (registers the ${mul:} resolver)
+    import drgan  # noqa: F401  (registers the config resolvers)
     from pathlib import Path
 
     conf = Path(__file__).resolve().parents[1] / "conf"

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -141,7 +140,7 @@ def test_bad_n_min_is_refused(n_min, match):
 
 
 def test_material_n_particles_min_reaches_the_phi_bank():
-    from drgan.build import sample_phi
+    from drgan.models.build import sample_phi
 
     cfg = compose(["material=tio2_sem", "material.n_particles=10", "material.n_particles_min=4"], config_name="train")
     counts = particle_counts(sample_phi(cfg, 200, seed=0))
@@ -237,11 +236,11 @@ def test_poisson_piles_particles_up_to_max_height():
     np.testing.assert_array_equal(flat[..., 2], flat[..., 3] / 2)
 
 
-def test_poisson_paper_sized_layouts_are_fast():
-    start = time.perf_counter()
-    sample_layouts(124, 40, LOGNORMAL, PoissonAgglomerates(), seed=0)
-    # About 0.3 s of CPU; the bound leaves room for a busy shared machine.
-    assert time.perf_counter() - start < 3.0
+def test_poisson_paper_sized_layouts_place_every_particle():
+    """The paper's size (124 constellations of 40 particles): every particle placed, inside the view's depth range.
+    (Its speed, ~0.3 s of CPU, is a benchmark's business, not a test's.)"""
+    phi = np.asarray(sample_layouts(124, 40, LOGNORMAL, PoissonAgglomerates(), seed=0))
+    assert phi.shape == (124, 40, 4) and np.all(np.isfinite(phi)) and np.all(phi[..., 3] > 0)
 
 
 def test_poisson_impossible_packing_raises():

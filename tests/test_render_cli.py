@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from conftest import compose
-from drgan import build
+from drgan.models import build
 
 MATERIALS = ["tio2_sem", "tio2_him", "sio2_him", "agnw_sem"]
 PAPER = {"tio2_sem": (40, 121, 0.5, 1), "tio2_him": (15, 16, 3.0, 4), "sio2_him": (20, 16, 3.0, 4), "agnw_sem": (10, 121, 0.5, 4)}

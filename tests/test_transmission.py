@@ -228,14 +228,14 @@ def _material(**extra):
      ("scene", {"torus_light": {"radiance": 1.0}})],
 )
 def test_secondary_keys_are_refused_in_a_transmission_material(key, value):
-    from drgan import build
+    from drgan.models import build
 
     with pytest.raises(ConfigError, match=f"material.{key}"):
         build.scene_spec(_material(**{key: value}), {"resolution": 16, "spp": 1})
 
 
 def test_imaging_and_transmission_settings_are_checked():
-    from drgan import build
+    from drgan.models import build
     from drgan.scene.transmission import TransmissionSpec
 
     spec = build.scene_spec(_material(), {"resolution": 16, "spp": 4})
@@ -301,7 +301,7 @@ def test_grained_noise_keeps_sigma_differentiable():
 
 # -- the material config --------------------------------------------------------------------------
 def test_tio2_tsem_generator_renders_with_gradients(one_torch_thread):
-    from drgan import build
+    from drgan.models import build
     from drgan.scene.transmission import TransmissionScene
 
     cfg = compose(

@@ -7,7 +7,7 @@ import textwrap
 import pytest
 
 from conftest import compose
-from drgan.build import material_parameters
+from drgan.models.build import material_parameters
 from drgan.errors import ConfigError
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from drgan import build
+from drgan.models import build
 from drgan.generate import checkpoint_config, load_module
 
 

@@ -22,8 +22,8 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 
-import drgan.build  # noqa: F401  (registers resolvers)
-from drgan.build import build_scene, sample_phi
+import drgan  # noqa: F401  (registers the config resolvers)
+from drgan.models.build import build_scene, sample_phi
 from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 from drgan.models.generator import add_noise

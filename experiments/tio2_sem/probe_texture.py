@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 from hydra import compose, initialize_config_dir
-from drgan.build import build_scene, sample_phi
+from drgan.models.build import build_scene, sample_phi
 from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 from drgan.models.generator import add_noise

@@ -32,7 +32,7 @@ def compose(overrides: Sequence[str] = (), config_name: str = "render"):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    import drgan.build  # noqa: F401  (registers the ${mul:} resolver)
+    import drgan  # noqa: F401  (registers the config resolvers)
 
     if isinstance(overrides, str):
         raise ConfigError(f"overrides={overrides!r}: expected a list of strings such as ['renderer.spp=16']")

@@ -166,7 +166,7 @@ def generate(cfg: DictConfig) -> dict:
     """Render this shard's part of the dataset in ``cfg.out``; return the manifest written (merged or shard)."""
     import torch
 
-    from drgan import build
+    from drgan.models import build
 
     settings = settings_from(cfg)
     out = Path(str(cfg.out)).expanduser().resolve()

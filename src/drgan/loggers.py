@@ -195,7 +195,7 @@ def tracking_store(overrides: Sequence[str] = ()) -> tuple[str, str]:
     from hydra import compose, initialize_config_dir
     from omegaconf import open_dict
 
-    import drgan.build  # noqa: F401  (registers the ${mlflow_uri:} resolver of the logger config)
+    import drgan  # noqa: F401  (registers the config resolvers)
 
     conf = Path(__file__).resolve().parents[2] / "conf"  # drgan.train's config_path
     with initialize_config_dir(version_base="1.3", config_dir=str(conf)):

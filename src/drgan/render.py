@@ -15,7 +15,8 @@ import hydra
 from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
 
-from drgan import build, io
+from drgan import io
+from drgan.models import build
 from drgan.scene.labels import class_mask
 
 log = logging.getLogger(__name__)

@@ -67,7 +67,7 @@ def settings_from(cfg: DictConfig) -> dict:
     if n_background and backgrounds is None:
         raise ConfigError(f"n_background={n_background}: the checkpoint has no run folder with patches/; "
                           "give backgrounds=PATCHSET_FOLDER or n_background=0")
-    from drgan.build import textured
+    from drgan.models.build import textured
 
     if textured(saved["material"]) and backgrounds is None:
         raise ConfigError(

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from lightning.pytorch import LightningModule
 from omegaconf import DictConfig, OmegaConf
 
-from drgan import build
+from drgan.models import build
 from drgan.errors import ConfigError
 from drgan.models.discriminator import PatchDiscriminator
 
