@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-PAPER_PARTICLE = {name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")}
+PAPER_PARTICLE = {
+    name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")
+}
 PAPER_STAGE = {"base_color": {"min": 0.01, "max": 0.4}}
 PAPER_SIGMA = {"min": 0.001, "max": 0.1}
 
@@ -16,7 +18,9 @@ TINY_PHI = np.array(
 )
 
 
-def make_scene(resolution=16, spp=4, n=4, integrator="prb_basic", particle=None, stage=PAPER_STAGE, sigma=PAPER_SIGMA, **spec_kw):
+def make_scene(
+    resolution=16, spp=4, n=4, integrator="prb_basic", particle=None, stage=PAPER_STAGE, sigma=PAPER_SIGMA, **spec_kw
+):
     from drgan.scene import meshes
     from drgan.scene.parameters import MaterialParameters
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
@@ -24,7 +28,9 @@ def make_scene(resolution=16, spp=4, n=4, integrator="prb_basic", particle=None,
     params = MaterialParameters.from_config(PAPER_PARTICLE if particle is None else particle, stage, sigma)
     spec = SceneSpec(
         params,
-        RenderSettings(resolution=resolution, spp=spp, integrator=integrator, filter_stddev=spec_kw.pop("filter_stddev", 0.5)),
+        RenderSettings(
+            resolution=resolution, spp=spp, integrator=integrator, filter_stddev=spec_kw.pop("filter_stddev", 0.5)
+        ),
         view_width=spec_kw.pop("view_width", 64.0),
         stage=stage is not None,
         **spec_kw,
@@ -65,11 +71,12 @@ def tiny_scene():
 
 
 def compose(overrides=(), config_name="render"):
+    from pathlib import Path
+
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
     import drgan  # noqa: F401  (registers the config resolvers)
-    from pathlib import Path
 
     conf = Path(__file__).resolve().parents[1] / "conf"
     with initialize_config_dir(version_base="1.3", config_dir=str(conf)):

@@ -25,14 +25,19 @@ def test_select_best_prefers_broadest_of_top_k():
     assert select_best(history, top_k=5)[0]["epoch"] == 5
     # Epochs 0 and 4 are broader but not among the top 5 FIDs; top_k=1 is the plain lowest FID.
     assert select_best(history, top_k=1)[0]["epoch"] == 6
-    assert select_best(history + [{"epoch": 7, "fid": float("nan"), "spread": 1.0}], 5, fid_margin=None)[0]["epoch"] == 2
+    assert (
+        select_best(history + [{"epoch": 7, "fid": float("nan"), "spread": 1.0}], 5, fid_margin=None)[0]["epoch"] == 2
+    )
     assert select_best([], 5) == (None, [])
 
 
 def test_in_a_short_run_the_fid_still_weighs():
     """Three epochs are all among the "5 lowest": before the margin, the broadest won whatever its FID."""
-    history = [{"epoch": 0, "fid": 300.0, "spread": 0.40}, {"epoch": 1, "fid": 150.0, "spread": 0.30},
-               {"epoch": 2, "fid": 100.0, "spread": 0.10}]
+    history = [
+        {"epoch": 0, "fid": 300.0, "spread": 0.40},
+        {"epoch": 1, "fid": 150.0, "spread": 0.30},
+        {"epoch": 2, "fid": 100.0, "spread": 0.10},
+    ]
     assert select_best(history, top_k=5, fid_margin=None)[0]["epoch"] == 0
     assert select_best(history, top_k=5)[0]["epoch"] == 2
     assert select_best(history, top_k=5, fid_margin=0.5)[0]["epoch"] == 1  # 150 <= 1.5 x 100
@@ -44,9 +49,15 @@ def test_an_epoch_with_inverted_contrast_never_wins_even_at_the_right_mean_grey(
     from drgan.callbacks.fid import contrast, level_ratio
 
     def entry(epoch, fid, spread, particle, background):
-        return {"epoch": epoch, "fid": fid, "spread": spread, "brightness": 1.0, "contrast": contrast(particle, background, "dark"),
-                "particle_brightness": level_ratio(particle, 0.3, "dark"),
-                "background_brightness": level_ratio(background, 0.75, "dark")}
+        return {
+            "epoch": epoch,
+            "fid": fid,
+            "spread": spread,
+            "brightness": 1.0,
+            "contrast": contrast(particle, background, "dark"),
+            "particle_brightness": level_ratio(particle, 0.3, "dark"),
+            "background_brightness": level_ratio(background, 0.75, "dark"),
+        }
 
     inverted, right = entry(0, 80.0, 0.3, 0.55, 0.50), entry(1, 85.0, 0.2, 0.35, 0.70)
     assert 0.5 <= inverted["particle_brightness"] <= 2.0 and 0.5 <= inverted["background_brightness"] <= 2.0
@@ -75,18 +86,23 @@ def test_fid_levels_and_contrast_by_hand():
 
 
 def test_select_best_treats_nearly_equal_spreads_as_a_tie():
-    history = [{"epoch": 5, "fid": 140.0, "spread": 0.0197}, {"epoch": 6, "fid": 148.9, "spread": 0.0200},
-               {"epoch": 4, "fid": 142.0, "spread": 0.0170}]
+    history = [
+        {"epoch": 5, "fid": 140.0, "spread": 0.0197},
+        {"epoch": 6, "fid": 148.9, "spread": 0.0200},
+        {"epoch": 4, "fid": 142.0, "spread": 0.0170},
+    ]
     assert select_best(history, top_k=5)[0]["epoch"] == 5  # within 5 %: the lower FID wins
     assert select_best(history, top_k=5, spread_tolerance=0.0)[0]["epoch"] == 6
 
 
 def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
     # Epoch 0 has the lowest FID but is 4.6x too dark (the grazing-ring generator); epoch 3 is too bright.
-    history = [{"epoch": 0, "fid": 200.0, "spread": 0.3, "brightness": 0.22},
-               {"epoch": 1, "fid": 290.0, "spread": 0.1, "brightness": 0.9},
-               {"epoch": 2, "fid": 300.0, "spread": 0.2, "brightness": 1.1},
-               {"epoch": 3, "fid": 250.0, "spread": 0.5, "brightness": 2.5}]
+    history = [
+        {"epoch": 0, "fid": 200.0, "spread": 0.3, "brightness": 0.22},
+        {"epoch": 1, "fid": 290.0, "spread": 0.1, "brightness": 0.9},
+        {"epoch": 2, "fid": 300.0, "spread": 0.2, "brightness": 1.1},
+        {"epoch": 3, "fid": 250.0, "spread": 0.5, "brightness": 2.5},
+    ]
     assert select_best(history, top_k=5, fid_margin=None)[0]["epoch"] == 3  # no range, no margin: broadest of all
     best, table = select_best(history, top_k=5, brightness_range=(0.5, 2.0))
     assert best["epoch"] == 2 and [h["epoch"] for h in table] == [1, 2]
@@ -113,14 +129,14 @@ def test_parameter_spread_hand_computed():
         parameter_spread(values, [0.0], [1.0])
 
 
-
-
 def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(images, tmp_path):  # noqa: F811
     import mlflow
 
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
     out = tmp_path / "run"
-    base = tiny_overrides(images, out, logger="mlflow", extra=[f"logger.mlflow.tracking_uri={uri}", "trainer.limit_train_batches=1"])
+    base = tiny_overrides(
+        images, out, logger="mlflow", extra=[f"logger.mlflow.tracking_uri={uri}", "trainer.limit_train_batches=1"]
+    )
     metrics = run_train(base + ["trainer.max_epochs=2"])
     assert np.isfinite(metrics["val/fid"]) and np.isfinite(metrics["val/kid"]) and metrics["time/fid_s"] > 0
 
@@ -131,9 +147,17 @@ def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(ima
     assert all(0.0 <= h["spread"] <= 0.5 for h in summary["history"])
     assert all(h["brightness"] > 0 for h in summary["history"]) and summary["brightness_range"] == [0.5, 2.0]
     # the guard sees particles and background apart, and the contrast's direction (bright particles here)
-    assert all(h["particle_brightness"] > 0 and h["background_brightness"] > 0 and h["contrast"] > 0
-               for h in summary["history"])
-    for name in ("params_epoch_000.png", "params_epoch_001.png", "samples_epoch_000.png", "samples_epoch_001.png", "fid.png"):
+    assert all(
+        h["particle_brightness"] > 0 and h["background_brightness"] > 0 and h["contrast"] > 0
+        for h in summary["history"]
+    )
+    for name in (
+        "params_epoch_000.png",
+        "params_epoch_001.png",
+        "samples_epoch_000.png",
+        "samples_epoch_001.png",
+        "fid.png",
+    ):
         assert (out / "plots" / name).is_file(), name
     assert list((out / "fid_cache").glob("real_*_RandomProjectionFeatures_clean_24x24.npz"))
     # ModelCheckpoint monitors val/fid: it found the metric (else it raises) and kept a best model.
@@ -150,7 +174,9 @@ def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(ima
     for key in ("val/fid", "val/kid", "val/brightness", "time/fid_s", "best/epoch", "best/fid"):
         assert key in run.data.metrics, key
     assert len(client.get_metric_history(run_id, "val/fid")) == 2
-    artifacts = {a.path for a in client.list_artifacts(run_id)} | {a.path for a in client.list_artifacts(run_id, "plots")}
+    artifacts = {a.path for a in client.list_artifacts(run_id)} | {
+        a.path for a in client.list_artifacts(run_id, "plots")
+    }
     assert "best_epoch.json" in artifacts and "plots/samples_epoch_001.png" in artifacts
 
     # Resume for a third epoch: the FID history of the first two is kept.
@@ -167,10 +193,13 @@ def test_random_projection_features_are_fixed():
 
 
 def test_fid_settings_that_cannot_work_fail_before_the_data_are_mined(tmp_path, monkeypatch):
-    import drgan.data.datamodule as dm
     from test_train import make_images, run_train, tiny_overrides
 
-    monkeypatch.setattr(dm, "mine_patches", lambda *a, **k: pytest.fail("patches mined before the FID settings were checked"))
+    import drgan.data.datamodule as dm
+
+    monkeypatch.setattr(
+        dm, "mine_patches", lambda *a, **k: pytest.fail("patches mined before the FID settings were checked")
+    )
     folder = make_images(tmp_path / "images", n=3, size=40, seed=2)
     with pytest.raises(ConfigError, match=r"kid_subset_size=9 exceeds callbacks.fid.n_images=4"):
         run_train(tiny_overrides(folder, tmp_path / "run", extra=["+callbacks.fid.kid_subset_size=9"]))
@@ -181,15 +210,22 @@ def test_fid_settings_that_cannot_work_fail_before_the_data_are_mined(tmp_path, 
     bad.write_bytes(b"not the network")
     overrides = [o for o in tiny_overrides(folder, tmp_path / "run2") if not o.startswith("callbacks.fid.extractor")]
     with pytest.raises(DataError, match="SHA-256"):
-        run_train(overrides + [f"callbacks.fid.extractor={{_target_:drgan.metrics.fid.InceptionFeatures,weights_path:{bad}}}"])
+        run_train(
+            overrides + [f"callbacks.fid.extractor={{_target_:drgan.metrics.fid.InceptionFeatures,weights_path:{bad}}}"]
+        )
 
 
 def test_a_kid_subset_larger_than_the_mined_patches_stops_before_the_first_step(tmp_path, monkeypatch):
     import lightning.pytorch as L
     from test_train import make_images, run_train, tiny_overrides
 
-    monkeypatch.setattr(L.LightningModule, "training_step", lambda *a, **k: pytest.fail("trained with an impossible KID"))
+    monkeypatch.setattr(
+        L.LightningModule, "training_step", lambda *a, **k: pytest.fail("trained with an impossible KID")
+    )
     folder = make_images(tmp_path / "images", n=3, size=40, seed=2)
     with pytest.raises(ConfigError, match=r"kid_subset_size=500 exceeds the \d+ images of each KID sample"):
-        run_train(tiny_overrides(folder, tmp_path / "run", extra=["+callbacks.fid.kid_subset_size=500",
-                                                                  "callbacks.fid.n_images=null"]))
+        run_train(
+            tiny_overrides(
+                folder, tmp_path / "run", extra=["+callbacks.fid.kid_subset_size=500", "callbacks.fid.n_images=null"]
+            )
+        )

@@ -14,11 +14,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import compose
 from test_generate import tiny_run  # noqa: F401  (session fixture: the 1-step GAN run folder)
 from test_segment import disc_image, disc_labels, eval_cfg, make_generated, make_real
 from test_train import make_images, run_train, tiny_overrides
 
-from conftest import compose
 from drgan import generate as gen
 from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import ConfigError, DataError
@@ -43,8 +43,14 @@ def crafted(tmp_path) -> tuple[Path, Path]:
     """(a .ckpt shaped like a drgan checkpoint, plus the payload; the marker file its payload would create)."""
     marker = tmp_path / "payload_ran"
     path = tmp_path / "crafted.ckpt"
-    torch.save({"state_dict": {}, "hyper_parameters": {"cfg": {"material": {}}, "kind": "drgan_segmenter"},
-                "payload": TouchOnLoad(marker)}, path)
+    torch.save(
+        {
+            "state_dict": {},
+            "hyper_parameters": {"cfg": {"material": {}}, "kind": "drgan_segmenter"},
+            "payload": TouchOnLoad(marker),
+        },
+        path,
+    )
     return path, marker
 
 
@@ -72,7 +78,9 @@ def test_generate_refuses_a_crafted_checkpoint(crafted, tiny_run):  # noqa: F811
         gen.load_module(path, saved)
     out = path.parent / "out"
     with pytest.raises(ConfigError, match=f"ckpt=.*{REFUSED}"):
-        gen.generate(compose([f"ckpt={path}", f"out={out}", "n=1", "n_background=0", "progress=false"], config_name="generate"))
+        gen.generate(
+            compose([f"ckpt={path}", f"out={out}", "n=1", "n_background=0", "progress=false"], config_name="generate")
+        )
     assert not marker.exists() and not out.exists()
 
 
@@ -106,26 +114,36 @@ def test_segment_evaluate_and_analyze_refuse_a_crafted_checkpoint(crafted, tmp_p
     with pytest.raises(DataError, match=f"model=.*{REFUSED}"):
         load_segmenter(path)
     labels = disc_labels(32, seed=3)
-    real = make_real(tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]})
+    real = make_real(
+        tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]}
+    )
     with pytest.raises(DataError, match=f"model=.*{REFUSED}"):
         evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{path}]"]))
     with pytest.raises(DataError, match=f"model=.*{REFUSED}"):
         analyze(compose([f"ckpt={path}", f"images={real / 'images'}", f"out={tmp_path / 'an'}"], config_name="analyze"))
     data = make_generated(tmp_path / "gen", n=4)
     with pytest.raises(ConfigError, match=f"ckpt_path=.*{REFUSED}"):
-        segment(compose([f"data_dir={data}", f"out={tmp_path / 'seg'}", f"ckpt_path={path}", "logger=none"], config_name="segment"))
+        segment(
+            compose(
+                [f"data_dir={data}", f"out={tmp_path / 'seg'}", f"ckpt_path={path}", "logger=none"],
+                config_name="segment",
+            )
+        )
     assert not marker.exists()
 
 
 # --- damaged and foreign files ------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("content, message", [
-    (b"hello", "not a readable PyTorch checkpoint"),
-    (b"", "not a readable PyTorch checkpoint"),
-    ("truncated", "not a readable PyTorch checkpoint"),
-    ("tensor", "a PyTorch file but not a Lightning checkpoint"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"hello", "not a readable PyTorch checkpoint"),
+        (b"", "not a readable PyTorch checkpoint"),
+        ("truncated", "not a readable PyTorch checkpoint"),
+        ("tensor", "a PyTorch file but not a Lightning checkpoint"),
+    ],
+)
 def test_damaged_or_foreign_files_get_a_clear_message(content, message, tiny_run, tmp_path):  # noqa: F811
     path = tmp_path / "x.ckpt"
     if content == "truncated":
@@ -151,9 +169,24 @@ def segmenter_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("seg")
     data = make_generated(root / "gen", n=4)
     out = root / "run"
-    segment(compose([f"data_dir={data}", f"out={out}", f"paths.root_dir={root}", "model.depth=2", "model.base=4",
-                     "loader.crop=32", "loader.batch_size=4", "trainer.accelerator=cpu",
-                     "trainer.enable_progress_bar=false", "logger=none", "trainer.max_epochs=1"], config_name="segment"))
+    segment(
+        compose(
+            [
+                f"data_dir={data}",
+                f"out={out}",
+                f"paths.root_dir={root}",
+                "model.depth=2",
+                "model.base=4",
+                "loader.crop=32",
+                "loader.batch_size=4",
+                "trainer.accelerator=cpu",
+                "trainer.enable_progress_bar=false",
+                "logger=none",
+                "trainer.max_epochs=1",
+            ],
+            config_name="segment",
+        )
+    )
     return out
 
 
@@ -169,8 +202,8 @@ def test_real_checkpoints_need_no_allow_listed_class(tiny_run, segmenter_run):  
 
 
 def test_real_checkpoints_load_at_every_site(tiny_run, segmenter_run, tmp_path):  # noqa: F811
-    from drgan.segmentation.module import load_segmenter
     from drgan.runtime import resolve_checkpoint
+    from drgan.segmentation.module import load_segmenter
 
     best, last = tiny_run / "checkpoints" / "best.ckpt", tiny_run / "checkpoints" / "last.ckpt"
     saved = gen.checkpoint_config(best)

@@ -91,8 +91,14 @@ def test_count_particles_finds_none_in_noise():
 
 def test_mined_counts_match_truth_and_selection_keeps_three_or_more(synthetic):
     image, _, centres = synthetic
-    ps = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, min_particles=3, n_background=0, max_overlap=0.99, progress=False)
-    truth = {(r, c): true_full_count(centres, r, c) for r in range(0, SHAPE[0] - SIZE + 1, STRIDE) for c in range(0, SHAPE[1] - SIZE + 1, STRIDE)}
+    ps = mine_patches(
+        [image], ["syn"], size=SIZE, stride=STRIDE, min_particles=3, n_background=0, max_overlap=0.99, progress=False
+    )
+    truth = {
+        (r, c): true_full_count(centres, r, c)
+        for r in range(0, SHAPE[0] - SIZE + 1, STRIDE)
+        for c in range(0, SHAPE[1] - SIZE + 1, STRIDE)
+    }
     kept = {tuple(p) for p in ps.train_positions}
     assert kept, "no patch selected"
     for (r, c), count in zip(ps.train_positions, ps.train_counts):
@@ -276,7 +282,11 @@ def test_read_split(tmp_path):
     bad.write_text(json.dumps({"train": ["1", "2"], "test": ["2"]}))
     with pytest.raises(DataError, match=r"overlap\.json.*'2'"):
         read_split(bad)
-    for name, text in (("nojson.json", "{train"), ("notest.json", '{"train": ["1"]}'), ("ints.json", '{"train": [1], "test": []}')):
+    for name, text in (
+        ("nojson.json", "{train"),
+        ("notest.json", '{"train": ["1"]}'),
+        ("ints.json", '{"train": [1], "test": []}'),
+    ):
         (tmp_path / name).write_text(text)
         with pytest.raises(DataError, match=name):
             read_split(tmp_path / name)

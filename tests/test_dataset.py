@@ -87,8 +87,15 @@ def test_write_read_roundtrip(tmp_path):
     manifest = mf.read_manifest(folder.root)
     assert manifest == written == json.loads((folder.root / "manifest.json").read_text())
     assert "model_cfg" not in manifest["config"] and manifest["config"]["shard"] is None
-    assert manifest["counts"] == {"synthetic": 3, "background": 1, "kept": 3, "dropped": 1,
-                                  "drop_reasons": {"contrast": 1}, "attempted": 4, "surplus_kept_not_listed": 0}
+    assert manifest["counts"] == {
+        "synthetic": 3,
+        "background": 1,
+        "kept": 3,
+        "dropped": 1,
+        "drop_reasons": {"contrast": 1},
+        "attempted": 4,
+        "surplus_kept_not_listed": 0,
+    }
     entries = mf.manifest_entries(manifest)
     assert [e.id for e in entries] == ["syn_000000", "syn_000002", "syn_000003", "bg_0000"]
     assert [e.index for e in entries] == [0, 2, 3, None]

@@ -21,7 +21,6 @@ from pathlib import Path
 
 import pytest
 from PIL import Image
-
 from test_generate import N_BG, run_generate, tiny_run  # noqa: F401  (tiny_run: the session fixture)
 
 N_KILL = 40  # long enough (0.05-0.1 s per item here) that the poll below sees 2 items well before the end
@@ -38,7 +37,11 @@ def overrides(ckpt: Path, out: Path, n: int) -> list[str]:
 def environment() -> dict:
     # One torch thread, as the in-process reference (one_torch_thread): the same float reductions, the same bytes.
     tests = str(Path(__file__).resolve().parent)
-    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
+    return {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]),
+    }
 
 
 def files(out: Path) -> dict[str, bytes]:
@@ -79,7 +82,11 @@ def check_what_a_kill_left(out: Path) -> dict:
 def same_record(a, b, rel: float) -> bool:
     """JSON values equal, floats within ``rel`` (relative)."""
     if isinstance(a, float) or isinstance(b, float):
-        return isinstance(a, (int, float)) and isinstance(b, (int, float)) and math.isclose(a, b, rel_tol=rel, abs_tol=1e-12)
+        return (
+            isinstance(a, (int, float))
+            and isinstance(b, (int, float))
+            and math.isclose(a, b, rel_tol=rel, abs_tol=1e-12)
+        )
     if isinstance(a, dict) and isinstance(b, dict):
         return a.keys() == b.keys() and all(same_record(a[k], b[k], rel) for k in a)
     if isinstance(a, list) and isinstance(b, list):
@@ -112,8 +119,14 @@ def reference(tiny_run, tmp_path_factory) -> Path:
 def test_generate_killed_by_sigkill_resumes_to_the_same_dataset(tiny_run, reference, tmp_path):
     """An outside SIGKILL at a random moment, once at least 2 items are done."""
     out = tmp_path / "data"
-    process = subprocess.Popen([sys.executable, "-m", "drgan.generate", *overrides(tiny_run, out, N_KILL)], cwd=tmp_path,
-                               env=environment(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "drgan.generate", *overrides(tiny_run, out, N_KILL)],
+        cwd=tmp_path,
+        env=environment(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + 120
     try:
         while len(list((out / "meta").glob("syn_*.json"))) < 2:
@@ -159,8 +172,14 @@ runpy.run_module("drgan.generate", run_name="__main__")
 
 def test_generate_killed_between_an_items_files_leaves_no_unpaired_item(tiny_run, reference, tmp_path):
     out = tmp_path / "data"
-    result = subprocess.run([sys.executable, "-c", KILL_IN_MASK_WRITE, *overrides(tiny_run, out, N_KILL)], cwd=tmp_path,
-                            env=environment(), capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-c", KILL_IN_MASK_WRITE, *overrides(tiny_run, out, N_KILL)],
+        cwd=tmp_path,
+        env=environment(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == -signal.SIGKILL, result.stderr[-2000:]
     left = check_what_a_kill_left(out)
     item = left["unrecorded"][0]  # the second kept synthetic item: image written, mask in a temporary file
@@ -181,7 +200,7 @@ def test_a_smaller_rerun_removes_the_killed_items_files(tiny_run, tmp_path):
     orphan = f"syn_{after:06d}"
     (out / "images" / f"{orphan}.png").write_bytes((out / "images" / "syn_000000.png").read_bytes())
     (out / "masks" / f".{orphan}.png.abc123_x.tmp.png").write_bytes(b"\x89PNG half")
-    (out / f".manifest.json.k2j4l5m6.tmp.json").write_text("{")
+    (out / ".manifest.json.k2j4l5m6.tmp.json").write_text("{")
     run_generate(tiny_run, out, n=2)
     assert not (out / "images" / f"{orphan}.png").exists()
     assert not [p for p in out.rglob("*") if TEMP_MARK in p.name]
@@ -198,7 +217,9 @@ def test_generate_killed_and_rerun_in_fresh_processes_is_bitwise_the_uninterrupt
     reference = tmp_path / "reference"
     subprocess.run(command(reference), cwd=tmp_path, env=env, check=True, capture_output=True, timeout=300)
     out = tmp_path / "data"
-    process = subprocess.Popen(command(out), cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process = subprocess.Popen(
+        command(out), cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     try:
         while len(list((out / "meta").glob("syn_*.json"))) < 2:
             assert process.poll() is None, "generate ended before the kill"

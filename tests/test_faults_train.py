@@ -15,7 +15,6 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from test_train import make_images, tiny_overrides
 
 TESTS = Path(__file__).resolve().parent
@@ -32,9 +31,20 @@ def train(images: Path, out: Path, extra=(), expect_kill: bool = False) -> None:
     overrides = tiny_overrides(images, out, logger="mlflow", extra=[
         f"logger.mlflow.tracking_uri={uri}", f"trainer.max_epochs={EPOCHS}", f"trainer.limit_train_batches={BATCHES}",
         "trainer.log_every_n_steps=1", "callbacks.fid.n_images=4", *extra])  # fmt: skip
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "DRGAN_RENDER_THREADS": "1", "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
-    result = subprocess.run([sys.executable, "-m", "drgan.train", *overrides], cwd=out.parent, capture_output=True, text=True,
-                            timeout=300, env=env)
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "DRGAN_RENDER_THREADS": "1",
+        "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
+    }
+    result = subprocess.run(
+        [sys.executable, "-m", "drgan.train", *overrides],
+        cwd=out.parent,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     if expect_kill:
         assert result.returncode == -9, f"expected a SIGKILL, got {result.returncode}: {result.stderr[-2000:]}"
     else:
@@ -63,13 +73,21 @@ def reference(images, tmp_path_factory) -> Path:
 
 KILLS = {
     # (a) mid-epoch: after the 2nd batch of epoch 1
-    "mid_epoch": lambda marker: [f"+callbacks.kill={{_target_:faultpoints.KillAtBatch,epoch:1,batch:1,marker:{marker}}}"],
+    "mid_epoch": lambda marker: [
+        f"+callbacks.kill={{_target_:faultpoints.KillAtBatch,epoch:1,batch:1,marker:{marker}}}"
+    ],
     # (b) right after epoch 1's data loop and its last.ckpt write, before FID
-    "after_data_loop": lambda marker: ["callbacks.resume._target_=faultpoints.ResumeThenKill", "+callbacks.resume.epoch=1",
-                                       f"+callbacks.resume.marker={marker}"],
+    "after_data_loop": lambda marker: [
+        "callbacks.resume._target_=faultpoints.ResumeThenKill",
+        "+callbacks.resume.epoch=1",
+        f"+callbacks.resume.marker={marker}",
+    ],
     # (c) during epoch 1's FID pass (feature extraction #3: real patches, epoch 0's renders, epoch 1's renders)
-    "during_fid": lambda marker: ["callbacks.fid.extractor._target_=faultpoints.KillingFeatures", "+callbacks.fid.extractor.call=3",
-                                  f"+callbacks.fid.extractor.marker={marker}"],
+    "during_fid": lambda marker: [
+        "callbacks.fid.extractor._target_=faultpoints.KillingFeatures",
+        "+callbacks.fid.extractor.call=3",
+        f"+callbacks.fid.extractor.marker={marker}",
+    ],
 }
 
 

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import compose
 from PIL import Image
 from test_train import make_images, run_train, tiny_overrides
 
-from conftest import compose
 from drgan import generate as gen
 from drgan.errors import ConfigError
 
@@ -44,7 +44,10 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def run_generate(ckpt, out, *extra, n=N):
-    cfg = compose([f"ckpt={ckpt}", f"out={out}", f"n={n}", f"n_background={N_BG}", "min_contrast=0", "progress=false", *extra], config_name="generate")
+    cfg = compose(
+        [f"ckpt={ckpt}", f"out={out}", f"n={n}", f"n_background={N_BG}", "min_contrast=0", "progress=false", *extra],
+        config_name="generate",
+    )
     return gen.generate(cfg)
 
 
@@ -197,8 +200,11 @@ def test_filter_that_nothing_passes_stops_with_a_clear_error(tiny_run, tmp_path)
 
 def test_a_run_whose_first_images_all_fail_the_filter_stops_early_and_says_why(tiny_run, tmp_path, monkeypatch):
     monkeypatch.setattr(gen, "EARLY_ATTEMPTS", 3)
-    with pytest.raises(RuntimeError, match=r"none of the first 3 images passed the filter .*median contrast .* for dark "
-                                           r"particles.*wrong side of the background"):
+    with pytest.raises(
+        RuntimeError,
+        match=r"none of the first 3 images passed the filter .*median contrast .* for dark "
+        r"particles.*wrong side of the background",
+    ):
         run_generate(tiny_run, tmp_path / "data", "min_contrast=1e9", "polarity=dark", "n_background=0", n=50)
     assert len(list((tmp_path / "data" / "dropped").glob("syn_*.json"))) == 3
 
@@ -241,7 +247,9 @@ def test_export_nnunet_layout_and_dataset_json(dataset, tmp_path):
     cases = ids(dataset)
     assert sorted(p.name for p in (target / "imagesTr").iterdir()) == sorted(f"{c}_0000.png" for c in cases)
     assert sorted(p.name for p in (target / "labelsTr").iterdir()) == sorted(f"{c}.png" for c in cases)
-    assert (target / "labelsTr" / f"{cases[0]}.png").read_bytes() == (dataset / "masks" / f"{cases[0]}.png").read_bytes()
+    assert (target / "labelsTr" / f"{cases[0]}.png").read_bytes() == (
+        dataset / "masks" / f"{cases[0]}.png"
+    ).read_bytes()
     # The same export again is fine; a different dataset under the same id or folder is refused.
     export(dataset, tmp_path / "raw")
     with pytest.raises(ConfigError, match="holds a different dataset"):
@@ -303,11 +311,18 @@ def test_textured_generator_takes_its_texture_from_the_run_patches(tmp_path, mon
 
     images = make_images(tmp_path / "real" / "images")
     run = tmp_path / "run"
-    run_train(tiny_overrides(images, run, extra=["trainer.max_epochs=1", "trainer.limit_train_batches=1",
-                                                 "material.background_texture.enabled=true"]))
+    run_train(
+        tiny_overrides(
+            images,
+            run,
+            extra=["trainer.max_epochs=1", "trainer.limit_train_batches=1", "material.background_texture.enabled=true"],
+        )
+    )
     seen = []
     original = Generator.set_background
-    monkeypatch.setattr(Generator, "set_background", lambda self, texture: (seen.append(texture), original(self, texture))[1])
+    monkeypatch.setattr(
+        Generator, "set_background", lambda self, texture: (seen.append(texture), original(self, texture))[1]
+    )
     out = tmp_path / "data"
     run_generate(run, out, n=1)
     assert len(seen) == 1 and len(seen[0]) == N_BG  # the run's own background patches
@@ -317,5 +332,9 @@ def test_textured_generator_takes_its_texture_from_the_run_patches(tmp_path, mon
     lonely.parent.mkdir()
     shutil.copyfile(run / "checkpoints" / "best.ckpt", lonely)
     with pytest.raises(ConfigError, match="trained with material.background_texture.*give backgrounds=PATCHSET_FOLDER"):
-        gen.generate(compose([f"ckpt={lonely}", f"out={tmp_path / 'data2'}", "n=1", "n_background=0", "progress=false"],
-                             config_name="generate"))
+        gen.generate(
+            compose(
+                [f"ckpt={lonely}", f"out={tmp_path / 'data2'}", "n=1", "n_background=0", "progress=false"],
+                config_name="generate",
+            )
+        )

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 import torch
-
 from conftest import TINY_PHI, make_scene
+
 from drgan.models.generator import Generator, add_noise
 
 
@@ -153,12 +153,15 @@ def test_background_texture_keeps_the_fine_structure_only():
     assert any(not torch.equal(first, texture.for_seed(s)) for s in range(8, 16))
 
 
-@pytest.mark.parametrize("patches, highpass, match", [
-    (np.zeros((0, 16, 16)), 8, r"expected square background patches \(k, H, H\) with k >= 1"),
-    (np.zeros((2, 16, 12)), 8, "expected square background patches"),
-    (np.full((1, 16, 16), np.nan), 8, "non-finite"),
-    (np.zeros((1, 16, 16)), 0, "highpass_px=0: expected a number of px > 0"),
-])
+@pytest.mark.parametrize(
+    "patches, highpass, match",
+    [
+        (np.zeros((0, 16, 16)), 8, r"expected square background patches \(k, H, H\) with k >= 1"),
+        (np.zeros((2, 16, 12)), 8, "expected square background patches"),
+        (np.full((1, 16, 16), np.nan), 8, "non-finite"),
+        (np.zeros((1, 16, 16)), 0, "highpass_px=0: expected a number of px > 0"),
+    ],
+)
 def test_bad_background_textures_are_refused(patches, highpass, match):
     from drgan.errors import ConfigError
     from drgan.models.generator import BackgroundTexture

@@ -14,7 +14,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from conftest import PAPER_SIGMA, PAPER_STAGE, TINY_PHI
 
 H = 0.02  # finite-difference step, in base-colour units (values 0.2 and 0.5)
@@ -27,7 +26,9 @@ def grad_scene(grad_seed: str, integrator: str = "prb"):
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
     params = MaterialParameters.from_config({"base_color": {"min": 0.01, "max": 5.0}}, PAPER_STAGE, PAPER_SIGMA)
-    spec = SceneSpec(params, RenderSettings(resolution=16, spp=4, integrator=integrator, grad_seed=grad_seed), view_width=64.0)
+    spec = SceneSpec(
+        params, RenderSettings(resolution=16, spp=4, integrator=integrator, grad_seed=grad_seed), view_width=64.0
+    )
     scene = ParticleScene([meshes.sphere(2)], len(TINY_PHI), spec, variant="llvm_ad_rgb")
     scene.set_layout(TINY_PHI)
     assert [p.key for p in scene.learned_bsdf] == ["stage.base_color", "particle.base_color"]
@@ -82,13 +83,18 @@ def test_adjoint_seed_is_derived_deterministic_and_never_the_primal():
 
 
 def test_bad_grad_seed_names_the_setting():
-    from drgan.models.build import scene_spec
     from drgan.errors import ConfigError
+    from drgan.models.build import scene_spec
     from drgan.scene.scene import RenderSettings
 
     with pytest.raises(ConfigError, match=r"renderer\.grad_seed='Same'.*independent, same"):
         RenderSettings(grad_seed="Same")
-    material = {"view_width": 32, "spp": 4, "filter_stddev": 0.5, "particle_bsdf": {"base_color": {"min": 0.1, "max": 1.0}}}
+    material = {
+        "view_width": 32,
+        "spp": 4,
+        "filter_stddev": 0.5,
+        "particle_bsdf": {"base_color": {"min": 0.1, "max": 1.0}},
+    }
     with pytest.raises(ConfigError, match=r"renderer\.grad_seed='decorrelated'"):
         scene_spec(material, {"grad_seed": "decorrelated"})
     assert scene_spec(material, {"grad_seed": "independent"}).render.grad_seed == "independent"
@@ -100,7 +106,9 @@ def test_same_is_the_derivative_of_the_realised_noisy_image(scenes, target):
     quadratic in the image and the image affine in base colours, so the central difference is exact but for
     float32 rounding of images ~0.1 (relative ~1e-5 after dividing by 2h); rtol 1e-3 leaves room for that."""
     for seed in (0, 7):
-        np.testing.assert_allclose(gradient(scenes["same"], target, seed), pathwise_fd(scenes["same"], target, seed), rtol=1e-3)
+        np.testing.assert_allclose(
+            gradient(scenes["same"], target, seed), pathwise_fd(scenes["same"], target, seed), rtol=1e-3
+        )
 
 
 def test_independent_is_not_the_realised_images_derivative(scenes, target):

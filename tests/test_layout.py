@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import compose
 from scipy.sparse.csgraph import connected_components
 
@@ -132,8 +131,10 @@ def test_variable_counts_fill_the_first_rows_and_zero_the_rest(placement):
     np.testing.assert_array_equal(full, sample_layouts(5, 12, LOGNORMAL, placement, seed=4, n_min=None))
 
 
-@pytest.mark.parametrize("n_min, match", [(0, "n_min must be an integer >= 1"), (13, "n_min = 13 must be <= n = 12"),
-                                          (2.5, "n_min must be an integer")])
+@pytest.mark.parametrize(
+    "n_min, match",
+    [(0, "n_min must be an integer >= 1"), (13, "n_min = 13 must be <= n = 12"), (2.5, "n_min must be an integer")],
+)
 def test_bad_n_min_is_refused(n_min, match):
     with pytest.raises(ConfigError, match=match):
         sample_layouts(2, 12, LOGNORMAL, Random2D(), n_min=n_min)
@@ -146,7 +147,9 @@ def test_material_n_particles_min_reaches_the_phi_bank():
     counts = particle_counts(sample_phi(cfg, 200, seed=0))
     assert counts.min() == 4 and counts.max() == 10
     cfg.material.n_particles_min = 11
-    with pytest.raises(ConfigError, match=r"material.n_particles_min=11: expected null or an integer in 1..material.n_particles \(10\)"):
+    with pytest.raises(
+        ConfigError, match=r"material.n_particles_min=11: expected null or an integer in 1..material.n_particles \(10\)"
+    ):
         sample_phi(cfg, 2, seed=0)
 
 

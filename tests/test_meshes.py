@@ -172,8 +172,12 @@ def test_load_mesh_normalises_and_concatenates_a_multi_part_file(tmp_path):
     parts = trimesh.util.concatenate(
         [trimesh.creation.box(extents=(2, 2, 2)), trimesh.creation.box(extents=(2, 2, 2)).apply_translation((5, 0, 0))]
     )
-    scene = trimesh.Scene({"a": trimesh.creation.box(extents=(2, 2, 2)),
-                           "b": trimesh.creation.box(extents=(2, 2, 2)).apply_translation((5, 0, 0))})
+    scene = trimesh.Scene(
+        {
+            "a": trimesh.creation.box(extents=(2, 2, 2)),
+            "b": trimesh.creation.box(extents=(2, 2, 2)).apply_translation((5, 0, 0)),
+        }
+    )
     path = tmp_path / "two.obj"
     scene.export(path)
     loaded = load_mesh(path)
@@ -199,9 +203,17 @@ def test_save_mesh_set_writes_plys_and_manifest_and_loads_back(tmp_path, generat
 
 
 def _ascii_ply(path: Path, vertices: list, faces: list) -> Path:
-    lines = ["ply", "format ascii 1.0", f"element vertex {len(vertices)}", "property float x",
-             "property float y", "property float z", f"element face {len(faces)}",
-             "property list uchar int vertex_indices", "end_header"]
+    lines = [
+        "ply",
+        "format ascii 1.0",
+        f"element vertex {len(vertices)}",
+        "property float x",
+        "property float y",
+        "property float z",
+        f"element face {len(faces)}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
     lines += [" ".join(str(c) for c in v) for v in vertices]
     lines += ["3 " + " ".join(str(i) for i in f) for f in faces]
     path.write_text("\n".join(lines) + "\n")
@@ -236,7 +248,15 @@ def test_bad_ply_files_raise_mesh_error_naming_the_file(tmp_path, name, vertices
 def test_ply_of_vertices_without_faces_reports_its_vertices(tmp_path):
     with_empty_faces = _ascii_ply(tmp_path / "points.ply", TETRAHEDRON, [])  # "element face 0"
     no_face_element = tmp_path / "cloud.ply"
-    header = ["ply", "format ascii 1.0", "element vertex 4", "property float x", "property float y", "property float z", "end_header"]
+    header = [
+        "ply",
+        "format ascii 1.0",
+        "element vertex 4",
+        "property float x",
+        "property float y",
+        "property float z",
+        "end_header",
+    ]
     no_face_element.write_text("\n".join([*header, *(" ".join(map(str, v)) for v in TETRAHEDRON)]) + "\n")
     for path in (with_empty_faces, no_face_element):
         with pytest.raises(MeshError, match=rf"{path.name}'?: 4 vertices but no faces: expected a triangle mesh"):
@@ -281,8 +301,16 @@ def test_validate_mesh_names_the_mesh():
 
 def test_cli_writes_meshes_and_manifest(tmp_path):
     out = tmp_path / "cubes"
-    command = [sys.executable, "-m", "drgan.meshes", "kind=cube", "count=3", "seed=1", f"out={out}",
-               f"hydra.run.dir={tmp_path / 'hydra'}"]
+    command = [
+        sys.executable,
+        "-m",
+        "drgan.meshes",
+        "kind=cube",
+        "count=3",
+        "seed=1",
+        f"out={out}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    ]
     result = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in out.iterdir()) == ["manifest.json", "mesh_000.ply", "mesh_001.ply", "mesh_002.ply"]
@@ -296,8 +324,15 @@ def test_cli_writes_meshes_and_manifest(tmp_path):
 
 
 def test_cli_rejects_unknown_kind(tmp_path):
-    command = [sys.executable, "-m", "drgan.meshes", "kind=pyramid", "count=1", f"out={tmp_path / 'x'}",
-               f"hydra.run.dir={tmp_path / 'hydra'}"]
+    command = [
+        sys.executable,
+        "-m",
+        "drgan.meshes",
+        "kind=pyramid",
+        "count=1",
+        f"out={tmp_path / 'x'}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    ]
     result = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert result.returncode != 0
     assert "pyramid" in result.stderr and not (tmp_path / "x").exists()

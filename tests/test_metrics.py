@@ -222,18 +222,20 @@ def test_the_temporary_folder_is_not_consulted(monkeypatch, tmp_path):
 def test_inception_file_with_another_hash_is_refused(monkeypatch, tmp_path):
     other = tmp_path / "net.pt"
     other.write_bytes(b"not the TF-Inception network")
-    with pytest.raises(DataError, match=r"net.pt': refused, its SHA-256 is [0-9a-f]{64}, not " + fidmod.INCEPTION_SHA256):
-        InceptionFeatures(weights_path=other).network
+    with pytest.raises(
+        DataError, match=r"net.pt': refused, its SHA-256 is [0-9a-f]{64}, not " + fidmod.INCEPTION_SHA256
+    ):
+        _ = InceptionFeatures(weights_path=other).network
     monkeypatch.setattr(fidmod, "_fid_helper_file", lambda: other)  # a swapped package file: refused the same way
     with pytest.raises(DataError, match="refused, its SHA-256"):
-        InceptionFeatures().network
+        _ = InceptionFeatures().network
     # Naming the file's own hash is the user's statement of trust: the hash check passes, the loader then
     # finds no TorchScript in it.
     digest = hashlib.sha256(other.read_bytes()).hexdigest()
     with pytest.raises(DataError, match="not a readable TorchScript file"):
-        InceptionFeatures(weights_path=other, weights_sha256=digest.upper()).network
+        _ = InceptionFeatures(weights_path=other, weights_sha256=digest.upper()).network
     with pytest.raises(DataError, match="refused, its SHA-256 .* of the given weights_sha256"):
-        InceptionFeatures(weights_path=other, weights_sha256="0" * 64).network
+        _ = InceptionFeatures(weights_path=other, weights_sha256="0" * 64).network
     with pytest.raises(ConfigError, match="weights_sha256='abc': expected 64 hexadecimal digits"):
         InceptionFeatures(weights_sha256="abc")
 
@@ -423,8 +425,16 @@ def test_low_threshold_matching_is_one_to_one():
 def test_empty_images():
     empty = np.zeros((8, 8), dtype=np.int32)
     assert segmentation_scores(empty, empty) == {
-        "dsc": 1.0, "ap50": 1.0, "pq": 1.0, "sq": 1.0, "rq": 1.0, "pq_classes": 1.0, "pq_semantic": 1.0,
-        "tp": 0, "fp": 0, "fn": 0,
+        "dsc": 1.0,
+        "ap50": 1.0,
+        "pq": 1.0,
+        "sq": 1.0,
+        "rq": 1.0,
+        "pq_classes": 1.0,
+        "pq_semantic": 1.0,
+        "tp": 0,
+        "fp": 0,
+        "fn": 0,
     }
     scores = segmentation_scores(empty, true_labels())  # nothing predicted
     assert (scores["tp"], scores["fp"], scores["fn"]) == (0, 0, 2)

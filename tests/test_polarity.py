@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_data import SHAPE, SIZE, STRIDE, disc_image, lattice_centres
 
 from drgan.data import mine_patches
 from drgan.data.datamodule import RealPatchDataModule
 from drgan.data.polarity import detect_polarity, image_vote, resolve_polarity, to_bright
 from drgan.errors import ConfigError, DataError
-from test_data import SHAPE, SIZE, STRIDE, disc_image, lattice_centres
 
 
 def dark_twin(image):
@@ -59,8 +59,16 @@ def test_dark_particles_mine_the_same_patches_as_their_bright_twin(field):
     image, mask = field
     ids = ["a"]
     bright = mine_patches([image], ids, size=SIZE, stride=STRIDE, min_particles=2, n_background=3, progress=False)
-    dark = mine_patches([dark_twin(image)], ids, size=SIZE, stride=STRIDE, min_particles=2, n_background=3,
-                        polarity="dark", progress=False)
+    dark = mine_patches(
+        [dark_twin(image)],
+        ids,
+        size=SIZE,
+        stride=STRIDE,
+        min_particles=2,
+        n_background=3,
+        polarity="dark",
+        progress=False,
+    )
     assert len(bright.train) > 0
     np.testing.assert_array_equal(dark.train_positions, bright.train_positions)
     np.testing.assert_array_equal(dark.train_counts, bright.train_counts)
@@ -70,8 +78,9 @@ def test_dark_particles_mine_the_same_patches_as_their_bright_twin(field):
     r, c = dark.train_positions[0]
     np.testing.assert_array_equal(dark.train[0], dark_twin(image)[r : r + SIZE, c : c + SIZE])
     # mined with the wrong polarity, the bright background is taken for particles: no clean background
-    wrong = mine_patches([dark_twin(image)], ids, size=SIZE, stride=STRIDE, min_particles=2, n_background=3,
-                         progress=False)
+    wrong = mine_patches(
+        [dark_twin(image)], ids, size=SIZE, stride=STRIDE, min_particles=2, n_background=3, progress=False
+    )
     assert wrong.background_fractions.min() > 0.5
 
 
@@ -89,15 +98,31 @@ def test_the_datamodule_detects_and_records_dark_particles(tmp_path, field):
     folder.mkdir()
     for k in range(3):
         tifffile.imwrite(folder / f"f{k}.tif", (dark_twin(np.roll(image, 16 * k, axis=1)) * 255).astype(np.uint8))
-    dm = RealPatchDataModule(str(folder), split=None, crop_rows=None, patch_size=SIZE, stride=STRIDE, min_particles=2,
-                             n_background=2, cache_dir=str(tmp_path / "patches"))
+    dm = RealPatchDataModule(
+        str(folder),
+        split=None,
+        crop_rows=None,
+        patch_size=SIZE,
+        stride=STRIDE,
+        min_particles=2,
+        n_background=2,
+        cache_dir=str(tmp_path / "patches"),
+    )
     dm.setup()
     assert dm.polarity == "dark" and dm.polarity_estimate["dark_votes"] == 3
     assert dm.patches.params["polarity"] == "dark"
     assert np.all(dm.patches.background_fractions == 0)
     # the cache remembers the detected polarity
-    again = RealPatchDataModule(str(folder), split=None, crop_rows=None, patch_size=SIZE, stride=STRIDE,
-                                min_particles=2, n_background=2, cache_dir=str(tmp_path / "patches"))
+    again = RealPatchDataModule(
+        str(folder),
+        split=None,
+        crop_rows=None,
+        patch_size=SIZE,
+        stride=STRIDE,
+        min_particles=2,
+        n_background=2,
+        cache_dir=str(tmp_path / "patches"),
+    )
     again.setup()
     assert again.polarity == "dark"
 
@@ -122,14 +147,18 @@ def write_field(folder, image, n=2):
 def train_overrides(folder, tmp_path, *extra):
     from test_train import tiny_overrides
 
-    return [o for o in tiny_overrides(folder, tmp_path / "run") if not o.startswith("data.check_material")] + list(extra)
+    return [o for o in tiny_overrides(folder, tmp_path / "run") if not o.startswith("data.check_material")] + list(
+        extra
+    )
 
 
 @pytest.fixture
 def no_mining(monkeypatch):
     import drgan.data.datamodule as dm
 
-    monkeypatch.setattr(dm, "mine_patches", lambda *a, **k: pytest.fail("patches mined before the material was checked"))
+    monkeypatch.setattr(
+        dm, "mine_patches", lambda *a, **k: pytest.fail("patches mined before the material was checked")
+    )
 
 
 def test_a_bright_particle_material_is_refused_on_dark_particle_images(tmp_path, field, no_mining):
@@ -147,7 +176,9 @@ def test_a_material_whose_particles_are_over_twice_the_datas_is_refused(tmp_path
     from test_train import run_train
 
     folder = write_field(tmp_path / "sem", field[0])  # discs of 13 px equivalent diameter
-    with pytest.raises(ConfigError, match=r"particles of 30 px \(material.particle_size_px\).*measure 1[23]\.\d px.*0\.4\dx"):
+    with pytest.raises(
+        ConfigError, match=r"particles of 30 px \(material.particle_size_px\).*measure 1[23]\.\d px.*0\.4\dx"
+    ):
         run_train(train_overrides(folder, tmp_path))
 
 
@@ -162,13 +193,15 @@ def test_the_material_check_passes_data_that_fits_and_records_what_it_compared(t
 
 
 def test_a_material_without_shipped_images_asks_for_them_before_anything_runs(tmp_path):
-    from test_train import run_train
-
     from conftest import compose
+    from test_train import run_train
 
     cfg = compose(["material=sio2_him", "placement=poisson"], config_name="train")
     assert cfg.data.dir is None  # never another material's images by default
     assert compose([], config_name="train").data.dir.endswith("tio2_sem/images")  # the default material's own
-    with pytest.raises(ConfigError, match=r"data.dir is not set: material=sio2_him is made for SiO2 nanoparticles in HIM.*"
-                                          r"material=sio2_him data.dir=/path/to/images"):
+    with pytest.raises(
+        ConfigError,
+        match=r"data.dir is not set: material=sio2_him is made for SiO2 nanoparticles in HIM.*"
+        r"material=sio2_him data.dir=/path/to/images",
+    ):
         run_train(["material=sio2_him", "placement=poisson", f"paths.output_dir={tmp_path / 'run'}", "logger=none"])

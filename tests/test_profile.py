@@ -6,10 +6,10 @@ import json
 
 import numpy as np
 import pytest
+from conftest import compose
 from PIL import Image
 from scipy import ndimage as ndi
 
-from conftest import compose
 from drgan.data import profile as est
 from drgan.data.patches import SegmentParams
 from drgan.errors import ConfigError, DataError
@@ -159,8 +159,9 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
 
     folder = _folder(tmp_path, "dark", n=2)
     monkeypatch.chdir(tmp_path)
-    result = profile(compose([f"data.dir={folder}", "name=dark_discs", f"out={tmp_path / 'out'}"],
-                             config_name="profile"))  # crop_rows auto: the white bar found and dropped
+    result = profile(
+        compose([f"data.dir={folder}", "name=dark_discs", f"out={tmp_path / 'out'}"], config_name="profile")
+    )  # crop_rows auto: the white bar found and dropped
     assert result["polarity"]["value"] == "dark" and result["material"]["parent"] == "tio2_tsem"
     assert result["data"]["crop_rows"] == "auto" and abs(result["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
     text = (tmp_path / "drgan_conf" / "material" / "dark_discs.yaml").read_text()

@@ -6,13 +6,18 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import compose
 from PIL import Image
 
-from conftest import compose
 from drgan.models import build
 
 MATERIALS = ["tio2_sem", "tio2_him", "sio2_him", "agnw_sem"]
-PAPER = {"tio2_sem": (40, 121, 0.5, 1), "tio2_him": (15, 16, 3.0, 4), "sio2_him": (20, 16, 3.0, 4), "agnw_sem": (10, 121, 0.5, 4)}
+PAPER = {
+    "tio2_sem": (40, 121, 0.5, 1),
+    "tio2_him": (15, 16, 3.0, 4),
+    "sio2_him": (20, 16, 3.0, 4),
+    "agnw_sem": (10, 121, 0.5, 4),
+}
 
 
 @pytest.mark.parametrize("material", MATERIALS)
@@ -23,8 +28,13 @@ def test_material_configs_hold_the_papers_settings(material):
     assert cfg.renderer.filter_stddev == stddev and cfg.material.contour_px == contour
     spec = build.scene_spec(cfg.material, cfg.renderer)
     assert [p.key for p in spec.parameters.learned] == [
-        "stage.base_color", "particle.roughness", "particle.base_color", "particle.sheen",
-        "particle.sheen_tint", "particle.spec_tint", "noise.sigma",
+        "stage.base_color",
+        "particle.roughness",
+        "particle.base_color",
+        "particle.sheen",
+        "particle.sheen_tint",
+        "particle.spec_tint",
+        "noise.sigma",
     ]
     phi = build.sample_phi(cfg, m=2, seed=0)
     assert phi.shape == (2, n, 4)
@@ -33,8 +43,16 @@ def test_material_configs_hold_the_papers_settings(material):
 @pytest.mark.parametrize("material", MATERIALS)
 def test_render_cli_writes_annotated_image(material, tmp_path):
     out = tmp_path / material
-    cmd = [sys.executable, "-m", "drgan.render", f"material={material}", f"out={out}",
-           "renderer.resolution=24", "renderer.spp=1", "material.meshes.count=3"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "drgan.render",
+        f"material={material}",
+        f"out={out}",
+        "renderer.resolution=24",
+        "renderer.spp=1",
+        "material.meshes.count=3",
+    ]
     subprocess.run(cmd, check=True, capture_output=True, cwd=tmp_path, timeout=300)
     image = np.asarray(Image.open(out / "image.png"))
     labels = np.asarray(Image.open(out / "labels.png"))

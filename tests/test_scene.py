@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from conftest import PAPER_PARTICLE, PAPER_STAGE, TINY_PHI, make_scene
+
 from drgan.errors import ConfigError
 
 # Learned order: stage.base_color, particle.roughness, base_color, sheen, sheen_tint, spec_tint.
@@ -26,7 +26,9 @@ def ad_and_fd(scene, x0, seeds, weight, steps):
         for i, h in enumerate(steps):
             e = torch.zeros_like(x0)
             e[i] = h
-            fd.append(float(weighted_sum(scene, x0 + e, seeds, weight) - weighted_sum(scene, x0 - e, seeds, weight)) / (2 * h))
+            fd.append(
+                float(weighted_sum(scene, x0 + e, seeds, weight) - weighted_sum(scene, x0 - e, seeds, weight)) / (2 * h)
+            )
     return x.grad.numpy(), np.array(fd)
 
 
@@ -159,7 +161,9 @@ def test_labels_align_with_render():
     from drgan.scene.scene import TopLight
 
     light = TopLight(radiance=1.0, size=2.0)
-    scene = make_scene(resolution=64, spp=64, particle=particle, stage=None, filter_stddev=0.25, torus_light=None, top_light=light)
+    scene = make_scene(
+        resolution=64, spp=64, particle=particle, stage=None, filter_stddev=0.25, torus_light=None, top_light=light
+    )
     scene.set_layout(TINY_PHI)
     image = scene.render(torch.zeros(0), seed=0).numpy()
     labels = scene.instance_labels()
@@ -271,7 +275,10 @@ def test_box_render_plus_blur_matches_mitsubas_gaussian_filter():
     reference = sum(np.array(mi.render(reference_scene, seed=s)).mean(-1) for s in range(4)) / 4
     inner = (slice(4, -4), slice(4, -4))  # borders differ: Mitsuba renormalises its cut footprint
     error = np.abs(ours.numpy()[inner] - reference[inner]).mean() / reference[inner].mean()
-    blurred_less = np.abs(np.array(mi.render(scene.scene, seed=0)).mean(-1)[inner] - reference[inner]).mean() / reference[inner].mean()
+    blurred_less = (
+        np.abs(np.array(mi.render(scene.scene, seed=0)).mean(-1)[inner] - reference[inner]).mean()
+        / reference[inner].mean()
+    )
     assert error < 0.05 and error < 0.5 * blurred_less, (error, blurred_less)
 
 

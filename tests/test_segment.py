@@ -11,15 +11,14 @@ import re
 from pathlib import Path
 
 import numpy as np
-import tifffile
 import pytest
+import tifffile
 import torch
+from conftest import compose
 from PIL import Image
 
-from conftest import compose
 from drgan.errors import DataError
 from drgan.scene.labels import class_mask
-
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -105,11 +104,12 @@ def test_sliding_window_matches_direct_inference():
     np.testing.assert_allclose(predict_probs(net, image, tile=32), direct, atol=1e-5)
     # Sizes not multiple of the tile, and smaller than one tile: full coverage, probabilities sum to 1.
     for shape in [(50, 71), (20, 45)]:
-        probs = predict_probs(net, np.random.default_rng(1).random(shape).astype(np.float32), tile=32, overlap=0.5, batch_size=3)
+        probs = predict_probs(
+            net, np.random.default_rng(1).random(shape).astype(np.float32), tile=32, overlap=0.5, batch_size=3
+        )
         assert probs.shape == (3, *shape) and np.isfinite(probs).all()
         np.testing.assert_allclose(probs.sum(0), 1.0, atol=1e-5)
     assert predict(net, image, tile=32).dtype == np.uint8
-
 
 
 def test_zscore_segmenter_ignores_detector_brightness_and_contrast():
@@ -138,6 +138,7 @@ def test_zscore_segmenter_ignores_detector_brightness_and_contrast():
         SegmenterModule(normalize="minmax")
     with pytest.raises(ConfigError, match="loader normalize"):
         CropDataset([pair], crop=16, augment=False, normalize="percentile")
+
 
 def _two_touching_discs(size=48, r=9.0, gap=14.0):
     """Labels of two discs whose centres are `gap` px apart (< 2 r: they overlap, the second wins)."""
@@ -201,8 +202,11 @@ def test_predictor_settings_are_checked_before_predicting():
     from drgan.segmentation.unet import UNet
 
     net = UNet(1, 3, 2, 4).eval()
-    for bad, message in [({"split": "magic"}, "inference.split"), ({"split_depth": 0}, "split_depth"),
-                         ({"tile_size": 32}, "unknown setting")]:
+    for bad, message in [
+        ({"split": "magic"}, "inference.split"),
+        ({"split_depth": 0}, "split_depth"),
+        ({"tile_size": 32}, "unknown setting"),
+    ]:
         with pytest.raises(ConfigError, match=message):
             make_predictor(net, bad)
     image = np.random.default_rng(0).random((32, 32)).astype(np.float32)
@@ -227,7 +231,9 @@ def _hand_case(tmp_path):
     partial[2:6, 2:6] = 1
     partial[2:4, 14:16] = 1
     perfect = (true > 0).astype(np.uint8)
-    data = make_real(tmp_path / "real", {"a": image, "t": image}, {"a": true, "t": true}, {"train": ["t"], "test": ["a"]})
+    data = make_real(
+        tmp_path / "real", {"a": image, "t": image}, {"a": true, "t": true}, {"train": ["t"], "test": ["a"]}
+    )
     return data, {"partial": lambda im: partial, "perfect": lambda im: perfect}
 
 
@@ -236,7 +242,7 @@ def eval_cfg(data, out, extra=()):
 
 
 def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
-    from drgan.evaluate import GREEN, RED, YELLOW, SCORES, evaluate
+    from drgan.evaluate import GREEN, RED, SCORES, YELLOW, evaluate
 
     data, predictors = _hand_case(tmp_path)
     result = evaluate(eval_cfg(data, tmp_path / "out", ["overlay_alpha=1.0"]), predictors=predictors)
@@ -249,7 +255,12 @@ def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
     assert result["mean"]["ap50"] == pytest.approx((1 / 3 + 1) / 2)
     assert result["std"]["pq"] == pytest.approx(np.std([0.5, 1.0], ddof=1))
     rows = list(csv.DictReader((tmp_path / "out" / "results.csv").open()))
-    assert [(r["run"], r["image"]) for r in rows] == [("partial", "a"), ("partial", "mean"), ("perfect", "a"), ("perfect", "mean")]
+    assert [(r["run"], r["image"]) for r in rows] == [
+        ("partial", "a"),
+        ("partial", "mean"),
+        ("perfect", "a"),
+        ("perfect", "mean"),
+    ]
     assert (rows[0]["tp"], rows[0]["fp"], rows[0]["fn"]) == ("1", "1", "1")
     md = (tmp_path / "out" / "results.md").read_text()
     assert "0.750 +- 0.354" in md  # PQ over the two runs
@@ -258,13 +269,16 @@ def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
     assert tuple(rgb[10, 0]) == (51, 51, 51)  # background: the grey image (0.2 * 255)
 
 
-@pytest.mark.parametrize("case, message", [
-    ("size", "differs from its image"),
-    ("values", "unexpected values"),
-    ("missing", "no mask for image id"),
-    ("not_segmenter", "not a drgan segmenter checkpoint"),
-    ("not_checkpoint", "not a readable PyTorch checkpoint"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("size", "differs from its image"),
+        ("values", "unexpected values"),
+        ("missing", "no mask for image id"),
+        ("not_segmenter", "not a drgan segmenter checkpoint"),
+        ("not_checkpoint", "not a readable PyTorch checkpoint"),
+    ],
+)
 def test_evaluate_refuses_bad_inputs_before_writing(case, message, tmp_path):
     from drgan.evaluate import evaluate
 
@@ -300,9 +314,20 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
 
     data = make_generated(tmp_path / "gen")
     out = tmp_path / "run"
-    common = [f"data_dir={data}", f"out={out}", f"paths.root_dir={tmp_path}", "model.depth=2", "model.base=4",
-              "loader.crop=32", "loader.batch_size=4", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false",
-              "trainer.log_every_n_steps=1", "name=tiny", "model.normalize=zscore"]
+    common = [
+        f"data_dir={data}",
+        f"out={out}",
+        f"paths.root_dir={tmp_path}",
+        "model.depth=2",
+        "model.base=4",
+        "loader.crop=32",
+        "loader.batch_size=4",
+        "trainer.accelerator=cpu",
+        "trainer.enable_progress_bar=false",
+        "trainer.log_every_n_steps=1",
+        "name=tiny",
+        "model.normalize=zscore",
+    ]
     metrics = segment(compose([*common, "trainer.max_epochs=1"], config_name="segment"))
     assert {"train/loss", "val/loss", "val/dsc"} <= set(metrics)
     last = out / "checkpoints" / "last.ckpt"
@@ -323,7 +348,9 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     assert [a.path for a in client.list_artifacts(runs[0].info.run_id, "checkpoints")] == ["checkpoints/last.ckpt"]
 
     labels = disc_labels(40, seed=7)
-    real = make_real(tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]})
+    real = make_real(
+        tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]}
+    )
     result = evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{last},{last}]", "inference.tile=32"]))
     assert set(result["runs"]) == {"run0", "run1"} and result["std"]["dsc"] == pytest.approx(0.0)
     assert (tmp_path / "eval" / "overlays" / "x.png").is_file()
@@ -343,7 +370,11 @@ def test_segment_refuses_bad_data_before_writing(tmp_path):
 def test_cli_spelling():
     from drgan.segmentation.cli import rewrite_argv
 
-    assert rewrite_argv(["data=/d", "model=a.ckpt", "model=/b/c.ckpt", "out=o"], many_models=True) == ["data_dir=/d", "out=o", "models=[a.ckpt,/b/c.ckpt]"]
+    assert rewrite_argv(["data=/d", "model=a.ckpt", "model=/b/c.ckpt", "out=o"], many_models=True) == [
+        "data_dir=/d",
+        "out=o",
+        "models=[a.ckpt,/b/c.ckpt]",
+    ]
     assert rewrite_argv(["model=a.ckpt", "images=i"], many_models=False) == ["images=i", "ckpt=a.ckpt"]
 
 
@@ -360,12 +391,17 @@ def test_analyze_areas_equal_true_disc_areas(tmp_path):
     folder = tmp_path / "images"
     folder.mkdir()
     Image.fromarray((disc_image(labels) * 255).astype(np.uint8)).save(folder / "img.png")
-    cfg = compose([f"images={folder}", f"out={tmp_path / 'out'}", "nm_per_px=2.0", "min_area_px=0", "wires=true"], config_name="analyze")
+    cfg = compose(
+        [f"images={folder}", f"out={tmp_path / 'out'}", "nm_per_px=2.0", "min_area_px=0", "wires=true"],
+        config_name="analyze",
+    )
     rows = analyze(cfg, predictor=lambda im: (labels > 0).astype(np.uint8))
     true_areas = sorted(int((labels == k).sum()) for k in range(1, labels.max() + 1))
     assert sorted(r["area_px"] for r in rows) == true_areas
     r = rows[0]
-    assert r["area_nm2"] == pytest.approx(4 * r["area_px"]) and r["equivalent_diameter_nm"] == pytest.approx(2 * r["equivalent_diameter_px"])
+    assert r["area_nm2"] == pytest.approx(4 * r["area_px"]) and r["equivalent_diameter_nm"] == pytest.approx(
+        2 * r["equivalent_diameter_px"]
+    )
     table = list(csv.DictReader((tmp_path / "out" / "particles.csv").open()))
     assert len(table) == len(true_areas) and {"centroid_x", "bbox_min_row", "equivalent_diameter_px"} <= set(table[0])
     for name in ("histograms.png", "thickness_histogram.png", "thickness/img.png"):
@@ -379,7 +415,9 @@ def test_local_thickness_of_a_strip():
     strip[10:20, 5:55] = True
     t = local_thickness(strip)
     assert t[15, 30] == pytest.approx(10.0, abs=1.0) and t[0, 0] == 0
-    assert not local_thickness(np.zeros((5, 5), bool)).any() and np.isfinite(local_thickness(np.ones((5, 5), bool))).all()
+    assert (
+        not local_thickness(np.zeros((5, 5), bool)).any() and np.isfinite(local_thickness(np.ones((5, 5), bool))).all()
+    )
 
 
 # --- messages that name the real cause ----------------------------------------------------------------------
@@ -398,11 +436,17 @@ def test_mask_of_another_size_is_reported_with_both_sizes_not_as_a_crop_problem(
     assert "a_m.tif: size 8 x 385 px (W x H) differs from its image" in message and "a.tif: 16 x 770 px" in message
     assert "or, without its info bar, 16 x 714 px" in message and "crop_rows" not in message
     # Same-size files with a crop that does not fit them: that one is a crop_rows problem, and says so.
-    small = make_real(tmp_path / "small", {"a": np.full((20, 16), 0.5)}, {"a": np.zeros((20, 16), np.uint8)},
-                      {"train": [], "test": ["a"]})
+    small = make_real(
+        tmp_path / "small",
+        {"a": np.full((20, 16), 0.5)},
+        {"a": np.zeros((20, 16), np.uint8)},
+        {"train": [], "test": ["a"]},
+    )
     with pytest.raises(DataError, match=r"a\.tif: crop_rows .*inside its 20 rows"):
-        evaluate(compose([f"data_dir={small}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate"),
-                 predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
+        evaluate(
+            compose([f"data_dir={small}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate"),
+            predictors={"x": lambda im: np.zeros(im.shape, np.uint8)},
+        )
 
 
 def with_info_bar(image, rows=12):
@@ -427,7 +471,7 @@ def test_info_bars_are_found_and_masks_published_without_them_are_accepted(tmp_p
     mask[10:20, 10:20] = 255
     data = make_real(tmp_path / "tsem", {"a": with_info_bar(field)}, {}, {"train": ["a"], "test": []})
     tifffile.imwrite(data / "masks" / "a.tif", mask)  # TSEM names: ID.tif
-    (_, image, labels), = load_real(data, ["a"])  # crop_rows auto, mask_suffix auto
+    ((_, image, labels),) = load_real(data, ["a"])  # crop_rows auto, mask_suffix auto
     assert image.shape == (48, 40) and labels.max() == 1 and (labels > 0).sum() == 100
     with pytest.raises(DataError, match=r"a\.tif: size 40 x 48 px \(W x H\) differs from its image"):
         load_real(data, ["a"], crop_rows=None, mask_suffix="")  # no crop: the mask does not fit the whole image
@@ -450,19 +494,28 @@ def test_missing_dataset_folder_is_named_with_its_setting(key, entry, tmp_path):
     assert "split.json: no such file" not in str(caught.value) and not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("setting, message", [
-    ("loader.crop=abc", "loader.crop='abc': expected an integer >= 1"),
-    ("loader.batch_size=0", "loader.batch_size=0: expected an integer >= 1"),
-    ("loader.brightness=lots", "loader.brightness='lots': expected a finite number >= 0.0"),
-    ("contour_px=1.5", "contour_px=1.5: expected an integer >= 0"),
-])
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("loader.crop=abc", "loader.crop='abc': expected an integer >= 1"),
+        ("loader.batch_size=0", "loader.batch_size=0: expected an integer >= 1"),
+        ("loader.brightness=lots", "loader.brightness='lots': expected a finite number >= 0.0"),
+        ("contour_px=1.5", "contour_px=1.5: expected an integer >= 0"),
+    ],
+)
 def test_segment_loader_settings_are_named_when_not_numbers(setting, message, tmp_path):
     from drgan.errors import ConfigError
     from drgan.segment import segment
 
-    data = make_real(tmp_path / "real", {"a": np.full((16, 16), 0.5)}, {"a": np.zeros((16, 16), np.uint8)},
-                     {"train": ["a"], "test": []})
+    data = make_real(
+        tmp_path / "real",
+        {"a": np.full((16, 16), 0.5)},
+        {"a": np.zeros((16, 16), np.uint8)},
+        {"train": ["a"], "test": []},
+    )
     out = tmp_path / "out"
     with pytest.raises(ConfigError, match=f"^{re.escape(message)}$"):
-        segment(compose([f"real={data}", "crop_rows=null", f"out={out}", "logger=none", setting], config_name="segment"))
+        segment(
+            compose([f"real={data}", "crop_rows=null", f"out={out}", "logger=none", setting], config_name="segment")
+        )
     assert not out.exists()

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from conftest import TINY_PHI, make_scene
+
 from drgan.models.generator import Generator
 
 

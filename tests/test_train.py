@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import compose
 from PIL import Image
 
-from conftest import compose
 from drgan.data.datamodule import RealPatchDataModule
 from drgan.errors import ConfigError, DataError
 
@@ -61,7 +61,9 @@ CALLBACK_OVERRIDES = [
 ]
 
 
-def tiny_overrides(data_dir: Path, out: Path, material: str = "tio2_sem", *, logger: str = "none", extra=()) -> list[str]:
+def tiny_overrides(
+    data_dir: Path, out: Path, material: str = "tio2_sem", *, logger: str = "none", extra=()
+) -> list[str]:
     return [
         f"material={material}",
         "material.n_particles=3",
@@ -94,7 +96,16 @@ def run_train(overrides):
 
 
 def datamodule(data_dir, tmp_path, **kw):
-    args = dict(dir=str(data_dir), split=None, patch_size=SIZE, stride=8, min_particles=1, n_background=2, cache_dir=str(tmp_path / "patches"), resolution=SIZE)
+    args = dict(
+        dir=str(data_dir),
+        split=None,
+        patch_size=SIZE,
+        stride=8,
+        min_particles=1,
+        n_background=2,
+        cache_dir=str(tmp_path / "patches"),
+        resolution=SIZE,
+    )
     args.update(kw)
     return RealPatchDataModule(**args)
 
@@ -157,7 +168,9 @@ def test_bad_inputs_fail_before_training(case, message, images, tmp_path):
 def test_train_refuses_bad_data_before_building_the_model(tmp_path, monkeypatch):
     import drgan.models.gan_module as gm
 
-    monkeypatch.setattr(gm.GANModule, "__init__", lambda *a, **k: pytest.fail("model built before the data were checked"))
+    monkeypatch.setattr(
+        gm.GANModule, "__init__", lambda *a, **k: pytest.fail("model built before the data were checked")
+    )
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="holds no image files"):
         run_train(tiny_overrides(tmp_path / "empty", tmp_path / "run"))
@@ -208,7 +221,12 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
 
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
     out = tmp_path / "run"
-    base = tiny_overrides(images, out, logger="mlflow", extra=[f"logger.mlflow.tracking_uri={uri}", "trainer.limit_train_batches=2", "trainer.log_every_n_steps=1"])
+    base = tiny_overrides(
+        images,
+        out,
+        logger="mlflow",
+        extra=[f"logger.mlflow.tracking_uri={uri}", "trainer.limit_train_batches=2", "trainer.log_every_n_steps=1"],
+    )
     run_train(base + ["trainer.max_epochs=1"])
     first = json.loads((out / "metrics.json").read_text())
     assert first["global_step"] == 2 * 2  # two optimiser steps (D, G) per batch
@@ -226,8 +244,19 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
     assert [r.info.run_id for r in runs] == [run_id]
     run = runs[0]
     assert run.data.params["model/lr_g"] == "0.0002" and run.data.params["material/name"] == "tio2_sem"
-    for key in ("train/g_loss", "train/d_loss", "train/d_real", "train/d_fake", "train/skipped_steps", "time/render_s", "time/step_s",
-                "time/wall_s", "params/noise.sigma", "params/particle.roughness", "train/g_loss_epoch"):
+    for key in (
+        "train/g_loss",
+        "train/d_loss",
+        "train/d_real",
+        "train/d_fake",
+        "train/skipped_steps",
+        "time/render_s",
+        "time/step_s",
+        "time/wall_s",
+        "params/noise.sigma",
+        "params/particle.roughness",
+        "train/g_loss_epoch",
+    ):
         assert key in run.data.metrics, key
     steps = [m.step for m in client.get_metric_history(run_id, "train/g_loss")]
     assert sorted(set(steps)) == [0, 1, 2, 3]  # logged per batch: the resumed epoch continues at batch 2
@@ -243,8 +272,13 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
 def test_init_from_starts_a_fresh_run_from_another_runs_weights(images, tmp_path):
     def weights(run):
         state = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)["state_dict"]
-        return {k: v for k, v in state.items() if k.startswith(("generator.regressor.", "discriminator.")) and "running" not in k
-                and "num_batches" not in k}
+        return {
+            k: v
+            for k, v in state.items()
+            if k.startswith(("generator.regressor.", "discriminator."))
+            and "running" not in k
+            and "num_batches" not in k
+        }
 
     one_step = ["trainer.limit_train_batches=1", "trainer.max_epochs=1"]
     run_train(tiny_overrides(images, tmp_path / "a", extra=one_step))
@@ -259,7 +293,9 @@ def test_init_from_starts_a_fresh_run_from_another_runs_weights(images, tmp_path
     assert json.loads((tmp_path / "b" / "metrics.json").read_text())["epoch"] == 1  # its own count, not a resume
 
     with pytest.raises(ConfigError, match=r"init_from=.*input is 4 x material.n_particles"):
-        run_train(tiny_overrides(images, tmp_path / "d", extra=[*one_step, f"init_from={source}", "material.n_particles=4"]))
+        run_train(
+            tiny_overrides(images, tmp_path / "d", extra=[*one_step, f"init_from={source}", "material.n_particles=4"])
+        )
     with pytest.raises(ConfigError, match="init_from=.*no such checkpoint file"):
         run_train(tiny_overrides(images, tmp_path / "e", extra=[f"init_from={tmp_path / 'missing.ckpt'}"]))
     assert not (tmp_path / "e" / "patches").exists()  # refused before any patch was mined
@@ -270,12 +306,18 @@ def test_background_texture_reaches_training_and_needs_background_patches(images
 
     seen = []
     original = Generator.set_background
-    monkeypatch.setattr(Generator, "set_background", lambda self, texture: (seen.append(texture), original(self, texture))[1])
+    monkeypatch.setattr(
+        Generator, "set_background", lambda self, texture: (seen.append(texture), original(self, texture))[1]
+    )
     texture = ["material.background_texture.enabled=true", "material.background_texture.highpass_px=2"]
     metrics = run_train(tiny_overrides(images, tmp_path / "run", extra=[*texture, "trainer.fast_dev_run=1"]))
     assert np.isfinite(metrics["train/g_loss"]) and len(seen) == 1 and len(seen[0]) == 2  # data.n_background=2
-    with pytest.raises(ConfigError, match="background_texture.enabled: no real background patches.*data.n_background > 0"):
-        run_train(tiny_overrides(images, tmp_path / "none", extra=[*texture, "data.n_background=0", "trainer.fast_dev_run=1"]))
+    with pytest.raises(
+        ConfigError, match="background_texture.enabled: no real background patches.*data.n_background > 0"
+    ):
+        run_train(
+            tiny_overrides(images, tmp_path / "none", extra=[*texture, "data.n_background=0", "trainer.fast_dev_run=1"])
+        )
     assert not (tmp_path / "none" / "patches").exists()  # refused before any patch was mined
 
 
@@ -285,14 +327,23 @@ def test_lr_decay_factor_and_bad_settings():
     decay = LRDecay(start_step=10, steps=4, final_factor=0.2)
     assert [decay(s) for s in (0, 10, 11, 12, 14, 100)] == pytest.approx([1.0, 1.0, 0.8, 0.6, 0.2, 0.2])
     assert LRDecay.from_config(None) is None and LRDecay.from_config({"start_step": None, "steps": 3}) is None
-    for bad in ({"start_step": -1, "steps": 3}, {"start_step": 0, "steps": 0}, {"start_step": 0, "steps": 3, "final_factor": 1.5}):
+    for bad in (
+        {"start_step": -1, "steps": 3},
+        {"start_step": 0, "steps": 0},
+        {"start_step": 0, "steps": 3, "final_factor": 1.5},
+    ):
         with pytest.raises(ConfigError, match="model.lr_decay"):
             LRDecay.from_config(bad)
 
 
 def test_lr_decay_follows_steps_across_resume(images, tmp_path):
     out = tmp_path / "run"
-    decay = ["model.lr_decay.start_step=1", "model.lr_decay.steps=2", "model.lr_decay.final_factor=0.25", "trainer.limit_train_batches=2"]
+    decay = [
+        "model.lr_decay.start_step=1",
+        "model.lr_decay.steps=2",
+        "model.lr_decay.final_factor=0.25",
+        "trainer.limit_train_batches=2",
+    ]
     base = tiny_overrides(images, out, extra=decay)
 
     def lrs():
@@ -337,10 +388,20 @@ def test_ddp_on_two_cpu_processes_scores_the_same_fid_images(images, tmp_path):
     from drgan.models.gan_module import GANModule
 
     out = tmp_path / "run"
-    overrides = tiny_overrides(images, out, extra=["trainer=ddp_cpu", "trainer.limit_train_batches=2", "trainer.max_epochs=1",
-                                                   "callbacks.fid.n_images=5"])  # 5: 3 renders per rank, one dropped
+    overrides = tiny_overrides(
+        images,
+        out,
+        extra=["trainer=ddp_cpu", "trainer.limit_train_batches=2", "trainer.max_epochs=1", "callbacks.fid.n_images=5"],
+    )  # 5: 3 renders per rank, one dropped
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    result = subprocess.run([sys.executable, "-m", "drgan.train", *overrides], cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    result = subprocess.run(
+        [sys.executable, "-m", "drgan.train", *overrides],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     fid_ddp = json.loads((out / "checkpoints" / "best_epoch.json").read_text())["history"][0]["fid"]
     assert json.loads((out / "metrics.json").read_text())["val/fid"] == pytest.approx(fid_ddp)
@@ -355,8 +416,10 @@ def test_ddp_on_two_cpu_processes_scores_the_same_fid_images(images, tmp_path):
 
 # joblib: parallel processes on this machine; submitit_local: submitit's job machinery (pickled jobs, one
 # folder per job, results collected), as on SLURM, but run as local processes.
-LAUNCHERS = {"joblib": ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"],
-             "submitit_local": ["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10"]}
+LAUNCHERS = {
+    "joblib": ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"],
+    "submitit_local": ["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10"],
+}
 
 
 @pytest.mark.parametrize("launcher", sorted(LAUNCHERS))
@@ -366,7 +429,9 @@ def test_sweep_makes_two_mlflow_runs(launcher, images, tmp_path):
     if launcher == "submitit_local":
         pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="extra `cluster` (hydra-submitit-launcher)")
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
-    overrides = [o for o in tiny_overrides(images, tmp_path / "unused", logger="mlflow") if not o.startswith("paths.output_dir")]
+    overrides = [
+        o for o in tiny_overrides(images, tmp_path / "unused", logger="mlflow") if not o.startswith("paths.output_dir")
+    ]
     cmd = [
         sys.executable, "-m", "drgan.train", "-m", *LAUNCHERS[launcher],
         "model.lr_g=1e-4,2e-4", "trainer.limit_train_batches=1", "trainer.log_every_n_steps=1", "trainer.max_epochs=1", "run_name=sweep",
@@ -379,7 +444,9 @@ def test_sweep_makes_two_mlflow_runs(launcher, images, tmp_path):
     runs = client.search_runs([client.get_experiment_by_name("tio2_sem").experiment_id])
     assert sorted(r.data.params["model/lr_g"] for r in runs) == ["0.0001", "0.0002"]
     assert all({"train/g_loss", "train/d_loss", "train/g_loss_epoch"} <= set(r.data.metrics) for r in runs)
-    assert sorted(p.name for p in (tmp_path / "multirun" / "tio2_sem" / "sweep").iterdir() if p.is_dir() and p.name[0] != ".") == ["0", "1"]
+    assert sorted(
+        p.name for p in (tmp_path / "multirun" / "tio2_sem" / "sweep").iterdir() if p.is_dir() and p.name[0] != "."
+    ) == ["0", "1"]
 
 
 def test_a_step_whose_generator_gradient_is_not_finite_changes_no_weights(images, tmp_path, monkeypatch):
@@ -405,7 +472,9 @@ def test_a_step_whose_generator_gradient_is_not_finite_changes_no_weights(images
         seen.append((before, {k: v.clone() for k, v in self.discriminator.state_dict().items()}, len(opt_d.state)))
 
     monkeypatch.setattr(GANModule, "training_step", recording_step)
-    metrics = run_train(tiny_overrides(images, tmp_path / "run", extra=["trainer.max_epochs=1", "trainer.limit_train_batches=2"]))
+    metrics = run_train(
+        tiny_overrides(images, tmp_path / "run", extra=["trainer.max_epochs=1", "trainer.limit_train_batches=2"])
+    )
     assert metrics["train/skipped_steps_total"] == 2 and len(seen) == 2
     for before, after, adam_entries in seen:
         assert all(torch.equal(before[k], after[k]) for k in before), "D changed in a skipped step"

@@ -12,7 +12,9 @@ from conftest import compose
 from drgan.errors import ConfigError
 
 LIMITS = {
-    "background": {"min": 0.3, "max": 1.0}, "absorption": {"min": 0.001, "max": 0.5}, "floor": {"min": 0.0, "max": 0.5}
+    "background": {"min": 0.3, "max": 1.0},
+    "absorption": {"min": 0.001, "max": 0.5},
+    "floor": {"min": 0.0, "max": 0.5},
 }
 SIGMA = {"min": 0.001, "max": 0.2}
 VIEW = 64.0
@@ -209,8 +211,12 @@ def test_labels_exact_for_particles_at_known_positions():
     assert set(np.unique(labels)) == {0, 1, 2, 3}
     # The same code as the SEM scene's labels: identical label images for the same meshes and layout.
     params = MaterialParameters.from_config({"base_color": {"value": 0.5}}, None, {"value": 0.0})
-    sem = ParticleScene([unit_cube()], 4, SceneSpec(params, RenderSettings(resolution=size, spp=1), VIEW, stage=False),
-                        variant="llvm_ad_rgb")
+    sem = ParticleScene(
+        [unit_cube()],
+        4,
+        SceneSpec(params, RenderSettings(resolution=size, spp=1), VIEW, stage=False),
+        variant="llvm_ad_rgb",
+    )
     sem.set_layout(phi)
     np.testing.assert_array_equal(sem.instance_labels(), labels)
 
@@ -224,8 +230,11 @@ def _material(**extra):
 
 @pytest.mark.parametrize(
     "key, value",
-    [("particle_bsdf", {"base_color": {"value": 0.5}}), ("stage_bsdf", {"base_color": {"value": 0.1}}),
-     ("scene", {"torus_light": {"radiance": 1.0}})],
+    [
+        ("particle_bsdf", {"base_color": {"value": 0.5}}),
+        ("stage_bsdf", {"base_color": {"value": 0.1}}),
+        ("scene", {"torus_light": {"radiance": 1.0}}),
+    ],
 )
 def test_secondary_keys_are_refused_in_a_transmission_material(key, value):
     from drgan.models import build
@@ -240,7 +249,11 @@ def test_imaging_and_transmission_settings_are_checked():
 
     spec = build.scene_spec(_material(), {"resolution": 16, "spp": 4})
     assert isinstance(spec, TransmissionSpec) and [p.name for p in spec.parameters.learned] == [
-        "background", "absorption", "floor", "sigma"]
+        "background",
+        "absorption",
+        "floor",
+        "sigma",
+    ]
     with pytest.raises(ConfigError, match="secondary, transmission"):
         build.scene_spec(_material(imaging="tem"), {})
     with pytest.raises(ConfigError, match="material.transmission.absorption: missing"):
@@ -305,16 +318,28 @@ def test_tio2_tsem_generator_renders_with_gradients(one_torch_thread):
     from drgan.scene.transmission import TransmissionScene
 
     cfg = compose(
-        ["material=tio2_tsem", "renderer.resolution=16", "material.view_width=64", "material.particle_size_px=12",
-         "renderer.spp=4", "renderer.variant=llvm_ad_rgb", "material.n_particles=6", "material.n_particles_min=2",
-         "material.meshes.count=3"],
+        [
+            "material=tio2_tsem",
+            "renderer.resolution=16",
+            "material.view_width=64",
+            "material.particle_size_px=12",
+            "renderer.spp=4",
+            "renderer.variant=llvm_ad_rgb",
+            "material.n_particles=6",
+            "material.n_particles_min=2",
+            "material.meshes.count=3",
+        ],
         config_name="train",
     )
     generator = build.build_generator(cfg)
     assert isinstance(generator.scene, TransmissionScene)
     assert generator.noise_grain_px == 1.0
     assert [p.key for p in generator.learned] == [
-        "transmission.background", "transmission.absorption", "transmission.floor", "noise.sigma"]
+        "transmission.background",
+        "transmission.absorption",
+        "transmission.floor",
+        "noise.sigma",
+    ]
     phi = torch.as_tensor(build.sample_phi(cfg, 2, seed=0))
     images, values = generator.render_batch(phi)
     assert images.shape == (2, 1, 16, 16) and torch.isfinite(images).all()
@@ -323,6 +348,10 @@ def test_tio2_tsem_generator_renders_with_gradients(one_torch_thread):
     assert all(g is not None and torch.isfinite(g).all() for g in grads)
     assert sum(float(g.abs().sum()) for g in grads) > 0
     sample = generator.sample(phi[0].numpy(), seed=3)
-    assert set(sample.parameters) == {"transmission.background", "transmission.absorption", "transmission.floor",
-                                      "noise.sigma"}
+    assert set(sample.parameters) == {
+        "transmission.background",
+        "transmission.absorption",
+        "transmission.floor",
+        "noise.sigma",
+    }
     assert sample.labels.max() >= 1 and sample.image.min() >= 0 and sample.image.max() <= 1

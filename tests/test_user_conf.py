@@ -5,10 +5,10 @@ from __future__ import annotations
 import textwrap
 
 import pytest
-
 from conftest import compose
-from drgan.models.build import material_parameters
+
 from drgan.errors import ConfigError
+from drgan.models.build import material_parameters
 
 
 def write_material(root, name, body):
@@ -18,7 +18,10 @@ def write_material(root, name, body):
 
 
 def test_a_user_material_inherits_a_paper_material_and_fixes_one_learned_parameter(tmp_path, monkeypatch):
-    write_material(tmp_path, "my_tio2", """\
+    write_material(
+        tmp_path,
+        "my_tio2",
+        """\
         # @package _global_
         defaults:
           - tio2_sem
@@ -27,7 +30,8 @@ def test_a_user_material_inherits_a_paper_material_and_fixes_one_learned_paramet
           n_particles: 12
           particle_bsdf:
             sheen: {value: 0.0}
-        """)
+        """,
+    )
     monkeypatch.chdir(tmp_path)
     cfg = compose(["material=my_tio2"], config_name="train")
     assert cfg.material.name == "my_tio2" and cfg.material.n_particles == 12
@@ -43,13 +47,17 @@ def test_a_parameter_with_value_and_stray_keys_is_still_refused():
 
 
 def test_render_finds_a_user_material_too(tmp_path, monkeypatch):
-    write_material(tmp_path, "my_render", """\
+    write_material(
+        tmp_path,
+        "my_render",
+        """\
         # @package _global_
         defaults:
           - sio2_him
         material:
           name: my_render
-        """)
+        """,
+    )
     monkeypatch.chdir(tmp_path)
     cfg = compose(["material=my_render"], config_name="render")
     assert cfg.material.name == "my_render" and cfg.material.meshes.kind == "sphere"

@@ -38,8 +38,10 @@ def main(argv: list[str] | None = None) -> None:
 
     caches = sorted((args.run / "fid_cache").glob("real_*_clean_*.npz"))
     if len(caches) != 1:
-        sys.exit(f"{args.run}/fid_cache: expected one cached real-statistics file (real_*_clean_HxW.npz), found "
-                 f"{[c.name for c in caches]}")
+        sys.exit(
+            f"{args.run}/fid_cache: expected one cached real-statistics file (real_*_clean_HxW.npz), found "
+            f"{[c.name for c in caches]}"
+        )
     real = FeatureStats.load(caches[0])
     extractor = InceptionFeatures(batch_size=16, progress=False)
     rows = []
@@ -50,11 +52,20 @@ def main(argv: list[str] | None = None) -> None:
         start = time.perf_counter()
         images = render_samples(module, n, FID_SEED_BASE + 100_003 * epoch, progress=True)
         feats = np.asarray(extractor.features(images), dtype=np.float64)
-        blocks = [kid(feats[i * args.screen:(i + 1) * args.screen], real.features, 100, None, seed=epoch)[0]
-                  for i in range(min(args.draws, n // args.screen))]
-        rows.append({"epoch": epoch, "fid": FeatureStats.from_features(feats).fid(real),
-                     "kid": kid(feats, real.features, 100, None, seed=epoch)[0], "screen_kid": blocks[0],
-                     "blocks": blocks, "seconds": time.perf_counter() - start})
+        blocks = [
+            kid(feats[i * args.screen : (i + 1) * args.screen], real.features, 100, None, seed=epoch)[0]
+            for i in range(min(args.draws, n // args.screen))
+        ]
+        rows.append(
+            {
+                "epoch": epoch,
+                "fid": FeatureStats.from_features(feats).fid(real),
+                "kid": kid(feats, real.features, 100, None, seed=epoch)[0],
+                "screen_kid": blocks[0],
+                "blocks": blocks,
+                "seconds": time.perf_counter() - start,
+            }
+        )
         print(f"epoch {epoch}: FID {rows[-1]['fid']:.1f}, screen KIDs {np.round(blocks, 4)}", file=sys.stderr)
 
     lowest, kept = math.inf, []
@@ -63,16 +74,22 @@ def main(argv: list[str] | None = None) -> None:
         lowest = min(lowest, row["screen_kid"])
         kept.append(row["full"])
     best = min(rows, key=lambda r: r["fid"])
-    print(f"| epoch | full FID | full KID | screen KID (first {args.screen}) | KID of other blocks of {args.screen} "
-          f"| full FID computed (margin {args.margin:g}) |")
+    print(
+        f"| epoch | full FID | full KID | screen KID (first {args.screen}) | KID of other blocks of {args.screen} "
+        f"| full FID computed (margin {args.margin:g}) |"
+    )
     print("|---|---|---|---|---|---|")
     for row in rows:
         others = ", ".join(f"{b:.4f}" for b in row["blocks"][1:])
-        print(f"| {row['epoch']} | {row['fid']:.1f} | {row['kid']:.4f} | {row['screen_kid']:.4f} | {others} | "
-              f"{'yes' if row['full'] else 'no (screened out)'} |")
-    print(f"\nlowest full FID: epoch {best['epoch']} ({best['fid']:.1f}); "
-          f"{'kept' if best['full'] else 'SCREENED OUT'} by the screen; "
-          f"{sum(kept)} of {len(rows)} evaluations went on to the full FID.")
+        print(
+            f"| {row['epoch']} | {row['fid']:.1f} | {row['kid']:.4f} | {row['screen_kid']:.4f} | {others} | "
+            f"{'yes' if row['full'] else 'no (screened out)'} |"
+        )
+    print(
+        f"\nlowest full FID: epoch {best['epoch']} ({best['fid']:.1f}); "
+        f"{'kept' if best['full'] else 'SCREENED OUT'} by the screen; "
+        f"{sum(kept)} of {len(rows)} evaluations went on to the full FID."
+    )
 
 
 if __name__ == "__main__":

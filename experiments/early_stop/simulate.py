@@ -23,13 +23,16 @@ HISTORIES = {
     "sem_ring_default (tio2_sem/README.md:270)": ([206.2, 289.3, 297.2, 262.7, 295.0, 286.9], None),
     "sem_ring45 (tio2_sem/README.md:309)": ([309.4, 346.4, 328.2, 338.8, 339.0, 339.5], None),
     "sem_grazing_lr2e-4 (tio2_sem/README.md:379)": ([171.2, 154.6, 169.2, 203.6], None),
-    "sem_grazing_lr5e-5 + resume (README.md:401,416)":
-        ([167.1, 162.5, 156.7, 152.2, 142.0, 140.0, 148.9, 158.5, 171.5], None),
+    "sem_grazing_lr5e-5 + resume (README.md:401,416)": (
+        [167.1, 162.5, 156.7, 152.2, 142.0, 140.0, 148.9, 158.5, 171.5],
+        None,
+    ),
     "sem_lr_decay (tio2_sem/README.md:477)": ([124.6, 118.9, 111.2, 107.1, 117.0, 122.3, 124.4, 124.9], None),
     "sem_finetune (tio2_sem/README.md:525)": ([102.2, 103.0, 105.0], None),
-    "sem_r6_texture_counts, the default (README.md:572-573)":
-        ([106.1, 106.2, 102.1, 90.4, 75.2, 65.2, 68.3, 69.3],
-         [0.097, 0.097, 0.089, 0.073, 0.052, 0.036, 0.041, 0.044]),
+    "sem_r6_texture_counts, the default (README.md:572-573)": (
+        [106.1, 106.2, 102.1, 90.4, 75.2, 65.2, 68.3, 69.3],
+        [0.097, 0.097, 0.089, 0.073, 0.052, 0.036, 0.041, 0.044],
+    ),
     "tsem_transmission_v3 (tio2_tsem/README.md:57-58)": ([252.4, 191.2, 179.9, 198.7], [0.304, 0.198, 0.179, 0.213]),
 }
 
@@ -58,8 +61,11 @@ def main() -> None:
     parser.add_argument("--patience", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--margin", type=float, default=0.2)
     args = parser.parse_args()
-    print("| run | evaluations | lowest FID (epoch) | " + " | ".join(
-        f"patience {p}: seen / lowest seen" for p in args.patience) + " | KID screen: full FIDs |")
+    print(
+        "| run | evaluations | lowest FID (epoch) | "
+        + " | ".join(f"patience {p}: seen / lowest seen" for p in args.patience)
+        + " | KID screen: full FIDs |"
+    )
     print("|---|---|---|" + "---|" * len(args.patience) + "---|")
     for name, (fids, kids) in HISTORIES.items():
         best = min(range(len(fids)), key=fids.__getitem__)

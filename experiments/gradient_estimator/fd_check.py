@@ -52,8 +52,16 @@ THETA = {"stage.base_color": 0.2, "particle.base_color": 0.5, "particle.roughnes
 TARGET = {"stage.base_color": 0.3, "particle.base_color": 0.7, "particle.roughness": 0.3, "particle.sheen": 0.8}
 # eight spheres (x, y, z, diameter in px of a 64 px view), two pairs overlapping
 PHI = np.array(
-    [[-20, -18, 7, 14], [2, -20, 8, 16], [21, -16, 6, 12], [-18, 2, 7, 15],
-     [-6, 4, 9, 17], [19, 5, 7, 14], [-8, 20, 6, 12], [12, 19, 8, 15]],
+    [
+        [-20, -18, 7, 14],
+        [2, -20, 8, 16],
+        [21, -16, 6, 12],
+        [-18, 2, 7, 15],
+        [-6, 4, 9, 17],
+        [19, 5, 7, 14],
+        [-8, 20, 6, 12],
+        [12, 19, 8, 15],
+    ],
     dtype=np.float32,
 )
 
@@ -100,7 +108,10 @@ def noisy_loss_fd(scene, loss, theta, spp, seeds, h) -> np.ndarray:
         for j in range(len(theta)):
             step = torch.zeros_like(theta)
             step[j] = h
-            rows[i, j] = (float(loss(render(scene, theta + step, seed, spp))) - float(loss(render(scene, theta - step, seed, spp)))) / (2 * h)
+            rows[i, j] = (
+                float(loss(render(scene, theta + step, seed, spp)))
+                - float(loss(render(scene, theta - step, seed, spp)))
+            ) / (2 * h)
     return rows
 
 
@@ -148,10 +159,14 @@ def main():
     a_plain = d_a_plain.mean(0)
 
     print(f"command: python {' '.join(sys.argv)}")
-    print(f"{args.resolution} px, {len(PHI)} spheres, {args.integrator}, loss {args.loss}, h {args.h}, {args.seeds} primal seeds; "
-          f"reference spp {args.ref_spp} x {args.ref_pairs} pairs; theta {dict(zip(names, theta.tolist()))}\n")
-    print("| spp | parameter | dA = d L(E[I]) | dA plain | dB = d E[L(I_s)] | same: mean | same z vs A | same z vs B "
-          "| independent: mean | indep. z vs A | indep. z vs B |")
+    print(
+        f"{args.resolution} px, {len(PHI)} spheres, {args.integrator}, loss {args.loss}, h {args.h}, {args.seeds} primal seeds; "
+        f"reference spp {args.ref_spp} x {args.ref_pairs} pairs; theta {dict(zip(names, theta.tolist()))}\n"
+    )
+    print(
+        "| spp | parameter | dA = d L(E[I]) | dA plain | dB = d E[L(I_s)] | same: mean | same z vs A | same z vs B "
+        "| independent: mean | indep. z vs A | indep. z vs B |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for spp in args.spp:
         seeds = list(range(spp * 100_000, spp * 100_000 + args.seeds))

@@ -17,8 +17,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from drgan.models import build
 from drgan.generate import checkpoint_config, load_module
+from drgan.models import build
 
 
 def main():
@@ -44,9 +44,13 @@ def main():
                 header_done = True
             epoch = int(ckpt.stem.split("_")[1])
             h = history.get(epoch, {})
-            print(f"| {run.name} | {cfg['renderer'].get('grad_seed', 'same (absent)')} | {epoch} | {h.get('fid', float('nan')):.1f} "
-                  f"| {h.get('kid', float('nan')):.3f} | {h.get('brightness', float('nan')):.2f} | "
-                  + " | ".join(f"{m:.3f}" for m in means) + " |", flush=True)
+            print(
+                f"| {run.name} | {cfg['renderer'].get('grad_seed', 'same (absent)')} | {epoch} | {h.get('fid', float('nan')):.1f} "
+                f"| {h.get('kid', float('nan')):.3f} | {h.get('brightness', float('nan')):.2f} | "
+                + " | ".join(f"{m:.3f}" for m in means)
+                + " |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

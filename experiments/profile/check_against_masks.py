@@ -48,26 +48,42 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as conf_dir:  # the check writes no material config into the project
         for name, (_, _, expected) in SETS.items():
-            cfg = OmegaConf.create({
-                "name": f"check_{name}", "data": {"dir": str(ROOT / name / "images"), "crop_rows": [712, 768],
-                                                  "split": "auto", "polarity": "auto"},
-                "patch_size": 256, "max_images": None, "overwrite": True, "conf_dir": conf_dir,
-                "out": f"{args.out}/{name}", "seed": 0})
+            cfg = OmegaConf.create(
+                {
+                    "name": f"check_{name}",
+                    "data": {
+                        "dir": str(ROOT / name / "images"),
+                        "crop_rows": [712, 768],
+                        "split": "auto",
+                        "polarity": "auto",
+                    },
+                    "patch_size": 256,
+                    "max_images": None,
+                    "overwrite": True,
+                    "conf_dir": conf_dir,
+                    "out": f"{args.out}/{name}",
+                    "seed": 0,
+                }
+            )
             start = time.perf_counter()
             result = profile(cfg)
             seconds = time.perf_counter() - start
             params, patch = result["segmentation"]["params"], result["particles_per_patch"]["patch_size"]
             m_median, m_mean, m_med_count = mask_values(name, result["data"]["ids"], params, patch)
             rows.append((name, expected, result, m_median, m_mean, m_med_count, seconds))
-    print("| set | polarity (expected) | median diameter px: profile / masks (error) | particles per 256 px patch, "
-          "mean: profile / masks (error) | median count: profile / masks | chosen fit | profile time |")
+    print(
+        "| set | polarity (expected) | median diameter px: profile / masks (error) | particles per 256 px patch, "
+        "mean: profile / masks (error) | median count: profile / masks | chosen fit | profile time |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, expected, r, m_median, m_mean, m_med_count, seconds in rows:
         p_median, c = r["sizes"]["median_diameter_px"], r["particles_per_patch"]
-        print(f"| {name} | {r['polarity']['value']} ({expected}) | {p_median:.2f} / {m_median:.2f} "
-              f"({100 * (p_median / m_median - 1):+.1f} %) | {c['mean']:.2f} / {m_mean:.2f} "
-              f"({100 * (c['mean'] / m_mean - 1):+.1f} %) | {c['median']:g} / {m_med_count:g} | {r['sizes']['chosen']} "
-              f"| {seconds:.0f} s |")
+        print(
+            f"| {name} | {r['polarity']['value']} ({expected}) | {p_median:.2f} / {m_median:.2f} "
+            f"({100 * (p_median / m_median - 1):+.1f} %) | {c['mean']:.2f} / {m_mean:.2f} "
+            f"({100 * (c['mean'] / m_mean - 1):+.1f} %) | {c['median']:g} / {m_med_count:g} | {r['sizes']['chosen']} "
+            f"| {seconds:.0f} s |"
+        )
 
 
 if __name__ == "__main__":

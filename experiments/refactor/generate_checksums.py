@@ -56,8 +56,11 @@ def generate_command(work: Path, rev: str | None) -> list[str]:
     repo = Path(__file__).resolve().parents[2]
     script = work / f"rev_{rev}" / "pkg" / "drgan" / "generate.py"  # hydra's config_path ../../conf is beside pkg/
     script.parent.mkdir(parents=True, exist_ok=True)
-    script.write_bytes(subprocess.run(["git", "show", f"{rev}:src/drgan/generate.py"], cwd=repo, check=True,
-                                      capture_output=True).stdout)
+    script.write_bytes(
+        subprocess.run(
+            ["git", "show", f"{rev}:src/drgan/generate.py"], cwd=repo, check=True, capture_output=True
+        ).stdout
+    )
     conf = script.parents[2] / "conf"
     if not conf.exists():
         conf.symlink_to(repo / "conf")
@@ -69,14 +72,38 @@ def train(work: Path, env: dict) -> Path:
     if (run_dir / "checkpoints" / "best.ckpt").is_file():
         return run_dir
     make_images(work / "real" / "images")
-    run([sys.executable, "-m", "drgan.train", "debug=fast", "material=tio2_sem", "material.n_particles=3",
-         "material.meshes.count=3", f"renderer.resolution={SIZE}", "renderer.spp=1",
-         f"data.dir={work / 'real' / 'images'}", "data.crop_rows=null", "data.check_material=false", "data.stride=8",
-         "data.min_particles=1", "data.n_background=2", f"paths.output_dir={run_dir}", f"paths.root_dir={work}",
-         "trainer.accelerator=cpu", "trainer.max_epochs=1", "trainer.limit_train_batches=1",
-         "callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}",
-         "callbacks.fid.n_images=4", "+callbacks.fid.kid_subsets=5", "callbacks.best_epoch.n_phi=20",
-         "callbacks.histograms.n_phi=20", "callbacks.sample_grid.n=2", "callbacks.progress_bar.refresh_rate=0"], env)
+    run(
+        [
+            sys.executable,
+            "-m",
+            "drgan.train",
+            "debug=fast",
+            "material=tio2_sem",
+            "material.n_particles=3",
+            "material.meshes.count=3",
+            f"renderer.resolution={SIZE}",
+            "renderer.spp=1",
+            f"data.dir={work / 'real' / 'images'}",
+            "data.crop_rows=null",
+            "data.check_material=false",
+            "data.stride=8",
+            "data.min_particles=1",
+            "data.n_background=2",
+            f"paths.output_dir={run_dir}",
+            f"paths.root_dir={work}",
+            "trainer.accelerator=cpu",
+            "trainer.max_epochs=1",
+            "trainer.limit_train_batches=1",
+            "callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}",
+            "callbacks.fid.n_images=4",
+            "+callbacks.fid.kid_subsets=5",
+            "callbacks.best_epoch.n_phi=20",
+            "callbacks.histograms.n_phi=20",
+            "callbacks.sample_grid.n=2",
+            "callbacks.progress_bar.refresh_rate=0",
+        ],
+        env,
+    )
     return run_dir
 
 

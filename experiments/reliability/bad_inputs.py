@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import pickle
 import re
 import shutil
 import subprocess
@@ -32,10 +31,25 @@ sys.path.insert(0, str(ROOT / "tests"))
 from test_train import make_images  # noqa: E402  (tiny synthetic images: bright discs on a dark background)
 
 DATA = Path(os.environ.get("DRGAN_DATA", ROOT.parent / "shared" / "datasets")).resolve()
-TINY = ["renderer.resolution=24", "renderer.spp=1", "material.n_particles=3", "material.meshes.count=3",
-        "data.crop_rows=null", "data.stride=8", "data.min_particles=1", "data.n_background=2", "logger=none"]
-TINY_FAST = ["trainer.max_epochs=1", "trainer.limit_train_batches=1", "callbacks.best_epoch.n_phi=20",
-             "callbacks.histograms.n_phi=20", "callbacks.sample_grid.n=2", "callbacks.fid.n_images=4"]
+TINY = [
+    "renderer.resolution=24",
+    "renderer.spp=1",
+    "material.n_particles=3",
+    "material.meshes.count=3",
+    "data.crop_rows=null",
+    "data.stride=8",
+    "data.min_particles=1",
+    "data.n_background=2",
+    "logger=none",
+]
+TINY_FAST = [
+    "trainer.max_epochs=1",
+    "trainer.limit_train_batches=1",
+    "callbacks.best_epoch.n_phi=20",
+    "callbacks.histograms.n_phi=20",
+    "callbacks.sample_grid.n=2",
+    "callbacks.fid.n_images=4",
+]
 
 
 class Crafted:
@@ -83,8 +97,21 @@ def crafted_checkpoint(w: Path) -> None:
 def faceless_ply(w: Path) -> None:
     (w / "points").mkdir()
     vertices = ["0 0 0", "1 0 0", "0 1 0", "0 0 1"]
-    (w / "points" / "points.ply").write_text("\n".join(["ply", "format ascii 1.0", "element vertex 4", "property float x",
-                                                       "property float y", "property float z", "end_header", *vertices]) + "\n")
+    (w / "points" / "points.ply").write_text(
+        "\n".join(
+            [
+                "ply",
+                "format ascii 1.0",
+                "element vertex 4",
+                "property float x",
+                "property float y",
+                "property float z",
+                "end_header",
+                *vertices,
+            ]
+        )
+        + "\n"
+    )
 
 
 def mask_of_other_size(w: Path) -> None:
@@ -114,8 +141,16 @@ def fake_inception(w: Path) -> None:
 def tiny_checkpoint(w: Path) -> None:
     """A tiny trained run (one step) whose best.ckpt the generate rows use."""
     tiny_images(w)
-    cmd = [sys.executable, "-m", "drgan.train", f"data.dir={w / 'imgs'}", *TINY, *TINY_FAST, "run_name=tiny",
-           "callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "drgan.train",
+        f"data.dir={w / 'imgs'}",
+        *TINY,
+        *TINY_FAST,
+        "run_name=tiny",
+        "callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}",
+    ]
     subprocess.run(cmd, cwd=w, env=environment({}), check=True, capture_output=True, timeout=600)
 
 
@@ -125,8 +160,12 @@ def environment(extra: dict) -> dict:
 
 TRAIN = ["drgan.train", "run_name=bad"]
 ROWS = [
-    Row("startup", "(no error: Python and the imports every command needs)", "-",
-        ["-c", "import drgan.train, drgan.models.gan_module, drgan.scene.scene, lightning"]),
+    Row(
+        "startup",
+        "(no error: Python and the imports every command needs)",
+        "-",
+        ["-c", "import drgan.train, drgan.models.gan_module, drgan.scene.scene, lightning"],
+    ),
     # issue 14, "Checks come after expensive work"
     Row("spp", "renderer.spp not a valid count", "issue 14", [*TRAIN, "renderer.spp=0"]),
     Row("ckpt_path", "ckpt_path names no file", "issue 14", [*TRAIN, "ckpt_path={W}/missing.ckpt"]),
@@ -135,41 +174,123 @@ ROWS = [
     Row("callbacks", "callback setting out of range", "issue 14", [*TRAIN, "callbacks.fid.every_n_epochs=0"]),
     Row("init_from", "init_from names no file", "issue 14", [*TRAIN, "init_from={W}/missing.ckpt"]),
     Row("logger", "logger that cannot be built", "issue 14", [*TRAIN, "logger.mlflow._target_=drgan.NoSuchLogger"]),
-    Row("few_patches", "too few mined patches (3 small images -> 1 patch)", "issue 14",
-        [*TRAIN, "data.dir={W}/few", *[a for a in TINY if "min_particles" not in a], "data.min_particles=2"], few_images,
-        "after mining, before rendering"),
+    Row(
+        "few_patches",
+        "too few mined patches (3 small images -> 1 patch)",
+        "issue 14",
+        [*TRAIN, "data.dir={W}/few", *[a for a in TINY if "min_particles" not in a], "data.min_particles=2"],
+        few_images,
+        "after mining, before rendering",
+    ),
     # issue 14, "Messages that mislead"
     Row("n_particles", "material.n_particles=abc", "issue 14", [*TRAIN, "material.n_particles=abc"]),
-    Row("loader_crop", "segment loader.crop=abc", "issue 14", ["drgan.segment", "real={DATA}/tio2_sem", "loader.crop=abc"]),
+    Row(
+        "loader_crop",
+        "segment loader.crop=abc",
+        "issue 14",
+        ["drgan.segment", "real={DATA}/tio2_sem", "loader.crop=abc"],
+    ),
     Row("segment_real", "segment on a missing folder (real=)", "issue 14", ["drgan.segment", "real={W}/nowhere"]),
     Row("segment_data", "segment on a missing folder (data=)", "issue 14", ["drgan.segment", "data={W}/nowhere"]),
-    Row("evaluate_data", "evaluate on a missing folder (data=)", "issue 14",
-        ["drgan.evaluate", "data={W}/nowhere", "model={W}/missing.ckpt"]),
-    Row("mask_size", "mask of another size than its image, default crop_rows", "issue 14",
-        ["drgan.segment", "real={W}/real"], mask_of_other_size),
-    Row("ply_faceless", "PLY with 4 vertices and no faces", "issue 14", [*TRAIN, "material.meshes.dir={W}/points"], faceless_ply),
+    Row(
+        "evaluate_data",
+        "evaluate on a missing folder (data=)",
+        "issue 14",
+        ["drgan.evaluate", "data={W}/nowhere", "model={W}/missing.ckpt"],
+    ),
+    Row(
+        "mask_size",
+        "mask of another size than its image, default crop_rows",
+        "issue 14",
+        ["drgan.segment", "real={W}/real"],
+        mask_of_other_size,
+    ),
+    Row(
+        "ply_faceless",
+        "PLY with 4 vertices and no faces",
+        "issue 14",
+        [*TRAIN, "material.meshes.dir={W}/points"],
+        faceless_ply,
+    ),
     # README
     Row("patch_size", "data.patch_size differs from renderer.resolution", "README", [*TRAIN, "data.patch_size=128"]),
-    Row("texture", "background texture without background patches", "README",
-        [*TRAIN, "material.background_texture.enabled=true", "data.n_background=0"]),
-    Row("split_leak", "split with a test id in the train list", "README",
-        [*TRAIN, "data.dir={W}/imgs", "data.split={W}/split.json", *TINY], leaky_split),
-    Row("crafted_train", "crafted checkpoint as ckpt_path (code in the pickle)", "README",
-        [*TRAIN, "ckpt_path={W}/crafted.ckpt"], crafted_checkpoint),
-    Row("crafted_init", "crafted checkpoint as init_from", "README", [*TRAIN, "init_from={W}/crafted.ckpt"], crafted_checkpoint),
-    Row("crafted_generate", "crafted checkpoint as generate's ckpt", "README",
-        ["drgan.generate", "ckpt={W}/crafted.ckpt", "out={W}/gen", "n=2", "n_background=0"], crafted_checkpoint),
-    Row("crafted_evaluate", "crafted checkpoint as evaluate's model", "README",
-        ["drgan.evaluate", "data={DATA}/tio2_sem", "model={W}/crafted.ckpt"], crafted_checkpoint),
-    Row("generate_material", "generate: checkpoint trained for another material", "README",
-        ["drgan.generate", "ckpt={W}/runs/tio2_sem/tiny", "material=tio2_him", "out={W}/gen", "n=2"], tiny_checkpoint),
-    Row("kid_subset", "KID subset larger than the sample", "README",
-        [*TRAIN, "data.dir={W}/imgs", *TINY, *TINY_FAST, "+callbacks.fid.kid_subset_size=1000",
-         "callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}"], tiny_images, "before training"),
-    Row("fid_network", "FID network file with another SHA-256", "README",
-        [*TRAIN, "data.dir={W}/imgs", *TINY, *TINY_FAST,
-         "callbacks.fid.extractor={_target_:drgan.metrics.fid.InceptionFeatures,weights_path:{W}/inception.pt}"],
-        fake_inception, "before training"),
+    Row(
+        "texture",
+        "background texture without background patches",
+        "README",
+        [*TRAIN, "material.background_texture.enabled=true", "data.n_background=0"],
+    ),
+    Row(
+        "split_leak",
+        "split with a test id in the train list",
+        "README",
+        [*TRAIN, "data.dir={W}/imgs", "data.split={W}/split.json", *TINY],
+        leaky_split,
+    ),
+    Row(
+        "crafted_train",
+        "crafted checkpoint as ckpt_path (code in the pickle)",
+        "README",
+        [*TRAIN, "ckpt_path={W}/crafted.ckpt"],
+        crafted_checkpoint,
+    ),
+    Row(
+        "crafted_init",
+        "crafted checkpoint as init_from",
+        "README",
+        [*TRAIN, "init_from={W}/crafted.ckpt"],
+        crafted_checkpoint,
+    ),
+    Row(
+        "crafted_generate",
+        "crafted checkpoint as generate's ckpt",
+        "README",
+        ["drgan.generate", "ckpt={W}/crafted.ckpt", "out={W}/gen", "n=2", "n_background=0"],
+        crafted_checkpoint,
+    ),
+    Row(
+        "crafted_evaluate",
+        "crafted checkpoint as evaluate's model",
+        "README",
+        ["drgan.evaluate", "data={DATA}/tio2_sem", "model={W}/crafted.ckpt"],
+        crafted_checkpoint,
+    ),
+    Row(
+        "generate_material",
+        "generate: checkpoint trained for another material",
+        "README",
+        ["drgan.generate", "ckpt={W}/runs/tio2_sem/tiny", "material=tio2_him", "out={W}/gen", "n=2"],
+        tiny_checkpoint,
+    ),
+    Row(
+        "kid_subset",
+        "KID subset larger than the sample",
+        "README",
+        [
+            *TRAIN,
+            "data.dir={W}/imgs",
+            *TINY,
+            *TINY_FAST,
+            "+callbacks.fid.kid_subset_size=1000",
+            "callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}",
+        ],
+        tiny_images,
+        "before training",
+    ),
+    Row(
+        "fid_network",
+        "FID network file with another SHA-256",
+        "README",
+        [
+            *TRAIN,
+            "data.dir={W}/imgs",
+            *TINY,
+            *TINY_FAST,
+            "callbacks.fid.extractor={_target_:drgan.metrics.fid.InceptionFeatures,weights_path:{W}/inception.pt}",
+        ],
+        fake_inception,
+        "before training",
+    ),
 ]
 
 
@@ -206,16 +327,21 @@ def run(row: Row, base: Path) -> dict:
     args = [a.replace("{W}", str(w)).replace("{DATA}", str(DATA)) for a in row.args]
     start = time.perf_counter()
     command = [sys.executable, *args] if args[0] == "-c" else [sys.executable, "-m", *args]
-    result = subprocess.run(command, cwd=w, env=environment(row.env), capture_output=True, text=True,
-                            timeout=1200)
+    result = subprocess.run(command, cwd=w, env=environment(row.env), capture_output=True, text=True, timeout=1200)
     seconds = time.perf_counter() - start
     text = message(result.stderr) if result.returncode else "(exit 0)"
     text = text.replace(str(w), "$W").replace(str(DATA), "$DRGAN_DATA")
     if (w / "code_ran").exists():
         text += "  **[the checkpoint's code ran]**"
     shown = " ".join(a.replace(str(w), "$W").replace(str(DATA), "$DRGAN_DATA") for a in args)
-    return {"row": row, "command": f"python {shown}" if args[0] == "-c" else f"python -m {shown}", "message": text,
-            "done": work_done(w), "seconds": seconds, "rc": result.returncode}
+    return {
+        "row": row,
+        "command": f"python {shown}" if args[0] == "-c" else f"python -m {shown}",
+        "message": text,
+        "done": work_done(w),
+        "seconds": seconds,
+        "rc": result.returncode,
+    }
 
 
 def cell(text: str) -> str:
@@ -234,8 +360,11 @@ def main() -> None:
         print("|---|---|---|---|---|---|")
         for k, row in enumerate(rows, 1):
             r = run(row, base)
-            print(f"| {k} `{row.id}` | {cell(row.case)} ({row.source}) | `{cell(r['command'])}` | {cell(r['message'])} | "
-                  f"{r['done']} | {r['seconds']:.1f} |", flush=True)
+            print(
+                f"| {k} `{row.id}` | {cell(row.case)} ({row.source}) | `{cell(r['command'])}` | {cell(r['message'])} | "
+                f"{r['done']} | {r['seconds']:.1f} |",
+                flush=True,
+            )
     finally:
         if not args.keep:
             shutil.rmtree(base, ignore_errors=True)

@@ -38,7 +38,7 @@ def main() -> None:
     s = score(lambda p: p.argmax(0))
     print(f"| none (argmax) | | | {s['dsc']:.3f} | {s['ap50']:.3f} | {s['pq']:.3f} |")
     for depth, smooth in itertools.product((1.0, 2.0, 3.0, 5.0), (0.0, 1.0, 2.0)):
-        s = score(lambda p: split_touching(p, depth, smooth))
+        s = score(lambda p, depth=depth, smooth=smooth: split_touching(p, depth, smooth))
         print(f"| watershed | {depth:g} | {smooth:g} | {s['dsc']:.3f} | {s['ap50']:.3f} | {s['pq']:.3f} |", flush=True)
 
 

@@ -23,14 +23,21 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import drgan  # noqa: F401  (registers the config resolvers)
-from drgan.models.build import build_scene, sample_phi
 from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.models.build import build_scene, sample_phi
 from drgan.models.generator import add_noise
 
 ROOT = Path(__file__).resolve().parents[2]
-DEFAULTS = {"stage.base_color": 0.15, "particle.roughness": 0.5, "particle.base_color": 1.0, "particle.sheen": 0.5,
-            "particle.sheen_tint": 0.5, "particle.spec_tint": 0.5, "sigma": 0.01}
+DEFAULTS = {
+    "stage.base_color": 0.15,
+    "particle.roughness": 0.5,
+    "particle.base_color": 1.0,
+    "particle.sheen": 0.5,
+    "particle.sheen_tint": 0.5,
+    "particle.spec_tint": 0.5,
+    "sigma": 0.01,
+}
 
 
 def main(argv: list[str]) -> None:

@@ -25,9 +25,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import drgan  # noqa: F401  (registers the config resolvers)
-from drgan.models.build import build_scene, sample_phi
 from drgan.data.patches import PatchSet, segment_particles
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.models.build import build_scene, sample_phi
 from drgan.models.generator import add_noise
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -40,8 +40,10 @@ TOPS = (0.0, 0.1, 0.3, 0.6)
 
 def render_components(overrides: list[str], n: int) -> dict[str, np.ndarray]:
     out = {}
-    for name, lights in (("ring", ["material.scene.top_light.radiance=0.0"]),
-                         ("top", ["material.scene.torus_light.radiance=0.0", "material.scene.top_light.radiance=1.0"])):
+    for name, lights in (
+        ("ring", ["material.scene.top_light.radiance=0.0"]),
+        ("top", ["material.scene.torus_light.radiance=0.0", "material.scene.top_light.radiance=1.0"]),
+    ):
         with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
             cfg = compose("train", ["experiment=tio2_sem", *overrides, *lights])
         scene = build_scene(cfg, base_dir=ROOT)

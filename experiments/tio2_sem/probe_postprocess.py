@@ -28,7 +28,9 @@ def region_blur(image: np.ndarray, labels: np.ndarray, sigma: float) -> np.ndarr
     """Gaussian blur within the particle pixels and within the stage pixels separately."""
     out = np.zeros_like(image)
     for inside in ((labels > 0).astype(np.float32), (labels == 0).astype(np.float32)):
-        out += inside * ndi.gaussian_filter(image * inside, sigma) / np.maximum(ndi.gaussian_filter(inside, sigma), 1e-6)
+        out += (
+            inside * ndi.gaussian_filter(image * inside, sigma) / np.maximum(ndi.gaussian_filter(inside, sigma), 1e-6)
+        )
     return out
 
 
@@ -37,8 +39,10 @@ def content_stats(name: str, images: np.ndarray, labels: np.ndarray) -> None:
         return " / ".join(f"{v:.3g}" for v in np.percentile(values, [10, 50, 90]))
 
     counts = [len(np.unique(lab[lab > 0])) for lab in labels]
-    print(f"| {name} | {pct([(lab > 0).mean() for lab in labels])} | {pct(counts)} | "
-          f"{pct([im[lab > 0].mean() for im, lab in zip(images, labels)])} | {pct([im[lab == 0].mean() for im, lab in zip(images, labels)])} |")
+    print(
+        f"| {name} | {pct([(lab > 0).mean() for lab in labels])} | {pct(counts)} | "
+        f"{pct([im[lab > 0].mean() for im, lab in zip(images, labels)])} | {pct([im[lab == 0].mean() for im, lab in zip(images, labels)])} |"
+    )
 
 
 def main(generated: Path, patchset: Path, stats_only: bool = False) -> None:
@@ -61,8 +65,10 @@ def main(generated: Path, patchset: Path, stats_only: bool = False) -> None:
 
     stage_level = np.median(images[labels == 0])
     rng = np.random.default_rng(0)
-    textured = [np.where(lab > 0, im, bg * (im[lab == 0].mean() / bg.mean()))
-                for im, lab, bg in zip(images, labels, backgrounds[rng.integers(len(backgrounds), size=len(images))])]
+    textured = [
+        np.where(lab > 0, im, bg * (im[lab == 0].mean() / bg.mean()))
+        for im, lab, bg in zip(images, labels, backgrounds[rng.integers(len(backgrounds), size=len(images))])
+    ]
     edits = {
         "as generated": images,
         "denoised within regions, sigma 1 px": np.stack([region_blur(i, l, 1.0) for i, l in zip(images, labels)]),

@@ -16,8 +16,8 @@ from __future__ import annotations
 import csv
 import io
 import logging
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import hydra
 import numpy as np
@@ -30,8 +30,13 @@ from drgan.metrics.segmentation import binarize_and_label
 log = logging.getLogger(__name__)
 
 
-def particle_rows(image_id: str, labels: np.ndarray, nm_per_px: float | None = None, min_area_px: int = 0,
-                  exclude_border: bool = False) -> list[dict]:
+def particle_rows(
+    image_id: str,
+    labels: np.ndarray,
+    nm_per_px: float | None = None,
+    min_area_px: int = 0,
+    exclude_border: bool = False,
+) -> list[dict]:
     from skimage.measure import regionprops
 
     h, w = labels.shape
@@ -42,10 +47,19 @@ def particle_rows(image_id: str, labels: np.ndarray, nm_per_px: float | None = N
         border = r0 == 0 or c0 == 0 or r1 == h or c1 == w
         if area < min_area_px or (exclude_border and border):
             continue
-        row = {"id": int(region.label), "image": image_id, "area_px": area,
-               "equivalent_diameter_px": 2.0 * np.sqrt(area / np.pi),
-               "centroid_y": float(region.centroid[0]), "centroid_x": float(region.centroid[1]),
-               "bbox_min_row": r0, "bbox_min_col": c0, "bbox_max_row": r1, "bbox_max_col": c1, "touches_border": border}
+        row = {
+            "id": int(region.label),
+            "image": image_id,
+            "area_px": area,
+            "equivalent_diameter_px": 2.0 * np.sqrt(area / np.pi),
+            "centroid_y": float(region.centroid[0]),
+            "centroid_x": float(region.centroid[1]),
+            "bbox_min_row": r0,
+            "bbox_min_col": c0,
+            "bbox_max_row": r1,
+            "bbox_max_col": c1,
+            "touches_border": border,
+        }
         if nm_per_px:
             row["area_nm2"] = area * nm_per_px**2
             row["equivalent_diameter_nm"] = row["equivalent_diameter_px"] * nm_per_px
@@ -92,7 +106,9 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
     for image_id, image in images:
         class_map = np.asarray(predictor(image))
         labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
-        rows += particle_rows(image_id, labels, float(nm) if nm else None, int(cfg.min_area_px), bool(cfg.exclude_border))
+        rows += particle_rows(
+            image_id, labels, float(nm) if nm else None, int(cfg.min_area_px), bool(cfg.exclude_border)
+        )
         if cfg.get("wires"):
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (float(nm) if nm else 1.0))
@@ -109,7 +125,10 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
     write_bytes(out / "histograms.png", figure_png(lambda plt: _histograms(plt, rows, nm, int(cfg.bins))))
     if cfg.get("wires"):
         values = np.concatenate(thickness_values) if thickness_values else np.zeros(0)
-        write_bytes(out / "thickness_histogram.png", figure_png(lambda plt: _thickness_histogram(plt, values, nm, int(cfg.bins))))
+        write_bytes(
+            out / "thickness_histogram.png",
+            figure_png(lambda plt: _thickness_histogram(plt, values, nm, int(cfg.bins))),
+        )
     log.info("wrote %s: %d particles in %d images", out / "particles.csv", len(rows), len(images))
     return rows
 

@@ -13,7 +13,7 @@ import glob
 import logging
 import os
 import re
-from functools import lru_cache
+from functools import cache
 
 from drgan.errors import ConfigError
 
@@ -71,7 +71,7 @@ import mitsuba as mi  # noqa: E402
 VARIANT_CHOICES = ("auto", "llvm_ad_rgb", "llvm_ad_mono", "cuda_ad_rgb", "cuda_ad_mono")
 
 
-@lru_cache(maxsize=None)
+@cache
 def cuda_usable() -> bool:
     """True when Mitsuba's CUDA variant can be set on this machine (a driver and a GPU are present)."""
     if "cuda_ad_rgb" not in mi.variants():

@@ -56,8 +56,9 @@ def refusing_unsafe(what: str, path, error: type[DrganError] = ConfigError):
         raise _refusal(refused, what, path, error) from None
 
 
-def load_checkpoint(path, what: str, *, expected: str = "a .ckpt written by drgan",
-                    error: type[DrganError] = ConfigError) -> dict:
+def load_checkpoint(
+    path, what: str, *, expected: str = "a .ckpt written by drgan", error: type[DrganError] = ConfigError
+) -> dict:
     """The checkpoint dict at ``path`` (on the CPU), loaded with ``weights_only=True``.
 
     ``what`` names the setting that gave the path (``ckpt``, ``init_from``, ``ckpt_path``, ``model``) and
@@ -79,5 +80,7 @@ def load_checkpoint(path, what: str, *, expected: str = "a .ckpt written by drga
                 f"{type(damaged).__name__}: {str(damaged).splitlines()[0] if str(damaged) else 'no detail'}); expected {expected}"
             ) from None
     if not isinstance(checkpoint, dict) or not isinstance(checkpoint.get("state_dict"), dict):
-        raise error(f"{what}={path}: a PyTorch file but not a Lightning checkpoint (no state_dict); expected {expected}")
+        raise error(
+            f"{what}={path}: a PyTorch file but not a Lightning checkpoint (no state_dict); expected {expected}"
+        )
     return checkpoint

@@ -84,23 +84,41 @@ def tables(rows: list[dict], runs: list[str], ids: list[str], inference: str = "
         for r in mine:
             writer.writerow({k: (f"{r[k]:.6f}" if k in SCORES else r[k]) for k in fields})
         run_means[run] = {k: float(np.mean([r[k] for r in mine])) for k in SCORES}
-        writer.writerow({"run": run, "model": mine[0]["model"], "image": "mean",
-                         **{k: f"{run_means[run][k]:.6f}" for k in SCORES},
-                         **{k: sum(r[k] for r in mine) for k in COUNTS}})
+        writer.writerow(
+            {
+                "run": run,
+                "model": mine[0]["model"],
+                "image": "mean",
+                **{k: f"{run_means[run][k]:.6f}" for k in SCORES},
+                **{k: sum(r[k] for r in mine) for k in COUNTS},
+            }
+        )
 
-    md = ["# Segmentation on real test images", "",
-          f"{len(ids)} test image(s), {len(runs)} run(s). Particle class only (contour = background), 4-connected instances, "
-          "match at IoU > 0.5. AP50 = TP / (TP + FP + FN); PQ = SQ x RQ (particle class). PQ classes = mean PQ of "
-          "background (stuff) and particle (things); PQ semantic = mean over background and particle both as stuff "
-          "(IoU when > 0.5, else 0). A run's test-set value is the mean over its "
-          "images; values below are mean +- sample std over runs." + (f" Inference: {inference}." if inference else ""), "",
-          "## Test set", "", "| | " + " | ".join(_header(s) for s in SCORES) + " |", "|---|" + "---|" * len(SCORES)]
+    md = [
+        "# Segmentation on real test images",
+        "",
+        f"{len(ids)} test image(s), {len(runs)} run(s). Particle class only (contour = background), 4-connected instances, "
+        "match at IoU > 0.5. AP50 = TP / (TP + FP + FN); PQ = SQ x RQ (particle class). PQ classes = mean PQ of "
+        "background (stuff) and particle (things); PQ semantic = mean over background and particle both as stuff "
+        "(IoU when > 0.5, else 0). A run's test-set value is the mean over its "
+        "images; values below are mean +- sample std over runs." + (f" Inference: {inference}." if inference else ""),
+        "",
+        "## Test set",
+        "",
+        "| | " + " | ".join(_header(s) for s in SCORES) + " |",
+        "|---|" + "---|" * len(SCORES),
+    ]
     overall = {k: _mean_std([run_means[r][k] for r in runs]) for k in SCORES}
     md.append("| **all runs** | " + " | ".join(f"{m:.3f} +- {s:.3f}" for m, s in overall.values()) + " |")
     for run in runs:
         md.append(f"| {run} | " + " | ".join(f"{run_means[run][k]:.3f}" for k in SCORES) + " |")
-    md += ["", "## Per image", "", "| image | " + " | ".join(_header(s) for s in SCORES) + " | TP | FP | FN |",
-           "|---|" + "---|" * (len(SCORES) + 3)]
+    md += [
+        "",
+        "## Per image",
+        "",
+        "| image | " + " | ".join(_header(s) for s in SCORES) + " | TP | FP | FN |",
+        "|---|" + "---|" * (len(SCORES) + 3),
+    ]
     for i in ids:
         mine = [r for r in rows if r["image"] == i]
         cells = [f"{m:.3f} +- {s:.3f}" for m, s in (_mean_std([r[k] for r in mine]) for k in SCORES)]
@@ -134,7 +152,9 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     else:
         model_names, how = {r: r for r in predictors}, ""
     ids = real_ids(data_dir, cfg.get("split"), str(cfg.subset), setting="data")
-    samples = load_real(data_dir, ids, cfg.get("crop_rows"), cfg.get("mask_suffix", "auto"), cfg.get("masks", "masks"))  # every image/mask read and checked first
+    samples = load_real(
+        data_dir, ids, cfg.get("crop_rows"), cfg.get("mask_suffix", "auto"), cfg.get("masks", "masks")
+    )  # every image/mask read and checked first
 
     out = Path(cfg.out)
     rows = []
@@ -142,7 +162,9 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
         for image_id, image, true_labels in samples:
             class_map = np.asarray(predictor(image))
             if class_map.shape != image.shape:
-                raise ConfigError(f"evaluate: {run} returned a class map of shape {class_map.shape} for image {image_id} {image.shape}")
+                raise ConfigError(
+                    f"evaluate: {run} returned a class map of shape {class_map.shape} for image {image_id} {image.shape}"
+                )
             scores, pred_labels = score_image(class_map, true_labels)
             rows.append({"run": run, "model": model_names[run], "image": image_id, **scores})
             log.info("%s %s: %s", run, image_id, {s: round(scores[s], 3) for s in SCORES})
@@ -150,7 +172,9 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
                 from PIL import Image
 
                 rgb = overlay(image, pred_labels, true_labels, float(cfg.overlay_alpha))
-                write_with(out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG"))
+                write_with(
+                    out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG")
+                )
     runs = list(predictors)
     csv_text, md_text = tables(rows, runs, ids, how)
     write_bytes(out / "results.csv", csv_text.encode())
@@ -158,7 +182,12 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     per_run = {r: {s: float(np.mean([x[s] for x in rows if x["run"] == r])) for s in SCORES} for r in runs}
     stats = {s: _mean_std([per_run[r][s] for r in runs]) for s in SCORES}
     log.info("wrote %s: %s", out / "results.md", {s: f"{m:.3f} +- {sd:.3f}" for s, (m, sd) in stats.items()})
-    return {"runs": per_run, "rows": rows, "mean": {s: v[0] for s, v in stats.items()}, "std": {s: v[1] for s, v in stats.items()}}
+    return {
+        "runs": per_run,
+        "rows": rows,
+        "mean": {s: v[0] for s, v in stats.items()},
+        "std": {s: v[1] for s, v in stats.items()},
+    }
 
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="evaluate")

@@ -37,11 +37,15 @@ def dataset_folder_name(dataset_id: int, name: str) -> str:
     if isinstance(dataset_id, bool) or not isinstance(dataset_id, int) or not 1 <= dataset_id <= 999:
         raise ConfigError(f"dataset_id={dataset_id!r}: expected an integer in 1..999 (nnU-Net's DatasetNNN)")
     if not re.fullmatch(r"[A-Za-z0-9_-]+", str(name or "")):
-        raise ConfigError(f"name={name!r}: expected letters, digits, '_' or '-' (it becomes Dataset{dataset_id:03d}_<name>)")
+        raise ConfigError(
+            f"name={name!r}: expected letters, digits, '_' or '-' (it becomes Dataset{dataset_id:03d}_<name>)"
+        )
     return f"Dataset{dataset_id:03d}_{name}"
 
 
-def dataset_json(manifest: dict, n_cases: int, channel_names: dict, labels: dict, name: str, description: str | None) -> dict:
+def dataset_json(
+    manifest: dict, n_cases: int, channel_names: dict, labels: dict, name: str, description: str | None
+) -> dict:
     values = sorted(int(v) for v in labels.values())
     if values != list(range(len(values))) or labels.get("background") != 0:
         raise ConfigError(f"labels={labels}: nnU-Net expects 'background': 0 and consecutive integer values 0..K-1")
@@ -49,7 +53,8 @@ def dataset_json(manifest: dict, n_cases: int, channel_names: dict, labels: dict
     counts = manifest.get("counts", {})
     return {
         "name": name,
-        "description": description or (
+        "description": description
+        or (
             f"drgan synthetic {config.get('material', '')} dataset: {counts.get('synthetic', '?')} DiffRenderGAN renders "
             f"+ {counts.get('background', '?')} real background patches (checkpoint {config.get('ckpt', '?')})"
         ),
@@ -65,7 +70,11 @@ def export(cfg: DictConfig) -> Path:
     data = Path(str(cfg.data)).expanduser().resolve()
     out = Path(str(cfg.out)).expanduser().resolve()
     folder_name = dataset_folder_name(cfg.dataset_id, cfg.name)
-    channel_names = OmegaConf.to_container(cfg.channel_names) if isinstance(cfg.channel_names, DictConfig) else dict(cfg.channel_names)
+    channel_names = (
+        OmegaConf.to_container(cfg.channel_names)
+        if isinstance(cfg.channel_names, DictConfig)
+        else dict(cfg.channel_names)
+    )
     labels = OmegaConf.to_container(cfg.labels) if isinstance(cfg.labels, DictConfig) else dict(cfg.labels)
     if not channel_names:
         raise ConfigError("channel_names: expected at least one channel, e.g. {'0': 'SEM'}")
@@ -89,19 +98,25 @@ def _check_target(out: Path, target: Path, dataset_id: int, description: dict, c
     if out.is_dir():
         others = [p.name for p in out.glob(f"Dataset{dataset_id:03d}_*") if p.name != target.name]
         if others:
-            raise ConfigError(f"out={out} already holds {others[0]} with dataset_id={dataset_id}: pick another dataset_id (nnU-Net ids are unique)")
+            raise ConfigError(
+                f"out={out} already holds {others[0]} with dataset_id={dataset_id}: pick another dataset_id (nnU-Net ids are unique)"
+            )
     if not target.exists():
         return
     existing = target / "dataset.json"
     if existing.is_file():
         old = json.loads(existing.read_text())
         if old != description:
-            raise ConfigError(f"{target} holds a different dataset (its dataset.json differs): remove it or choose another dataset_id/name")
+            raise ConfigError(
+                f"{target} holds a different dataset (its dataset.json differs): remove it or choose another dataset_id/name"
+            )
     found = {p.name[: -len(CHANNEL + ".png")] for p in (target / "imagesTr").glob(f"*{CHANNEL}.png")}
     found |= {p.stem for p in (target / "labelsTr").glob("*.png")}
     extra = sorted(found - cases)
     if extra:
-        raise ConfigError(f"{target} holds cases not in this dataset (e.g. {extra[0]}): remove it or choose another dataset_id/name")
+        raise ConfigError(
+            f"{target} holds cases not in this dataset (e.g. {extra[0]}): remove it or choose another dataset_id/name"
+        )
 
 
 def _copy(source: Path, destination: Path) -> None:

@@ -75,8 +75,9 @@ class Check:
     particles_visible: int
 
 
-def contrast_check(image: np.ndarray, labels: np.ndarray, min_contrast: float, min_background: float,
-                   polarity: str = "bright") -> Check:
+def contrast_check(
+    image: np.ndarray, labels: np.ndarray, min_contrast: float, min_background: float, polarity: str = "bright"
+) -> Check:
     """Are the particles of ``image`` (H, W, [0, 1]) clearly distinguishable, given its instance ``labels``?
 
     Dropped when no particle is visible, when less than ``min_background`` of the pixels are background
@@ -145,7 +146,9 @@ def render_index(module, sample_phi, settings: dict, index: int):
     labels = np.asarray(sample.labels)
     mask = class_mask(labels, settings["contour_px"])
     label_s = time.perf_counter() - start
-    check = contrast_check(sample.image, labels, settings["min_contrast"], settings["min_background"], settings["polarity"])
+    check = contrast_check(
+        sample.image, labels, settings["min_contrast"], settings["min_background"], settings["polarity"]
+    )
     sigma_key = module.generator.material.noise_sigma.key
     meta = {
         "kind": "synthetic",

@@ -114,8 +114,10 @@ class MLFlowLogger(_LightningMLFlowLogger):
         that earlier run KILLED rather than leaving it RUNNING for ever."""
         with store_lock(str(self._tracking_uri)):
             if self.previous_run and mark_killed(self._tracking_uri, self.previous_run):
-                log.warning("MLflow run %s of this folder was left RUNNING (killed before its first checkpoint); marked "
-                            "KILLED", self.previous_run)
+                log.warning(
+                    "MLflow run %s of this folder was left RUNNING (killed before its first checkpoint); marked KILLED",
+                    self.previous_run,
+                )
             run = self.run_id  # creates the experiment and run (None on DDP ranks > 0)
         if run and self.id_file is not None:
             write_bytes(self.id_file, run.encode())
@@ -138,7 +140,11 @@ class MLFlowLogger(_LightningMLFlowLogger):
         last, step_ = self.last_steps(), int(step or 0)
         fresh = {k: v for k, v in metrics.items() if step_ > last.get(self._prefixed(k), -1)}
         if len(fresh) < len(metrics):
-            log.debug("MLflow: step %d of %s already logged before the resume; not logged again", step_, sorted(set(metrics) - set(fresh)))
+            log.debug(
+                "MLflow: step %d of %s already logged before the resume; not logged again",
+                step_,
+                sorted(set(metrics) - set(fresh)),
+            )
         if fresh:
             super().log_metrics(fresh, step)
             for k in fresh:
@@ -204,8 +210,10 @@ def tracking_store(overrides: Sequence[str] = ()) -> tuple[str, str]:
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
     entry = (cfg.get("logger") or {}).get("mlflow")
     if entry is None:
-        raise ConfigError(f"logger: the train config {' '.join(overrides)} logs to no MLflow store (its logger group "
-                          f"has {sorted(cfg.get('logger') or {}) or 'no logger'}; expected logger=mlflow, the default)")
+        raise ConfigError(
+            f"logger: the train config {' '.join(overrides)} logs to no MLflow store (its logger group "
+            f"has {sorted(cfg.get('logger') or {}) or 'no logger'}; expected logger=mlflow, the default)"
+        )
     return str(entry.tracking_uri), str(entry.experiment_name)
 
 
@@ -223,8 +231,10 @@ def experiments_with_runs(tracking_uri: str) -> list[tuple[str, str, int]]:
     import mlflow
 
     client = mlflow.MlflowClient(tracking_uri=tracking_uri)
-    found = [(e.name, e.experiment_id, len(client.search_runs([e.experiment_id], max_results=1000)))
-             for e in client.search_experiments()]
+    found = [
+        (e.name, e.experiment_id, len(client.search_runs([e.experiment_id], max_results=1000)))
+        for e in client.search_experiments()
+    ]
     return sorted((f for f in found if f[2]), key=lambda f: -f[2])
 
 
@@ -233,8 +243,10 @@ def describe_runs(tracking_uri: str, experiment: str, base_url: str) -> str:
     the one the train config logs to, first)."""
     path = sqlite_path(tracking_uri)
     if path is not None and not path.is_file():  # opening it would create it
-        return (f"MLflow store {tracking_uri}: no runs yet (python -m drgan.train creates it); "
-                f"experiments: {base_url}/#/experiments?workflowType=machine_learning")
+        return (
+            f"MLflow store {tracking_uri}: no runs yet (python -m drgan.train creates it); "
+            f"experiments: {base_url}/#/experiments?workflowType=machine_learning"
+        )
     found = experiments_with_runs(tracking_uri)
     found.sort(key=lambda f: f[0] != experiment)
     lines = [f"MLflow store {tracking_uri}: runs tables (open one in a browser):"]
@@ -252,8 +264,9 @@ def _server_up(base_url: str) -> bool:
         return False
 
 
-def serve_ui(tracking_uri: str, experiment: str, host: str, port: int, workers: int, start_timeout_s: float = 300
-             ) -> int:
+def serve_ui(
+    tracking_uri: str, experiment: str, host: str, port: int, workers: int, start_timeout_s: float = 300
+) -> int:
     """Serve ``tracking_uri`` with `mlflow ui` until interrupted, printing the runs tables' addresses once it
     answers; a tracking server (http...) is served already: only its addresses are printed. Returns the exit code."""
     if tracking_uri.startswith(("http://", "https://")):
@@ -261,8 +274,10 @@ def serve_ui(tracking_uri: str, experiment: str, host: str, port: int, workers: 
         return 0
     base_url = f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0') else host}:{port}"
     if _server_up(base_url):
-        print(f"something already answers at {base_url}: stop it, or choose another port "
-              "(make mlflow-ui MLFLOW_PORT=5001)")
+        print(
+            f"something already answers at {base_url}: stop it, or choose another port "
+            "(make mlflow-ui MLFLOW_PORT=5001)"
+        )
         return 1
     print(f"serving MLflow store {tracking_uri} (where python -m drgan.train logs) at {base_url} ...", flush=True)
     command = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", tracking_uri, "--host", host,
@@ -292,8 +307,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m drgan.loggers",
         description="Serve the MLflow store that python -m drgan.train logs to; print each experiment's runs table.",
     )
-    parser.add_argument("overrides", nargs="*",
-                        help="train config overrides that pick the store, e.g. material=tio2_tsem")
+    parser.add_argument(
+        "overrides", nargs="*", help="train config overrides that pick the store, e.g. material=tio2_tsem"
+    )
     parser.add_argument("--host", default="127.0.0.1", help="interface to serve on (default: this machine only)")
     parser.add_argument("--port", type=int, default=5000)
     parser.add_argument("--workers", type=int, default=1, help="server processes (one is plenty for one user)")

@@ -40,13 +40,16 @@ FIRST_PASS_IMAGES = 8  # images segmented with the default SegmentParams for the
 NOISE_LIMIT_FACTOR, NOISE_LIMIT_FLOOR = 2.2, 0.01  # transmission materials: noise_sigma.max = 2.2 x measured
 EXTENT_PER_DIAMETER = 1.1  # largest extent / equivalent diameter of a particle seen from above (TiO2: 30 / 26.5 px)
 
+
 def _check_settings(cfg: DictConfig) -> tuple[Path, tuple[int, int] | None, str, int]:
     if not cfg.get("data") or not cfg.data.get("dir"):
         raise ConfigError("profile: give data.dir=DIR (a folder of particle images)")
     name = cfg.get("name")
     if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
-        raise ConfigError(f"profile: name={name!r}: expected a material name of letters, digits, _ or - "
-                          "(the config is written as drgan_conf/material/NAME.yaml)")
+        raise ConfigError(
+            f"profile: name={name!r}: expected a material name of letters, digits, _ or - "
+            "(the config is written as drgan_conf/material/NAME.yaml)"
+        )
     folder = Path(str(cfg.data.dir)).expanduser()
     if not folder.is_dir():
         raise ConfigError(f"profile: data.dir={folder}: no such folder (expected a folder of images)")
@@ -147,34 +150,53 @@ def profile(cfg: DictConfig) -> dict:
 
     result = {
         "name": name,
-        "data": {"dir": str(folder.resolve()), "crop_rows": list(crop) if isinstance(crop, tuple) else crop,
-                 "split": str(split_path.resolve()) if split_path else None, "images": len(images),
-                 "ids": [p.stem for p in paths], "shape": list(images[0].shape)},
+        "data": {
+            "dir": str(folder.resolve()),
+            "crop_rows": list(crop) if isinstance(crop, tuple) else crop,
+            "split": str(split_path.resolve()) if split_path else None,
+            "images": len(images),
+            "ids": [p.stem for p in paths],
+            "shape": list(images[0].shape),
+        },
         "polarity": {"value": polarity, "setting": polarity_setting, **(estimate.as_dict() if estimate else {})},
-        "segmentation": {"first_pass_median_diameter_px": round(first_median, 3), "params": params.__dict__,
-                         "particles": int(sum(len(t["diameter_px"]) for t in tables)),
-                         "particles_not_touching_border": int(inner.size)},
+        "segmentation": {
+            "first_pass_median_diameter_px": round(first_median, 3),
+            "params": params.__dict__,
+            "particles": int(sum(len(t["diameter_px"]) for t in tables)),
+            "particles_not_touching_border": int(inner.size),
+        },
         "background": noise.as_dict(),
-        "sizes": {"median_diameter_px": round(float(np.median(inner)), 3),
-                  "mean_diameter_px": round(float(inner.mean()), 3),
-                  "quantiles_px": {q: round(float(np.quantile(inner, float(q))), 3)
-                                   for q in ("0.1", "0.25", "0.75", "0.9")},
-                  "fits": [f.as_dict() for f in fits], "chosen": chosen.kind,
-                  "criterion": "lowest BIC = k ln(n) - 2 ln(L), likelihoods in diameter space"},
-        "particles_per_patch": {"definition": f"segments (any, border-touching included) whose centroid lies inside a "
-                                              f"{patch} px window; windows on a grid of stride {patch // 2} px",
-                                "patch_size": patch, "windows": int(counts.size),
-                                "mean": round(float(counts.mean()), 3), "median": float(np.median(counts)),
-                                "p10": float(np.quantile(counts, 0.1)), "p90": float(np.quantile(counts, 0.9)),
-                                # The windows training keeps (data.min_particles: 3 by default): the scene's range.
-                                "with_3_or_more": _quantiles(counts[counts >= 3])},
-        "agglomeration": {"touching_fraction": round(touching, 4),
-                          "clark_evans_median": round(ce_median, 4) if ce_median is not None else None,
-                          "placement": est.placement_kind(touching, ce_median)},
+        "sizes": {
+            "median_diameter_px": round(float(np.median(inner)), 3),
+            "mean_diameter_px": round(float(inner.mean()), 3),
+            "quantiles_px": {q: round(float(np.quantile(inner, float(q))), 3) for q in ("0.1", "0.25", "0.75", "0.9")},
+            "fits": [f.as_dict() for f in fits],
+            "chosen": chosen.kind,
+            "criterion": "lowest BIC = k ln(n) - 2 ln(L), likelihoods in diameter space",
+        },
+        "particles_per_patch": {
+            "definition": f"segments (any, border-touching included) whose centroid lies inside a "
+            f"{patch} px window; windows on a grid of stride {patch // 2} px",
+            "patch_size": patch,
+            "windows": int(counts.size),
+            "mean": round(float(counts.mean()), 3),
+            "median": float(np.median(counts)),
+            "p10": float(np.quantile(counts, 0.1)),
+            "p90": float(np.quantile(counts, 0.9)),
+            # The windows training keeps (data.min_particles: 3 by default): the scene's range.
+            "with_3_or_more": _quantiles(counts[counts >= 3]),
+        },
+        "agglomeration": {
+            "touching_fraction": round(touching, 4),
+            "clark_evans_median": round(ce_median, 4) if ce_median is not None else None,
+            "placement": est.placement_kind(touching, ce_median),
+        },
         "shape": {"axis_ratio_median": round(axis_ratio, 4), "mesh_kind": est.mesh_kind(axis_ratio)},
-        "pixel_size": {"nm_per_px": round(float(np.median(known)), 5) if known else None,
-                       "source": pixel_sizes[0][1] if known else "unknown",
-                       "images_with_size": len(known)},
+        "pixel_size": {
+            "nm_per_px": round(float(np.median(known)), 5) if known else None,
+            "source": pixel_sizes[0][1] if known else "unknown",
+            "images_with_size": len(known),
+        },
     }
     out = Path(str(cfg.out))
     result["out"] = str(out.resolve())
@@ -265,15 +287,21 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
         f"{result['shape']['axis_ratio_median']:.2f}",
     ]
     if parent == "tio2_tsem":
-        lines.append(f"  noise_grain_px: {result['background']['grain_px']:.2f}   # measured: lag-1 autocorrelation "
-                     f"{result['background']['lag1_autocorrelation']:.3f} of the background's high-pass residual")
+        lines.append(
+            f"  noise_grain_px: {result['background']['grain_px']:.2f}   # measured: lag-1 autocorrelation "
+            f"{result['background']['lag1_autocorrelation']:.3f} of the background's high-pass residual"
+        )
         # A transmission render has no Monte Carlo noise: the image's noise is the detector's, which the background
         # shows. Limits around it (tio2_tsem: 0.018 measured; 0.001-0.2 made the first epoch far too grainy).
         high = max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * result["background"]["noise_sigma"])
-        lines.append(f"  noise_sigma: {{min: 0.001, max: {high:.4f}}}   # measured: {NOISE_LIMIT_FACTOR} x the "
-                     "background's noise sigma")
-    lines.append(f"  # measured, for reference: background grey {result['background']['background_grey']:.3f}, noise "
-                 f"sigma {result['background']['noise_sigma']:.4f} (the parent's noise_sigma limits are kept)")
+        lines.append(
+            f"  noise_sigma: {{min: 0.001, max: {high:.4f}}}   # measured: {NOISE_LIMIT_FACTOR} x the "
+            "background's noise sigma"
+        )
+    lines.append(
+        f"  # measured, for reference: background grey {result['background']['background_grey']:.3f}, noise "
+        f"sigma {result['background']['noise_sigma']:.4f} (the parent's noise_sigma limits are kept)"
+    )
     if chosen.kind == "bimodal":
         p = chosen.params
         m1, s1 = (EXTENT_PER_DIAMETER * v for v in est.lognormal_to_normal(p["median1"], p["sigma1"]))
@@ -292,8 +320,9 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
         "",
         "data:",
         f"  dir: {json.dumps(data['dir'])}",
-        f"  crop_rows: {json.dumps(data['crop_rows'])}   # as profiled" if data["crop_rows"] != "auto" else
-        "  crop_rows: auto   # as profiled: the info bar found in each image",
+        f"  crop_rows: {json.dumps(data['crop_rows'])}   # as profiled"
+        if data["crop_rows"] != "auto"
+        else "  crop_rows: auto   # as profiled: the info bar found in each image",
         f"  split: {json.dumps(data['split'])}   # as profiled (null: every image trains)",
         f"  polarity: {polarity}           # {pol_note}",
         "",
@@ -309,35 +338,37 @@ def report_markdown(r: dict) -> str:
     seg = r["segmentation"]
     fits = "\n".join(
         f"| {f['kind']}{' (chosen)' if f['kind'] == s['chosen'] else ''} | "
-        + ", ".join(f"{k} {v:g}" for k, v in f["params"].items()) + f" | {f['log_likelihood']:.1f} | {f['bic']:.1f} |"
-        for f in s["fits"])
+        + ", ".join(f"{k} {v:g}" for k, v in f["params"].items())
+        + f" | {f['log_likelihood']:.1f} | {f['bic']:.1f} |"
+        for f in s["fits"]
+    )
     px = r["pixel_size"]
-    return f"""# Profile: {r['name']}
+    return f"""# Profile: {r["name"]}
 
-{r['data']['images']} image(s) of `{r['data']['dir']}` (crop_rows {r['data']['crop_rows']}, split {r['data']['split']}).
-Material config: `{r['material']['config']}` (parent `{r['material']['parent']}`).
+{r["data"]["images"]} image(s) of `{r["data"]["dir"]}` (crop_rows {r["data"]["crop_rows"]}, split {r["data"]["split"]}).
+Material config: `{r["material"]["config"]}` (parent `{r["material"]["parent"]}`).
 
 | quantity | value |
 |---|---|
-| polarity | {r['polarity']['value']} ({r['polarity']['setting']}; confidence {r['polarity'].get('confidence', '-')}) |
-| background grey (median of background pixels) | {b['background_grey']:.4f} |
-| noise sigma (MAD of the high-pass residual, corrected) | {b['noise_sigma']:.4f} |
-| lag-1 autocorrelation of the residual | {b['lag1_autocorrelation']:.3f} |
-| grain (Gaussian stddev, px) | {b['grain_px']:.2f} |
-| particles segmented / not touching the border | {seg['particles']} / {seg['particles_not_touching_border']} |
-| median / mean equivalent diameter (px) | {s['median_diameter_px']:.2f} / {s['mean_diameter_px']:.2f} |
-| particles per {c['patch_size']} px patch: mean / median (p10-p90) | {c['mean']:.2f} / {c['median']:g} \
-({c['p10']:g}-{c['p90']:g}) |
-| touching fraction / Clark-Evans ratio | {a['touching_fraction']:.3f} / {a['clark_evans_median']} \
--> placement {a['placement']} |
-| median axis ratio | {r['shape']['axis_ratio_median']:.3f} -> meshes {r['shape']['mesh_kind']} |
-| pixel size | {px['nm_per_px']} nm ({px['source']}) |
+| polarity | {r["polarity"]["value"]} ({r["polarity"]["setting"]}; confidence {r["polarity"].get("confidence", "-")}) |
+| background grey (median of background pixels) | {b["background_grey"]:.4f} |
+| noise sigma (MAD of the high-pass residual, corrected) | {b["noise_sigma"]:.4f} |
+| lag-1 autocorrelation of the residual | {b["lag1_autocorrelation"]:.3f} |
+| grain (Gaussian stddev, px) | {b["grain_px"]:.2f} |
+| particles segmented / not touching the border | {seg["particles"]} / {seg["particles_not_touching_border"]} |
+| median / mean equivalent diameter (px) | {s["median_diameter_px"]:.2f} / {s["mean_diameter_px"]:.2f} |
+| particles per {c["patch_size"]} px patch: mean / median (p10-p90) | {c["mean"]:.2f} / {c["median"]:g} \
+({c["p10"]:g}-{c["p90"]:g}) |
+| touching fraction / Clark-Evans ratio | {a["touching_fraction"]:.3f} / {a["clark_evans_median"]} \
+-> placement {a["placement"]} |
+| median axis ratio | {r["shape"]["axis_ratio_median"]:.3f} -> meshes {r["shape"]["mesh_kind"]} |
+| pixel size | {px["nm_per_px"]} nm ({px["source"]}) |
 
-Particles per patch: {c['definition']}.
-Segmentation: drgan.data.patches.segment_particles with {r['segmentation']['params']}
-(first-pass median diameter {r['segmentation']['first_pass_median_diameter_px']} px).
+Particles per patch: {c["definition"]}.
+Segmentation: drgan.data.patches.segment_particles with {r["segmentation"]["params"]}
+(first-pass median diameter {r["segmentation"]["first_pass_median_diameter_px"]} px).
 
-## Diameter fits ({s['criterion']})
+## Diameter fits ({s["criterion"]})
 
 | fit | parameters (px; sigma of log d) | log L | BIC |
 |---|---|---|---|
@@ -380,16 +411,17 @@ def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrou
         axes[0].axvline(noise.background_grey, color="r", label=f"median {noise.background_grey:.3f}")
         axes[0].set_xlabel("background grey")
         axes[0].legend()
-        residual = np.concatenate([est.highpass(im)[est.background_mask(fg)]
-                                   for im, fg in zip(images[:8], foregrounds[:8])])
+        residual = np.concatenate(
+            [est.highpass(im)[est.background_mask(fg)] for im, fg in zip(images[:8], foregrounds[:8])]
+        )
         lim = 6 * max(noise.residual_sigma, 1e-6)
         axes[1].hist(residual, bins=100, range=(-lim, lim), density=True, color="0.5")
         x = np.linspace(-lim, lim, 200)
         gauss = np.exp(-0.5 * (x / noise.residual_sigma) ** 2) / (noise.residual_sigma * math.sqrt(2 * math.pi))
-        axes[1].plot(x, gauss,
-                     "r", label=f"MAD sigma {noise.residual_sigma:.4f}")
-        axes[1].set_xlabel(f"high-pass residual (lag-1 r {noise.lag1_autocorrelation:.2f}, "
-                           f"grain {noise.grain_px:.2f} px)")
+        axes[1].plot(x, gauss, "r", label=f"MAD sigma {noise.residual_sigma:.4f}")
+        axes[1].set_xlabel(
+            f"high-pass residual (lag-1 r {noise.lag1_autocorrelation:.2f}, grain {noise.grain_px:.2f} px)"
+        )
         axes[1].legend()
         axes[2].hist(counts, bins=np.arange(counts.max() + 2) - 0.5, color="0.5")
         axes[2].set_xlabel("particles per patch (centroid inside)")

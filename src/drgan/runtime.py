@@ -49,8 +49,12 @@ def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, 
         if entry._target_.endswith("MLFlowLogger"):
             id_file = output_dir / MLFLOW_RUN_ID_FILE
             previous = id_file.read_text().strip() if id_file.is_file() else None
-            with store_lock(str(entry.tracking_uri)):  # its client creates a SQLite store's schema: parallel sweep jobs race
-                logger = instantiate(entry, run_id=previous if resume else None, tags={**tags, **(entry.get("tags") or {})})
+            with store_lock(
+                str(entry.tracking_uri)
+            ):  # its client creates a SQLite store's schema: parallel sweep jobs race
+                logger = instantiate(
+                    entry, run_id=previous if resume else None, tags={**tags, **(entry.get("tags") or {})}
+                )
             if isinstance(logger, MLFlowLogger):
                 logger.attach_run_folder(id_file, None if resume else previous)
         else:
@@ -79,7 +83,9 @@ def resolve_checkpoint(ckpt_path: str | None, output_dir: Path) -> str | None:
         return None
     path = Path(ckpt_path)
     if not path.is_file():
-        raise ConfigError(f"ckpt_path={ckpt_path}: no such checkpoint file (or use ckpt_path=last to resume this run folder)")
+        raise ConfigError(
+            f"ckpt_path={ckpt_path}: no such checkpoint file (or use ckpt_path=last to resume this run folder)"
+        )
     load_checkpoint(path, "ckpt_path")
     return str(path)
 

@@ -33,8 +33,14 @@ def load_training_pairs(cfg: DictConfig):
         return load_generated_pairs(cfg.data_dir, setting="data")
     real = Path(cfg.real)
     ids = real_ids(real, cfg.get("split"), "train", setting="real")
-    return load_real_pairs(real, ids, setting_int("contour_px", cfg.contour_px, 0), cfg.get("crop_rows"),
-                           cfg.get("mask_suffix", "auto"), cfg.get("masks", "masks"))
+    return load_real_pairs(
+        real,
+        ids,
+        setting_int("contour_px", cfg.contour_px, 0),
+        cfg.get("crop_rows"),
+        cfg.get("mask_suffix", "auto"),
+        cfg.get("masks", "masks"),
+    )
 
 
 def loader_settings(cfg: DictConfig) -> dict:
@@ -59,12 +65,21 @@ def dataloaders(cfg: DictConfig, pairs):
 
     ld = loader_settings(cfg)
     train_pairs, val_pairs = split_pairs(pairs, ld["val_fraction"], ld["seed"])
-    kw = dict(crop=ld["crop"], brightness=ld["brightness"], contrast=ld["contrast"], seed=ld["seed"],
-              normalize=str(cfg.model.get("normalize", "none")))
-    train = DataLoader(CropDataset(train_pairs, augment=True, samples_per_pair=ld["samples_per_pair"], **kw),
-                       batch_size=ld["batch_size"], shuffle=True,
-                       drop_last=len(train_pairs) * ld["samples_per_pair"] > ld["batch_size"],
-                       num_workers=ld["num_workers"], persistent_workers=ld["num_workers"] > 0)
+    kw = dict(
+        crop=ld["crop"],
+        brightness=ld["brightness"],
+        contrast=ld["contrast"],
+        seed=ld["seed"],
+        normalize=str(cfg.model.get("normalize", "none")),
+    )
+    train = DataLoader(
+        CropDataset(train_pairs, augment=True, samples_per_pair=ld["samples_per_pair"], **kw),
+        batch_size=ld["batch_size"],
+        shuffle=True,
+        drop_last=len(train_pairs) * ld["samples_per_pair"] > ld["batch_size"],
+        num_workers=ld["num_workers"],
+        persistent_workers=ld["num_workers"] > 0,
+    )
     val = None
     if val_pairs:
         val = DataLoader(CropDataset(val_pairs, augment=False, **kw), batch_size=ld["batch_size"], num_workers=0)
@@ -77,9 +92,9 @@ def segment(cfg: DictConfig) -> dict:
     from hydra.utils import instantiate
     from lightning.pytorch.callbacks import ModelCheckpoint
 
-    from drgan.segmentation.module import SegmenterModule
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
+    from drgan.segmentation.module import SegmenterModule
 
     wall_start = time.perf_counter()
     with open_dict(cfg):
@@ -98,14 +113,24 @@ def segment(cfg: DictConfig) -> dict:
     loggers = instantiate_loggers(cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags)
     # last.ckpt at every epoch end (ResumeCheckpoint), before validation-free epoch-end work; ModelCheckpoint keeps
     # the latest epoch's file.
-    checkpoint = ModelCheckpoint(dirpath=out / "checkpoints", filename="epoch_{epoch:03d}", auto_insert_metric_name=False,
-                                 save_last=False, save_top_k=1)
+    checkpoint = ModelCheckpoint(
+        dirpath=out / "checkpoints",
+        filename="epoch_{epoch:03d}",
+        auto_insert_metric_name=False,
+        save_last=False,
+        save_top_k=1,
+    )
     trainer = instantiate(cfg.trainer, callbacks=[ResumeCheckpoint(), checkpoint], logger=loggers or False)
     start_loggers(loggers)
 
     params = flat_config(cfg)
-    params.update({"data/n_train_pairs": n_train, "data/n_val_pairs": n_val,
-                   "model/n_parameters": sum(p.numel() for p in model.parameters())})
+    params.update(
+        {
+            "data/n_train_pairs": n_train,
+            "data/n_val_pairs": n_val,
+            "model/n_parameters": sum(p.numel() for p in model.parameters()),
+        }
+    )
     for logger in loggers:
         try:
             logger.log_hyperparams(params)
@@ -113,7 +138,9 @@ def segment(cfg: DictConfig) -> dict:
             log.warning("%s: params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
     log.info("segmenter %s: %d train / %d val pairs, run folder %s", cfg.name, n_train, n_val, out)
-    trainer.fit(model, train_dataloaders=train_loader, val_dataloaders=val_loader, ckpt_path=ckpt_path, weights_only=True)
+    trainer.fit(
+        model, train_dataloaders=train_loader, val_dataloaders=val_loader, ckpt_path=ckpt_path, weights_only=True
+    )
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     metrics["time/wall_s"] = time.perf_counter() - wall_start

@@ -36,6 +36,7 @@ from drgan.runtime import (  # noqa: F401  (resolve_checkpoint, MLFLOW_RUN_ID_FI
 
 log = logging.getLogger(__name__)
 
+
 def train(cfg: DictConfig) -> dict:
     """Fit one run; return its final metrics (last step/epoch values, plus time/wall_s)."""
     import lightning.pytorch as L
@@ -69,10 +70,16 @@ def train(cfg: DictConfig) -> dict:
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
     if cfg.get("init_from") and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights
         copied = model.load_weights(Path(cfg.init_from).expanduser())
-        log.info("init_from=%s: %d weight tensors of the FCN and discriminator copied; a fresh run from epoch 0", cfg.init_from, copied)
+        log.info(
+            "init_from=%s: %d weight tensors of the FCN and discriminator copied; a fresh run from epoch 0",
+            cfg.init_from,
+            copied,
+        )
     if model.textured and int(cfg.data.get("n_background") or 0) < 1:  # the texture comes from mined background patches
-        raise ConfigError("material.background_texture.enabled: no real background patches to take the texture from "
-                          f"(data.n_background={cfg.data.get('n_background')}; set data.n_background > 0)")
+        raise ConfigError(
+            "material.background_texture.enabled: no real background patches to take the texture from "
+            f"(data.n_background={cfg.data.get('n_background')}; set data.n_background > 0)"
+        )
     tags = {"material": str(cfg.material.name), "output_dir": str(output_dir)}
     tags.update({str(t): "1" for t in cfg.get("tags") or []})
     loggers = instantiate_loggers(cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags)
@@ -96,8 +103,16 @@ def train(cfg: DictConfig) -> dict:
         except Exception as error:  # MLflow refuses to change a logged param, e.g. max_epochs on resume
             log.warning("%s: config params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
-    log.info("training %s: %d real patches, m=%d constellations, run folder %s", cfg.material.name, datamodule.n_train, m, output_dir)
-    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)  # drgan.checkpoint_io: no code runs
+    log.info(
+        "training %s: %d real patches, m=%d constellations, run folder %s",
+        cfg.material.name,
+        datamodule.n_train,
+        m,
+        output_dir,
+    )
+    trainer.fit(
+        model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True
+    )  # drgan.checkpoint_io: no code runs
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     metrics["time/wall_s"] = time.perf_counter() - wall_start
@@ -112,8 +127,16 @@ def train(cfg: DictConfig) -> dict:
             except Exception as error:  # an unreachable store must not lose the run's files
                 log.warning("MLflow stop_reason not tagged: %s", str(error).splitlines()[0])
     if trainer.is_global_zero:  # under DDP every rank returns here; one writes
-        write_json(output_dir / "metrics.json", {"epoch": trainer.current_epoch, "global_step": trainer.global_step,
-                                                 "stop_reason": kind, "stop_message": why, **metrics})
+        write_json(
+            output_dir / "metrics.json",
+            {
+                "epoch": trainer.current_epoch,
+                "global_step": trainer.global_step,
+                "stop_reason": kind,
+                "stop_message": why,
+                **metrics,
+            },
+        )
     log.info("stopped (%s): %s", kind, why)
     log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
     return metrics

@@ -72,8 +72,13 @@ def within_brightness(entry: dict, brightness_range) -> bool:
     return low <= entry["brightness"] <= high
 
 
-def select_best(history: list[dict], top_k: int, brightness_range=None, spread_tolerance: float = 0.05,
-                fid_margin: float | None = 0.1) -> tuple[dict | None, list[dict]]:
+def select_best(
+    history: list[dict],
+    top_k: int,
+    brightness_range=None,
+    spread_tolerance: float = 0.05,
+    fid_margin: float | None = 0.1,
+) -> tuple[dict | None, list[dict]]:
     """history: dicts with epoch, fid, spread (and brightness) -> (best entry, the top_k table sorted by FID).
 
     Epochs with a non-finite FID are never chosen. Of the top_k lowest FIDs, only those at most (1 + fid_margin)
@@ -91,8 +96,10 @@ def select_best(history: list[dict], top_k: int, brightness_range=None, spread_t
         limit = table[0]["fid"] + abs(table[0]["fid"]) * float(fid_margin)
         contenders = [h for h in table if h["fid"] <= limit]
     broadest = max(h["spread"] for h in contenders)
-    best = min((h for h in contenders if h["spread"] >= (1.0 - spread_tolerance) * broadest),
-               key=lambda h: (h["fid"], h["epoch"]))
+    best = min(
+        (h for h in contenders if h["spread"] >= (1.0 - spread_tolerance) * broadest),
+        key=lambda h: (h["fid"], h["epoch"]),
+    )
     return best, table
 
 
@@ -101,19 +108,29 @@ class BestEpochCallback(Callback):
     those constellations; brightness_range: (low, high) of synthetic / real mean grey for an epoch to
     compete (None: no check). Needs a FIDCallback before it in the callback list."""
 
-    def __init__(self, top_k: int = 5, n_phi: int = 1000, seed: int = 0, brightness_range=(0.5, 2.0),
-                 fid_margin: float | None = 0.1):
+    def __init__(
+        self,
+        top_k: int = 5,
+        n_phi: int = 1000,
+        seed: int = 0,
+        brightness_range=(0.5, 2.0),
+        fid_margin: float | None = 0.1,
+    ):
         if int(top_k) < 1 or int(n_phi) < 2:
             raise ConfigError(f"BestEpochCallback: top_k={top_k}, n_phi={n_phi}; expected top_k >= 1 and n_phi >= 2")
         if fid_margin is not None and not (isinstance(fid_margin, (int, float)) and 0 <= fid_margin < math.inf):
-            raise ConfigError(f"callbacks.best_epoch.fid_margin={fid_margin!r}: expected a number >= 0 (0.1: epochs within "
-                              "10 % of the lowest FID compete on spread) or null")
+            raise ConfigError(
+                f"callbacks.best_epoch.fid_margin={fid_margin!r}: expected a number >= 0 (0.1: epochs within "
+                "10 % of the lowest FID compete on spread) or null"
+            )
         self.fid_margin = None if fid_margin is None else float(fid_margin)
         if brightness_range is not None:
             brightness_range = tuple(float(v) for v in brightness_range)
             if len(brightness_range) != 2 or not 0 < brightness_range[0] < brightness_range[1]:
-                raise ConfigError(f"callbacks.best_epoch.brightness_range={list(brightness_range)}: expected [low, high] "
-                                  "with 0 < low < high (synthetic / real mean grey), or null")
+                raise ConfigError(
+                    f"callbacks.best_epoch.brightness_range={list(brightness_range)}: expected [low, high] "
+                    "with 0 < low < high (synthetic / real mean grey), or null"
+                )
         self.top_k, self.n_phi, self.seed = int(top_k), int(n_phi), int(seed)
         self.brightness_range = brightness_range
         self.history: list[dict] = []  # epoch, fid, kid, spread, checkpoint
@@ -141,9 +158,14 @@ class BestEpochCallback(Callback):
         folder = checkpoint_dir(trainer)
         ckpt = folder / "epochs" / f"epoch_{epoch:03d}.ckpt"
         trainer.save_checkpoint(ckpt, weights_only=True)  # collective under DDP: every rank calls it
-        entry = {"epoch": epoch, "fid": scores["fid"], "kid": scores["kid"], "spread": self.spread(pl_module),
-                 "checkpoint": str(ckpt),
-                 **{k: scores.get(k) for k in ("brightness", "particle_brightness", "background_brightness", "contrast")}}
+        entry = {
+            "epoch": epoch,
+            "fid": scores["fid"],
+            "kid": scores["kid"],
+            "spread": self.spread(pl_module),
+            "checkpoint": str(ckpt),
+            **{k: scores.get(k) for k in ("brightness", "particle_brightness", "background_brightness", "contrast")},
+        }
         self.history = [h for h in self.history if h["epoch"] != epoch] + [entry]
         if trainer.is_global_zero:
             self._prune(folder)
@@ -187,13 +209,25 @@ class BestEpochCallback(Callback):
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         best, _ = select_best(self.history, self.top_k, self.brightness_range, fid_margin=self.fid_margin)
         if best is not None and trainer.is_global_zero:
-            log.info("best epoch %d: FID %.4g, spread %.4g (of the %d lowest-FID epochs)", best["epoch"], best["fid"], best["spread"], self.top_k)
+            log.info(
+                "best epoch %d: FID %.4g, spread %.4g (of the %d lowest-FID epochs)",
+                best["epoch"],
+                best["fid"],
+                best["spread"],
+                self.top_k,
+            )
             if not within_brightness(best, self.brightness_range):
-                log.warning("best epoch %d: no epoch had particles and background within %s x the real ones' grey with "
-                            "the real contrast direction (this one: particles %s x, background %s x, contrast %s, whole "
-                            "image %s x); check the material (polarity, lights, limits) before generating data from it",
-                            best["epoch"], list(self.brightness_range), best.get("particle_brightness"),
-                            best.get("background_brightness"), best.get("contrast"), best.get("brightness"))
+                log.warning(
+                    "best epoch %d: no epoch had particles and background within %s x the real ones' grey with "
+                    "the real contrast direction (this one: particles %s x, background %s x, contrast %s, whole "
+                    "image %s x); check the material (polarity, lights, limits) before generating data from it",
+                    best["epoch"],
+                    list(self.brightness_range),
+                    best.get("particle_brightness"),
+                    best.get("background_brightness"),
+                    best.get("contrast"),
+                    best.get("brightness"),
+                )
 
     def state_dict(self) -> dict:
         return {"history": [dict(h) for h in self.history]}

@@ -34,8 +34,9 @@ from drgan.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
-def should_stop(history: list[dict], patience: int | None, patience_steps: int | None = None,
-                min_delta: float = 0.0) -> str | None:
+def should_stop(
+    history: list[dict], patience: int | None, patience_steps: int | None = None, min_delta: float = 0.0
+) -> str | None:
     """The rule on a list of evaluations (dicts with ``fid`` and, for ``patience_steps``, ``step``), in order:
     a message when the run should stop after the last one, else None. Pure, so experiments can replay it."""
     best_index, best = None, math.inf
@@ -47,13 +48,17 @@ def should_stop(history: list[dict], patience: int | None, patience_steps: int |
         return None
     since = len(history) - 1 - best_index
     if patience is not None and since >= patience:
-        return (f"FID has not improved on {best:.4g} (epoch {history[best_index]['epoch']}) by more than {min_delta:g} "
-                f"for {since} evaluations (patience {patience})")
+        return (
+            f"FID has not improved on {best:.4g} (epoch {history[best_index]['epoch']}) by more than {min_delta:g} "
+            f"for {since} evaluations (patience {patience})"
+        )
     if patience_steps is not None:
         steps = int(history[-1]["step"]) - int(history[best_index]["step"])
         if steps >= patience_steps:
-            return (f"FID has not improved on {best:.4g} (epoch {history[best_index]['epoch']}) by more than "
-                    f"{min_delta:g} for {steps} steps (patience_steps {patience_steps})")
+            return (
+                f"FID has not improved on {best:.4g} (epoch {history[best_index]['epoch']}) by more than "
+                f"{min_delta:g} for {steps} steps (patience_steps {patience_steps})"
+            )
     return None
 
 
@@ -63,14 +68,21 @@ class FIDEarlyStopping(Callback):
     count as an improvement (the score's own spread at ~130 images is ~2, experiments/tio2_sem/README.md);
     max_minutes: the wall-clock budget of the module docstring (None: none)."""
 
-    def __init__(self, patience: int | None = 2, patience_steps: int | None = None, min_delta: float = 0.0,
-                 max_minutes: float | None = None):
+    def __init__(
+        self,
+        patience: int | None = 2,
+        patience_steps: int | None = None,
+        min_delta: float = 0.0,
+        max_minutes: float | None = None,
+    ):
         for name, value in (("patience", patience), ("patience_steps", patience_steps)):
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise ConfigError(f"callbacks.early_stopping.{name}={value!r}: expected an integer >= 1 or null")
         if patience is None and patience_steps is None and max_minutes is None:
-            raise ConfigError("callbacks.early_stopping: patience, patience_steps and max_minutes are all null; set one, "
-                              "or drop the callback (~callbacks.early_stopping) to train for trainer.max_epochs")
+            raise ConfigError(
+                "callbacks.early_stopping: patience, patience_steps and max_minutes are all null; set one, "
+                "or drop the callback (~callbacks.early_stopping) to train for trainer.max_epochs"
+            )
         if max_minutes is not None and not (isinstance(max_minutes, (int, float)) and 0 < max_minutes < math.inf):
             raise ConfigError(f"callbacks.early_stopping.max_minutes={max_minutes!r}: expected minutes > 0 or null")
         if not (isinstance(min_delta, (int, float)) and 0 <= min_delta < math.inf):
@@ -81,7 +93,7 @@ class FIDEarlyStopping(Callback):
         self.max_seconds = None if max_minutes is None else 60.0 * float(max_minutes)
         self.reason: str | None = None
         self.kind: str | None = None
-        self.elapsed = 0.0        # seconds of training in earlier parts of a resumed run
+        self.elapsed = 0.0  # seconds of training in earlier parts of a resumed run
         self.slowest_epoch = 0.0  # seconds, FID pass included
         self._start: float | None = None
         self._last: float = 0.0
@@ -107,11 +119,18 @@ class FIDEarlyStopping(Callback):
         self.slowest_epoch, self._last = max(self.slowest_epoch, now - self._last), now
         kind, reason = None, None
         if fid_callback.latest(trainer.current_epoch) is not None:  # an evaluation this epoch
-            kind, reason = "patience", should_stop(fid_callback.history, self.patience, self.patience_steps,
-                                                   self.min_delta)
+            kind, reason = (
+                "patience",
+                should_stop(fid_callback.history, self.patience, self.patience_steps, self.min_delta),
+            )
         if reason is None and self.max_seconds is not None and now + self.slowest_epoch > self.max_seconds:
-            kind, reason = "budget", (f"another epoch (up to {self.slowest_epoch:.0f} s) would not fit the budget "
-                                      f"max_minutes={self.max_seconds / 60:g} ({now:.0f} s spent)")
+            kind, reason = (
+                "budget",
+                (
+                    f"another epoch (up to {self.slowest_epoch:.0f} s) would not fit the budget "
+                    f"max_minutes={self.max_seconds / 60:g} ({now:.0f} s spent)"
+                ),
+            )
         if reason is not None:
             self.kind, self.reason = kind, reason
             trainer.should_stop = True
@@ -119,7 +138,12 @@ class FIDEarlyStopping(Callback):
                 log.info("early stop after epoch %d: %s", trainer.current_epoch, reason)
 
     def state_dict(self) -> dict:
-        return {"reason": self.reason, "kind": self.kind, "elapsed": self.seconds(), "slowest_epoch": self.slowest_epoch}
+        return {
+            "reason": self.reason,
+            "kind": self.kind,
+            "elapsed": self.seconds(),
+            "slowest_epoch": self.slowest_epoch,
+        }
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.reason, self.kind = state_dict.get("reason"), state_dict.get("kind")

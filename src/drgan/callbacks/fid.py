@@ -111,8 +111,13 @@ def dataset_key(patches: np.ndarray) -> str:
 
 
 def render_samples(
-    pl_module: LightningModule, n: int, seed_base: int, progress: bool = False, spp: int | None = None,
-    indices: Sequence[int] | None = None, masks: bool = False,
+    pl_module: LightningModule,
+    n: int,
+    seed_base: int,
+    progress: bool = False,
+    spp: int | None = None,
+    indices: Sequence[int] | None = None,
+    masks: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Images (len, H, W) in [0, 1] without gradients: image i uses constellation ``i % len(phi_bank)`` and
     seed ``seed_base + i``, so it is the same whichever process renders it. ``indices`` None: 0 .. n-1;
@@ -123,8 +128,10 @@ def render_samples(
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc="FID renders", unit="img", leave=False)
-    samples = [pl_module.generator.sample(bank[i % len(bank)].cpu(), seed=(seed_base + i) & 0xFFFFFFFF, spp=spp)
-               for i in iterator]
+    samples = [
+        pl_module.generator.sample(bank[i % len(bank)].cpu(), seed=(seed_base + i) & 0xFFFFFFFF, spp=spp)
+        for i in iterator
+    ]
     images = np.clip(np.stack([s.image for s in samples]).astype(np.float32), 0.0, 1.0)
     return (images, np.stack([s.labels > 0 for s in samples])) if masks else images
 
@@ -132,14 +139,23 @@ def render_samples(
 def level_sums(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
     """Per image (len, 4): sum and count of particle pixels, sum and count of background pixels."""
     images, masks = np.asarray(images, dtype=np.float64), np.asarray(masks, dtype=bool)
-    return np.stack([(images * masks).sum(axis=(1, 2)), masks.sum(axis=(1, 2)),
-                     (images * ~masks).sum(axis=(1, 2)), (~masks).sum(axis=(1, 2))], axis=1)
+    return np.stack(
+        [
+            (images * masks).sum(axis=(1, 2)),
+            masks.sum(axis=(1, 2)),
+            (images * ~masks).sum(axis=(1, 2)),
+            (~masks).sum(axis=(1, 2)),
+        ],
+        axis=1,
+    )
 
 
 def levels(sums: np.ndarray) -> tuple[float, float]:
     """(mean particle grey, mean background grey) over every image of ``level_sums`` rows (NaN when absent)."""
     total = np.asarray(sums, dtype=np.float64).sum(axis=0)
-    return (float(total[0] / total[1]) if total[1] else math.nan), (float(total[2] / total[3]) if total[3] else math.nan)
+    return (float(total[0] / total[1]) if total[1] else math.nan), (
+        float(total[2] / total[3]) if total[3] else math.nan
+    )
 
 
 def level_ratio(synthetic: float, real: float, polarity: str) -> float:
@@ -231,11 +247,15 @@ class FIDCallback(Callback):
         self.progress = bool(progress)
         self.spp = None if spp is None else check_spp(spp, "callbacks.fid.spp")
         if screen_images is not None and int(screen_images) < 4:
-            raise ConfigError(f"callbacks.fid.screen_images={screen_images}: expected >= 4 (KID on halves of the screen) "
-                              "or null (no screen: every evaluation a full FID)")
+            raise ConfigError(
+                f"callbacks.fid.screen_images={screen_images}: expected >= 4 (KID on halves of the screen) "
+                "or null (no screen: every evaluation a full FID)"
+            )
         if not (isinstance(screen_margin, (int, float)) and 0 <= screen_margin < math.inf):
-            raise ConfigError(f"callbacks.fid.screen_margin={screen_margin!r}: expected a number >= 0 (0.2: epochs whose "
-                              "screen KID is within 20 % of the lowest go on to the full FID)")
+            raise ConfigError(
+                f"callbacks.fid.screen_margin={screen_margin!r}: expected a number >= 0 (0.2: epochs whose "
+                "screen KID is within 20 % of the lowest go on to the full FID)"
+            )
         self.screen_images = None if screen_images is None else int(screen_images)
         self.screen_margin = float(screen_margin)
         self.history: list[dict] = []  # per evaluated epoch: epoch, fid, kid, kid_std, brightness, n_images, seconds
@@ -284,8 +304,10 @@ class FIDCallback(Callback):
         """Everything this callback can check before data are mined: the feature network (its file and hash
         for Inception) loads, and a fixed KID subset fits the fixed number of images. Called by drgan.train."""
         if self.kid_subset_size is not None and self.n_images is not None and self.kid_subset_size > self.n_images:
-            raise ConfigError(f"callbacks.fid.kid_subset_size={self.kid_subset_size} exceeds callbacks.fid.n_images="
-                              f"{self.n_images}: a subset is drawn from the images without replacement")
+            raise ConfigError(
+                f"callbacks.fid.kid_subset_size={self.kid_subset_size} exceeds callbacks.fid.n_images="
+                f"{self.n_images}: a subset is drawn from the images without replacement"
+            )
         network = getattr(self._extractor(), "network", None)  # loads (and checks) the Inception file now, seconds
         del network
 
@@ -296,9 +318,11 @@ class FIDCallback(Callback):
         n_real = len(real_patches(trainer))
         n = min(self.n_images or n_real, n_real)
         if self.kid_subset_size is not None and self.kid_subset_size > n:
-            raise ConfigError(f"callbacks.fid.kid_subset_size={self.kid_subset_size} exceeds the {n} images of each "
-                              "KID sample (real training patches / callbacks.fid.n_images); lower it or leave it null "
-                              "(half the sample)")
+            raise ConfigError(
+                f"callbacks.fid.kid_subset_size={self.kid_subset_size} exceeds the {n} images of each "
+                "KID sample (real training patches / callbacks.fid.n_images); lower it or leave it null "
+                "(half the sample)"
+            )
 
     def latest(self, epoch: int) -> dict | None:
         return next((h for h in reversed(self.history) if h["epoch"] == epoch), None)
@@ -324,8 +348,9 @@ class FIDCallback(Callback):
             screen_kid = kid(feats, real.features, self.kid_subsets, None, seed=epoch)[0]
             lowest = min((h["screen_kid"] for h in self.history if h.get("screen_kid") is not None), default=math.inf)
             if screen_kid > lowest + abs(lowest) * self.screen_margin:
-                self._record(trainer, pl_module, epoch, start, math.nan, math.nan, math.nan, grey, sums, screen,
-                             screen_kid)
+                self._record(
+                    trainer, pl_module, epoch, start, math.nan, math.nan, math.nan, grey, sums, screen, screen_kid
+                )
                 return
             more = self._render_part(trainer, pl_module, screen, n, seed_base, progress)
             feats, sums, grey = (np.concatenate([a, b]) for a, b in zip((feats, sums, grey), more))
@@ -333,46 +358,92 @@ class FIDCallback(Callback):
         kid_mean, kid_std = kid(feats, real.features, self.kid_subsets, self.kid_subset_size, seed=epoch)
         self._record(trainer, pl_module, epoch, start, fid, kid_mean, kid_std, grey, sums, n, screen_kid)
 
-    def _render_part(self, trainer: Trainer, pl_module: LightningModule, first: int, stop: int, seed_base: int,
-                     progress: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _render_part(
+        self, trainer: Trainer, pl_module: LightningModule, first: int, stop: int, seed_base: int, progress: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Images first .. stop-1 of an evaluation (this rank's share, gathered): their features, level sums, greys."""
         count = stop - first
         mine = [first + i for i in rank_share(count, trainer.global_rank, trainer.world_size)]
-        fake, fake_masks = render_samples(pl_module, stop, seed_base, progress=progress, spp=self.spp, indices=mine,
-                                          masks=True)
+        fake, fake_masks = render_samples(
+            pl_module, stop, seed_base, progress=progress, spp=self.spp, indices=mine, masks=True
+        )
         feats = gather_rows(trainer, np.asarray(self._extractor().features(fake), dtype=np.float64), count)
         sums = gather_rows(trainer, level_sums(fake, fake_masks), count)
         grey = gather_rows(trainer, fake.mean(axis=(1, 2), dtype=np.float64), count)  # every image has as many pixels
         return feats, sums, grey
 
-    def _record(self, trainer: Trainer, pl_module: LightningModule, epoch: int, start: float, fid: float,
-                kid_mean: float, kid_std: float, grey: np.ndarray, sums: np.ndarray, n: int,
-                screen_kid: float | None) -> None:
+    def _record(
+        self,
+        trainer: Trainer,
+        pl_module: LightningModule,
+        epoch: int,
+        start: float,
+        fid: float,
+        kid_mean: float,
+        kid_std: float,
+        grey: np.ndarray,
+        sums: np.ndarray,
+        n: int,
+        screen_kid: float | None,
+    ) -> None:
         """History entry, log line and logged metrics of one evaluation (FID NaN: screened out)."""
         brightness = float(grey.mean()) / max(self.real_mean(trainer), 1e-6)
         particle, background = levels(sums)
         real_particle, real_background = self.real_levels(trainer)
         polarity = getattr(trainer.datamodule, "polarity", None) or "bright"
-        tones = {"particle_brightness": level_ratio(particle, real_particle, polarity),
-                 "background_brightness": level_ratio(background, real_background, polarity),
-                 "contrast": contrast(particle, background, polarity)}
+        tones = {
+            "particle_brightness": level_ratio(particle, real_particle, polarity),
+            "background_brightness": level_ratio(background, real_background, polarity),
+            "contrast": contrast(particle, background, polarity),
+        }
         seconds = time.perf_counter() - start
-        entry = {"epoch": epoch, "step": training_steps(trainer), "fid": fid, "kid": kid_mean, "kid_std": kid_std,
-                 "brightness": brightness, **tones, "n_images": n, "seconds": seconds}
+        entry = {
+            "epoch": epoch,
+            "step": training_steps(trainer),
+            "fid": fid,
+            "kid": kid_mean,
+            "kid_std": kid_std,
+            "brightness": brightness,
+            **tones,
+            "n_images": n,
+            "seconds": seconds,
+        }
         if screen_kid is not None:
             entry["screen_kid"] = float(screen_kid)
         self.history = [h for h in self.history if h["epoch"] != epoch] + [entry]
         if trainer.is_global_zero:
             if math.isfinite(fid):
-                log.info("epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (particles %.2f x, background %.2f x, "
-                         "contrast %.2f for %s particles; %d images, %.1f s)", epoch, fid, kid_mean, brightness,
-                         tones["particle_brightness"], tones["background_brightness"], tones["contrast"], polarity, n,
-                         seconds)
+                log.info(
+                    "epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (particles %.2f x, background %.2f x, "
+                    "contrast %.2f for %s particles; %d images, %.1f s)",
+                    epoch,
+                    fid,
+                    kid_mean,
+                    brightness,
+                    tones["particle_brightness"],
+                    tones["background_brightness"],
+                    tones["contrast"],
+                    polarity,
+                    n,
+                    seconds,
+                )
             else:
-                log.info("epoch %d: screened out (KID of %d images %.4g, above the lowest so far by more than %g %%): "
-                         "no full FID (%.1f s)", epoch, n, screen_kid, 100 * self.screen_margin, seconds)
-        metrics = [("val/fid", fid), ("val/kid", kid_mean), ("val/brightness", brightness),
-                   *((f"val/{k}", v) for k, v in tones.items()), ("time/fid_s", seconds)]
+                log.info(
+                    "epoch %d: screened out (KID of %d images %.4g, above the lowest so far by more than %g %%): "
+                    "no full FID (%.1f s)",
+                    epoch,
+                    n,
+                    screen_kid,
+                    100 * self.screen_margin,
+                    seconds,
+                )
+        metrics = [
+            ("val/fid", fid),
+            ("val/kid", kid_mean),
+            ("val/brightness", brightness),
+            *((f"val/{k}", v) for k, v in tones.items()),
+            ("time/fid_s", seconds),
+        ]
         if screen_kid is not None:
             metrics.append(("val/screen_kid", screen_kid))
         for key, value in metrics:

@@ -42,8 +42,13 @@ def rng_state() -> dict:
     version, internal, gauss = random.getstate()
     return {
         "torch": torch.get_rng_state(),
-        "numpy": {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
-                  "has_gauss": int(has_gauss), "cached": float(cached)},
+        "numpy": {
+            "kind": kind,
+            "keys": torch.from_numpy(keys.astype(np.int64)),
+            "pos": int(pos),
+            "has_gauss": int(has_gauss),
+            "cached": float(cached),
+        },
         "python": {"version": int(version), "internal": list(internal), "gauss": gauss},
     }
 
@@ -104,7 +109,9 @@ class ResumeCheckpoint(Callback):
     def _finish_pending(self, trainer: Trainer, restore_rng: bool = True) -> None:
         if self.pending_epoch is None:
             return
-        if restore_rng and self._epoch_end_rng is not None:  # whatever the epoch-end work drew, the next epoch starts as if it drew nothing
+        if (
+            restore_rng and self._epoch_end_rng is not None
+        ):  # whatever the epoch-end work drew, the next epoch starts as if it drew nothing
             set_rng_state(self._epoch_end_rng)
         self.pending_epoch = None
         self.save(trainer)
@@ -119,7 +126,10 @@ class ResumeCheckpoint(Callback):
     # --- resuming ----------------------------------------------------------------------------------------------
 
     def state_dict(self) -> dict:
-        return {"pending_epoch": self.pending_epoch, "rng": self._epoch_end_rng if self.pending_epoch is not None else rng_state()}
+        return {
+            "pending_epoch": self.pending_epoch,
+            "rng": self._epoch_end_rng if self.pending_epoch is not None else rng_state(),
+        }
 
     def load_state_dict(self, state_dict: dict) -> None:
         self._restored_pending = state_dict.get("pending_epoch")
@@ -132,7 +142,9 @@ class ResumeCheckpoint(Callback):
         epoch, self._restored_pending = self._restored_pending, None
         if epoch is None:
             return
-        log.info("resume: epoch %d ended before its epoch-end work (FID, best epoch, plots) finished; redoing it", epoch)
+        log.info(
+            "resume: epoch %d ended before its epoch-end work (FID, best epoch, plots) finished; redoing it", epoch
+        )
         with rng_neutral():
             replay_epoch_end(trainer, pl_module, epoch, skip=self)
         # The RNG states came from the checkpoint, and Lightning has already drawn from them (the data loader's

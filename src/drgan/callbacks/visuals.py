@@ -8,7 +8,6 @@
 from __future__ import annotations
 
 import math
-
 from pathlib import Path
 
 import numpy as np
@@ -66,8 +65,13 @@ def plot_fid_curve(history: list[dict]):
     ax.plot([h["epoch"] for h in full], [h["fid"] for h in full], marker="o", label="FID")
     screened = [h["epoch"] for h in history if not math.isfinite(h["fid"])]
     if screened:  # the KID screen found them no better: no full FID (drgan.callbacks.fid)
-        ax.plot(screened, [max((h["fid"] for h in full), default=0.0)] * len(screened), "x", color="grey",
-                label="screened out (KID)")
+        ax.plot(
+            screened,
+            [max((h["fid"] for h in full), default=0.0)] * len(screened),
+            "x",
+            color="grey",
+            label="screened out (KID)",
+        )
         ax.legend(fontsize=7)
     ax.set_xlabel("epoch")
     ax.set_ylabel("FID")
@@ -110,7 +114,9 @@ class ParameterHistogramCallback(Callback):
         learned = pl_module.generator.learned
         if learned:
             path = plots / f"params_epoch_{epoch:03d}.png"
-            save_figure(plot_parameter_histograms(pl_module.parameter_samples(self._phi), learned, f"epoch {epoch}"), path)
+            save_figure(
+                plot_parameter_histograms(pl_module.parameter_samples(self._phi), learned, f"epoch {epoch}"), path
+            )
             log_artifact(trainer, path, "plots")
         fid_callback = next((c for c in trainer.callbacks if isinstance(c, FIDCallback)), None)
         if fid_callback is not None and fid_callback.history:

@@ -23,7 +23,9 @@ SIZE_FACTOR = 2.0  # data and material particle sizes may differ by up to this f
 N_IMAGES = 6  # training images looked at (about one second each)
 
 
-def data_particle_size(images: Sequence[np.ndarray], polarity: str, segment: SegmentParams | None = None) -> float | None:
+def data_particle_size(
+    images: Sequence[np.ndarray], polarity: str, segment: SegmentParams | None = None
+) -> float | None:
     """Median equivalent diameter (px) of the particles segmented in ``images``, or None when none is found."""
     diameters = np.concatenate([particle_diameters(image, segment, polarity) for image in images] or [np.zeros(0)])
     return float(np.median(diameters)) if diameters.size else None
@@ -37,8 +39,13 @@ def check_material_fits_data(material: Mapping, polarity: str, size_px: float | 
     classical segmentation's error (on the TiO2 train images it gives 21.5 px SEM, 29.3 px TSEM; masks: 26.5)."""
     name = material.get("name", "?")
     expected = check_polarity(material.get("polarity", "bright"), "material.polarity")
-    report = {"material": name, "material_polarity": expected, "data_polarity": polarity,
-              "material_particle_size_px": material.get("particle_size_px"), "data_particle_size_px": size_px}
+    report = {
+        "material": name,
+        "material_polarity": expected,
+        "data_polarity": polarity,
+        "material_particle_size_px": material.get("particle_size_px"),
+        "data_particle_size_px": size_px,
+    }
     override = "data.check_material=false runs it anyway"
     if polarity != expected:
         raise ConfigError(

@@ -19,7 +19,6 @@ from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
 from drgan.data.images import list_images, read_grey, read_split
-from drgan.data.polarity import check_polarity, detect_polarity
 from drgan.data.patches import (
     PatchSet,
     SegmentParams,
@@ -28,8 +27,9 @@ from drgan.data.patches import (
     dihedral_augment,
     mine_patches,
 )
-from drgan.io import write_with
+from drgan.data.polarity import check_polarity, detect_polarity
 from drgan.errors import ConfigError, DataError
+from drgan.io import write_with
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +99,9 @@ class RealPatchDataModule(LightningDataModule):
         self.split = split
         if isinstance(crop_rows, str) and crop_rows != "auto":
             raise ConfigError(f"data.crop_rows={crop_rows!r}: expected [start, stop), auto or null")
-        self.crop_rows = crop_rows if crop_rows is None or isinstance(crop_rows, str) else tuple(int(v) for v in crop_rows)
+        self.crop_rows = (
+            crop_rows if crop_rows is None or isinstance(crop_rows, str) else tuple(int(v) for v in crop_rows)
+        )
         self.patch_size = int(patch_size)
         self.stride = int(stride)
         self.min_particles = int(min_particles)
@@ -140,18 +142,23 @@ class RealPatchDataModule(LightningDataModule):
     def resolve_ids(self) -> tuple[list[Path], list[str], list[str]]:
         """(train image paths, train ids, test ids); raises DataError on a missing image or a leaked test id."""
         if not self.dir.is_dir():
-            raise DataError(f"data.dir={self.dir}: no such folder (expected a folder of real images: "
-                            "data.dir=/path/to/your/images)")
+            raise DataError(
+                f"data.dir={self.dir}: no such folder (expected a folder of real images: data.dir=/path/to/your/images)"
+            )
         split_path = self._split_path()
         if split_path is None:
             paths = list_images(self.dir)
-            log.warning("data: no split file; training on all %d images of %s (no test ids held out)", len(paths), self.dir)
+            log.warning(
+                "data: no split file; training on all %d images of %s (no test ids held out)", len(paths), self.dir
+            )
             return paths, [p.stem for p in paths], []
         split = read_split(split_path)
         train, test = split["train"], split["test"]
         leaked = sorted(set(train) & set(test))
         if leaked:  # read_split refuses overlaps already; this guards the invariant itself
-            raise DataError(f"split {split_path}: test id(s) {leaked[:5]} are in the train list; test images must never be trained on")
+            raise DataError(
+                f"split {split_path}: test id(s) {leaked[:5]} are in the train list; test images must never be trained on"
+            )
         if not train:
             raise DataError(f"split {split_path}: empty 'train' list")
         list_images(self.dir, test)  # a test id without an image means the split does not belong to this folder
@@ -231,7 +238,9 @@ class RealPatchDataModule(LightningDataModule):
         if self.polarity is None:
             estimate = detect_polarity(images)
             self.polarity, self.polarity_estimate = estimate.polarity, estimate.as_dict()
-            log.info("data: particles are %s (data.polarity=auto: %s)", self.polarity, json.dumps(self.polarity_estimate))
+            log.info(
+                "data: particles are %s (data.polarity=auto: %s)", self.polarity, json.dumps(self.polarity_estimate)
+            )
         return self.polarity
 
     def check_fits(self, material: Mapping) -> dict | None:
@@ -245,7 +254,9 @@ class RealPatchDataModule(LightningDataModule):
         polarity = self.resolve_polarity(images)
         if not self.check_material:
             return None
-        return check_material_fits_data(material, polarity, data_particle_size(images, polarity, self.segment), self.dir)
+        return check_material_fits_data(
+            material, polarity, data_particle_size(images, polarity, self.segment), self.dir
+        )
 
     def min_train_patches(self) -> int:
         """Fewest training patches a run can use: 2 for the real FID statistics (a covariance needs two
@@ -259,7 +270,11 @@ class RealPatchDataModule(LightningDataModule):
         if found >= needed:
             return
         what = f"no {self.patch_size} px patch" if found == 0 else f"only {found} {self.patch_size} px patch(es)"
-        sheet = f"; the mined patches are shown in {self.cache_dir / 'contact_sheet.png'}" if self.cache_dir and found else ""
+        sheet = (
+            f"; the mined patches are shown in {self.cache_dir / 'contact_sheet.png'}"
+            if self.cache_dir and found
+            else ""
+        )
         raise DataError(
             f"data.dir {self.dir}: {what} with >= {self.min_particles} fully displayed particles in the {n_images} "
             f"training image(s); training needs at least {needed} (2 for the FID statistics, data.batch_size="

@@ -48,7 +48,9 @@ def read_grey(path: str | Path, crop_rows: tuple[int, int] | str | None = None) 
     except DataError:
         raise
     except Exception as exc:  # corrupt or truncated files raise many kinds of errors in tifffile and PIL
-        raise DataError(f"image {path}: cannot be read as a {suffix[1:].upper()} image ({type(exc).__name__}: {exc})") from exc
+        raise DataError(
+            f"image {path}: cannot be read as a {suffix[1:].upper()} image ({type(exc).__name__}: {exc})"
+        ) from exc
     grey = _to_unit_grey(raw, path)
     crop_rows = resolve_crop_rows(crop_rows, grey, path)
     if crop_rows is not None:
@@ -135,7 +137,9 @@ def _read_pil(path: Path) -> np.ndarray:
             if img.mode == "I":
                 # PIL opens 16-bit grey PNGs as 32-bit "I"; their values must fit 16 bits.
                 if data.size and (data.min() < 0 or data.max() > 65535):
-                    raise DataError(f"image {path}: 32-bit integer values outside 0-65535 (expected an 8- or 16-bit image)")
+                    raise DataError(
+                        f"image {path}: 32-bit integer values outside 0-65535 (expected an 8- or 16-bit image)"
+                    )
                 data = data.astype(np.uint16)
             return data
     except UnidentifiedImageError as exc:
@@ -169,7 +173,9 @@ def _to_unit_grey(data: np.ndarray, path: Path) -> np.ndarray:
                 "(expected [0, 1]; rescale the image yourself, its scale is not known here)"
             )
     else:
-        raise DataError(f"image {path}: unsupported pixel type {data.dtype} (expected 8- or 16-bit integers or floats in [0, 1])")
+        raise DataError(
+            f"image {path}: unsupported pixel type {data.dtype} (expected 8- or 16-bit integers or floats in [0, 1])"
+        )
 
     if values.ndim == 3 and values.shape[-1] in (3, 4):
         values = values[..., :3] @ _LUMA
@@ -184,7 +190,9 @@ def _drop_rows(grey: np.ndarray, crop_rows: tuple[int, int], path: Path) -> np.n
     start, stop = (int(v) for v in crop_rows)
     height = grey.shape[0]
     if not 0 <= start < stop <= height:
-        raise DataError(f"image {path}: crop_rows {crop_rows} is not a row range [start, stop) inside its {height} rows")
+        raise DataError(
+            f"image {path}: crop_rows {crop_rows} is not a row range [start, stop) inside its {height} rows"
+        )
     if stop - start == height:
         raise DataError(f"image {path}: crop_rows {crop_rows} would drop all {height} rows")
     return np.ascontiguousarray(np.concatenate([grey[:start], grey[stop:]], axis=0))
@@ -204,7 +212,9 @@ def list_images(folder: str | Path, ids: Sequence[str] | None = None) -> list[Pa
         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES:
             by_stem.setdefault(p.stem, []).append(p)
     if not by_stem:
-        raise DataError(f"image folder {folder}: holds no image files (expected files ending in {', '.join(IMAGE_SUFFIXES)})")
+        raise DataError(
+            f"image folder {folder}: holds no image files (expected files ending in {', '.join(IMAGE_SUFFIXES)})"
+        )
     stems = sorted(by_stem) if ids is None else [str(i) for i in ids]
     missing = [s for s in stems if s not in by_stem]
     if missing:
@@ -212,7 +222,9 @@ def list_images(folder: str | Path, ids: Sequence[str] | None = None) -> list[Pa
         raise DataError(f"image folder {folder}: no image for {len(missing)} requested id(s): {shown}")
     ambiguous = [s for s in stems if len(by_stem[s]) > 1]
     if ambiguous:
-        raise DataError(f"image folder {folder}: id {ambiguous[0]!r} matches several files {[p.name for p in by_stem[ambiguous[0]]]}")
+        raise DataError(
+            f"image folder {folder}: id {ambiguous[0]!r} matches several files {[p.name for p in by_stem[ambiguous[0]]]}"
+        )
     return [by_stem[s][0] for s in stems]
 
 
@@ -230,7 +242,7 @@ def read_split(path: str | Path) -> dict[str, list[str]]:
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"split file {path}: not valid JSON ({exc})") from exc
     if not isinstance(split, dict):
-        raise DataError(f"split file {path}: expected a JSON object like {{\"train\": [ids], \"test\": [ids]}}")
+        raise DataError(f'split file {path}: expected a JSON object like {{"train": [ids], "test": [ids]}}')
     for key in ("train", "test"):
         if key not in split:
             raise DataError(f"split file {path}: no {key!r} list (expected keys 'train' and 'test')")

@@ -62,7 +62,9 @@ class SegmentParams:
         if self.min_distance < 1:
             raise ConfigError(f"SegmentParams.min_distance={self.min_distance}: expected >= 1")
         if not 0 < self.min_area <= self.max_area:
-            raise ConfigError(f"SegmentParams min_area={self.min_area}, max_area={self.max_area}: expected 0 < min_area <= max_area")
+            raise ConfigError(
+                f"SegmentParams min_area={self.min_area}, max_area={self.max_area}: expected 0 < min_area <= max_area"
+            )
         if not 0 <= self.min_separability < 1:
             raise ConfigError(f"SegmentParams.min_separability={self.min_separability}: expected in [0, 1)")
 
@@ -197,7 +199,9 @@ class PatchSet:
             lengths = {len(getattr(self, f"{name}{suffix}")) for suffix in ("_ids", "_positions")}
             extra = self.train_counts if name == "train" else self.background_fractions
             if lengths | {len(extra)} != {n}:
-                raise DataError(f"PatchSet {name}: {n} patches but ids/positions/{'counts' if name == 'train' else 'fractions'} of other lengths")
+                raise DataError(
+                    f"PatchSet {name}: {n} patches but ids/positions/{'counts' if name == 'train' else 'fractions'} of other lengths"
+                )
 
     @property
     def patch_size(self) -> int:
@@ -219,10 +223,14 @@ class PatchSet:
             "n_images_with_train_patches": len(per_image),
             "train_per_image": per_image,
             "particles_per_patch": (
-                {"min": int(counts.min()), "median": float(np.median(counts)), "max": int(counts.max())} if counts.size else {}
+                {"min": int(counts.min()), "median": float(np.median(counts)), "max": int(counts.max())}
+                if counts.size
+                else {}
             ),
             "background_empty": int(np.sum(np.asarray(self.background_fractions) == 0)),
-            "background_max_fraction": float(np.max(self.background_fractions)) if len(self.background_fractions) else 0.0,
+            "background_max_fraction": float(np.max(self.background_fractions))
+            if len(self.background_fractions)
+            else 0.0,
         }
 
     def save(self, directory: str | Path) -> Path:
@@ -337,7 +345,9 @@ def check_image_sizes(images: Sequence[np.ndarray], ids: Sequence[str], size: in
         if image.ndim != 2:
             raise DataError(f"image {name!r}: shape {image.shape} (expected one grey channel, (H, W))")
         if image.shape[0] < size or image.shape[1] < size:
-            raise DataError(f"image {name!r}: {image.shape[1]} x {image.shape[0]} px (W x H) is smaller than a {size} x {size} patch")
+            raise DataError(
+                f"image {name!r}: {image.shape[1]} x {image.shape[0]} px (W x H) is smaller than a {size} x {size} patch"
+            )
 
 
 def mine_patches(
@@ -375,11 +385,17 @@ def mine_patches(
     if len(set(ids)) != len(ids):
         raise ConfigError("mine_patches: ids must be unique")
     if size < 8 or stride < 1 or background_stride < 1:
-        raise ConfigError(f"mine_patches: size={size}, stride={stride}, background_stride={background_stride}: expected size >= 8, strides >= 1")
+        raise ConfigError(
+            f"mine_patches: size={size}, stride={stride}, background_stride={background_stride}: expected size >= 8, strides >= 1"
+        )
     if min_particles < 1 or n_background < 0:
-        raise ConfigError(f"mine_patches: min_particles={min_particles}, n_background={n_background}: expected >= 1 and >= 0")
+        raise ConfigError(
+            f"mine_patches: min_particles={min_particles}, n_background={n_background}: expected >= 1 and >= 0"
+        )
     if not 0 <= max_overlap < 1 or not 0 <= min_corr_distance < 1:
-        raise ConfigError(f"mine_patches: max_overlap={max_overlap}, min_corr_distance={min_corr_distance}: expected in [0, 1)")
+        raise ConfigError(
+            f"mine_patches: max_overlap={max_overlap}, min_corr_distance={min_corr_distance}: expected in [0, 1)"
+        )
     check_image_sizes(images, ids, size)
 
     train_candidates: list[_Candidate] = []
@@ -396,7 +412,12 @@ def mine_patches(
         # Foreground fraction of every background window from one summed-area table.
         rows, cols = window_starts(height, size, background_stride), window_starts(width, size, background_stride)
         table = np.pad(foreground.astype(np.int64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-        sums = table[rows[:, None] + size, cols + size] - table[rows[:, None], cols + size] - table[rows[:, None] + size, cols] + table[rows[:, None], cols]
+        sums = (
+            table[rows[:, None] + size, cols + size]
+            - table[rows[:, None], cols + size]
+            - table[rows[:, None] + size, cols]
+            + table[rows[:, None], cols]
+        )
         for i, r in enumerate(rows):
             for j, c in enumerate(cols):
                 fraction = float(sums[i, j]) / (size * size)
@@ -418,7 +439,12 @@ def mine_patches(
 
     n_empty = sum(k.value == 0 for k in background)
     threshold = max((k.value for k in background), default=0.0)
-    report = {"requested": n_background, "found": len(background), "empty": n_empty, "max_foreground_fraction": threshold}
+    report = {
+        "requested": n_background,
+        "found": len(background),
+        "empty": n_empty,
+        "max_foreground_fraction": threshold,
+    }
     if n_empty < n_background:
         log.warning(
             "background patches: %d of %d requested are free of foreground; %d taken in all, the emptiest with "
@@ -479,17 +505,25 @@ def contact_sheet(
     if isinstance(patches, PatchSet):
         # Background: an even sample over the foreground fraction, so the least empty ones are shown too.
         by_fraction = np.argsort(patches.background_fractions, kind="stable")
-        shown = by_fraction[np.unique(np.linspace(0, len(by_fraction) - 1, min(max_background, len(by_fraction))).round().astype(int))]
+        shown = by_fraction[
+            np.unique(np.linspace(0, len(by_fraction) - 1, min(max_background, len(by_fraction))).round().astype(int))
+        ]
         sections = [
             (
                 f"selected: {len(patches.train)} patches",
                 patches.train,
-                [f"{i} {r},{c} n={n}" for i, (r, c), n in zip(patches.train_ids, patches.train_positions, patches.train_counts)],
+                [
+                    f"{i} {r},{c} n={n}"
+                    for i, (r, c), n in zip(patches.train_ids, patches.train_positions, patches.train_counts)
+                ],
             ),
             (
                 f"background: {len(patches.background)} patches (showing {len(shown)}, by foreground fraction f)",
                 patches.background[shown],
-                [f"{patches.background_ids[k]} {patches.background_positions[k][0]},{patches.background_positions[k][1]} f={patches.background_fractions[k]:.3f}" for k in shown],
+                [
+                    f"{patches.background_ids[k]} {patches.background_positions[k][0]},{patches.background_positions[k][1]} f={patches.background_fractions[k]:.3f}"
+                    for k in shown
+                ],
             ),
         ]
         title = title or f"PatchSet: {len(patches.train)} selected, {len(patches.background)} background"

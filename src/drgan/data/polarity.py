@@ -31,8 +31,10 @@ def check_polarity(value, setting: str = "data.polarity", allow_auto: bool = Fal
     """``value`` as one of bright / dark (and auto when allowed), or a ConfigError naming ``setting``."""
     allowed = SETTINGS if allow_auto else POLARITIES
     if not isinstance(value, str) or value not in allowed:
-        raise ConfigError(f"{setting}={value!r}: expected one of {', '.join(allowed)} (particles brighter or darker than "
-                          "the background)")
+        raise ConfigError(
+            f"{setting}={value!r}: expected one of {', '.join(allowed)} (particles brighter or darker than "
+            "the background)"
+        )
     return value
 
 
@@ -91,13 +93,17 @@ def detect_polarity(images: Iterable[np.ndarray], sigma: float = 2.0) -> Polarit
     votes = tuple(image_vote(image, sigma) for image in images)
     cast = [v.polarity for v in votes if v.polarity is not None]
     if not cast:
-        raise DataError(f"polarity: none of the {len(votes)} image(s) has any contrast; cannot tell particles from "
-                        "background (set data.polarity=bright or dark)")
+        raise DataError(
+            f"polarity: none of the {len(votes)} image(s) has any contrast; cannot tell particles from "
+            "background (set data.polarity=bright or dark)"
+        )
     bright = cast.count("bright")
     dark = len(cast) - bright
     if bright == dark:
-        raise DataError(f"polarity: {bright} image(s) look like bright particles and {dark} like dark ones; set "
-                        "data.polarity=bright or data.polarity=dark")
+        raise DataError(
+            f"polarity: {bright} image(s) look like bright particles and {dark} like dark ones; set "
+            "data.polarity=bright or data.polarity=dark"
+        )
     polarity = "bright" if bright > dark else "dark"
     return PolarityEstimate(polarity, max(bright, dark) / len(cast), votes)
 

@@ -60,9 +60,12 @@ def tune_segment_params(first_pass_median: float) -> SegmentParams:
     diameter = CALIBRATED_DIAMETER * scale
     min_area = max(4, int(round(math.pi / 4 * (0.27 * diameter) ** 2)))  # 40 px^2 at 26 px: SegmentParams' default
     max_area = int(round(math.pi / 4 * (4.0 * diameter) ** 2))  # 4 diameters across: an unsplit agglomerate
-    return SegmentParams(sigma=round(CALIBRATED_SIGMA * min(scale, 2.0), 2),
-                         min_distance=max(1, int(round(CALIBRATED_MIN_DISTANCE * scale))),
-                         min_area=min_area, max_area=max(max_area, min_area))
+    return SegmentParams(
+        sigma=round(CALIBRATED_SIGMA * min(scale, 2.0), 2),
+        min_distance=max(1, int(round(CALIBRATED_MIN_DISTANCE * scale))),
+        min_area=min_area,
+        max_area=max(max_area, min_area),
+    )
 
 
 def segment_image(image: np.ndarray, params: SegmentParams, polarity: str) -> tuple[np.ndarray, np.ndarray]:
@@ -124,8 +127,9 @@ def window_starts(length: int, size: int, stride: int) -> np.ndarray:
     return margin + stride * np.arange(n, dtype=np.int64)
 
 
-def patch_counts(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int], size: int = 256,
-                 stride: int | None = None) -> np.ndarray:
+def patch_counts(
+    rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int], size: int = 256, stride: int | None = None
+) -> np.ndarray:
     """Particles whose centroid lies inside each size x size window of the grid (stride size // 2): a flat array."""
     stride = stride or size // 2
     r0 = window_starts(shape[0], size, stride)[:, None]
@@ -219,7 +223,7 @@ class NoiseEstimate:
 
 def background_noise(images: list[np.ndarray], foregrounds: list[np.ndarray]) -> NoiseEstimate:
     """Background grey level, noise sigma and grain from the background pixels of all images (see module doc)."""
-    grey, residual, pairs_num, pairs_den, used, total = [], [], 0.0, 0.0, 0, 0
+    grey, residual, used, total = [], [], 0, 0
     rhos, weights = [], []
     for image, foreground in zip(images, foregrounds):
         mask = background_mask(foreground)
@@ -233,16 +237,19 @@ def background_noise(images: list[np.ndarray], foregrounds: list[np.ndarray]) ->
         rhos.append(lag1_autocorrelation(r, mask))
         weights.append(float(mask.sum()))
     if not grey:
-        raise DataError("profile: no image has background pixels (at least 100 farther than "
-                        f"{BACKGROUND_MARGIN} px from every particle): cannot measure the background and noise")
+        raise DataError(
+            "profile: no image has background pixels (at least 100 farther than "
+            f"{BACKGROUND_MARGIN} px from every particle): cannot measure the background and noise"
+        )
     rho = float(np.average(rhos, weights=weights))
     table_rho, table_ratio = _grain_calibration()
     # The autocorrelation grows with the grain; interpolate the grain (clamped to the table's range).
     grain = float(np.interp(rho, table_rho, GRAIN_GRID))
     ratio = float(np.interp(grain, GRAIN_GRID, table_ratio))
     residual_sigma = _mad(np.concatenate(residual))
-    return NoiseEstimate(float(np.median(np.concatenate(grey))), residual_sigma / ratio, residual_sigma, rho, grain,
-                         used / total)
+    return NoiseEstimate(
+        float(np.median(np.concatenate(grey))), residual_sigma / ratio, residual_sigma, rho, grain, used / total
+    )
 
 
 # --- size distribution ------------------------------------------------------------------------------------
@@ -266,13 +273,20 @@ class SizeFit:
             if self.kind == "lognormal":
                 out = _normal_pdf(logd, math.log(p["median"]), p["sigma"]) / d
             else:
-                out = (p["weight1"] * _normal_pdf(logd, math.log(p["median1"]), p["sigma1"])
-                       + (1 - p["weight1"]) * _normal_pdf(logd, math.log(p["median2"]), p["sigma2"])) / d
+                out = (
+                    p["weight1"] * _normal_pdf(logd, math.log(p["median1"]), p["sigma1"])
+                    + (1 - p["weight1"]) * _normal_pdf(logd, math.log(p["median2"]), p["sigma2"])
+                ) / d
         return np.nan_to_num(out)
 
     def as_dict(self) -> dict:
-        return {"kind": self.kind, "params": {k: round(float(v), 5) for k, v in self.params.items()},
-                "log_likelihood": round(self.log_likelihood, 3), "n_params": self.n_params, "bic": round(self.bic, 3)}
+        return {
+            "kind": self.kind,
+            "params": {k: round(float(v), 5) for k, v in self.params.items()},
+            "log_likelihood": round(self.log_likelihood, 3),
+            "n_params": self.n_params,
+            "bic": round(self.bic, 3),
+        }
 
 
 def _normal_pdf(x, mean, std):
@@ -294,8 +308,9 @@ def fit_sizes(diameters: np.ndarray, seed: int = 0) -> tuple[list[SizeFit], Size
     mean, std = float(d.mean()), float(d.std())
     normal = make("normal", {"mean": mean, "std": std}, np.log(_normal_pdf(d, mean, std)).sum(), 2)
     mu, sigma = float(logd.mean()), float(logd.std())
-    lognormal = make("lognormal", {"median": math.exp(mu), "sigma": sigma},
-                     (np.log(_normal_pdf(logd, mu, sigma)) - logd).sum(), 2)
+    lognormal = make(
+        "lognormal", {"median": math.exp(mu), "sigma": sigma}, (np.log(_normal_pdf(logd, mu, sigma)) - logd).sum(), 2
+    )
     fits = [normal, lognormal, _fit_mixture(logd, seed, make)]
     return fits, min(fits, key=lambda f: f.bic)
 
@@ -309,8 +324,18 @@ def _fit_mixture(logd: np.ndarray, seed: int, make) -> SizeFit:
     m = gm.means_.ravel()[order]
     s = np.sqrt(gm.covariances_.ravel()[order])
     loglik = float(gm.score(logd[:, None]) * logd.size - logd.sum())
-    return make("bimodal", {"weight1": float(w[0]), "median1": float(math.exp(m[0])), "sigma1": float(s[0]),
-                            "median2": float(math.exp(m[1])), "sigma2": float(s[1])}, loglik, 5)
+    return make(
+        "bimodal",
+        {
+            "weight1": float(w[0]),
+            "median1": float(math.exp(m[0])),
+            "sigma1": float(s[0]),
+            "median2": float(math.exp(m[1])),
+            "sigma2": float(s[1]),
+        },
+        loglik,
+        5,
+    )
 
 
 def lognormal_to_normal(median: float, sigma: float) -> tuple[float, float]:

@@ -22,12 +22,18 @@ def load_backgrounds(path: Path | None, n: int, resolution: int) -> tuple[list[n
     from drgan.data.patches import PatchSet
 
     if path is None:
-        raise ConfigError(f"n_background={n}: no background patches found; give backgrounds=PATCHSET_FOLDER "
-                          "(a run's patches/) or n_background=0")
+        raise ConfigError(
+            f"n_background={n}: no background patches found; give backgrounds=PATCHSET_FOLDER "
+            "(a run's patches/) or n_background=0"
+        )
     patches = PatchSet.load(path)
     if len(patches.background) < n:
-        log.warning("backgrounds=%s holds %d background patches, fewer than n_background=%d: using all",
-                    path, len(patches.background), n)
+        log.warning(
+            "backgrounds=%s holds %d background patches, fewer than n_background=%d: using all",
+            path,
+            len(patches.background),
+            n,
+        )
     images, sources = [], []
     for k in range(min(n, len(patches.background))):
         patch = np.asarray(patches.background[k], dtype=np.float32)

@@ -69,14 +69,17 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
     backgrounds = [bg_id(k) for k in range(n_background) if folder.done(bg_id(k))]
     problem = None
     if cutoff is None:
-        problem = (f"synthetic index {missing} ({syn_id(missing)}) is not done yet "
-                   f"({kept_below(outcomes, missing)} of n={n} kept below it)")
+        problem = (
+            f"synthetic index {missing} ({syn_id(missing)}) is not done yet "
+            f"({kept_below(outcomes, missing)} of n={n} kept below it)"
+        )
     elif len(backgrounds) < n_background and not backgrounds_exhausted(settings["backgrounds"], len(backgrounds)):
         problem = f"{len(backgrounds)} of n_background={n_background} background patches are done (shard 0 writes them)"
     if problem:
         if required:
-            raise ConfigError(f"{folder.root}: dataset incomplete: {problem}; "
-                              "run the shards (same command, without merge=true)")
+            raise ConfigError(
+                f"{folder.root}: dataset incomplete: {problem}; run the shards (same command, without merge=true)"
+            )
         log.info("manifest.json not written yet: %s", problem)
         return None
     kept = [i for i in range(cutoff + 1) if outcomes[i]]
@@ -132,8 +135,10 @@ def read_manifest(root: str | Path, setting: str = "data") -> dict:
                 f"{setting}={root}: a drgan.generate folder without manifest.json, so the dataset is not complete: "
                 "run the same generate command again (it resumes), or with merge=true once all its shards are done"
             )
-        raise DataError(f"{setting}={root}: not a drgan dataset: no manifest.json (holds {_listing(root)}; "
-                        f"expected {GENERATED_DATASET})")
+        raise DataError(
+            f"{setting}={root}: not a drgan dataset: no manifest.json (holds {_listing(root)}; "
+            f"expected {GENERATED_DATASET})"
+        )
     try:
         manifest = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as err:
@@ -146,15 +151,21 @@ def read_manifest(root: str | Path, setting: str = "data") -> dict:
     for k, entry in enumerate(entries):
         files = entry.get("files") if isinstance(entry, dict) else None
         if not isinstance(files, dict) or not isinstance(entry.get("id"), str) or not {"image", "mask"} <= set(files):
-            raise DataError(f"{setting}={root}: manifest.json entry {k} ({str(entry)[:80]}) is not an item with "
-                            "'id' and 'files' holding 'image' and 'mask'")
+            raise DataError(
+                f"{setting}={root}: manifest.json entry {k} ({str(entry)[:80]}) is not an item with "
+                "'id' and 'files' holding 'image' and 'mask'"
+            )
         outside = [f for f in files.values() if not isinstance(f, str) or not _inside(f)]
         if outside:
-            raise DataError(f"{setting}={root}: manifest.json entry {entry['id']} names {outside[0]!r} "
-                            "(expected a path inside the dataset folder, e.g. images/ID.png)")
+            raise DataError(
+                f"{setting}={root}: manifest.json entry {entry['id']} names {outside[0]!r} "
+                "(expected a path inside the dataset folder, e.g. images/ID.png)"
+            )
         if entry.get("kind") not in (SYNTHETIC, BACKGROUND):
-            raise DataError(f"{setting}={root}: manifest.json entry {entry['id']} has kind {entry.get('kind')!r} "
-                            f"(expected {SYNTHETIC!r} or {BACKGROUND!r})")
+            raise DataError(
+                f"{setting}={root}: manifest.json entry {entry['id']} has kind {entry.get('kind')!r} "
+                f"(expected {SYNTHETIC!r} or {BACKGROUND!r})"
+            )
     return manifest
 
 
@@ -193,7 +204,6 @@ def unlisted_items(root: str | Path, entries: list[Entry]) -> list[str]:
     return sorted(on_disk - listed)
 
 
-
 # --- image/mask pairs for a segmenter -----------------------------------------------------------------------
 
 
@@ -208,15 +218,22 @@ def image_mask_pairs(root: str | Path, setting: str = "data") -> list[tuple[str,
     if root.is_dir() and not is_generated(root):
         if (root / "images").is_dir() and (root / "masks").is_dir():
             return _pairs_by_name(root, setting)
-        raise DataError(f"{setting}={root}: not a drgan dataset: no manifest.json, and no images/ and masks/ folders "
-                        f"(holds {_listing(root)}; expected {GENERATED_DATASET}, or image/mask pairs images/ID.png "
-                        "and masks/ID.png)")
+        raise DataError(
+            f"{setting}={root}: not a drgan dataset: no manifest.json, and no images/ and masks/ folders "
+            f"(holds {_listing(root)}; expected {GENERATED_DATASET}, or image/mask pairs images/ID.png "
+            "and masks/ID.png)"
+        )
     entries = manifest_entries(read_manifest(root, setting))
     check_files(root, entries, ("image", "mask"), setting)
     unlisted = unlisted_items(root, entries)
     if unlisted:
-        log.info("%s=%s: %d image(s) on disk not listed in manifest.json (e.g. %s) are left out",
-                 setting, root, len(unlisted), unlisted[0])
+        log.info(
+            "%s=%s: %d image(s) on disk not listed in manifest.json (e.g. %s) are left out",
+            setting,
+            root,
+            len(unlisted),
+            unlisted[0],
+        )
     return [(e.id, root / e.files["image"], root / e.files["mask"]) for e in sorted(entries, key=lambda e: e.id)]
 
 

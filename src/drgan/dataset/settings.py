@@ -16,8 +16,17 @@ from drgan.dataset.shards import Shard
 from drgan.dataset.source import checkpoint_config, effective_renderer, generator_checkpoint
 from drgan.errors import ConfigError
 
-FIXED_SETTINGS = ("ckpt", "material", "seed", "contour_px", "min_contrast", "min_background", "polarity", "renderer",
-                  "backgrounds")
+FIXED_SETTINGS = (
+    "ckpt",
+    "material",
+    "seed",
+    "contour_px",
+    "min_contrast",
+    "min_background",
+    "polarity",
+    "renderer",
+    "backgrounds",
+)
 
 
 def fixed_settings(settings: dict) -> dict:
@@ -65,8 +74,10 @@ def settings_from(cfg: DictConfig) -> dict:
     check_polarity(polarity, "polarity" if cfg.get("polarity") else "the checkpoint's material.polarity")
     backgrounds = background_source(cfg.get("backgrounds"), run_dir)
     if n_background and backgrounds is None:
-        raise ConfigError(f"n_background={n_background}: the checkpoint has no run folder with patches/; "
-                          "give backgrounds=PATCHSET_FOLDER or n_background=0")
+        raise ConfigError(
+            f"n_background={n_background}: the checkpoint has no run folder with patches/; "
+            "give backgrounds=PATCHSET_FOLDER or n_background=0"
+        )
     from drgan.models.build import textured
 
     if textured(saved["material"]) and backgrounds is None:

@@ -21,7 +21,7 @@ class Shard:
 
     @classmethod
     def parse(cls, text) -> Shard:
-        """"i/k" with 0 <= i < k; None or "" is the whole range (0/1)."""
+        """ "i/k" with 0 <= i < k; None or "" is the whole range (0/1)."""
         if text in (None, "", "null"):
             return cls(0, 1)
         parts = str(text).split("/")

@@ -20,8 +20,9 @@ def generator_checkpoint(ckpt) -> tuple[Path, Path | None]:
     if path.is_dir():
         best = path / "checkpoints" / "best.ckpt"
         if not best.is_file():
-            raise ConfigError(f"ckpt={ckpt}: a folder without checkpoints/best.ckpt "
-                              "(expected a training run folder or a .ckpt file)")
+            raise ConfigError(
+                f"ckpt={ckpt}: a folder without checkpoints/best.ckpt (expected a training run folder or a .ckpt file)"
+            )
         return best, path
     if not path.is_file():
         raise ConfigError(f"ckpt={ckpt}: no such checkpoint file or run folder")
@@ -36,8 +37,9 @@ def checkpoint_config(ckpt_file: Path) -> dict:
     checkpoint = load_checkpoint(ckpt_file, "ckpt", expected="a .ckpt written by drgan.train")
     cfg = (checkpoint.get("hyper_parameters") or {}).get("cfg")
     if not isinstance(cfg, dict) or "material" not in cfg:
-        raise ConfigError(f"ckpt={ckpt_file}: no drgan model config in its hyperparameters "
-                          "(not a GANModule checkpoint?)")
+        raise ConfigError(
+            f"ckpt={ckpt_file}: no drgan model config in its hyperparameters (not a GANModule checkpoint?)"
+        )
     return cfg
 
 

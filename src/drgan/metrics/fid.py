@@ -41,16 +41,16 @@ import logging
 import os
 import re
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 from PIL import Image
 
-from drgan.io import write_with
 from drgan.errors import ConfigError, DataError
+from drgan.io import write_with
 
 __all__ = [
     "INCEPTION_SIZE",
@@ -167,7 +167,9 @@ def find_inception_weights(weights_path: str | os.PathLike | None = None) -> Pat
 def _expected_sha256(sha256: str | None) -> str:
     expected = INCEPTION_SHA256 if sha256 is None else str(sha256).strip().lower()
     if not re.fullmatch(r"[0-9a-f]{64}", expected):
-        raise ConfigError(f"weights_sha256={sha256!r}: expected 64 hexadecimal digits (as sha256sum prints them) or null")
+        raise ConfigError(
+            f"weights_sha256={sha256!r}: expected 64 hexadecimal digits (as sha256sum prints them) or null"
+        )
     return expected
 
 
@@ -233,7 +235,9 @@ class InceptionFeatures:
         self.batch_size = int(batch_size)
         self.device = torch.device(device)
         self.weights_path = weights_path
-        self.weights_sha256 = None if weights_sha256 is None else _expected_sha256(weights_sha256)  # checked now, used at load
+        self.weights_sha256 = (
+            None if weights_sha256 is None else _expected_sha256(weights_sha256)
+        )  # checked now, used at load
         self.progress = progress
         self._layers: torch.nn.Module | None = None
 
@@ -329,17 +333,13 @@ def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma
     return _frechet_from_factor(mu1, _psd_factor(sigma1, "sigma1"), float(np.trace(sigma1)), mu2, sigma2)
 
 
-def _frechet_from_factor(
-    mu1: np.ndarray, c1: np.ndarray, trace1: float, mu2: np.ndarray, sigma2: np.ndarray
-) -> float:
+def _frechet_from_factor(mu1: np.ndarray, c1: np.ndarray, trace1: float, mu2: np.ndarray, sigma2: np.ndarray) -> float:
     """Frechet distance given any factor C1 (D, r) with sigma1 = C1 C1^T (see ``frechet_distance``)."""
     inner = c1.T @ sigma2 @ c1  # (r, r): same nonzero eigenvalues as R sigma2 R, R = sigma1^(1/2)
     eig = np.linalg.eigvalsh(0.5 * (inner + inner.T))
     if eig.size and eig.min() < -max(1e-6 * float(np.abs(eig).max()), _rank_floor(eig)):
         # sigma2 is only seen through sigma1's span here: a full check would cost another eigh
-        raise DataError(
-            f"frechet_distance: sigma2 is not positive semi-definite (C^T sigma2 C has {eig.min():.3g})"
-        )
+        raise DataError(f"frechet_distance: sigma2 is not positive semi-definite (C^T sigma2 C has {eig.min():.3g})")
     # Zeroing rounding-level eigenvalues matters: with fewer samples than dimensions about 2000 of them
     # are ~1e-16 * max, and their square roots (~1e-8 * sqrt(max) each) would add up to a visible bias.
     tr_covmean = float(np.sqrt(np.where(eig > _rank_floor(eig), eig, 0.0)).sum())
@@ -428,7 +428,7 @@ class FeatureStats:
     def n(self) -> int:
         return int(self.features.shape[0])
 
-    def fid(self, other: "FeatureStats") -> float:
+    def fid(self, other: FeatureStats) -> float:
         """Frechet distance between these statistics and ``other``'s.
 
         Same value as ``frechet_distance(self.mu, self.sigma, other.mu, other.sigma)``, but when this set has
@@ -444,7 +444,7 @@ class FeatureStats:
         return _frechet_from_factor(self.mu, c1, float(np.trace(self.sigma)), other.mu, other.sigma)
 
     @classmethod
-    def from_features(cls, features: np.ndarray) -> "FeatureStats":
+    def from_features(cls, features: np.ndarray) -> FeatureStats:
         feats = _check_features(features, "FeatureStats features")
         return cls(mu=feats.mean(axis=0), sigma=np.cov(feats, rowvar=False), features=feats)
 
@@ -453,7 +453,7 @@ class FeatureStats:
         write_with(path, lambda handle: np.savez(handle, mu=self.mu, sigma=self.sigma, features=self.features))
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "FeatureStats":
+    def load(cls, path: str | os.PathLike) -> FeatureStats:
         path = Path(path)
         if not path.is_file():
             raise DataError(f"feature statistics file {str(path)!r} does not exist")
@@ -519,9 +519,7 @@ def cached_reference_stats(
     return stats
 
 
-def fid_from_images(
-    fake: np.ndarray, real_stats: FeatureStats, extractor: InceptionFeatures | None = None
-) -> float:
+def fid_from_images(fake: np.ndarray, real_stats: FeatureStats, extractor: InceptionFeatures | None = None) -> float:
     """FID of generated images (N, H, W) in [0, 1], N >= 2, against precomputed real statistics."""
     arr = _check_images(fake, "fake images", min_count=2)
     extractor = extractor if extractor is not None else InceptionFeatures()

@@ -62,9 +62,7 @@ def _check_labels(labels: np.ndarray, name: str) -> np.ndarray:
     return labels
 
 
-def binarize_and_label(
-    prob_or_class_map: np.ndarray, particle_class: int = 1, threshold: float = 0.5
-) -> np.ndarray:
+def binarize_and_label(prob_or_class_map: np.ndarray, particle_class: int = 1, threshold: float = 0.5) -> np.ndarray:
     """Particle instances of a segmentation output as a label image (int32, 0 = background).
 
     - Integer (or bool) input is a class map: pixels equal to ``particle_class`` are particle. Any other
@@ -84,8 +82,7 @@ def binarize_and_label(
             raise ConfigError(f"binarize_and_label: threshold must be in [0, 1), got {threshold}")
         if arr.size and (not np.isfinite(arr).all() or arr.min() < 0.0 or arr.max() > 1.0):
             raise DataError(
-                "binarize_and_label: a float map must be probabilities in [0, 1]; "
-                "pass class maps as integers"
+                "binarize_and_label: a float map must be probabilities in [0, 1]; pass class maps as integers"
             )
         particle = arr > threshold
     else:
@@ -145,9 +142,7 @@ def _iou_matrix(pred: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndar
     return inter / np.maximum(union, 1.0), pred_ids[keep_p], true_ids[keep_t]
 
 
-def match_instances(
-    pred_labels: np.ndarray, true_labels: np.ndarray, iou_threshold: float = 0.5
-) -> InstanceMatch:
+def match_instances(pred_labels: np.ndarray, true_labels: np.ndarray, iou_threshold: float = 0.5) -> InstanceMatch:
     """Match predicted to true instances; a pair matches when IoU > ``iou_threshold`` (strictly).
 
     For thresholds >= 0.5 the matching is unique: IoU(p, t) > 0.5 means |p & t| > |p | t| / 2 >= |t| / 2,

@@ -41,7 +41,9 @@ def load_particle_meshes(mesh_cfg: Mapping, base_dir: str | Path | None = None) 
         return meshes.load_mesh_set(path)
     params = mesh_cfg.get("params") or {}
     count = setting_int("material.meshes.count", mesh_cfg["count"], 1)
-    return meshes.generate_meshes(mesh_cfg["kind"], count, setting_int("material.meshes.seed", mesh_cfg.get("seed", 0)), **params)
+    return meshes.generate_meshes(
+        mesh_cfg["kind"], count, setting_int("material.meshes.seed", mesh_cfg.get("seed", 0)), **params
+    )
 
 
 IMAGING = ("secondary", "transmission")
@@ -88,8 +90,17 @@ def render_settings(material: Mapping, renderer: Mapping):
     from drgan.scene.scene import RenderSettings
 
     material, renderer = _plain(material), _plain(renderer)
-    known = {"variant", "integrator", "max_depth", "resolution", "spp", "grad_spp", "grad_seed", "filter_stddev",
-             "camera_distance"}
+    known = {
+        "variant",
+        "integrator",
+        "max_depth",
+        "resolution",
+        "spp",
+        "grad_spp",
+        "grad_seed",
+        "filter_stddev",
+        "camera_distance",
+    }
     unknown = sorted(set(renderer) - known)
     if unknown:
         raise ConfigError(f"renderer: unknown key(s) {unknown}; expected some of {sorted(known)}")
@@ -186,9 +197,17 @@ def sample_phi(cfg: DictConfig, m: int, seed: int) -> np.ndarray:
     placement = layout.placement_from_config(_plain(cfg.placement))
     n, n_min = setting_int("material.n_particles", cfg.material.n_particles, 1), cfg.material.get("n_particles_min")
     if n_min is not None and (isinstance(n_min, bool) or not isinstance(n_min, int) or not 1 <= n_min <= n):
-        raise ConfigError(f"material.n_particles_min={n_min!r}: expected null or an integer in 1..material.n_particles ({n})")
+        raise ConfigError(
+            f"material.n_particles_min={n_min!r}: expected null or an integer in 1..material.n_particles ({n})"
+        )
     return layout.sample_layouts(
-        m, n, size, placement, view_width=setting_float("material.view_width", cfg.material.view_width), seed=seed, n_min=n_min
+        m,
+        n,
+        size,
+        placement,
+        view_width=setting_float("material.view_width", cfg.material.view_width),
+        seed=seed,
+        n_min=n_min,
     )
 
 

@@ -23,8 +23,8 @@ import torch.nn.functional as F
 from lightning.pytorch import LightningModule
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.models import build
 from drgan.errors import ConfigError
+from drgan.models import build
 from drgan.models.discriminator import PatchDiscriminator
 
 log = logging.getLogger(__name__)
@@ -39,7 +39,11 @@ RANK_SEED_STRIDE = 7919
 def model_config(cfg: DictConfig | Mapping) -> dict:
     """The part of a composed training config that the GANModule needs, resolved to plain values."""
     cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg))
-    return {k: OmegaConf.to_container(cfg[k], resolve=True) if isinstance(cfg[k], DictConfig) else cfg[k] for k in MODEL_GROUPS if k in cfg}
+    return {
+        k: OmegaConf.to_container(cfg[k], resolve=True) if isinstance(cfg[k], DictConfig) else cfg[k]
+        for k in MODEL_GROUPS
+        if k in cfg
+    }
 
 
 class LRDecay:
@@ -86,7 +90,9 @@ class GANModule(LightningModule):
         self.lr_g, self.lr_d = float(model.get("lr_g", 2e-4)), float(model.get("lr_d", 1e-4))
         self.betas = tuple(float(b) for b in model.get("betas", (0.5, 0.999)))
         if self.lr_g <= 0 or self.lr_d <= 0 or len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
-            raise ConfigError(f"model: lr_g={self.lr_g}, lr_d={self.lr_d}, betas={self.betas}: expected lr > 0 and two betas in [0, 1)")
+            raise ConfigError(
+                f"model: lr_g={self.lr_g}, lr_d={self.lr_d}, betas={self.betas}: expected lr > 0 and two betas in [0, 1)"
+            )
         self.lr_decay = LRDecay.from_config(model.get("lr_decay"))
         self.max_consecutive_nonfinite = int(model.get("max_consecutive_nonfinite", 5))
         if self.max_consecutive_nonfinite < 1:
@@ -94,7 +100,9 @@ class GANModule(LightningModule):
 
         self.generator = build.build_generator(cfg, base_dir=base_dir, seed=self.seed)
         disc = model.get("discriminator") or {}
-        self.discriminator = PatchDiscriminator(1, int(disc.get("filters", 64)), int(disc.get("n_layers", 3)), float(disc.get("slope", 0.2)))
+        self.discriminator = PatchDiscriminator(
+            1, int(disc.get("filters", 64)), int(disc.get("n_layers", 3)), float(disc.get("slope", 0.2))
+        )
         self.discriminator.check_size(self.generator.scene.spec.render.resolution)
 
         # The phi bank: m constellations drawn once. m defaults to the number of training patches, known only
@@ -111,7 +119,9 @@ class GANModule(LightningModule):
     def set_constellations(self, m: int) -> None:
         """Draw the phi bank of ``m`` constellations (seeded by ``seed``); saved with the hyperparameters."""
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or int(m) < 1:
-            raise ConfigError(f"model.n_constellations={m!r}: expected an integer >= 1 (default: the number of training patches)")
+            raise ConfigError(
+                f"model.n_constellations={m!r}: expected an integer >= 1 (default: the number of training patches)"
+            )
         self.phi_bank = torch.as_tensor(self.sample_phi(int(m), seed=self.seed), dtype=torch.float32)
         self.hparams["m"] = int(m)  # load_from_checkpoint rebuilds a bank of this size
 
@@ -226,7 +236,11 @@ class GANModule(LightningModule):
                 scheduler.step()
 
         # Step values under their plain names (train/g_loss ...), epoch means as <name>_epoch.
-        scalars = {"train/skipped_steps": float(self.skipped_steps), "time/render_s": render_s, "train/lr_g": opt_g.param_groups[0]["lr"]}
+        scalars = {
+            "train/skipped_steps": float(self.skipped_steps),
+            "time/render_s": render_s,
+            "train/lr_g": opt_g.param_groups[0]["lr"],
+        }
         if ok:
             scalars.update({
                 "train/d_loss": d_loss.detach(),
@@ -240,7 +254,14 @@ class GANModule(LightningModule):
 
     def log_scalars(self, scalars: dict, batch_size: int) -> None:
         for key, value in scalars.items():
-            self.log(key, value, on_step=True, on_epoch=False, prog_bar=key in ("train/d_loss", "train/g_loss"), batch_size=batch_size)
+            self.log(
+                key,
+                value,
+                on_step=True,
+                on_epoch=False,
+                prog_bar=key in ("train/d_loss", "train/g_loss"),
+                batch_size=batch_size,
+            )
             if key != "train/skipped_steps":
                 # Epoch means over all DDP ranks (one reduction per epoch; a no-op in a single process).
                 self.log(f"{key}_epoch", value, on_step=False, on_epoch=True, batch_size=batch_size, sync_dist=True)
@@ -297,7 +318,9 @@ class GANModule(LightningModule):
         target = {k: v for k, v in self.state_dict().items() if k.startswith(self.WARM_START_PREFIXES)}
         missing = sorted(set(target) - set(source))
         if missing:
-            raise ConfigError(f"init_from={path}: the checkpoint lacks {missing[:3]}{' ...' if len(missing) > 3 else ''}")
+            raise ConfigError(
+                f"init_from={path}: the checkpoint lacks {missing[:3]}{' ...' if len(missing) > 3 else ''}"
+            )
         for key, value in target.items():
             if source[key].shape != value.shape:
                 raise ConfigError(

@@ -93,7 +93,9 @@ class BackgroundTexture:
         if isinstance(highpass_px, bool) or not isinstance(highpass_px, (int, float)) or not highpass_px > 0:
             raise ConfigError(f"material.background_texture.highpass_px={highpass_px!r}: expected a number of px > 0")
         self.highpass_px = float(highpass_px)
-        self.textures = np.stack([patch - gaussian_filter(patch, self.highpass_px, mode="reflect") for patch in patches])
+        self.textures = np.stack(
+            [patch - gaussian_filter(patch, self.highpass_px, mode="reflect") for patch in patches]
+        )
 
     def __len__(self) -> int:
         return len(self.textures)
@@ -126,7 +128,12 @@ class Generator(nn.Module):
     """FCN + scene + noise. ``forward(phi)`` maps (B, n, 4) constellations to (B, 1, H, W) images."""
 
     def __init__(
-        self, scene: MeshParticles, hidden: int = 128, blocks: int = 4, dropout: float = 0.1, seed: int = 0,
+        self,
+        scene: MeshParticles,
+        hidden: int = 128,
+        blocks: int = 4,
+        dropout: float = 0.1,
+        seed: int = 0,
         noise_grain_px: float = 0.0,
     ):
         super().__init__()
@@ -166,7 +173,9 @@ class Generator(nn.Module):
     def _split(self, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(k,) -> (BSDF values for the scene, sigma)."""
         n_bsdf = len(self.scene.learned_bsdf)
-        sigma = values[n_bsdf] if self.material.noise_sigma.learned else values.new_tensor(self.material.noise_sigma.value)
+        sigma = (
+            values[n_bsdf] if self.material.noise_sigma.learned else values.new_tensor(self.material.noise_sigma.value)
+        )
         return values[:n_bsdf], sigma
 
     def next_seed(self) -> int:
@@ -185,7 +194,9 @@ class Generator(nn.Module):
         if self.background is not None:  # stage pixels only: labels and gradients stay those of the render
             stage = torch.from_numpy(self.scene.instance_labels() == 0).to(radiance.dtype)
             radiance = radiance + self.background.for_seed(seed).to(radiance.dtype) * stage
-        return add_noise(radiance, sigma, seed=seed, grain_px=self.noise_grain_px).unsqueeze(0)  # one seed fixes the image: paths, texture, noise
+        return add_noise(radiance, sigma, seed=seed, grain_px=self.noise_grain_px).unsqueeze(
+            0
+        )  # one seed fixes the image: paths, texture, noise
 
     def render_batch(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, n, 4) -> images (B, 1, H, W) and the learned values (B, k) they were rendered with."""

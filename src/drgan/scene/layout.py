@@ -20,7 +20,6 @@ import math
 import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Union
 
 import numpy as np
 
@@ -193,9 +192,7 @@ class BimodalSize:
             raise ConfigError(f"BimodalSize.weight1 must be in [0, 1], got {self.weight1!r}")
         for name in ("mean1", "mean2"):
             if getattr(self, name) <= self.min_size:
-                raise ConfigError(
-                    f"BimodalSize.{name} must be > min_size ({self.min_size}), got {getattr(self, name)}"
-                )
+                raise ConfigError(f"BimodalSize.{name} must be > min_size ({self.min_size}), got {getattr(self, name)}")
 
     def sample(self, rng: np.random.Generator, shape: int | tuple[int, ...]) -> np.ndarray:
         """Diameters in px, float64 array of ``shape``, all >= min_size."""
@@ -215,7 +212,7 @@ class BimodalSize:
         return mean, math.sqrt(max(second_moment - mean**2, 0.0))
 
 
-SizeDistribution = Union[NormalSize, LognormalSize, BimodalSize]
+SizeDistribution = NormalSize | LognormalSize | BimodalSize
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -513,7 +510,7 @@ class PoissonAgglomerates:
         return positions
 
 
-Placement = Union[Random2D, Random3D, PoissonAgglomerates]
+Placement = Random2D | Random3D | PoissonAgglomerates
 
 
 # ----------------------------------------------------------------------------------------------------------------

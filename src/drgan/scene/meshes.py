@@ -19,15 +19,15 @@ import inspect
 import json
 import os
 import re
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from drgan.io import write_bytes
 from drgan.errors import ConfigError, MeshError
+from drgan.io import write_bytes
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
 
@@ -72,9 +72,7 @@ def validate_mesh(mesh: trimesh.Trimesh, name: str) -> trimesh.Trimesh:
             f"mesh {name!r} has {len(bad)} degenerate faces that repeat a vertex index, first is face {bad[0]}"
         )
     triangles = vertices[faces]
-    areas = 0.5 * np.linalg.norm(
-        np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1
-    )
+    areas = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
     largest_extent = float(np.ptp(vertices, axis=0).max())
     zero_area = areas <= _DEGENERATE_AREA_FRACTION * largest_extent**2
     if zero_area.any():
@@ -372,7 +370,9 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     if not path.is_file():
         raise MeshError(f"mesh file {str(path)!r} does not exist or is not a file")
     if path.suffix.lower() not in MESH_SUFFIXES:
-        raise MeshError(f"mesh file {str(path)!r} has unsupported suffix {path.suffix!r}; expected one of {MESH_SUFFIXES}")
+        raise MeshError(
+            f"mesh file {str(path)!r} has unsupported suffix {path.suffix!r}; expected one of {MESH_SUFFIXES}"
+        )
     try:
         # process=False: validate the file's own data before trimesh silently repairs or drops any of it
         mesh = trimesh.load(path, process=False)
@@ -402,7 +402,9 @@ def load_mesh_set(path: str | os.PathLike) -> list[trimesh.Trimesh]:
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
         if not files:
-            raise MeshError(f"mesh folder {str(path)!r} contains no mesh files; expected files ending in {MESH_SUFFIXES}")
+            raise MeshError(
+                f"mesh folder {str(path)!r} contains no mesh files; expected files ending in {MESH_SUFFIXES}"
+            )
         return [load_mesh(file) for file in files]
     return [load_mesh(path)]
 

@@ -105,7 +105,7 @@ class MaterialParameters:
     noise_sigma: Parameter
 
     @classmethod
-    def from_config(cls, particle_bsdf: Mapping, stage_bsdf: Mapping | None, noise_sigma) -> "MaterialParameters":
+    def from_config(cls, particle_bsdf: Mapping, stage_bsdf: Mapping | None, noise_sigma) -> MaterialParameters:
         params: list[Parameter] = []
         for surface, table in (("stage", stage_bsdf or {}), ("particle", particle_bsdf or {})):
             for name, spec in table.items():
@@ -118,7 +118,7 @@ class MaterialParameters:
         return cls(tuple(params), _parse_sigma(noise_sigma))
 
     @classmethod
-    def from_transmission(cls, transmission: Mapping, noise_sigma) -> "MaterialParameters":
+    def from_transmission(cls, transmission: Mapping, noise_sigma) -> MaterialParameters:
         """``material.transmission`` ({background, absorption, floor}, each {min, max} or {value}) and sigma."""
         if not isinstance(transmission, Mapping):
             raise ConfigError(

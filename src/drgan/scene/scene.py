@@ -500,7 +500,9 @@ class ParticleScene(MeshParticles):
         self.params.update()
         return variables
 
-    def render(self, values: torch.Tensor, seed: int, spp: int | None = None, grad_spp: int | None = None) -> torch.Tensor:
+    def render(
+        self, values: torch.Tensor, seed: int, spp: int | None = None, grad_spp: int | None = None
+    ) -> torch.Tensor:
         """Render the current layout; ``values`` holds the learned BSDF parameters in ``learned_bsdf`` order.
 
         Returns linear radiance (H x W, float32; not clamped), differentiable w.r.t. ``values``.
@@ -559,13 +561,15 @@ class _RenderFunction(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, values: torch.Tensor, scene: "ParticleScene", seed: int, spp: int, grad_spp: int) -> torch.Tensor:
+    def forward(ctx, values: torch.Tensor, scene: ParticleScene, seed: int, spp: int, grad_spp: int) -> torch.Tensor:
         with dr.suspend_grad():
             scene._assign(values, grad=False)
             image = mi.render(scene.scene, scene.params, seed=seed, spp=spp)
             out = torch.from_numpy(np.array(image, dtype=np.float32, copy=True))
         ctx.scene, ctx.grad_spp = scene, grad_spp
-        ctx.grad_seed = adjoint_seed(seed, scene.spec.render.grad_seed)  # fixed now: a later spec change cannot alter it
+        ctx.grad_seed = adjoint_seed(
+            seed, scene.spec.render.grad_seed
+        )  # fixed now: a later spec change cannot alter it
         ctx.layout = scene.layout.copy()
         ctx.save_for_backward(values)
         return out.to(values.device)
@@ -580,7 +584,9 @@ class _RenderFunction(torch.autograd.Function):
             scene.set_layout(ctx.layout)
         variables = scene._assign(values, grad=True)
         grad_in = mi.TensorXf(np.ascontiguousarray(grad_image.detach().cpu().numpy(), dtype=np.float32))
-        scene.scene.integrator().render_backward(scene.scene, scene.params, grad_in, seed=ctx.grad_seed, spp=ctx.grad_spp)
+        scene.scene.integrator().render_backward(
+            scene.scene, scene.params, grad_in, seed=ctx.grad_seed, spp=ctx.grad_spp
+        )
         grads = torch.tensor([float(dr.grad(v)[0]) for v in variables], dtype=values.dtype, device=values.device)
         for v in variables:
             dr.disable_grad(v)

@@ -163,9 +163,7 @@ class TransmissionScene(MeshParticles):
     def transmission_values(self, values: torch.Tensor) -> dict[str, torch.Tensor]:
         """background, absorption, floor as 0-d tensors: learned ones from ``values``, fixed ones as constants."""
         learned = iter(values)
-        return {
-            p.name: next(learned) if p.learned else values.new_tensor(p.value) for p in self.spec.parameters.bsdf
-        }
+        return {p.name: next(learned) if p.learned else values.new_tensor(p.value) for p in self.spec.parameters.bsdf}
 
     def render(
         self, values: torch.Tensor, seed: int, spp: int | None = None, grad_spp: int | None = None

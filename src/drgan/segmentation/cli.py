@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Callable
+from collections.abc import Callable
 
 
 def _quote(value: str) -> str:
-    return value if value.replace("/", "").replace(".", "").replace("_", "").replace("-", "").isalnum() else f"'{value}'"
+    return (
+        value if value.replace("/", "").replace(".", "").replace("_", "").replace("-", "").isalnum() else f"'{value}'"
+    )
 
 
 def rewrite_argv(argv: list[str], *, many_models: bool) -> list[str]:

@@ -127,8 +127,10 @@ def real_mask_path(masks_dir: Path, image_id: str, mask_suffix: str | None = "au
             if (masks_dir / f"{image_id}{stem}{ext}").is_file():
                 return masks_dir / f"{image_id}{stem}{ext}"
     tried = " or ".join(f"{image_id}{stem}.tif" for stem in stems)
-    raise DataError(f"mask folder {masks_dir}: no mask for image id {image_id!r} (expected {tried} or another image "
-                    "type; set mask_suffix if your masks are named otherwise)")
+    raise DataError(
+        f"mask folder {masks_dir}: no mask for image id {image_id!r} (expected {tried} or another image "
+        "type; set mask_suffix if your masks are named otherwise)"
+    )
 
 
 def real_ids(data_dir: Path, split: str | Path | None, subset: str, setting: str = "real") -> list[str]:
@@ -155,8 +157,9 @@ def check_dataset_folder(data_dir, setting: str, what: str) -> Path:
 REAL_DATASET = "a real dataset folder with images/, masks/ and split.json"
 
 
-def load_real(data_dir, ids, crop_rows="auto", mask_suffix: str | None = "auto", masks: str = "masks"
-              ) -> list[tuple[str, np.ndarray, np.ndarray]]:
+def load_real(
+    data_dir, ids, crop_rows="auto", mask_suffix: str | None = "auto", masks: str = "masks"
+) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """(id, image, instance labels) of real images; every file is read and checked before returning.
 
     crop_rows: info-bar rows [start, stop) to drop, "auto" (detected per image, `info_bar_rows`) or None.
@@ -184,9 +187,13 @@ def load_real(data_dir, ids, crop_rows="auto", mask_suffix: str | None = "auto",
     return out
 
 
-def load_real_pairs(data_dir, ids, contour_px: int, crop_rows="auto", mask_suffix: str | None = "auto",
-                    masks: str = "masks") -> list[Pair]:
-    return [Pair(i, img, class_mask(lab, contour_px)) for i, img, lab in load_real(data_dir, ids, crop_rows, mask_suffix, masks)]
+def load_real_pairs(
+    data_dir, ids, contour_px: int, crop_rows="auto", mask_suffix: str | None = "auto", masks: str = "masks"
+) -> list[Pair]:
+    return [
+        Pair(i, img, class_mask(lab, contour_px))
+        for i, img, lab in load_real(data_dir, ids, crop_rows, mask_suffix, masks)
+    ]
 
 
 def load_generated_pairs(data_dir, setting: str = "data") -> list[Pair]:
@@ -200,7 +207,9 @@ def load_generated_pairs(data_dir, setting: str = "data") -> list[Pair]:
         _check_same_size(image.shape, mask.shape, image_path, mask_path)
         bad = sorted(set(np.unique(mask).tolist()) - {0, 1, 2})
         if bad:
-            raise DataError(f"mask {mask_path}: unexpected values {bad[:5]} (expected classes 0 background, 1 particle, 2 contour)")
+            raise DataError(
+                f"mask {mask_path}: unexpected values {bad[:5]} (expected classes 0 background, 1 particle, 2 contour)"
+            )
         pairs.append(Pair(item, image, mask.astype(np.uint8)))
     return pairs
 
@@ -228,12 +237,26 @@ class CropDataset(Dataset):
     inference, `predict_probs`), applied to each crop after the jitter.
     """
 
-    def __init__(self, pairs: list[Pair], crop: int, augment: bool, samples_per_pair: int = 1,
-                 brightness: float = 0.05, contrast: float = 0.1, seed: int = 0, normalize: str = "none"):
+    def __init__(
+        self,
+        pairs: list[Pair],
+        crop: int,
+        augment: bool,
+        samples_per_pair: int = 1,
+        brightness: float = 0.05,
+        contrast: float = 0.1,
+        seed: int = 0,
+        normalize: str = "none",
+    ):
         if not pairs:
             raise DataError("segmentation dataset: no image/mask pairs")
         self.pairs, self.crop, self.augment = pairs, int(crop), augment
-        self.samples_per_pair, self.brightness, self.contrast, self.seed = int(samples_per_pair), brightness, contrast, seed
+        self.samples_per_pair, self.brightness, self.contrast, self.seed = (
+            int(samples_per_pair),
+            brightness,
+            contrast,
+            seed,
+        )
         mode = check_normalize(normalize, "loader normalize")
         self.stats = [normalization(p.image, mode) for p in pairs]  # (shift, scale) of each whole image
 
@@ -264,5 +287,7 @@ class CropDataset(Dataset):
             c = rng.uniform(1 - self.contrast, 1 + self.contrast)
             image = np.clip((image - mean) * c + mean + rng.uniform(-self.brightness, self.brightness), 0.0, 1.0)
         image = (image - shift) / scale
-        return (torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None],
-                torch.from_numpy(np.ascontiguousarray(mask).astype(np.int64)))
+        return (
+            torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None],
+            torch.from_numpy(np.ascontiguousarray(mask).astype(np.int64)),
+        )

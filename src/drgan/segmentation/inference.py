@@ -46,8 +46,9 @@ def _starts(size: int, tile: int, stride: int) -> list[int]:
 
 
 @torch.no_grad()
-def predict_probs(model: torch.nn.Module, image: np.ndarray, tile: int = 384, overlap: float = 0.125,
-                  batch_size: int = 8) -> np.ndarray:
+def predict_probs(
+    model: torch.nn.Module, image: np.ndarray, tile: int = 384, overlap: float = 0.125, batch_size: int = 8
+) -> np.ndarray:
     """(H, W) float image in [0, 1] -> (C, H, W) float32 class probabilities.
 
     The whole image is normalised first as the model was trained (its ``input_normalization``, e.g. "zscore";
@@ -100,8 +101,10 @@ def separate_regions(labels: np.ndarray) -> np.ndarray:
     labels = np.asarray(labels)
     line = np.zeros(labels.shape, bool)
     # vertical neighbours (rows r, r + 1), then horizontal ones (columns c, c + 1)
-    for first, second in (((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
-                          ((slice(None), slice(None, -1)), (slice(None), slice(1, None)))):
+    for first, second in (
+        ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+        ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+    ):
         a, b = labels[first], labels[second]
         cut = (a > 0) & (b > 0) & (a != b)
         line[first] |= cut & (a > b)  # the larger label's pixel of each pair becomes line
@@ -136,8 +139,14 @@ def split_touching(probs: np.ndarray, split_depth: float = 2.0, split_smooth: fl
     return separate_regions(labels)
 
 
-def predict(model: torch.nn.Module, image: np.ndarray, split: str = "watershed", split_depth: float = 2.0,
-            split_smooth: float = 1.0, **kw) -> np.ndarray:
+def predict(
+    model: torch.nn.Module,
+    image: np.ndarray,
+    split: str = "watershed",
+    split_depth: float = 2.0,
+    split_smooth: float = 1.0,
+    **kw,
+) -> np.ndarray:
     """(H, W) image -> (H, W) uint8 class map (0 background, 1 particle, 2 contour).
 
     split="watershed": touching particles cut apart (``split_touching``); "none": the network's argmax."""
@@ -152,8 +161,12 @@ def make_predictor(model: torch.nn.Module, inference: dict):
     """f(image) -> class map with the settings of a config's `inference:` block, checked now (before any
     image is predicted). Known settings and their defaults are those of ``predict`` and ``predict_probs``."""
     inference = dict(inference)
-    defaults = {name: p.default for fn in (predict_probs, predict)
-                for name, p in inspect.signature(fn).parameters.items() if p.default is not inspect.Parameter.empty}
+    defaults = {
+        name: p.default
+        for fn in (predict_probs, predict)
+        for name, p in inspect.signature(fn).parameters.items()
+        if p.default is not inspect.Parameter.empty
+    }
     unknown = set(inference) - set(defaults)
     if unknown:
         raise ConfigError(f"inference: unknown setting(s) {sorted(unknown)}")

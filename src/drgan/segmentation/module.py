@@ -31,8 +31,17 @@ def soft_dice_loss(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0)
 
 
 class SegmenterModule(L.LightningModule):
-    def __init__(self, depth: int = 4, base: int = 16, n_classes: int = 3, lr: float = 1e-3,
-                 dice_weight: float = 1.0, ce_weight: float = 1.0, kind: str = KIND, normalize: str = "none"):
+    def __init__(
+        self,
+        depth: int = 4,
+        base: int = 16,
+        n_classes: int = 3,
+        lr: float = 1e-3,
+        dice_weight: float = 1.0,
+        ce_weight: float = 1.0,
+        kind: str = KIND,
+        normalize: str = "none",
+    ):
         super().__init__()
         # "none" by default so that checkpoints written before the setting existed load as they were trained.
         check_normalize(normalize, "model.normalize")
@@ -56,7 +65,9 @@ class SegmenterModule(L.LightningModule):
 
     def training_step(self, batch, batch_idx):
         _, ce, dl, loss = self._losses(batch)
-        self.log_dict({"train/loss": loss, "train/ce": ce, "train/dice_loss": dl}, prog_bar=True, batch_size=len(batch[0]))
+        self.log_dict(
+            {"train/loss": loss, "train/ce": ce, "train/dice_loss": dl}, prog_bar=True, batch_size=len(batch[0])
+        )
         return loss
 
     def validation_step(self, batch, batch_idx):
@@ -79,7 +90,9 @@ def load_segmenter(path: str | Path) -> SegmenterModule:
     ckpt = load_checkpoint(path, "model", expected=expected, error=DataError)
     hparams = ckpt.get("hyper_parameters")
     if not isinstance(hparams, dict) or hparams.get("kind") != KIND:
-        raise DataError(f"model={path}: not a drgan segmenter checkpoint (expected one written by `python -m drgan.segment`)")
+        raise DataError(
+            f"model={path}: not a drgan segmenter checkpoint (expected one written by `python -m drgan.segment`)"
+        )
     model = SegmenterModule(**{k: v for k, v in hparams.items() if not k.startswith("_")})
     model.load_state_dict(ckpt["state_dict"])
     return model.eval()

@@ -29,11 +29,15 @@ class UNet(nn.Module):
     def __init__(self, in_channels: int = 1, n_classes: int = 3, depth: int = 4, base: int = 16):
         super().__init__()
         if depth < 1 or base < 1 or n_classes < 2 or in_channels < 1:
-            raise ConfigError(f"UNet: need depth >= 1, base >= 1, n_classes >= 2, in_channels >= 1; got {depth=}, {base=}, {n_classes=}, {in_channels=}")
+            raise ConfigError(
+                f"UNet: need depth >= 1, base >= 1, n_classes >= 2, in_channels >= 1; got {depth=}, {base=}, {n_classes=}, {in_channels=}"
+            )
         widths = [base * 2**i for i in range(depth)]
         self.depth, self.n_classes = depth, n_classes
         self.down = nn.ModuleList([_block(in_channels if i == 0 else widths[i - 1], w) for i, w in enumerate(widths)])
-        self.upsample = nn.ModuleList([nn.ConvTranspose2d(widths[i + 1], widths[i], 2, stride=2) for i in range(depth - 1)])
+        self.upsample = nn.ModuleList(
+            [nn.ConvTranspose2d(widths[i + 1], widths[i], 2, stride=2) for i in range(depth - 1)]
+        )
         self.up = nn.ModuleList([_block(2 * widths[i], widths[i]) for i in range(depth - 1)])
         self.head = nn.Conv2d(widths[0], n_classes, 1)
 
