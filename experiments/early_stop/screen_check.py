@@ -4,7 +4,7 @@
 
 For every epoch checkpoint the run kept (<run>/checkpoints/epochs/epoch_XXX.ckpt), the FID images are rendered
 exactly as drgan.callbacks.fid renders them in training (the epoch's seeds, the module's phi bank, the training
-spp), and scored against the run's cached real statistics (<run>/fid_cache): the full FID and KID over all
+spp, the run's background texture), and scored against the run's cached real statistics (<run>/fid_cache): the full FID and KID over all
 images, and the screen's KID over the first --screen images (what the callback computes), plus the KID of
 --draws - 1 further disjoint blocks of --screen images to show how much a screen of that size moves. Then the
 callback's rule (an epoch goes on to the full FID when its screen KID is at most (1 + margin) x the lowest
@@ -48,6 +48,10 @@ def main(argv: list[str] | None = None) -> None:
     for ckpt in sorted((args.run / "checkpoints" / "epochs").glob("epoch_*.ckpt")):
         epoch = int(ckpt.stem.split("_")[1])
         module = GANModule.load_from_checkpoint(ckpt, weights_only=True)
+        if module.textured:  # the real film texture of the run's background patches, as in training
+            from drgan.data.patches import PatchSet
+
+            module.use_background_texture(PatchSet.load(args.run / "patches").background)
         n = real.n
         start = time.perf_counter()
         images = render_samples(module, n, FID_SEED_BASE + 100_003 * epoch, progress=True)
