@@ -1,5 +1,5 @@
 """Tabulate drgan.realism results: `python experiments/realism/collect.py runs/realism` -> one markdown line per
-run (sorted by source, then seed) and, per source, the mean accuracy over seeds."""
+run (sorted by source and input size, then seed) and, per source and input size, the mean accuracy over seeds."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ def main(root: str) -> None:
     rows = []
     for path in sorted(Path(root).glob("*/results.json")):
         r = json.loads(path.read_text())
-        rows.append((r["source"]["label"], r["test"]["settings"]["seed"], r["test"], path.parent.name))
+        label = f"{r['source']['label']} ({r['test']['settings']['input_size']} px input)"
+        rows.append((label, r["test"]["settings"]["seed"], r["test"], path.parent.name))
     print("| source | seed | patches per class | accuracy [95 % CI] | p (vs 0.5) | AUC | run |")
     print("|---|---|---|---|---|---|---|")
     by_source = defaultdict(list)

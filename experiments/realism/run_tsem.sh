@@ -13,3 +13,6 @@ for s in 0 1 2; do
   python -m drgan.realism $COMMON seed=$s synthetic=$R/epochs/epoch_000.ckpt out=runs/realism/tsem_vs_epoch000$suffix
   python -m drgan.realism $COMMON seed=$s synthetic=$R/epoch_002.ckpt out=runs/realism/tsem_vs_epoch002$suffix
 done
+# The 128 px input check (seed 0):
+python -m drgan.realism $COMMON synthetic=runs/tio2_tsem/synthetic test.input_size=128 out=runs/realism/tsem_real_vs_dataset_px128
+python -m drgan.realism $COMMON synthetic=real test.input_size=128 out=runs/realism/tsem_real_vs_real_px128
