@@ -4,6 +4,10 @@
     python experiments/tio2_tsem/probe_scene.py cube material.meshes.kind=cube
     python experiments/tio2_tsem/probe_scene.py cube_s1 material.meshes.kind=cube seed=1   # another phi bank + seeds
 
+Results (FID 181.9 for v3's scene, 134-135 with one agglomerate per view): experiments/tio2_tsem/README.md
+section 6. Those probes ran before experiment=tio2_tsem defaulted to placement.max_clusters=1: to repeat them,
+add placement.max_clusters=5.
+
 No training: a GANModule is built from `train experiment=tio2_tsem` plus the overrides, its FCN replaced by one
 fixed value per learned parameter (`--values ckpt`: the medians over the phi bank of a reference checkpoint,
 by default runs/tio2_tsem/tsem_transmission_v3's chosen epoch 2; `middle`: the middle of each limit). It renders
