@@ -49,7 +49,7 @@ except ImportError:  # a checkout from before drgan.configs (comparisons against
             except ModuleNotFoundError:
                 continue
 
-        conf = Path(drgan.__file__).resolve().parents[2] / "conf"
+        conf = Path(drgan.__file__).resolve().parent / "conf"
         with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
             return hydra_compose(config_name=config_name, overrides=list(overrides))
 

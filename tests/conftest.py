@@ -78,6 +78,6 @@ def compose(overrides=(), config_name="render"):
 
     import drgan  # noqa: F401  (registers the config resolvers)
 
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = Path(__file__).resolve().parents[1] / "src" / "drgan" / "conf"
     with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
         return hydra_compose(config_name=config_name, overrides=list(overrides))

@@ -63,7 +63,7 @@ def generate_command(work: Path, rev: str | None) -> list[str]:
     )
     conf = script.parents[2] / "conf"
     if not conf.exists():
-        conf.symlink_to(repo / "conf")
+        conf.symlink_to(repo / "src" / "drgan" / "conf")  # an old revision: the current configs
     return [sys.executable, str(script)]
 
 

@@ -45,7 +45,7 @@ def main(argv: list[str]) -> None:
     split = rest.index("--") if "--" in rest else len(rest)
     values = {**DEFAULTS, **{k: float(v) for k, v in (a.split("=", 1) for a in rest[:split])}}
     overrides = rest[split + 1 :]
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf"), version_base="1.3"):
         cfg = compose("train", ["experiment=tio2_sem", *overrides])
     real = PatchSet.load(os.environ.get("PATCHES", ROOT / "runs/tio2_sem/tio2_sem_spp16_spheres/patches")).train
     extractor = InceptionFeatures(batch_size=16)

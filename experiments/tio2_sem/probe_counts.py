@@ -34,7 +34,7 @@ vals = {
     "particle.spec_tint": 2.725,
     "sigma": 0.0392,
 }
-with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf"), version_base="1.3"):
     cfg = compose("train", ["experiment=tio2_sem", f"material.n_particles={hi}", "renderer.spp=121"])
 real = PatchSet.load(os.environ.get("PATCHES", ROOT / "runs/tio2_sem/r5_n20_decay/patches")).train
 ex = InceptionFeatures(batch_size=16)

@@ -78,7 +78,7 @@ def main() -> None:
         raise DataError(f"--reference={args.reference}: expected one fid_cache/real_*.npz, found {len(caches)}")
     real = FeatureStats.load(caches[0])
 
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf"), version_base="1.3"):
         cfg = compose("train", ["experiment=tio2_tsem", *args.overrides])
     module = GANModule(cfg, m=args.n, base_dir=str(ROOT))
     module.eval()

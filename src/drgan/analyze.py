@@ -166,7 +166,7 @@ def _thickness_histogram(plt, values, nm, bins):
     return fig
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="analyze")
+@hydra.main(version_base="1.3", config_path="conf", config_name="analyze")
 def main(cfg: DictConfig):
     analyze(cfg)
 

@@ -3,8 +3,8 @@
     from drgan.configs import compose
     cfg = compose(["material=tio2_sem", "renderer.spp=16"], config_name="train")
 
-The entry points (`drgan.train`, `drgan.render`, ...) read the same folder: ``conf/`` beside ``src/`` in the
-repository (Hydra's ``config_path="../../conf"``).
+The entry points (`drgan.train`, `drgan.render`, ...) read the same folder: ``drgan/conf/``, inside the package
+(Hydra's ``config_path="conf"``), so an installed drgan works from any folder.
 """
 
 from __future__ import annotations
@@ -14,15 +14,15 @@ from pathlib import Path
 
 from drgan.errors import ConfigError
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+CONF_DIR = Path(__file__).resolve().parent / "conf"
 
 
 def conf_dir() -> Path:
     """The folder of drgan's configs; a clear error when the package was installed without the repository."""
     if not (CONF_DIR / "train.yaml").is_file():
         raise ConfigError(
-            f"drgan's config folder {CONF_DIR} has no train.yaml: expected the repository's conf/ beside src/ "
-            "(install drgan from a checkout, `pip install -e .`)"
+            f"drgan's config folder {CONF_DIR} has no train.yaml: the package was installed without its configs "
+            "(reinstall it: `pip install .` from a checkout includes drgan/conf)"
         )
     return CONF_DIR
 

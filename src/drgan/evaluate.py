@@ -190,7 +190,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     }
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
 def main(cfg: DictConfig):
     evaluate(cfg)
 

@@ -128,7 +128,7 @@ def _copy(source: Path, destination: Path) -> None:
 
 # `data` is also the name of a config group in conf/ (the training data), so `data=DIR` would select a group
 # there: this entry point composes its one file from the ConfigStore, where no groups live.
-CONFIG_FILE = Path(__file__).resolve().parents[2] / "conf" / "export_nnunet.yaml"
+CONFIG_FILE = Path(__file__).resolve().parent / "conf" / "export_nnunet.yaml"
 
 
 def _store_config() -> None:

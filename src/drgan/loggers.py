@@ -203,7 +203,7 @@ def tracking_store(overrides: Sequence[str] = ()) -> tuple[str, str]:
 
     import drgan  # noqa: F401  (registers the config resolvers)
 
-    conf = Path(__file__).resolve().parents[2] / "conf"  # drgan.train's config_path
+    conf = Path(__file__).resolve().parent / "conf"  # drgan.train's config_path
     with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
         cfg = compose("train", overrides=list(overrides))
     with open_dict(cfg):  # as drgan.train: the project root, absolute, from the folder it runs in

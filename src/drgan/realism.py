@@ -266,7 +266,7 @@ def markdown_line(label: str, result: dict) -> str:
             f"{result['p_value']:.2g} | {result['auc']:.3f} |")
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="realism")
+@hydra.main(version_base="1.3", config_path="conf", config_name="realism")
 def main(cfg: DictConfig):
     realism(cfg)
 

@@ -154,7 +154,7 @@ def segment(cfg: DictConfig) -> dict:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="segment")
+@hydra.main(version_base="1.3", config_path="conf", config_name="segment")
 def main(cfg: DictConfig):
     return segment(cfg)
 

@@ -142,7 +142,7 @@ def train(cfg: DictConfig) -> dict:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="train")
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig):
     metrics = train(cfg)
     # Hydra sweepers (e.g. Optuna) optimise the value returned: `optimized_metric=val/fid`.
