@@ -78,22 +78,40 @@ def main():
 
     import torch
 
-    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, threads {torch.get_num_threads()}")
+    print(
+        f"machine: {platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, threads {torch.get_num_threads()}"
+    )
     print(f"command: python {' '.join(sys.argv)}\n")
     print("| variant | resolution | D step s | G step, D part s | D total per iteration s |")
     print("|---|---|---|---|---|")
     for variant in args.variants:
-        child = [sys.executable, __file__, "--child", variant, "--resolution", str(args.resolution),
-                 "--steps", str(args.steps), "--warmup", str(args.warmup)]
+        child = [
+            sys.executable,
+            __file__,
+            "--child",
+            variant,
+            "--resolution",
+            str(args.resolution),
+            "--steps",
+            str(args.steps),
+            "--warmup",
+            str(args.warmup),
+        ]
         done = subprocess.run(child, capture_output=True, text=True)
         if done.returncode != 0:
-            reason = (f"killed by {signal.Signals(-done.returncode).name}" if done.returncode < 0
-                      else (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1])
+            reason = (
+                f"killed by {signal.Signals(-done.returncode).name}"
+                if done.returncode < 0
+                else (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
+            )
             print(f"| {variant} | {args.resolution} | failed: {reason} | | |", flush=True)
             continue
         t = json.loads(done.stdout.strip().splitlines()[-1])
-        print(f"| {variant} | {args.resolution} | {t['d_step']:.3f} | {t['g_through_d']:.3f} | "
-              f"{t['d_step'] + t['g_through_d']:.3f} |", flush=True)
+        print(
+            f"| {variant} | {args.resolution} | {t['d_step']:.3f} | {t['g_through_d']:.3f} | "
+            f"{t['d_step'] + t['g_through_d']:.3f} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drgan.models.build import sample_phi
 from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.models.build import sample_phi
 from drgan.models.gan_module import GANModule
 
 
@@ -50,8 +50,12 @@ def main():
         for draw in range(args.draws):
             start = time.perf_counter()
             bank = module.phi_bank if draw == 0 else torch.as_tensor(sample_phi(module.cfg, len(real), seed=draw))
-            images = np.stack([module.generator.sample(bank[i % len(bank)], seed=10_000 + draw * 100_000 + i, spp=spp).image
-                               for i in range(len(real))])
+            images = np.stack(
+                [
+                    module.generator.sample(bank[i % len(bank)], seed=10_000 + draw * 100_000 + i, spp=spp).image
+                    for i in range(len(real))
+                ]
+            )
             seconds = time.perf_counter() - start
             scores.append(FeatureStats.from_features(extractor.features(images)).fid(real_stats))
             print(f"| {spp} | {draw} | {scores[-1]:.1f} | {seconds:.0f} |", flush=True)

@@ -26,14 +26,16 @@ import numpy as np
 import torch
 
 from drgan import io
-from drgan.models import build
 from drgan.configs import compose
 from drgan.generate import index_seeds
+from drgan.models import build
 from drgan.models.gan_module import GANModule
 from drgan.scene.labels import class_mask
 
 
-def time_setting(material: str, spp: int, resolution: int, images: int, seed: int = 0, particles: int | None = None) -> dict:
+def time_setting(
+    material: str, spp: int, resolution: int, images: int, seed: int = 0, particles: int | None = None
+) -> dict:
     overrides = [f"material={material}", f"renderer.spp={spp}", f"renderer.resolution={resolution}", f"seed={seed}"]
     if particles is not None:
         overrides.append(f"material.n_particles={particles}")
@@ -82,12 +84,16 @@ def main():
     parser.add_argument("--spp", type=int, nargs="+", default=[121])
     parser.add_argument("--resolution", type=int, nargs="+", default=[256])
     parser.add_argument("--images", type=int, default=5, help="timed images per setting (after one warm-up)")
-    parser.add_argument("--particles", type=int, nargs="+", default=[None], help="particles per scene (default: the material's)")
+    parser.add_argument(
+        "--particles", type=int, nargs="+", default=[None], help="particles per scene (default: the material's)"
+    )
     args = parser.parse_args()
     if args.images < 1:
         parser.error("--images: expected >= 1")
 
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}"
+    )
     print(f"command: python {' '.join(sys.argv)}\n")
     print("| material | particles | resolution | spp | images | phi s | render s | labels s | write s | pairs/minute |")
     print("|---|---|---|---|---|---|---|---|---|---|")

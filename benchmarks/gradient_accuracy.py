@@ -49,12 +49,19 @@ def main():
     parser.add_argument("--ref-seeds", type=int, default=16)
     parser.add_argument("--particles", type=int, default=40)
     parser.add_argument("--integrator", choices=INTEGRATORS, default="prb")
-    parser.add_argument("--grad-seed", choices=GRAD_SEEDS, nargs="+", default=list(GRAD_SEEDS),
-                        help="renderer.grad_seed value(s): one table each")
+    parser.add_argument(
+        "--grad-seed",
+        choices=GRAD_SEEDS,
+        nargs="+",
+        default=list(GRAD_SEEDS),
+        help="renderer.grad_seed value(s): one table each",
+    )
     args = parser.parse_args()
 
     meshes_ = meshes.generate_meshes("cube", 40, seed=0)
-    phi = layout.sample_layouts(1, args.particles, layout.LognormalSize(24.0, 0.25), layout.PoissonAgglomerates(), seed=1)[0]
+    phi = layout.sample_layouts(
+        1, args.particles, layout.LognormalSize(24.0, 0.25), layout.PoissonAgglomerates(), seed=1
+    )[0]
     weight = torch.rand(args.resolution, args.resolution, generator=torch.Generator().manual_seed(0))
     print(f"command: python {' '.join(sys.argv)}")
     for grad_seed in args.grad_seed:
@@ -66,8 +73,10 @@ def main():
         scene.set_layout(phi)
         reference = gradients(scene, weight, args.ref_spp, range(10_000, 10_000 + args.ref_seeds)).mean(0)
         names = [p.key for p in scene.learned_bsdf]
-        print(f"\n{args.integrator}, grad_seed {grad_seed}; reference: spp {args.ref_spp} x {args.ref_seeds} seeds; "
-              f"{args.resolution} px, {args.particles} particles\n")
+        print(
+            f"\n{args.integrator}, grad_seed {grad_seed}; reference: spp {args.ref_spp} x {args.ref_seeds} seeds; "
+            f"{args.resolution} px, {args.particles} particles\n"
+        )
         print("| spp | " + " | ".join(f"{n} bias / spread" for n in names) + " |")
         print("|---|" + "---|" * len(names))
         for spp in args.spp:
@@ -75,7 +84,9 @@ def main():
             scale = np.abs(reference) + 1e-12
             bias = np.abs(g.mean(0) - reference) / scale
             spread = g.std(0, ddof=1) / scale
-            cells = [("n/a (zero)" if abs(r) < 1e-9 else f"{b:.3f} / {s:.3f}") for b, s, r in zip(bias, spread, reference)]
+            cells = [
+                ("n/a (zero)" if abs(r) < 1e-9 else f"{b:.3f} / {s:.3f}") for b, s, r in zip(bias, spread, reference)
+            ]
             print(f"| {spp} | " + " | ".join(cells) + " |", flush=True)
         print("\nreference gradients: " + ", ".join(f"{n}={r:.3g}" for n, r in zip(names, reference)))
 

@@ -40,7 +40,9 @@ SIGMA = {"min": 0.001, "max": 0.1}
 def make_scene(n, resolution, spp, integrator, variant, cube_meshes, **elements):
     spec = SceneSpec(
         MaterialParameters.from_config(PARTICLE, STAGE if elements.get("stage", True) else None, SIGMA),
-        RenderSettings(resolution=resolution, spp=spp, integrator=integrator, filter_stddev=elements.get("filter_stddev", 0.5)),
+        RenderSettings(
+            resolution=resolution, spp=spp, integrator=integrator, filter_stddev=elements.get("filter_stddev", 0.5)
+        ),
         view_width=256.0,
         stage=elements.get("stage", True),
         torus_light=elements.get("torus_light", TorusLight()),
@@ -100,8 +102,10 @@ def elements(args, cube_meshes):
 
 
 # The TiO2 SEM lighting (conf/material/tio2_sem.yaml): a grazing band ring and a dimmer top light.
-SEM_LIGHTS = {"torus_light": TorusLight(radiance=4.0, major_radius=1.0, minor_radius=0.08, height=0.1),
-              "top_light": TopLight(radiance=0.3)}
+SEM_LIGHTS = {
+    "torus_light": TorusLight(radiance=4.0, major_radius=1.0, minor_radius=0.08, height=0.1),
+    "top_light": TopLight(radiance=0.3),
+}
 
 
 def noise(args, cube_meshes):
@@ -110,8 +114,11 @@ def noise(args, cube_meshes):
     the particles' roughness (the learned range's limits 0.01 and 5.0 are where light or BSDF sampling fail)."""
     sizes, placement = layout.LognormalSize(30.0, 0.4), layout.PoissonAgglomerates()
     phi = layout.sample_layouts(1, args.particles[-1], sizes, placement, view_width=256.0, seed=3)[0]
-    lights = {"torus": {"torus_light": TorusLight(shape="torus")}, "band": {"torus_light": TorusLight(shape="band")},
-              "sem": SEM_LIGHTS}
+    lights = {
+        "torus": {"torus_light": TorusLight(shape="torus")},
+        "band": {"torus_light": TorusLight(shape="band")},
+        "sem": SEM_LIGHTS,
+    }
     for integrator, shape, roughness, spp in itertools.product(args.integrator, args.lights, args.roughness, args.spp):
         values = torch.tensor([0.15, roughness, 1.0, 0.5, 0.5, 0.5])
         scene = make_scene(len(phi), args.resolution[0], spp, integrator, args.variant[0], cube_meshes, **lights[shape])
@@ -124,8 +131,11 @@ def noise(args, cube_meshes):
             seconds = time.perf_counter() - start
             b = scene.render(values, seed=2).numpy()
         diff = (a - b) / np.sqrt(2.0)
-        print(f"| {integrator} | {shape} | {roughness} | {spp} | {a[particles].mean():.3f} | {diff[particles].std():.4f} | "
-              f"{a[~particles].mean():.3f} | {diff[~particles].std():.4f} | {seconds:.3f} |", flush=True)
+        print(
+            f"| {integrator} | {shape} | {roughness} | {spp} | {a[particles].mean():.3f} | {diff[particles].std():.4f} | "
+            f"{a[~particles].mean():.3f} | {diff[~particles].std():.4f} | {seconds:.3f} |",
+            flush=True,
+        )
 
 
 def main():
@@ -138,16 +148,25 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--elements", action="store_true", help="cost of each optional scene element")
     parser.add_argument("--noise", action="store_true", help="particle-pixel noise against integrator, ring light, spp")
-    parser.add_argument("--lights", nargs="+", default=["torus", "band"], choices=["torus", "band", "sem"],
-                        help="--noise: ring light shapes (sem: the TiO2 SEM grazing band ring and top light)")
+    parser.add_argument(
+        "--lights",
+        nargs="+",
+        default=["torus", "band"],
+        choices=["torus", "band", "sem"],
+        help="--noise: ring light shapes (sem: the TiO2 SEM grazing band ring and top light)",
+    )
     parser.add_argument("--roughness", type=float, nargs="+", default=[0.5], help="--noise: particle roughness")
     args = parser.parse_args()
 
     cube_meshes = meshes.generate_meshes("cube", 40, seed=0)
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}"
+    )
     print(f"command: python {' '.join(sys.argv)}\n")
     if args.noise:
-        print("| integrator | lights | roughness | spp | particle mean | particle noise | stage mean | stage noise | forward s |")
+        print(
+            "| integrator | lights | roughness | spp | particle mean | particle noise | stage mean | stage noise | forward s |"
+        )
         print("|---|---|---|---|---|---|---|---|---|")
         noise(args, cube_meshes)
     elif args.elements:

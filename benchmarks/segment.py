@@ -54,8 +54,11 @@ def main() -> None:
 
     net = model.net if args.ckpt is None else load_segmenter(args.ckpt)
     net.eval()
-    full = (np.random.default_rng(0).random((712, 1024)).astype(np.float32) if args.image is None
-            else read_grey(args.image, (712, 768)))
+    full = (
+        np.random.default_rng(0).random((712, 1024)).astype(np.float32)
+        if args.image is None
+        else read_grey(args.image, (712, 768))
+    )
     predict(net, full[:256, :256])
     start = time.perf_counter()
     probs = predict_probs(net, full, tile=args.tile, overlap=args.overlap)
@@ -64,10 +67,14 @@ def main() -> None:
     infer_s = time.perf_counter() - start
 
     n_params = sum(p.numel() for p in model.parameters())
-    print(f"| depth | base | params | crop | batch | threads | s/step | pairs/s | min for {args.pairs} pairs x {args.epochs} epochs | tile / overlap | s per 1024x712 image (network + split) |")
+    print(
+        f"| depth | base | params | crop | batch | threads | s/step | pairs/s | min for {args.pairs} pairs x {args.epochs} epochs | tile / overlap | s per 1024x712 image (network + split) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    print(f"| {args.depth} | {args.base} | {n_params / 1e6:.2f} M | {args.crop} | {args.batch} | {args.threads} | {per_step:.3f} | "
-          f"{pairs_s:.1f} | {minutes:.1f} | {args.tile} / {args.overlap} | {infer_s:.2f} ({network_s:.2f} + {infer_s - network_s:.2f}) |")
+    print(
+        f"| {args.depth} | {args.base} | {n_params / 1e6:.2f} M | {args.crop} | {args.batch} | {args.threads} | {per_step:.3f} | "
+        f"{pairs_s:.1f} | {minutes:.1f} | {args.tile} / {args.overlap} | {infer_s:.2f} ({network_s:.2f} + {infer_s - network_s:.2f}) |"
+    )
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ from drgan.models.gan_module import GANModule
 try:
     from drgan.configs import compose
 except ImportError:  # a checkout from before drgan.configs (comparisons against an older main)
+
     def compose(overrides=(), config_name="render"):
         from hydra import compose as hydra_compose
         from hydra import initialize_config_dir
@@ -52,6 +53,7 @@ except ImportError:  # a checkout from before drgan.configs (comparisons against
         conf = Path(drgan.__file__).resolve().parent / "conf"
         with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
             return hydra_compose(config_name=config_name, overrides=list(overrides))
+
 
 ROOT = Path(drgan.__file__).resolve().parents[2]
 
@@ -79,8 +81,10 @@ def time_iteration(module: GANModule, steps: int, warmup: int) -> dict[str, floa
         fake, _ = module.render(module.draw_phi(1))
         t1 = time.perf_counter()
         opt_d.zero_grad()
-        d_loss = 0.5 * (module.adversarial_loss(module.discriminator(real), True)
-                        + module.adversarial_loss(module.discriminator(fake.detach()), False))
+        d_loss = 0.5 * (
+            module.adversarial_loss(module.discriminator(real), True)
+            + module.adversarial_loss(module.discriminator(fake.detach()), False)
+        )
         d_loss.backward()
         opt_d.step()
         t2 = time.perf_counter()
@@ -116,8 +120,10 @@ def time_parts(module: GANModule, steps: int, warmup: int) -> dict[str, float]:
             image.backward(grad)
         with Clock() as d:
             opt_d.zero_grad()
-            d_loss = 0.5 * (module.adversarial_loss(module.discriminator(real), True)
-                            + module.adversarial_loss(module.discriminator(fake), False))
+            d_loss = 0.5 * (
+                module.adversarial_loss(module.discriminator(real), True)
+                + module.adversarial_loss(module.discriminator(fake), False)
+            )
             d_loss.backward()
             opt_d.step()
             leaf = fake.clone().requires_grad_(True)
@@ -135,7 +141,9 @@ def time_fid_pass(module: GANModule, n_images: int) -> tuple[float, float]:
     extractor = InceptionFeatures(batch_size=16)
     extractor.features(np.zeros((2, 64, 64), np.float32))  # load the network outside the timing
     start = time.perf_counter()
-    images = np.stack([module.generator.sample(module.phi_bank[i % len(module.phi_bank)]).image for i in range(n_images)])
+    images = np.stack(
+        [module.generator.sample(module.phi_bank[i % len(module.phi_bank)]).image for i in range(n_images)]
+    )
     rendered = time.perf_counter()
     extractor.features(images)
     return rendered - start, time.perf_counter() - rendered
@@ -148,22 +156,34 @@ def main():
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--fid-images", type=int, default=124)
-    parser.add_argument("--grad-spp", type=int, nargs="+", default=[0],
-                        help="spp of the adjoint pass (renderer.grad_spp); 0 = the image's spp; skipped when > spp")
-    parser.add_argument("--integrator", nargs="+", default=[None],
-                        help="renderer.integrator values to time (default: the config's)")
+    parser.add_argument(
+        "--grad-spp",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="spp of the adjoint pass (renderer.grad_spp); 0 = the image's spp; skipped when > spp",
+    )
+    parser.add_argument(
+        "--integrator", nargs="+", default=[None], help="renderer.integrator values to time (default: the config's)"
+    )
     parser.add_argument("--no-parts", action="store_true", help="time the iteration only")
-    parser.add_argument("--torch-threads", type=int, default=None,
-                        help="torch.set_num_threads (default: torch's). On a loaded machine 2 torch threads wait on "
-                             "each other: a 256 px D forward/backward took 0.4 s with 1 thread and 0.6-2.4 s with 2")
+    parser.add_argument(
+        "--torch-threads",
+        type=int,
+        default=None,
+        help="torch.set_num_threads (default: torch's). On a loaded machine 2 torch threads wait on "
+        "each other: a 256 px D forward/backward took 0.4 s with 1 thread and 0.6-2.4 s with 2",
+    )
     args = parser.parse_args()
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
     print(f"drgan: {ROOT}")
     print(f"command: python {' '.join(sys.argv)}\n")
-    print("| spp | grad_spp | integrator | render s | D step s | G step (incl. adjoint) s | iteration s | iteration CPU s "
-          "| FCN s | primal s | adjoint s | D s | sum of parts s | iteration / sum | parts CPU s | iteration / sum, CPU |")
+    print(
+        "| spp | grad_spp | integrator | render s | D step s | G step (incl. adjoint) s | iteration s | iteration CPU s "
+        "| FCN s | primal s | adjoint s | D s | sum of parts s | iteration / sum | parts CPU s | iteration / sum, CPU |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     module = None
     for integrator in args.integrator:
@@ -172,26 +192,37 @@ def main():
                 if grad_spp > spp:
                     continue
                 grad = grad_spp or spp
-                overrides = ["material=tio2_sem", f"renderer.spp={spp}", f"renderer.grad_spp={grad}",
-                             f"renderer.resolution={args.resolution}"]
+                overrides = [
+                    "material=tio2_sem",
+                    f"renderer.spp={spp}",
+                    f"renderer.grad_spp={grad}",
+                    f"renderer.resolution={args.resolution}",
+                ]
                 if integrator is not None:
                     overrides.append(f"renderer.integrator={integrator}")
                 cfg = compose(overrides, config_name="train")
                 module = GANModule(cfg, m=124, base_dir=str(ROOT))
                 t = time_iteration(module, args.steps, args.warmup)
-                row = (f"| {spp} | {grad} | {cfg.renderer.integrator} | {t['render']:.3f} | {t['d_step']:.3f} | "
-                       f"{t['g_step']:.3f} | {t['iteration']:.3f} | {t['iteration_cpu']:.3f} |")
+                row = (
+                    f"| {spp} | {grad} | {cfg.renderer.integrator} | {t['render']:.3f} | {t['d_step']:.3f} | "
+                    f"{t['g_step']:.3f} | {t['iteration']:.3f} | {t['iteration_cpu']:.3f} |"
+                )
                 if args.no_parts:
                     print(row + " | | | | | | | |", flush=True)
                     continue
                 p = time_parts(module, args.steps, args.warmup)
                 total = p["fcn"] + p["primal"] + p["adjoint"] + p["d"]
-                print(row + f" {p['fcn']:.3f} | {p['primal']:.3f} | {p['adjoint']:.3f} | {p['d']:.3f} | {total:.3f} | "
-                      f"{t['iteration'] / total:.2f} | {p['cpu']:.3f} | {t['iteration_cpu'] / p['cpu']:.2f} |", flush=True)
+                print(
+                    row + f" {p['fcn']:.3f} | {p['primal']:.3f} | {p['adjoint']:.3f} | {p['d']:.3f} | {total:.3f} | "
+                    f"{t['iteration'] / total:.2f} | {p['cpu']:.3f} | {t['iteration_cpu'] / p['cpu']:.2f} |",
+                    flush=True,
+                )
     if args.fid_images and module is not None:
         render_s, inception_s = time_fid_pass(module, args.fid_images)
-        print(f"\nFID pass, {args.fid_images} images at spp {args.spp[-1]}: render {render_s:.1f} s + Inception {inception_s:.1f} s "
-              f"= {render_s + inception_s:.1f} s")
+        print(
+            f"\nFID pass, {args.fid_images} images at spp {args.spp[-1]}: render {render_s:.1f} s + Inception {inception_s:.1f} s "
+            f"= {render_s + inception_s:.1f} s"
+        )
 
 
 if __name__ == "__main__":

@@ -23,16 +23,21 @@ from pathlib import Path
 
 import torch
 
-from drgan.models import build
 from drgan.configs import compose
+from drgan.models import build
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def time_scene(material: str, resolution: int, n_particles: int, repeats: int, warmup: int, variant: str) -> dict:
     cfg = compose(
-        [f"material={material}", f"renderer.resolution={resolution}", f"material.n_particles={n_particles}",
-         "material.n_particles_min=null", f"renderer.variant={variant}"],
+        [
+            f"material={material}",
+            f"renderer.resolution={resolution}",
+            f"material.n_particles={n_particles}",
+            "material.n_particles_min=null",
+            f"renderer.variant={variant}",
+        ],
         config_name="train",
     )
     scene = build.build_scene(cfg)
@@ -78,13 +83,17 @@ def main():
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
     print(f"command: python {' '.join(sys.argv)}")
     print(f"{args.resolution} px, {args.particles} particles, median of {args.repeats} after {args.warmup} warmup\n")
-    rows = [time_scene(m, args.resolution, args.particles, args.repeats, args.warmup, args.variant)
-            for m in ("tio2_sem", "tio2_tsem")]
+    rows = [
+        time_scene(m, args.resolution, args.particles, args.repeats, args.warmup, args.variant)
+        for m in ("tio2_sem", "tio2_tsem")
+    ]
     print("| scene | settings | set_layout (s) | trace (s) | render + backward (s) | iteration (s) |")
     print("| --- | --- | ---: | ---: | ---: | ---: |")
     for r in rows:
-        print(f"| {r['scene']} ({r['material']}) | {r['settings']} | {r['layout']:.3f} | {r['trace']:.3f} | "
-              f"{r['render+backward']:.3f} | {r['iteration']:.3f} |")
+        print(
+            f"| {r['scene']} ({r['material']}) | {r['settings']} | {r['layout']:.3f} | {r['trace']:.3f} | "
+            f"{r['render+backward']:.3f} | {r['iteration']:.3f} |"
+        )
     print(f"\nratio SEM / transmission, per iteration: {rows[0]['iteration'] / rows[1]['iteration']:.1f}x")
 
 

@@ -153,8 +153,14 @@ def test_settings_are_checked():
     with pytest.raises(ConfigError, match=r"renderer.integrator='direct': expected one of .*direct_light"):
         RenderSettings(integrator="direct")
     make_scene(integrator="direct_light")  # registers the plugin for this variant
-    scene = mi.load_dict({"type": "scene", "integrator": {"type": direct.register(), "bsdf_sampling": "nope"},
-                          "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 4, "height": 4}},
-                          "floor": {"type": "rectangle"}, "light": {"type": "constant"}})
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": direct.register(), "bsdf_sampling": "nope"},
+            "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 4, "height": 4}},
+            "floor": {"type": "rectangle"},
+            "light": {"type": "constant"},
+        }
+    )
     with pytest.raises(ValueError, match=r"bsdf_sampling names shapes the scene lacks: \['nope'\]"):
         scene.integrator().render(scene, seed=0, spp=1)

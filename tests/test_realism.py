@@ -44,14 +44,14 @@ def test_intervals_match_scipy_binomtest(k, n):
 
 def test_intervals_and_p_value_by_hand():
     # Clopper-Pearson at the ends: k = 0 -> [0, 1 - (alpha/2)^(1/n)]; k = n -> [(alpha/2)^(1/n), 1].
-    assert ts.exact_interval(0, 10) == pytest.approx((0.0, 1 - 0.025 ** 0.1))
-    assert ts.exact_interval(10, 10) == pytest.approx((0.025 ** 0.1, 1.0))
+    assert ts.exact_interval(0, 10) == pytest.approx((0.0, 1 - 0.025**0.1))
+    assert ts.exact_interval(10, 10) == pytest.approx((0.025**0.1, 1.0))
     assert ts.exact_interval(5, 10) == pytest.approx((0.187086, 0.812914), abs=1e-6)  # textbook value
     # Wilson at p = 0.5, n = 10: centre 0.5, half width z sqrt(0.025 + z^2/400) / (1 + z^2/10), z = 1.959964.
     z = 1.959964
     half = z * math.sqrt(0.025 + z * z / 400) / (1 + z * z / 10)
     assert ts.wilson_interval(5, 10) == pytest.approx((0.5 - half, 0.5 + half), abs=1e-6)
-    assert ts.p_above_chance(10, 10) == pytest.approx(0.5 ** 10)
+    assert ts.p_above_chance(10, 10) == pytest.approx(0.5**10)
     assert ts.p_above_chance(0, 10) == pytest.approx(1.0)
     assert ts.p_above_chance(6, 10) == pytest.approx((210 + 120 + 45 + 10 + 1) / 1024)
 
@@ -106,19 +106,26 @@ def test_one_distribution_split_in_two_is_not_told_apart():
 
 def test_unbalanced_samples_are_balanced_to_the_smaller():
     rng = np.random.default_rng(0)
-    result = ts.two_sample_test(noise_patches(12, 0.05, rng), noise_patches(30, 0.2, rng),
-                                ts.ClassifierSettings(folds=3, epochs=2, input_size=12, width=4), progress=False)
+    result = ts.two_sample_test(
+        noise_patches(12, 0.05, rng),
+        noise_patches(30, 0.2, rng),
+        ts.ClassifierSettings(folds=3, epochs=2, input_size=12, width=4),
+        progress=False,
+    )
     assert result["n_per_class"] == 12 and result["total"] == 24 and result["available"] == {"A": 12, "B": 30}
 
 
-@pytest.mark.parametrize("a_shape,b_shape,settings,error,message", [
-    ((20, 24, 24), (20, 32, 32), TINY, DataError, "one size"),
-    ((5, 24, 24), (20, 24, 24), TINY, DataError, "at least 8"),
-    ((20, 24, 20), (20, 24, 20), TINY, DataError, "square"),
-    ((20, 16, 16), (20, 16, 16), TINY, ConfigError, "input_size=24"),
-    ((20, 24, 24), (20, 24, 24), ts.ClassifierSettings(folds=1), ConfigError, "test.folds"),
-    ((20, 24, 24), (20, 24, 24), ts.ClassifierSettings(lr=0.0), ConfigError, "test.lr"),
-])
+@pytest.mark.parametrize(
+    "a_shape,b_shape,settings,error,message",
+    [
+        ((20, 24, 24), (20, 32, 32), TINY, DataError, "one size"),
+        ((5, 24, 24), (20, 24, 24), TINY, DataError, "at least 8"),
+        ((20, 24, 20), (20, 24, 20), TINY, DataError, "square"),
+        ((20, 16, 16), (20, 16, 16), TINY, ConfigError, "input_size=24"),
+        ((20, 24, 24), (20, 24, 24), ts.ClassifierSettings(folds=1), ConfigError, "test.folds"),
+        ((20, 24, 24), (20, 24, 24), ts.ClassifierSettings(lr=0.0), ConfigError, "test.lr"),
+    ],
+)
 def test_bad_inputs_raise_before_training(a_shape, b_shape, settings, error, message):
     with pytest.raises(error, match=message):
         ts.two_sample_test(np.zeros(a_shape, np.float32), np.zeros(b_shape, np.float32), settings, progress=False)
@@ -159,10 +166,25 @@ def disc_images(folder: Path, n_train: int = 6, seed: int = 0) -> Path:
 
 
 def realism_cfg(images: Path, out: Path, synthetic, *extra):
-    return compose([f"data.dir={images}", f"synthetic={synthetic}", f"out={out}", f"data.patch_size={SIZE}",
-                    "data.crop_rows=null", "data.stride=12", "data.min_particles=1", "data.n_background=2",
-                    "test.folds=2", "test.epochs=2", f"test.input_size={SIZE // 2}", "test.width=4", "progress=false",
-                    *extra], config_name="realism")
+    return compose(
+        [
+            f"data.dir={images}",
+            f"synthetic={synthetic}",
+            f"out={out}",
+            f"data.patch_size={SIZE}",
+            "data.crop_rows=null",
+            "data.stride=12",
+            "data.min_particles=1",
+            "data.n_background=2",
+            "test.folds=2",
+            "test.epochs=2",
+            f"test.input_size={SIZE // 2}",
+            "test.width=4",
+            "progress=false",
+            *extra,
+        ],
+        config_name="realism",
+    )
 
 
 @pytest.fixture(scope="module")
@@ -191,7 +213,7 @@ def write_dataset(folder: Path, images: np.ndarray, n_background: int = 2) -> Pa
     from drgan.io import write_json, write_png
 
     entries = []
-    for i, image in enumerate(images):
+    for i in range(len(images)):
         entries.append({"id": syn_id(i), "kind": SYNTHETIC, "index": i, "files": item_files(syn_id(i))})
     for j in range(n_background):  # real backgrounds that generate adds: the test must leave them out
         entries.append({"id": bg_id(j), "kind": BACKGROUND, "files": item_files(bg_id(j))})
@@ -229,8 +251,11 @@ def test_cli_renders_a_checkpoint(images, tmp_path):
     assert summary["source"]["quantized_8bit"] and summary["source"]["synthetic_read"] == 12
     assert summary["test"]["n_per_class"] == 12
     with pytest.raises(DataError, match="renders 24 px images"):
-        realism(realism_cfg(images, tmp_path / "out2", run / "checkpoints" / "best.ckpt", "data.patch_size=16",
-                            "test.input_size=8"))
+        realism(
+            realism_cfg(
+                images, tmp_path / "out2", run / "checkpoints" / "best.ckpt", "data.patch_size=16", "test.input_size=8"
+            )
+        )
 
 
 def test_cli_bad_inputs(images, tmp_path):

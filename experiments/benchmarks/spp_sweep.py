@@ -67,7 +67,9 @@ def main():
         best = min(range(len(fid)), key=fid.__getitem__)
         step_s = run.data.metrics.get("time/step_s_epoch", float("nan"))
         steps = max(m.step for m in client.get_metric_history(run.info.run_id, "time/step_s"))
-        print(f"| {spp} | {steps} | {step_s:.2f} | {len(fid)} | {fid[0]:.1f} | {fid[best]:.1f} ({epochs[best]}, {wall[best]:.0f}) | {fid[-1]:.1f} |")
+        print(
+            f"| {spp} | {steps} | {step_s:.2f} | {len(fid)} | {fid[0]:.1f} | {fid[best]:.1f} ({epochs[best]}, {wall[best]:.0f}) | {fid[-1]:.1f} |"
+        )
         ax_wall.plot(wall, fid, "o-", label=f"spp {spp}")
         ax_train.plot(train, fid, "o-", label=f"spp {spp}")
     ax_wall.set_xlabel("wall-clock s since start (training + FID passes)")

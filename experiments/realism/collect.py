@@ -20,14 +20,18 @@ def main(root: str) -> None:
     by_source = defaultdict(list)
     for label, seed, t, run in sorted(rows, key=lambda row: (row[0], row[1])):
         low, high = t["interval"]
-        print(f"| {label} | {seed} | {t['n_per_class']} | {t['accuracy']:.3f} [{low:.3f}, {high:.3f}] | "
-              f"{t['p_value']:.2g} | {t['auc']:.3f} | {run} |")
+        print(
+            f"| {label} | {seed} | {t['n_per_class']} | {t['accuracy']:.3f} [{low:.3f}, {high:.3f}] | "
+            f"{t['p_value']:.2g} | {t['auc']:.3f} | {run} |"
+        )
         by_source[label].append((t["accuracy"], t["auc"]))
     print("\n| source | seeds | accuracy: mean (min-max) | AUC: mean (min-max) |\n|---|---|---|---|")
     for label, values in by_source.items():
         acc, auc = [v[0] for v in values], [v[1] for v in values]
-        print(f"| {label} | {len(values)} | {sum(acc) / len(acc):.3f} ({min(acc):.3f}-{max(acc):.3f}) | "
-              f"{sum(auc) / len(auc):.3f} ({min(auc):.3f}-{max(auc):.3f}) |")
+        print(
+            f"| {label} | {len(values)} | {sum(acc) / len(acc):.3f} ({min(acc):.3f}-{max(acc):.3f}) | "
+            f"{sum(auc) / len(auc):.3f} ({min(auc):.3f}-{max(auc):.3f}) |"
+        )
 
 
 if __name__ == "__main__":

@@ -22,8 +22,10 @@ FOLDS = 5
 def features(patches: np.ndarray) -> dict[str, np.ndarray]:
     highpass = patches - ndi.gaussian_filter(patches, (0, 2, 2))
     quantiles = np.quantile(patches.reshape(len(patches), -1), [0.05, 0.5, 0.95], axis=1).T
-    return {"grey (mean, p5, p50, p95)": np.c_[patches.mean((1, 2)), quantiles],
-            "noise (high-pass std)": highpass.std((1, 2))[:, None]}
+    return {
+        "grey (mean, p5, p50, p95)": np.c_[patches.mean((1, 2)), quantiles],
+        "noise (high-pass std)": highpass.std((1, 2))[:, None],
+    }
 
 
 def main() -> None:
@@ -43,8 +45,10 @@ def main() -> None:
             model = make_pipeline(StandardScaler(), LogisticRegression()).fit(x[fold != f], y[fold != f])
             predicted[fold == f] = model.predict(x[fold == f])
         print(f"{key}: held-out accuracy {np.mean(predicted == y):.3f}")
-    print(f"mean grey: real {real.mean():.3f} +- {real.mean((1, 2)).std():.3f}, "
-          f"synthetic {synthetic.mean():.3f} +- {synthetic.mean((1, 2)).std():.3f}")
+    print(
+        f"mean grey: real {real.mean():.3f} +- {real.mean((1, 2)).std():.3f}, "
+        f"synthetic {synthetic.mean():.3f} +- {synthetic.mean((1, 2)).std():.3f}"
+    )
 
 
 if __name__ == "__main__":

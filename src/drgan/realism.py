@@ -40,8 +40,7 @@ log = logging.getLogger(__name__)
 
 # Renders for the test use seeds of their own, apart from training's and the FID callback's (0x5EED0000 + ...).
 REALISM_SEED_BASE = 0x7EA10000
-HEADER = ("| source | patches per class | accuracy [95 % CI] | p (vs 0.5) | AUC |\n"
-          "|---|---|---|---|---|")
+HEADER = "| source | patches per class | accuracy [95 % CI] | p (vs 0.5) | AUC |\n|---|---|---|---|---|"
 
 
 # --- the real patches -------------------------------------------------------------------------------------------
@@ -54,8 +53,19 @@ def real_patches(cfg: DictConfig):
     data = OmegaConf.to_container(cfg.data, resolve=True) if isinstance(cfg.data, DictConfig) else dict(cfg.data)
     if not data.get("dir"):
         raise ConfigError("realism: give data.dir=DIR (the folder of real images; its split.json's train ids are read)")
-    allowed = {"dir", "split", "crop_rows", "patch_size", "stride", "min_particles", "n_background",
-               "background_stride", "segment", "cache_dir", "polarity"}
+    allowed = {
+        "dir",
+        "split",
+        "crop_rows",
+        "patch_size",
+        "stride",
+        "min_particles",
+        "n_background",
+        "background_stride",
+        "segment",
+        "cache_dir",
+        "polarity",
+    }
     unknown = sorted(set(data) - allowed)
     if unknown:
         raise ConfigError(f"realism: data.{unknown[0]} is not a setting here (expected some of {sorted(allowed)})")
@@ -64,8 +74,14 @@ def real_patches(cfg: DictConfig):
     patches = module.patches
     if set(patches.train_ids) & set(module.test_ids):  # RealPatchDataModule refuses this already; the rule is ours too
         raise DataError("realism: a test image's patches reached the real sample")
-    log.info("real: %d patches of %d px from %d train images of %s (polarity %s)", len(patches.train),
-             module.patch_size, len(set(patches.train_ids)), module.dir, module.polarity)
+    log.info(
+        "real: %d patches of %d px from %d train images of %s (polarity %s)",
+        len(patches.train),
+        module.patch_size,
+        len(set(patches.train_ids)),
+        module.dir,
+        module.polarity,
+    )
     return module
 
 
@@ -77,19 +93,25 @@ def source_kind(source) -> str:
     from drgan.dataset import is_generated
 
     if source is None or str(source) in ("", "???", "None", "null"):
-        raise ConfigError("realism: give synthetic=real, a drgan.generate dataset folder, a generator checkpoint "
-                          "(.ckpt) or training run folder, or a folder of images")
+        raise ConfigError(
+            "realism: give synthetic=real, a drgan.generate dataset folder, a generator checkpoint "
+            "(.ckpt) or training run folder, or a folder of images"
+        )
     if str(source) == "real":
         return "real"
     path = Path(str(source)).expanduser()
     if path.is_file():
         if path.suffix != ".ckpt":
-            raise ConfigError(f"synthetic={source}: a file that is not a .ckpt (expected a generator checkpoint, a "
-                              "dataset folder, a folder of images or real)")
+            raise ConfigError(
+                f"synthetic={source}: a file that is not a .ckpt (expected a generator checkpoint, a "
+                "dataset folder, a folder of images or real)"
+            )
         return "checkpoint"
     if not path.is_dir():
-        raise ConfigError(f"synthetic={source}: no such file or folder (expected real, a drgan.generate dataset "
-                          "folder, a generator checkpoint or training run folder, or a folder of images)")
+        raise ConfigError(
+            f"synthetic={source}: no such file or folder (expected real, a drgan.generate dataset "
+            "folder, a generator checkpoint or training run folder, or a folder of images)"
+        )
     if is_generated(path):
         return "dataset"
     if (path / "checkpoints" / "best.ckpt").is_file():
@@ -127,13 +149,15 @@ def _read_all(paths: list[Path], setting: str) -> np.ndarray:
     images = [read_grey(p) for p in tqdm(paths, desc="reading synthetic images", unit="image", leave=False)]
     shapes = sorted({im.shape for im in images})
     if len(shapes) > 1:
-        raise DataError(f"{setting}: images of several sizes {shapes[:3]} "
-                        "(expected one size, that of the real patches)")
+        raise DataError(
+            f"{setting}: images of several sizes {shapes[:3]} (expected one size, that of the real patches)"
+        )
     return np.stack(images).astype(np.float32)
 
 
-def checkpoint_renders(source, n: int, background: np.ndarray, size: int, spp: int | None,
-                       quantize: bool) -> tuple[np.ndarray, dict]:
+def checkpoint_renders(
+    source, n: int, background: np.ndarray, size: int, spp: int | None, quantize: bool
+) -> tuple[np.ndarray, dict]:
     """n renders of a generator checkpoint with the FID callback's render_samples; (images, what rendered them).
     size: the real patches' size, which the checkpoint's resolution must equal (checked before rendering)."""
     import torch
@@ -148,17 +172,24 @@ def checkpoint_renders(source, n: int, background: np.ndarray, size: int, spp: i
         module.use_background_texture(background)
     render = module.generator.scene.spec.render
     if int(render.resolution) != size:
-        raise DataError(f"synthetic={source}: the checkpoint renders {render.resolution} px images, but the real "
-                        f"patches are {size} px (data.patch_size): the test compares them at one size")
+        raise DataError(
+            f"synthetic={source}: the checkpoint renders {render.resolution} px images, but the real "
+            f"patches are {size} px (data.patch_size): the test compares them at one size"
+        )
     if len(module.phi_bank) == 0:
         raise ConfigError(f"synthetic={source}: the checkpoint has no constellations (phi bank) to render")
     with torch.no_grad():
         images = render_samples(module, n, REALISM_SEED_BASE, progress=True, spp=spp)
     if quantize:  # the real images are 8 bit, and so are generate's PNGs: a fine-grained tell otherwise
         images = np.round(images * 255.0) / 255.0
-    return images.astype(np.float32), {"ckpt": str(ckpt_file), "material": model_cfg["material"].get("name"),
-                                       "resolution": int(render.resolution), "spp": spp or int(render.spp),
-                                       "seed_base": REALISM_SEED_BASE, "quantized_8bit": bool(quantize)}
+    return images.astype(np.float32), {
+        "ckpt": str(ckpt_file),
+        "material": model_cfg["material"].get("name"),
+        "resolution": int(render.resolution),
+        "spp": spp or int(render.spp),
+        "seed_base": REALISM_SEED_BASE,
+        "quantized_8bit": bool(quantize),
+    }
 
 
 def real_halves(ids: list[str], seed: int) -> tuple[set[str], set[str]]:
@@ -211,8 +242,10 @@ def realism(cfg: DictConfig) -> dict:
     real, real_ids = patches.train, list(patches.train_ids)
     size = real.shape[1]
     if len(real) < 2 * settings.folds:
-        raise DataError(f"realism: only {len(real)} real patches from data.dir={module.dir}; {settings.folds} folds "
-                        f"need at least {2 * settings.folds}: lower data.stride or data.min_particles, or test.folds")
+        raise DataError(
+            f"realism: only {len(real)} real patches from data.dir={module.dir}; {settings.folds} folds "
+            f"need at least {2 * settings.folds}: lower data.stride or data.min_particles, or test.folds"
+        )
     n = n_wanted or len(real)
     source = str(cfg.synthetic)
     detail: dict = {}
@@ -236,8 +269,10 @@ def realism(cfg: DictConfig) -> dict:
             names = [f"render_{i}" for i in range(len(b))]
             label = f"renders of {source}"
         if b.shape[1:] != (size, size):
-            raise DataError(f"synthetic={source}: images of {b.shape[2]} x {b.shape[1]} px, but the real patches are "
-                            f"{size} x {size} px (data.patch_size): the test compares them at one size")
+            raise DataError(
+                f"synthetic={source}: images of {b.shape[2]} x {b.shape[1]} px, but the real patches are "
+                f"{size} x {size} px (data.patch_size): the test compares them at one size"
+            )
         a, groups_a, groups_b = real, real_ids, names
         detail["synthetic_read"] = len(b)
     log.info("two-sample test: %s: %d patches (A) against %d (B), %d px", label, len(a), len(b), size)
@@ -246,9 +281,14 @@ def realism(cfg: DictConfig) -> dict:
     out = Path(str(cfg.out))
     summary = {
         "source": {"synthetic": source, "kind": kind, "label": label, **detail},
-        "real": {"dir": str(module.dir.resolve()), "train_ids": module.train_ids, "patches": len(real),
-                 "patch_size": size, "polarity": module.polarity,
-                 "data": OmegaConf.to_container(cfg.data, resolve=True)},
+        "real": {
+            "dir": str(module.dir.resolve()),
+            "train_ids": module.train_ids,
+            "patches": len(real),
+            "patch_size": size,
+            "polarity": module.polarity,
+            "data": OmegaConf.to_container(cfg.data, resolve=True),
+        },
         "test": result,
         "markdown": line,
         "out": str(out.resolve()),
@@ -262,8 +302,10 @@ def realism(cfg: DictConfig) -> dict:
 
 def markdown_line(label: str, result: dict) -> str:
     low, high = result["interval"]
-    return (f"| {label} | {result['n_per_class']} | {result['accuracy']:.3f} [{low:.3f}, {high:.3f}] | "
-            f"{result['p_value']:.2g} | {result['auc']:.3f} |")
+    return (
+        f"| {label} | {result['n_per_class']} | {result['accuracy']:.3f} [{low:.3f}, {high:.3f}] | "
+        f"{result['p_value']:.2g} | {result['auc']:.3f} |"
+    )
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="realism")

@@ -125,8 +125,9 @@ def group_folds(labels: np.ndarray, groups: Sequence, k: int, seed: int) -> np.n
         names, sizes = np.unique(groups[mine], return_counts=True)
         mixed = set(names) & set(groups[~mine])
         if mixed:
-            raise ConfigError(f"group_folds: group(s) {sorted(mixed)[:3]} hold both labels "
-                              "(a group must belong to one sample)")
+            raise ConfigError(
+                f"group_folds: group(s) {sorted(mixed)[:3]} hold both labels (a group must belong to one sample)"
+            )
         order = rng.permutation(len(names))
         order = order[np.argsort(-sizes[order], kind="stable")]
         filled = np.zeros(k, dtype=np.int64)
@@ -255,13 +256,17 @@ def two_sample_test(
     groups_a = [f"a{i}" for i in range(len(a))] if groups_a is None else [str(g) for g in groups_a]
     groups_b = [f"b{i}" for i in range(len(b))] if groups_b is None else [str(g) for g in groups_b]
     if len(groups_a) != len(a) or len(groups_b) != len(b):
-        raise ConfigError(f"two-sample test: {len(groups_a)} / {len(groups_b)} group names for "
-                          f"{len(a)} / {len(b)} patches (expected one per patch)")
+        raise ConfigError(
+            f"two-sample test: {len(groups_a)} / {len(groups_b)} group names for "
+            f"{len(a)} / {len(b)} patches (expected one per patch)"
+        )
     n = min(len(a), len(b))
     needed = 2 * settings.folds
     if n < needed:
-        raise DataError(f"two-sample test: {len(a)} patches in A and {len(b)} in B; {settings.folds} folds need at "
-                        f"least {needed} of each (2 per fold); add patches or lower test.folds")
+        raise DataError(
+            f"two-sample test: {len(a)} patches in A and {len(b)} in B; {settings.folds} folds need at "
+            f"least {needed} of each (2 per fold); add patches or lower test.folds"
+        )
     rng = np.random.default_rng(settings.seed)
     pick_a = np.sort(rng.choice(len(a), n, replace=False))
     pick_b = np.sort(rng.choice(len(b), n, replace=False))
@@ -271,18 +276,26 @@ def two_sample_test(
     fold = group_folds(y, groups, settings.folds, settings.seed)
     n_groups = len(set(groups))
     if len(np.unique(fold)) < settings.folds or any(len(np.unique(y[fold == f])) < 2 for f in range(settings.folds)):
-        raise DataError(f"two-sample test: {n_groups} groups (e.g. images) cannot fill {settings.folds} folds with "
-                        "both samples; lower test.folds or add images")
+        raise DataError(
+            f"two-sample test: {n_groups} groups (e.g. images) cannot fill {settings.folds} folds with "
+            "both samples; lower test.folds or add images"
+        )
 
     scores = np.full(2 * n, np.nan)  # held-out logit minus its fold's threshold: > 0 predicts B
     start = time.perf_counter()
-    bar = tqdm(total=settings.folds * settings.epochs, desc="two-sample folds x epochs", unit="epoch",
-               disable=not progress, leave=False)
+    bar = tqdm(
+        total=settings.folds * settings.epochs,
+        desc="two-sample folds x epochs",
+        unit="epoch",
+        disable=not progress,
+        leave=False,
+    )
     try:
         for f in range(settings.folds):
             train, test = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
-            net = _train_one(x[train], torch.from_numpy(y[train]), settings, settings.seed * 1000 + f,
-                             lambda: bar.update(1))
+            net = _train_one(
+                x[train], torch.from_numpy(y[train]), settings, settings.seed * 1000 + f, lambda: bar.update(1)
+            )
             # The decision threshold from the training part only: midway between its two classes' median logits
             # (a network trained briefly has not yet centred its bias at 0).
             fitted = _logits(net, x[train])
@@ -293,9 +306,14 @@ def two_sample_test(
     predicted = (scores > 0).astype(np.float32)
     correct = int((predicted == y).sum())
     total = 2 * n
-    per_fold = [{"fold": f, "test_patches": int((fold == f).sum()),
-                 "accuracy": round(float((predicted[fold == f] == y[fold == f]).mean()), 4)}
-                for f in range(settings.folds)]
+    per_fold = [
+        {
+            "fold": f,
+            "test_patches": int((fold == f).sum()),
+            "accuracy": round(float((predicted[fold == f] == y[fold == f]).mean()), 4),
+        }
+        for f in range(settings.folds)
+    ]
     return {
         "n_per_class": n,
         "available": {"A": len(a), "B": len(b)},

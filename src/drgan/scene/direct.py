@@ -74,8 +74,10 @@ def _integrator_class():
                 props["max_depth"] = 2
             super().__init__(props)
             if self.max_depth != 2:
-                raise ValueError(f"{NAME}: max_depth={self.max_depth}; this integrator computes direct "
-                                 "illumination only (max_depth 2)")
+                raise ValueError(
+                    f"{NAME}: max_depth={self.max_depth}; this integrator computes direct "
+                    "illumination only (max_depth 2)"
+                )
             # Shapes (ids, comma-separated; "*" = all) whose points also sample their BSDF (MIS); elsewhere
             # light sampling alone, one ray fewer per sample.
             ids = str(props.get("bsdf_sampling", "*"))
@@ -110,8 +112,16 @@ def _integrator_class():
                     dr.enable_grad(unit)
                     block = film.create_block()
                     block.set_coalesce(block.coalesce() and spp >= 4)
-                    ADIntegrator._splat_to_block(block, film, pos, value=unit * weight, weight=1.0, alpha=1.0,
-                                                 aovs=[], wavelengths=ray.wavelengths)
+                    ADIntegrator._splat_to_block(
+                        block,
+                        film,
+                        pos,
+                        value=unit * weight,
+                        weight=1.0,
+                        alpha=1.0,
+                        aovs=[],
+                        wavelengths=ray.wavelengths,
+                    )
                     film.put_block(block)
                     image = film.develop()
                     dr.set_grad(image, grad_in)
@@ -123,8 +133,9 @@ def _integrator_class():
                 del sampler, ray, weight, pos, block, image, unit, δL
                 dr.eval()
 
-        def sample(self, mode, scene, sampler, ray, depth=None, δL=None, δaovs=None, state_in=None,
-                   active=True, **kwargs):
+        def sample(
+            self, mode, scene, sampler, ray, depth=None, δL=None, δaovs=None, state_in=None, active=True, **kwargs
+        ):
             differentiate = mode != dr.ADMode.Primal
             ctx = mi.BSDFContext()
             with dr.suspend_grad():
@@ -150,7 +161,7 @@ def _integrator_class():
                 ray_b = si.spawn_ray(si.to_world(bs.wo))
                 si_b = scene.ray_intersect(ray_b, ray_flags=mi.RayFlags.All, coherent=False, active=bsdf_ok)
                 emitter_b = si_b.emitter(scene, bsdf_ok)
-                hit_light = bsdf_ok & (emitter_b != None)
+                hit_light = bsdf_ok & (emitter_b != None)  # noqa: E711  (a Dr.Jit pointer array: per-lane test)
                 ds_b = mi.DirectionSample3f(scene, si_b, si)
                 delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 pdf_light_b = scene.pdf_emitter_direction(si, ds_b, hit_light & ~delta)
