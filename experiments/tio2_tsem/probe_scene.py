@@ -19,6 +19,7 @@ against the reference run's cached real statistics (fid_cache/, the 126 train pa
 Writes runs/tio2_tsem/probe_scene/NAME.json (FID, KID, values, dark-pixel fraction, particles visible) and
 NAME.png (the first 8 renders; synthetic only, so it may be looked at anywhere).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -97,23 +98,37 @@ def main() -> None:
     stats = FeatureStats.from_features(np.asarray(features, dtype=np.float64))
     fid = stats.fid(real)
     kid_mean, kid_std = kid(stats.features, real.features, 100, None, seed=0)
-    counts = [len(np.unique(module.generator.sample(module.phi_bank[i], seed=seed_base + i).labels)) - 1
-              for i in range(min(args.n, 16))]
+    counts = [
+        len(np.unique(module.generator.sample(module.phi_bank[i], seed=seed_base + i).labels)) - 1
+        for i in range(min(args.n, 16))
+    ]
     result = {
-        "name": args.name, "overrides": args.overrides, "values_mode": args.values,
-        "values": dict(zip(module.learned_keys, values.tolist())), "n": args.n, "fid": fid, "kid": kid_mean,
-        "kid_std": kid_std, "particle_fraction": float(masks.mean()), "dark_fraction": float((images < DARK).mean()),
+        "name": args.name,
+        "overrides": args.overrides,
+        "values_mode": args.values,
+        "values": dict(zip(module.learned_keys, values.tolist())),
+        "n": args.n,
+        "fid": fid,
+        "kid": kid_mean,
+        "kid_std": kid_std,
+        "particle_fraction": float(masks.mean()),
+        "dark_fraction": float((images < DARK).mean()),
         "real_dark_fraction": float((patches.train < DARK).mean()),
-        "particles_visible_first16": float(np.mean(counts)), "render_s": render_s,
-        "total_s": time.perf_counter() - start, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "particles_visible_first16": float(np.mean(counts)),
+        "render_s": render_s,
+        "total_s": time.perf_counter() - start,
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
     }
     OUT.mkdir(parents=True, exist_ok=True)
     write_json(OUT / f"{args.name}.json", result)
     write_png(OUT / f"{args.name}.png", np.concatenate(list(images[:8]), axis=1))
-    print(f"{args.name}: FID {fid:.1f} KID {kid_mean:.3f} particle fraction {result['particle_fraction']:.3f} "
-          f"dark {result['dark_fraction']:.3f} (real {result['real_dark_fraction']:.3f}) "
-          f"visible {result['particles_visible_first16']:.1f} "
-          f"render {render_s:.0f}s total {result['total_s']:.0f}s", flush=True)
+    print(
+        f"{args.name}: FID {fid:.1f} KID {kid_mean:.3f} particle fraction {result['particle_fraction']:.3f} "
+        f"dark {result['dark_fraction']:.3f} (real {result['real_dark_fraction']:.3f}) "
+        f"visible {result['particles_visible_first16']:.1f} "
+        f"render {render_s:.0f}s total {result['total_s']:.0f}s",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

@@ -95,10 +95,21 @@ def cached(path: Path, compute: Callable[[], dict[str, np.ndarray]]) -> dict[str
 
 def mine_test(images_dir: Path, test_ids: list[str], polarity: str) -> dict[str, np.ndarray]:
     images = [read_grey(p, "auto") for p in list_images(images_dir, test_ids)]
-    patches = mine_patches(images, test_ids, size=PATCH_SIZE, stride=STRIDE, min_particles=MIN_PARTICLES,
-                           n_background=0, polarity=polarity, progress=False)
-    return {"patches": patches.train, "ids": np.asarray(patches.train_ids),
-            "shapes": np.asarray(sorted({im.shape for im in images}))}
+    patches = mine_patches(
+        images,
+        test_ids,
+        size=PATCH_SIZE,
+        stride=STRIDE,
+        min_particles=MIN_PARTICLES,
+        n_background=0,
+        polarity=polarity,
+        progress=False,
+    )
+    return {
+        "patches": patches.train,
+        "ids": np.asarray(patches.train_ids),
+        "shapes": np.asarray(sorted({im.shape for im in images})),
+    }
 
 
 def cropped_shapes(images_dir: Path, ids: list[str]) -> list[list[int]]:
@@ -111,11 +122,21 @@ def measure(dataset: Path, splits: int, seed: int, cache: Path, batch_size: int)
     if not images_dir.is_dir() or not split_path.is_file():
         raise DataError(f"dataset {dataset}: expected images/ and split.json inside")
     test_ids = list(read_split(split_path)["test"])
-    module = RealPatchDataModule(dir=str(images_dir), split=str(split_path), crop_rows="auto", patch_size=PATCH_SIZE,
-                                 stride=STRIDE, min_particles=MIN_PARTICLES, polarity="auto",
-                                 cache_dir=str(cache / "patches_train"))
-    hits = [name for name in ("patches_train/source.json", "patches_test.npz", "features_train.npz",
-                              "features_test.npz") if (cache / name).is_file()]
+    module = RealPatchDataModule(
+        dir=str(images_dir),
+        split=str(split_path),
+        crop_rows="auto",
+        patch_size=PATCH_SIZE,
+        stride=STRIDE,
+        min_particles=MIN_PARTICLES,
+        polarity="auto",
+        cache_dir=str(cache / "patches_train"),
+    )
+    hits = [
+        name
+        for name in ("patches_train/source.json", "patches_test.npz", "features_train.npz", "features_test.npz")
+        if (cache / name).is_file()
+    ]
     start = time.perf_counter()
     module.setup("fit")
     train, train_ids = module.real_patches, np.asarray(module.patches.train_ids)
@@ -140,31 +161,72 @@ def measure(dataset: Path, splits: int, seed: int, cache: Path, batch_size: int)
 
     for s in range(splits):
         a, b = balanced_image_split(train_ids, 2, rng)
-        add("train half vs train half, by image", len(a), len(b), fid(f_train[a], f_train[b]),
-            kid_mean(f_train[a], f_train[b], s))
+        add(
+            "train half vs train half, by image",
+            len(a),
+            len(b),
+            fid(f_train[a], f_train[b]),
+            kid_mean(f_train[a], f_train[b], s),
+        )
         perm = rng.permutation(n_train)
-        a, b = perm[: n_train // 2], perm[n_train // 2:]
-        add("train half vs train half, plain random", len(a), len(b), fid(f_train[a], f_train[b]),
-            kid_mean(f_train[a], f_train[b], s))
+        a, b = perm[: n_train // 2], perm[n_train // 2 :]
+        add(
+            "train half vs train half, plain random",
+            len(a),
+            len(b),
+            fid(f_train[a], f_train[b]),
+            kid_mean(f_train[a], f_train[b], s),
+        )
         q = balanced_image_split(train_ids, 4, rng)
-        add("train quarter vs train quarter, by image", len(q[0]), len(q[1]), fid(f_train[q[0]], f_train[q[1]]),
-            kid_mean(f_train[q[0]], f_train[q[1]], s))
+        add(
+            "train quarter vs train quarter, by image",
+            len(q[0]),
+            len(q[1]),
+            fid(f_train[q[0]], f_train[q[1]]),
+            kid_mean(f_train[q[0]], f_train[q[1]], s),
+        )
     add("test vs all train", n_test, n_train, fid(f_test, f_train), kid_mean(f_test, f_train, 0))
     for s in range(splits):
         sub = rng.choice(n_train, n_test, replace=False)
-        add("n_test random train patches vs all train (subset of the reference)", n_test, n_train,
-            fid(f_train[sub], f_train), kid_mean(f_train[sub], f_train, s))
+        add(
+            "n_test random train patches vs all train (subset of the reference)",
+            n_test,
+            n_train,
+            fid(f_train[sub], f_train),
+            kid_mean(f_train[sub], f_train, s),
+        )
         held, rest = held_out_images(train_ids, n_test, rng)
-        add("n_test patches of held-out train images vs the other train images", n_test, len(rest),
-            fid(f_train[held], f_train[rest]), kid_mean(f_train[held], f_train[rest], s))
-        add("test vs the same other train images", n_test, len(rest), fid(f_test, f_train[rest]),
-            kid_mean(f_test, f_train[rest], s))
-    info = {"dataset": str(dataset), "polarity": polarity, "n_train": n_train, "n_test": n_test,
-            "train_images": len(np.unique(train_ids)), "test_images_with_patches": len(np.unique(test["ids"])),
-            "test_images": len(test_ids), "train_image_shapes": cropped_shapes(images_dir, module.train_ids),
-            "test_image_shapes": test["shapes"].tolist(), "mined_s": round(mined_s, 1),
-            "features_s": round(features_s, 1), "cache_hits": hits, "splits": splits, "seed": seed,
-            "polarity_estimate": module.polarity_estimate}
+        add(
+            "n_test patches of held-out train images vs the other train images",
+            n_test,
+            len(rest),
+            fid(f_train[held], f_train[rest]),
+            kid_mean(f_train[held], f_train[rest], s),
+        )
+        add(
+            "test vs the same other train images",
+            n_test,
+            len(rest),
+            fid(f_test, f_train[rest]),
+            kid_mean(f_test, f_train[rest], s),
+        )
+    info = {
+        "dataset": str(dataset),
+        "polarity": polarity,
+        "n_train": n_train,
+        "n_test": n_test,
+        "train_images": len(np.unique(train_ids)),
+        "test_images_with_patches": len(np.unique(test["ids"])),
+        "test_images": len(test_ids),
+        "train_image_shapes": cropped_shapes(images_dir, module.train_ids),
+        "test_image_shapes": test["shapes"].tolist(),
+        "mined_s": round(mined_s, 1),
+        "features_s": round(features_s, 1),
+        "cache_hits": hits,
+        "splits": splits,
+        "seed": seed,
+        "polarity_estimate": module.polarity_estimate,
+    }
     return info, rows
 
 
@@ -192,23 +254,33 @@ def table(info: dict, rows: dict[str, list[tuple]]) -> str:
         lo, hi = min(values), max(values)
         return str(lo) if lo == hi else f"{lo}-{hi}"
 
-    header = (f"{info['dataset']}: {info['n_train']} train patches from {info['train_images']} train images, "
-             f"{info['n_test']} test patches from {info['test_images_with_patches']} of {info['test_images']} test "
-             f"images; polarity {info['polarity']}; 256 px, stride 288, >= 3 particles; images after crop_rows auto "
-             f"(rows, cols): train {info['train_image_shapes']}, test {info['test_image_shapes']}. "
-             f"Mining {info['mined_s']} s, features {info['features_s']} s"
-             f"{' (read from the cache: ' + ', '.join(info['cache_hits']) + ')' if info['cache_hits'] else ''}.")
-    lines = [textwrap.fill(header, 120), "",
-             "| comparison | runs | n (a) | n (b) | FID (mean +- std) | KID x 1000 (mean +- std) |",
-             "|---|---|---|---|---|---|"]
+    header = (
+        f"{info['dataset']}: {info['n_train']} train patches from {info['train_images']} train images, "
+        f"{info['n_test']} test patches from {info['test_images_with_patches']} of {info['test_images']} test "
+        f"images; polarity {info['polarity']}; 256 px, stride 288, >= 3 particles; images after crop_rows auto "
+        f"(rows, cols): train {info['train_image_shapes']}, test {info['test_image_shapes']}. "
+        f"Mining {info['mined_s']} s, features {info['features_s']} s"
+        f"{' (read from the cache: ' + ', '.join(info['cache_hits']) + ')' if info['cache_hits'] else ''}."
+    )
+    lines = [
+        textwrap.fill(header, 120),
+        "",
+        "| comparison | runs | n (a) | n (b) | FID (mean +- std) | KID x 1000 (mean +- std) |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, r in rows.items():
         a, b, f, k = zip(*r)
         lines.append(f"| {name} | {len(r)} | {n(a)} | {n(b)} | {pm(f)} | {pm(np.asarray(k) * 1000)} |")
     at_n, at_inf = extrapolate(rows, info["n_train"])
-    lines += ["", textwrap.fill("1/n extrapolation of the by-image quarter and half values "
-                                f"(FID = c + k (1/n_a + 1/n_b)): {at_n:.1f} at {info['n_train']} vs "
-                                f"{info['n_train']} (the training comparison's sizes), {at_inf:.1f} at infinite n.",
-                                120)]
+    lines += [
+        "",
+        textwrap.fill(
+            "1/n extrapolation of the by-image quarter and half values "
+            f"(FID = c + k (1/n_a + 1/n_b)): {at_n:.1f} at {info['n_train']} vs "
+            f"{info['n_train']} (the training comparison's sizes), {at_inf:.1f} at infinite n.",
+            120,
+        ),
+    ]
     return "\n".join(lines)
 
 
