@@ -8,12 +8,17 @@ import math
 
 import numpy as np
 import pytest
-from test_train import images, run_train, tiny_overrides  # noqa: F401  (fixtures)
+from test_train import images, run_train, tiny_overrides  # noqa: F401  (images: the module fixture)
 
 from drgan.callbacks import FIDEarlyStopping, should_stop
 from drgan.errors import ConfigError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def train_one_batch_epochs(images, out, extra, logger="none"):  # noqa: F811
+    """A tiny training whose epochs are one step each (an evaluation after every step), with ``extra`` overrides."""
+    return run_train(tiny_overrides(images, out, logger=logger, extra=["trainer.limit_train_batches=1", *extra]))
 
 
 def entries(fids, steps=None):
@@ -78,18 +83,11 @@ def test_a_run_whose_fid_only_rises_stops_after_patience_and_says_why(images, tm
     rising_fid(monkeypatch)
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
     out = tmp_path / "run"
-    run_train(
-        tiny_overrides(
-            images,
-            out,
-            logger="mlflow",
-            extra=[
-                f"logger.mlflow.tracking_uri={uri}",
-                "trainer.limit_train_batches=1",
-                "trainer.max_epochs=6",
-                "callbacks.early_stopping.patience=2",
-            ],
-        )
+    train_one_batch_epochs(
+        images,
+        out,
+        [f"logger.mlflow.tracking_uri={uri}", "trainer.max_epochs=6", "callbacks.early_stopping.patience=2"],
+        logger="mlflow",
     )
     done = json.loads((out / "metrics.json").read_text())
     assert done["stop_reason"] == "patience" and "patience 2" in done["stop_message"]
@@ -103,11 +101,7 @@ def test_a_run_whose_fid_only_rises_stops_after_patience_and_says_why(images, tm
 def test_a_run_without_early_stopping_goes_to_max_epochs(images, tmp_path, monkeypatch):  # noqa: F811
     rising_fid(monkeypatch)
     out = tmp_path / "run"
-    run_train(
-        tiny_overrides(
-            images, out, extra=["trainer.limit_train_batches=1", "trainer.max_epochs=4", "~callbacks.early_stopping"]
-        )
-    )
+    train_one_batch_epochs(images, out, ["trainer.max_epochs=4", "~callbacks.early_stopping"])
     done = json.loads((out / "metrics.json").read_text())
     assert done["stop_reason"] == "max_epochs" and done["epoch"] == 4
 
@@ -115,17 +109,7 @@ def test_a_run_without_early_stopping_goes_to_max_epochs(images, tmp_path, monke
 def test_the_budget_stops_before_an_epoch_that_would_not_fit(images, tmp_path):  # noqa: F811
     out = tmp_path / "run"
     # 0.003 min = 0.18 s: the first epoch (render, FID, plots) takes longer, so no second epoch fits
-    run_train(
-        tiny_overrides(
-            images,
-            out,
-            extra=[
-                "trainer.limit_train_batches=1",
-                "trainer.max_epochs=5",
-                "callbacks.early_stopping.max_minutes=0.003",
-            ],
-        )
-    )
+    train_one_batch_epochs(images, out, ["trainer.max_epochs=5", "callbacks.early_stopping.max_minutes=0.003"])
     done = json.loads((out / "metrics.json").read_text())
     assert done["stop_reason"] == "budget" and "max_minutes=0.003" in done["stop_message"]
     assert done["epoch"] == 1
@@ -141,19 +125,16 @@ def kid_by_epoch(monkeypatch, values):
 def test_the_kid_screen_skips_the_full_fid_of_an_epoch_that_is_no_better(images, tmp_path, monkeypatch):  # noqa: F811
     kid_by_epoch(monkeypatch, [1.0, 1.5, 1.1])  # epoch 1: 50 % above the lowest screen; epoch 2: within 20 %
     out = tmp_path / "run"
-    run_train(
-        tiny_overrides(
-            images,
-            out,
-            extra=[
-                "trainer.limit_train_batches=1",
-                "trainer.max_epochs=3",
-                "callbacks.fid.n_images=8",
-                "callbacks.fid.screen_images=4",
-                "callbacks.fid.screen_margin=0.2",
-                "~callbacks.early_stopping",
-            ],
-        )
+    train_one_batch_epochs(
+        images,
+        out,
+        [
+            "trainer.max_epochs=3",
+            "callbacks.fid.n_images=8",
+            "callbacks.fid.screen_images=4",
+            "callbacks.fid.screen_margin=0.2",
+            "~callbacks.early_stopping",
+        ],
     )
     best = json.loads((out / "checkpoints" / "best_epoch.json").read_text())
     assert [h["epoch"] for h in best["history"]] == [0, 2]  # the screened-out epoch never competes
@@ -172,17 +153,17 @@ def test_a_full_fid_after_the_screen_equals_the_fid_without_one(images, tmp_path
     fids = []
     for name, screen in (("plain", "null"), ("screened", "4")):
         out = tmp_path / name
-        metrics = run_train(
-            tiny_overrides(
-                images,
-                out,
-                extra=[
-                    "trainer.limit_train_batches=1",
-                    "trainer.max_epochs=1",
-                    "callbacks.fid.n_images=9",
-                    f"callbacks.fid.screen_images={screen}",
-                ],
-            )
+        metrics = train_one_batch_epochs(
+            images, out, ["trainer.max_epochs=1", "callbacks.fid.n_images=9", f"callbacks.fid.screen_images={screen}"]
         )
         fids.append(metrics["val/fid"])
     assert np.isfinite(fids[0]) and fids[0] == pytest.approx(fids[1], rel=1e-9)
+
+
+def test_lightnings_max_time_is_named_as_the_reason(images, tmp_path):  # noqa: F811
+    out = tmp_path / "run"
+    train_one_batch_epochs(
+        images, out, ["trainer.max_epochs=5", "+trainer.max_time=00:00:00:01", "~callbacks.early_stopping"]
+    )
+    done = json.loads((out / "metrics.json").read_text())
+    assert done["stop_reason"] == "max_time" and "trainer.max_time" in done["stop_message"] and done["epoch"] < 5

@@ -160,8 +160,9 @@ def stop_reason(trainer: Trainer) -> tuple[str, str]:
         if isinstance(callback, FIDEarlyStopping) and callback.reason:
             return callback.kind or "patience", callback.reason
     timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
-    if timer is not None and timer._duration is not None and timer.time_remaining() <= 0:
-        return "max_time", f"wall-clock budget trainer.max_time ({timer._duration:.0f} s) spent"
+    remaining = timer.time_remaining() if timer is not None else None  # None: no trainer.max_time
+    if remaining is not None and remaining <= 0:
+        return "max_time", f"wall-clock budget trainer.max_time ({timer.time_elapsed():.0f} s) spent"
     if trainer.max_steps not in (None, -1) and trainer.global_step >= trainer.max_steps:
         return "max_steps", f"trainer.max_steps={trainer.max_steps} reached"
     if trainer.max_epochs is not None and trainer.current_epoch >= trainer.max_epochs:
