@@ -85,6 +85,34 @@ def test_fid_levels_and_contrast_by_hand():
     assert level_ratio(0.95, 0.75, "dark") == pytest.approx(0.2)  # a washed-out film is far off
 
 
+@pytest.mark.parametrize("polarity", ["bright", "dark"])
+def test_particle_levels_are_measured_alike_on_real_and_synthetic_images(polarity):
+    """Particles with a bright core and a shaded rim at the background's grey (as TiO2 SEM particles are):
+    the threshold keeps the core. Synthetic images identical to the real ones must read 1.0x real; their exact
+    labels, which include the rim, would read the particles ~0.5x as bright (the guard's old bias)."""
+    from types import SimpleNamespace
+
+    from drgan.callbacks.fid import FIDCallback, classical_masks, level_ratio, level_sums, levels
+
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[:64, :64]
+    radius = np.hypot(yy - 32, xx - 32)
+    exact = radius < 14
+    clean = np.where(radius < 8, 0.75, np.where(exact, 0.14, 0.1))
+    if polarity == "dark":
+        clean = 1.0 - clean
+    images = np.clip(clean + rng.normal(0, 0.01, (6, 64, 64)), 0, 1).astype(np.float32)
+    trainer = SimpleNamespace(datamodule=SimpleNamespace(polarity=polarity, segment=None, real_patches=images))
+    real_particle, real_background = FIDCallback().real_levels(trainer)
+    seen = levels(level_sums(images, classical_masks(trainer, images)))
+    assert level_ratio(seen[0], real_particle, polarity) == pytest.approx(1.0)
+    assert level_ratio(seen[1], real_background, polarity) == pytest.approx(1.0)
+    masks = classical_masks(trainer, images)
+    assert masks[:, radius < 6].all() and not masks[:, (radius > 9) & exact].any()  # the core, not the rim
+    by_labels = levels(level_sums(images, np.broadcast_to(exact, images.shape)))
+    assert level_ratio(by_labels[0], real_particle, polarity) < 0.6
+
+
 def test_select_best_treats_nearly_equal_spreads_as_a_tie():
     history = [
         {"epoch": 5, "fid": 140.0, "spread": 0.0197},
