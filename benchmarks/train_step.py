@@ -20,6 +20,7 @@ configs are composed from the imported drgan's conf/ folder.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import platform
@@ -69,6 +70,19 @@ class Clock:
         self.wall, self.cpu = time.perf_counter() - self.wall, time.process_time() - self.cpu
 
 
+@contextlib.contextmanager
+def frozen(network: torch.nn.Module):
+    """``network``'s weights need no gradient inside (GANModule's G step: Lightning's optimizer toggle)."""
+    flags = [p.requires_grad for p in network.parameters()]
+    for p in network.parameters():
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p, flag in zip(network.parameters(), flags):
+            p.requires_grad_(flag)
+
+
 def time_iteration(module: GANModule, steps: int, warmup: int) -> dict[str, float]:
     opt_g = torch.optim.Adam(module.generator.parameters(), lr=2e-4, betas=(0.5, 0.999))
     opt_d = torch.optim.Adam(module.discriminator.parameters(), lr=1e-4, betas=(0.5, 0.999))
@@ -89,7 +103,8 @@ def time_iteration(module: GANModule, steps: int, warmup: int) -> dict[str, floa
         opt_d.step()
         t2 = time.perf_counter()
         opt_g.zero_grad()
-        module.adversarial_loss(module.discriminator(fake), True).backward()
+        with frozen(module.discriminator):  # as GANModule's G step: D's input gradient only
+            module.adversarial_loss(module.discriminator(fake), True).backward()
         opt_g.step()
         t3 = time.perf_counter()
         if step >= warmup:
@@ -127,7 +142,8 @@ def time_parts(module: GANModule, steps: int, warmup: int) -> dict[str, float]:
             d_loss.backward()
             opt_d.step()
             leaf = fake.clone().requires_grad_(True)
-            module.adversarial_loss(module.discriminator(leaf), True).backward()
+            with frozen(module.discriminator):
+                module.adversarial_loss(module.discriminator(leaf), True).backward()
         if step >= warmup:
             for key, clock in zip(parts, (fcn, primal, adjoint, d)):
                 parts[key].append(clock.wall)

@@ -479,3 +479,39 @@ def test_a_step_whose_generator_gradient_is_not_finite_changes_no_weights(images
     for before, after, adam_entries in seen:
         assert all(torch.equal(before[k], after[k]) for k in before), "D changed in a skipped step"
         assert adam_entries == 0  # no Adam moment was ever stored: D's optimiser state rolled back too
+
+
+def test_the_generator_step_computes_no_gradient_for_the_discriminators_weights(images, tmp_path, monkeypatch):
+    """Per step D's weight gradients are computed once (its own step); G's loss passes through D for D's input
+    gradient only (Lightning's optimizer toggle around the forward), and G still learns."""
+    from drgan.models.gan_module import GANModule
+
+    seen = []
+    step = GANModule.training_step
+
+    def counting_step(self, batch, batch_idx):
+        counts = {"d_weight": 0}
+        weights = [p for p in self.discriminator.parameters() if p.dim() == 4]  # conv kernels
+
+        def count(grad):
+            counts["d_weight"] += 1
+            return grad
+
+        hooks = [w.register_hook(count) for w in weights]
+        g_before = [p.detach().clone() for p in self.generator.parameters()]
+        try:
+            step(self, batch, batch_idx)
+        finally:
+            for hook in hooks:
+                hook.remove()
+        g_moved = any(not torch.equal(a, b) for a, b in zip(g_before, self.generator.parameters()))
+        seen.append((counts["d_weight"], len(weights), g_moved))
+
+    monkeypatch.setattr(GANModule, "training_step", counting_step)
+    metrics = run_train(
+        tiny_overrides(images, tmp_path / "run", extra=["trainer.max_epochs=1", "trainer.limit_train_batches=2"])
+    )
+    assert metrics["train/skipped_steps_total"] == 0 and len(seen) == 2
+    for computed, n_weights, g_moved in seen:
+        assert computed == n_weights  # once each (the D step), not twice (D step + G step)
+        assert g_moved

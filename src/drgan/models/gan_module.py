@@ -190,19 +190,24 @@ class GANModule(LightningModule):
         grads = [p.grad for p in module.parameters() if p.grad is not None]
         return all(bool(torch.isfinite(g).all()) for g in grads)
 
-    def _optimise(self, optimizer, module: torch.nn.Module, loss: torch.Tensor) -> bool:
-        """One guarded update of ``module``: False (and no step) when the loss or a gradient is not finite."""
+    def _optimise(self, optimizer, module: torch.nn.Module, compute_loss) -> tuple[bool, torch.Tensor]:
+        """One guarded update of ``module``: (False, loss) and no step when the loss or a gradient is not finite.
+
+        ``compute_loss()`` runs inside the optimizer's toggle, where only ``module``'s parameters require
+        gradients: the G loss's pass through D then builds no graph for D's weights, and the backward computes
+        only what G needs (D's input gradient), not D's weight gradients, which G's step would discard."""
         self.toggle_optimizer(optimizer)
         try:
             optimizer.zero_grad(set_to_none=True)
+            loss = compute_loss()
             if not torch.isfinite(loss).all():
-                return False
+                return False, loss
             self.manual_backward(loss)
             if not self._finite_grads(module):
                 optimizer.zero_grad(set_to_none=True)
-                return False
+                return False, loss
             optimizer.step()
-            return True
+            return True, loss
         finally:
             self.untoggle_optimizer(optimizer)
 
@@ -220,14 +225,18 @@ class GANModule(LightningModule):
         # D learns first, so a step whose G half fails must undo D's half: D (weights, batch-norm statistics) and
         # its optimiser state are kept until the step is known to be good.
         d_before = _snapshot(self.discriminator, opt_d)
-        d_real_logits = self.discriminator(real)
-        d_fake_logits = self.discriminator(fake.detach())
-        d_loss = 0.5 * (self.adversarial_loss(d_real_logits, True) + self.adversarial_loss(d_fake_logits, False))
-        ok = self._optimise(opt_d, self.discriminator, d_loss)
+        logits = {}
+
+        def d_loss_of():
+            logits["real"], logits["fake"] = self.discriminator(real), self.discriminator(fake.detach())
+            return 0.5 * (self.adversarial_loss(logits["real"], True) + self.adversarial_loss(logits["fake"], False))
+
+        ok, d_loss = self._optimise(opt_d, self.discriminator, d_loss_of)
         g_loss = torch.tensor(float("nan"))
         if ok:  # a failed D step skips the whole step: G would learn against a broken verdict
-            g_loss = self.adversarial_loss(self.discriminator(fake), True)
-            ok = self._optimise(opt_g, self.generator, g_loss)
+            ok, g_loss = self._optimise(
+                opt_g, self.generator, lambda: self.adversarial_loss(self.discriminator(fake), True)
+            )
         if not ok:
             _restore(self.discriminator, opt_d, d_before)
         self._count(ok, d_loss, g_loss)
@@ -245,8 +254,8 @@ class GANModule(LightningModule):
             scalars.update({
                 "train/d_loss": d_loss.detach(),
                 "train/g_loss": g_loss.detach(),
-                "train/d_real": self.score(d_real_logits.detach()),
-                "train/d_fake": self.score(d_fake_logits.detach()),
+                "train/d_real": self.score(logits["real"].detach()),
+                "train/d_fake": self.score(logits["fake"].detach()),
             })  # fmt: skip
             scalars.update({f"params/{k}": v for k, v in zip(self.learned_keys, values.detach().mean(0).tolist())})
         scalars["time/step_s"] = time.perf_counter() - start
