@@ -338,3 +338,76 @@ def test_textured_generator_takes_its_texture_from_the_run_patches(tmp_path, mon
                 config_name="generate",
             )
         )
+
+
+# --- scene values other than the trained network's (the ablations) -----------------------------------------
+
+
+def learned_limits(ckpt) -> dict[str, tuple[float, float]]:
+    module = gen.load_module(*_module_args(ckpt))
+    return {p.key: (p.low, p.high) for p in module.generator.learned}
+
+
+def _module_args(run):
+    from drgan.dataset.source import checkpoint_config, generator_checkpoint
+
+    ckpt_file, _ = generator_checkpoint(run)
+    return ckpt_file, checkpoint_config(ckpt_file)
+
+
+def test_parameters_middle_and_a_mapping_fix_every_images_values(tiny_run, tmp_path):
+    limits = learned_limits(tiny_run)
+    out = tmp_path / "middle"
+    run_generate(tiny_run, out, "parameters=middle", "n_background=0")
+    assert json.loads((out / "config.json").read_text())["fixed"]["parameters"] == "middle"
+    with pytest.raises(ConfigError, match="parameters: 'middle' there, None now"):  # never completed with others
+        run_generate(tiny_run, out, "n_background=0")
+    for meta in sorted((out / "meta").glob("syn_*.json")):
+        values = json.loads(meta.read_text())["parameters"]
+        for key, (low, high) in limits.items():
+            assert values[key] == pytest.approx((low + high) / 2, rel=1e-6)
+    chosen = {key: low + 0.25 * (high - low) for key, (low, high) in limits.items()}
+    nested: dict = {}
+    for key, value in chosen.items():  # YAML nesting: {particle: {roughness: ...}, noise: {sigma: ...}}
+        group, name = key.split(".", 1)
+        nested.setdefault(group, {})[name] = value
+    out = tmp_path / "mapping"
+    override = (
+        "parameters={"
+        + ",".join(f"{g}:{{" + ",".join(f"{k}:{v}" for k, v in d.items()) + "}" for g, d in nested.items())
+        + "}"
+    )
+    run_generate(tiny_run, out, override, "n_background=0")
+    for meta in sorted((out / "meta").glob("syn_*.json")):
+        values = json.loads(meta.read_text())["parameters"]
+        assert all(values[k] == pytest.approx(v, rel=1e-6) for k, v in chosen.items())
+
+
+def test_parameters_initial_gives_the_network_its_weights_before_training(tiny_run):
+    from drgan.dataset.source import use_parameters
+    from drgan.models.gan_module import GANModule
+
+    ckpt_file, cfg = _module_args(tiny_run)
+    module = gen.load_module(ckpt_file, cfg)
+    trained = {k: v.clone() for k, v in module.generator.regressor.state_dict().items()}
+    initial = GANModule(cfg).generator.regressor.state_dict()  # what training started from (same seed, config)
+    assert any(not torch.equal(trained[k], initial[k]) for k in trained)  # the one training step moved it
+    use_parameters(module, "initial", cfg)
+    assert all(torch.equal(v, initial[k]) for k, v in module.generator.regressor.state_dict().items())
+
+
+def test_bad_parameters_are_refused_naming_what_is_expected(tiny_run, tmp_path):
+    from drgan.dataset.source import use_parameters
+
+    limits = learned_limits(tiny_run)
+    with pytest.raises(ConfigError, match="parameters='best'.*trained, initial, middle"):
+        run_generate(tiny_run, tmp_path / "a", "parameters=best")
+    ckpt_file, cfg = _module_args(tiny_run)
+    module = gen.load_module(ckpt_file, cfg)
+    first, *rest = limits
+    with pytest.raises(ConfigError, match=rf"missing \['{rest[0]}'"):
+        use_parameters(module, {first: limits[first][0]}, cfg)
+    too_high = {key: high * 2 + 1 for key, (low, high) in limits.items()}
+    with pytest.raises(ConfigError, match="not in"):
+        use_parameters(module, too_high, cfg)
+    assert not (tmp_path / "a").exists()

@@ -327,9 +327,9 @@ def test_config_unknown_kind_lists_valid_kinds():
 
 
 def test_config_unknown_field_lists_valid_fields():
-    with pytest.raises(ConfigError, match=r"stdev.*valid fields.*mean.*std.*min_size"):
+    with pytest.raises(ConfigError, match=r"stdev.*expected some of.*mean.*std.*min_size"):
         size_from_config({"kind": "normal", "mean": 24.0, "stdev": 3.0})
-    with pytest.raises(ConfigError, match=r"radius.*valid fields.*cluster_radius"):
+    with pytest.raises(ConfigError, match=r"radius.*expected some of.*cluster_radius"):
         placement_from_config({"kind": "poisson", "radius": 10.0})
 
 

@@ -519,3 +519,37 @@ def test_segment_loader_settings_are_named_when_not_numbers(setting, message, tm
             compose([f"real={data}", "crop_rows=null", f"out={out}", "logger=none", setting], config_name="segment")
         )
     assert not out.exists()
+
+
+def test_segment_stops_when_val_loss_stops_improving_and_says_why(tmp_path):
+    """min_delta larger than any change: epoch 1 sets the best, epoch 2 is no improvement, patience 1 stops
+    there, far before max_epochs; metrics.json names the reason. Without early stopping it runs max_epochs."""
+    from drgan.errors import ConfigError
+    from drgan.segment import segment
+
+    data = make_generated(tmp_path / "gen")
+    common = [
+        f"data_dir={data}",
+        f"paths.root_dir={tmp_path}",
+        "model.depth=2",
+        "model.base=4",
+        "loader.crop=32",
+        "loader.batch_size=4",
+        "trainer.accelerator=cpu",
+        "trainer.enable_progress_bar=false",
+        "logger=none",
+        "name=tiny",
+    ]
+    out = tmp_path / "stopped"
+    extra = ["trainer.max_epochs=10", "early_stopping.patience=1", "early_stopping.min_delta=1e9"]
+    segment(compose([*common, f"out={out}", *extra], config_name="segment"))
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["epoch"] == 2 and record["stop_reason"].startswith("patience: val/loss")
+    out = tmp_path / "full"
+    segment(compose([*common, f"out={out}", "trainer.max_epochs=3", "early_stopping=null"], config_name="segment"))
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["epoch"] == 3 and record["stop_reason"] == "max_epochs"
+    with pytest.raises(ConfigError, match="early_stopping.monitor"):
+        segment(
+            compose([*common, f"out={tmp_path / 'bad'}", "early_stopping.monitor=train/loss"], config_name="segment")
+        )

@@ -19,6 +19,16 @@ class DataError(DrganError):
     """An input image, mask or split file is missing, unreadable or of the wrong kind."""
 
 
+def check_keys(where: str, given, known, what: str = "key") -> None:
+    """A ConfigError when ``given`` (keys of a config mapping) has names outside ``known``, naming ``where``,
+    the unknown names (sorted) and the known ones (in ``known``'s order): the one spelling of every "unknown key"
+    check, so that a typo in any group reads alike."""
+    known = list(known)
+    unknown = sorted(set(given) - set(known), key=str)
+    if unknown:
+        raise ConfigError(f"{where}: unknown {what}(s) {unknown}; expected some of {known}")
+
+
 def setting_int(key: str, value: object, minimum: int | None = None) -> int:
     """A user setting as an int, or a ConfigError naming ``key``: a bare ``int("abc")`` names neither the key
     nor what was expected. Whole-number floats (3.0) pass; 3.5, booleans and non-numeric text do not."""

@@ -47,7 +47,7 @@ from drgan.dataset.layout import DatasetFolder, syn_id
 from drgan.dataset.manifest import write_manifest, write_shard_manifest
 from drgan.dataset.settings import fixed_settings, settings_from
 from drgan.dataset.shards import Shard, kept_below, owned_by
-from drgan.dataset.source import checkpoint_config, load_module  # noqa: F401  (checkpoint_config: imported from here)
+from drgan.dataset.source import checkpoint_config, load_module, use_parameters  # noqa: F401  (checkpoint_config: imported from here)
 from drgan.errors import DataError
 from drgan.scene.labels import class_mask
 
@@ -182,6 +182,7 @@ def generate(cfg: DictConfig) -> dict:
 
     model_cfg = OmegaConf.create(settings["model_cfg"])
     module = load_module(Path(settings["ckpt"]), settings["model_cfg"])
+    use_parameters(module, settings["parameters"], settings["model_cfg"])
     if module.textured:
         from drgan.data.patches import PatchSet
 

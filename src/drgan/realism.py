@@ -32,7 +32,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError, DataError, setting_int
+from drgan.errors import ConfigError, DataError, check_keys, setting_int
 from drgan.io import write_bytes, write_json
 from drgan.metrics.two_sample import ClassifierSettings, two_sample_test
 
@@ -66,9 +66,7 @@ def real_patches(cfg: DictConfig):
         "cache_dir",
         "polarity",
     }
-    unknown = sorted(set(data) - allowed)
-    if unknown:
-        raise ConfigError(f"realism: data.{unknown[0]} is not a setting here (expected some of {sorted(allowed)})")
+    check_keys("realism: data", data, sorted(allowed), "setting")
     module = RealPatchDataModule(**data, augment=False, check_material=False)
     module.setup()
     patches = module.patches
@@ -208,9 +206,7 @@ def real_halves(ids: list[str], seed: int) -> tuple[set[str], set[str]]:
 def classifier_settings(cfg: DictConfig) -> ClassifierSettings:
     test = dict(OmegaConf.to_container(cfg.get("test") or {}, resolve=True))
     allowed = set(ClassifierSettings.__dataclass_fields__) - {"seed"}
-    unknown = sorted(set(test) - allowed)
-    if unknown:
-        raise ConfigError(f"realism: test.{unknown[0]} is not a setting (expected some of {sorted(allowed)})")
+    check_keys("realism: test", test, sorted(allowed), "setting")
     try:
         test = {k: float(v) if k in ("lr", "weight_decay") else v for k, v in test.items()}
     except (TypeError, ValueError):

@@ -15,9 +15,9 @@ import time
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 
-from drgan.errors import ConfigError, setting_float, setting_int
+from drgan.errors import ConfigError, check_keys, setting_float, setting_int
 from drgan.io import write_json
 
 log = logging.getLogger(__name__)
@@ -86,6 +86,39 @@ def dataloaders(cfg: DictConfig, pairs):
     return train, val, len(train_pairs), len(val_pairs)
 
 
+def early_stopping(cfg):
+    """Lightning's EarlyStopping from ``early_stopping`` {monitor, patience, min_delta} (None: no early stop)."""
+    if cfg is None:
+        return None
+    from lightning.pytorch.callbacks import EarlyStopping
+
+    settings = dict(OmegaConf.to_container(cfg, resolve=True)) if isinstance(cfg, DictConfig) else dict(cfg)
+    check_keys("early_stopping", settings, ("monitor", "patience", "min_delta"))
+    monitor = str(settings.get("monitor", "val/loss"))
+    if monitor not in ("val/loss", "val/dsc"):
+        raise ConfigError(f"early_stopping.monitor={monitor!r}: expected val/loss or val/dsc")
+    return EarlyStopping(
+        monitor=monitor,
+        mode="min" if monitor == "val/loss" else "max",
+        patience=setting_int("early_stopping.patience", settings.get("patience", 3), 1),
+        min_delta=setting_float("early_stopping.min_delta", settings.get("min_delta", 0.0), 0.0),
+        check_on_train_epoch_end=False,  # after validation, on its value
+    )
+
+
+def stop_reason(trainer, stopper) -> str:
+    """Why the fit ended: early stop ("patience: val/loss ...") or "max_epochs" / "max_steps" / "interrupted"."""
+    if stopper is not None and stopper.stopped_epoch > 0:
+        return (
+            f"patience: {stopper.monitor} not better than {float(stopper.best_score):.4g} for {stopper.patience} epochs"
+        )
+    if trainer.interrupted:
+        return "interrupted"
+    if trainer.max_steps not in (-1, None) and trainer.global_step >= trainer.max_steps:
+        return "max_steps"
+    return "max_epochs"
+
+
 def segment(cfg: DictConfig) -> dict:
     """Train one segmenter; return final metrics. Writes everything under cfg.out."""
     import lightning.pytorch as L
@@ -102,6 +135,7 @@ def segment(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     L.seed_everything(int(cfg.seed), workers=True)
 
+    stopper = early_stopping(cfg.get("early_stopping"))  # settings first, then data: nothing is written before
     # Data first: bad folders, sizes or mask values fail here, before the run folder gets anything.
     pairs = load_training_pairs(cfg)
     train_loader, val_loader, n_train, n_val = dataloaders(cfg, pairs)
@@ -120,7 +154,8 @@ def segment(cfg: DictConfig) -> dict:
         save_last=False,
         save_top_k=1,
     )
-    trainer = instantiate(cfg.trainer, callbacks=[ResumeCheckpoint(), checkpoint], logger=loggers or False)
+    callbacks = [ResumeCheckpoint(), checkpoint, *([stopper] if stopper is not None else [])]
+    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     start_loggers(loggers)
 
     params = flat_config(cfg)
@@ -144,12 +179,17 @@ def segment(cfg: DictConfig) -> dict:
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     metrics["time/wall_s"] = time.perf_counter() - wall_start
+    stop = stop_reason(trainer, stopper)
+    log.info("stopped after epoch %d: %s", trainer.current_epoch - 1, stop)
     last = out / "checkpoints" / "last.ckpt"
     for logger in loggers:
         logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
         if hasattr(logger, "experiment") and getattr(logger, "run_id", None) and last.is_file():
             logger.experiment.log_artifact(logger.run_id, str(last), artifact_path="checkpoints")
-    write_json(out / "metrics.json", {"epoch": trainer.current_epoch, "global_step": trainer.global_step, **metrics})
+    write_json(
+        out / "metrics.json",
+        {"epoch": trainer.current_epoch, "global_step": trainer.global_step, "stop_reason": stop, **metrics},
+    )
     log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
     return metrics
 

@@ -165,7 +165,7 @@ class DatasetFolder:
         path = self.root / CONFIG
         if path.is_file():
             old = json.loads(path.read_text()).get("fixed", {})
-            diff = {k: (old.get(k), v) for k, v in fixed.items() if old.get(k) != v}
+            diff = {k: (old.get(k), fixed.get(k)) for k in {**old, **fixed} if old.get(k) != fixed.get(k)}
             if diff:
                 text = "; ".join(f"{k}: {a!r} there, {b!r} now" for k, (a, b) in diff.items())
                 raise ConfigError(

@@ -30,8 +30,12 @@ FIXED_SETTINGS = (
 
 
 def fixed_settings(settings: dict) -> dict:
-    """The part of ``settings`` that config.json records and every later run must repeat."""
-    return {k: settings[k] for k in FIXED_SETTINGS}
+    """The part of ``settings`` that config.json records and every later run must repeat (``parameters`` only
+    when not the trained generator's, so that folders made before the setting existed still resume)."""
+    fixed = {k: settings[k] for k in FIXED_SETTINGS}
+    if settings.get("parameters", "trained") != "trained":
+        fixed["parameters"] = settings["parameters"]
+    return fixed
 
 
 def settings_from(cfg: DictConfig) -> dict:
@@ -99,8 +103,34 @@ def settings_from(cfg: DictConfig) -> dict:
         "renderer": renderer,
         "backgrounds": str(backgrounds) if backgrounds else None,
         "shard": str(shard),
+        "parameters": parameter_source(cfg.get("parameters", "trained")),
         "model_cfg": {**saved, "renderer": renderer},
     }
+
+
+PARAMETER_SOURCES = ("trained", "initial", "middle")
+
+
+def parameter_source(given) -> str | dict:
+    """``parameters=``: where each image's scene values come from (the ablations of experiments/tio2_sem/ABLATION.md):
+    "trained" (the generator's network, default), "initial" (the same network at its initial weights, before any
+    training step), "middle" (every learned parameter at the middle of its limits), or a mapping {key: value} of
+    every learned parameter (e.g. ``parameters={particle.roughness: 0.5, ...}``), the same for every image."""
+    if isinstance(given, DictConfig):
+        given = OmegaConf.to_container(given, resolve=True)
+    if isinstance(given, str) and given in PARAMETER_SOURCES:
+        return given
+    if isinstance(given, dict) and given:
+        values = {}
+        for key, value in _flatten(given).items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"parameters.{key}={value!r}: expected a number")
+            values[str(key)] = float(value)
+        return dict(sorted(values.items()))
+    raise ConfigError(
+        f"parameters={given!r}: expected one of {', '.join(PARAMETER_SOURCES)} or a mapping of every learned "
+        "parameter to a value, e.g. parameters={particle.roughness: 0.5, ...}"
+    )
 
 
 def background_source(given, run_dir: Path | None) -> Path | None:
@@ -113,3 +143,15 @@ def background_source(given, run_dir: Path | None) -> Path | None:
     if run_dir is not None and (run_dir / "patches").is_dir():
         return run_dir / "patches"
     return None
+
+
+def _flatten(mapping: dict, prefix: str = "") -> dict:
+    """{particle: {roughness: 0.5}} -> {"particle.roughness": 0.5} (YAML nesting or dotted keys alike)."""
+    flat = {}
+    for key, value in mapping.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            flat.update(_flatten(value, name + "."))
+        else:
+            flat[name] = value
+    return flat

@@ -60,3 +60,42 @@ def load_module(ckpt_file: Path, model_cfg: dict):
         module = GANModule.load_from_checkpoint(ckpt_file, map_location="cpu", cfg=model_cfg, weights_only=True)
     module.eval()
     return module
+
+
+def use_parameters(module, source, model_cfg: dict, base_dir=None) -> None:
+    """Make ``module`` render with the scene values of ``source`` (`drgan.dataset.settings.parameter_source`):
+    "trained" leaves it as loaded; "initial" gives its network the initial weights (the same seed and config
+    as at the start of training); "middle" or a mapping fixes every learned parameter for every image."""
+    import torch
+
+    generator = module.generator
+    if source == "trained":
+        return
+    if source == "initial":
+        from drgan.models import build
+
+        base_dir = base_dir if base_dir is not None else module.hparams.get("base_dir")
+        fresh = build.build_generator(
+            OmegaConf.create(model_cfg), base_dir=base_dir, seed=int(model_cfg.get("seed", 0))
+        )
+        generator.regressor.load_state_dict(fresh.regressor.state_dict())
+        return
+    learned = generator.learned
+    if source == "middle":
+        values = [(p.low + p.high) / 2 for p in learned]
+    else:
+        keys = [p.key for p in learned]
+        unknown, missing = sorted(set(source) - set(keys)), [k for k in keys if k not in source]
+        if unknown or missing:
+            raise ConfigError(
+                f"parameters: unknown {unknown}, missing {missing}; expected a value for each learned parameter {keys}"
+            )
+        outside = [
+            f"{p.key}={source[p.key]} not in [{p.low}, {p.high}]"
+            for p in learned
+            if not p.low <= source[p.key] <= p.high
+        ]
+        if outside:
+            raise ConfigError(f"parameters: {'; '.join(outside)} (the material's limits)")
+        values = [source[p.key] for p in learned]
+    generator.fixed_values = torch.tensor(values, dtype=torch.float32)

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError, MeshError, setting_float, setting_int
+from drgan.errors import ConfigError, MeshError, check_keys, setting_float, setting_int
 from drgan.resolvers import _USER_TRACKING_URI  # noqa: F401  (the resolvers are registered on import of drgan)
 from drgan.scene import layout, meshes
 from drgan.scene.parameters import MaterialParameters
@@ -101,9 +101,7 @@ def render_settings(material: Mapping, renderer: Mapping):
         "filter_stddev",
         "camera_distance",
     }
-    unknown = sorted(set(renderer) - known)
-    if unknown:
-        raise ConfigError(f"renderer: unknown key(s) {unknown}; expected some of {sorted(known)}")
+    check_keys("renderer", renderer, sorted(known))
     return RenderSettings(
         resolution=setting_int("renderer.resolution", renderer.get("resolution", material.get("view_width", 256)), 1),
         spp=renderer.get("spp", material.get("spp", 16)),
@@ -130,9 +128,7 @@ def scene_spec(material: Mapping, renderer: Mapping):
 
         return TransmissionSpec(parameters=material_parameters(material), render=settings, view_width=view_width)
     elements = material.get("scene") or {}
-    unknown = sorted(set(elements) - {"stage", "torus_light", "top_light"})
-    if unknown:
-        raise ConfigError(f"material.scene: unknown element(s) {unknown}; expected stage, torus_light, top_light")
+    check_keys("material.scene", elements, ("stage", "torus_light", "top_light"), "element")
 
     def light(cls, key):
         cfg = elements.get(key, {})

@@ -75,8 +75,7 @@ class BackgroundTexture:
     wrinkles. Each patch minus its Gaussian blur of ``highpass_px`` keeps that structure (and the real
     detector noise) and drops the patch's grey level and slow shading, which the learned stage colour and
     the lights own. A render seed picks one patch and one of its 8 dihedral symmetries, so a seed still
-    fixes the whole image. Fixed scene values with this texture scored 92.5 FID against 106.2 without on
-    the same renders (experiments/tio2_sem/README.md, sixth session).
+    fixes the whole image. It lowers the FID of the same renders (experiments/tio2_sem/README.md).
     """
 
     def __init__(self, patches: np.ndarray, highpass_px: float = 8.0):
@@ -150,6 +149,8 @@ class Generator(nn.Module):
         self.register_buffer("render_count", torch.zeros((), dtype=torch.int64))
         self.base_seed = int(seed)
         self.background: BackgroundTexture | None = None  # data, not weights: never in a checkpoint
+        # (k,) values used instead of the network's for every image (ablations: drgan.dataset.source.use_parameters)
+        self.fixed_values: torch.Tensor | None = None
 
     def set_background(self, texture: BackgroundTexture | None) -> None:
         """Add ``texture`` to the stage pixels of every later render (None: the stage as rendered)."""
@@ -165,6 +166,8 @@ class Generator(nn.Module):
 
     def learned_values(self, phi: torch.Tensor) -> torch.Tensor:
         """(B, n, 4) -> (B, k): each learned parameter rescaled into its [min, max]."""
+        if self.fixed_values is not None:
+            return self.fixed_values.to(phi.dtype).expand(phi.shape[0], -1)
         unit = self.regressor(self.normalise(phi))
         low = unit.new_tensor([p.low for p in self.learned])
         high = unit.new_tensor([p.high for p in self.learned])

@@ -23,7 +23,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, check_keys
 
 __all__ = [
     "NormalSize",
@@ -582,9 +582,7 @@ def _from_config(group: str, kinds: dict[str, type], cfg: Mapping) -> object:
         raise ConfigError(f"{group}.kind must be one of {sorted(kinds)}, got {kind!r}")
     cls = kinds[kind]
     valid = [field.name for field in fields(cls)]
-    unknown = sorted(set(values) - set(valid))
-    if unknown:
-        raise ConfigError(f"{group} kind {kind!r}: unknown field(s) {unknown}; valid fields are {valid} and 'kind'")
+    check_keys(f"{group} kind {kind!r}", values, valid, "field")
     try:
         return cls(**values)
     except TypeError as error:  # a required field is missing

@@ -26,7 +26,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from drgan.errors import ConfigError, MeshError
+from drgan.errors import ConfigError, MeshError, check_keys
 from drgan.io import write_bytes
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
@@ -335,9 +335,7 @@ def generator_parameters(kind: str, **params) -> dict:
         raise ConfigError(f"unknown mesh kind {kind!r}; expected one of {sorted(KINDS)}")
     signature = inspect.signature(KINDS[kind])
     defaults = {name: p.default for name, p in signature.parameters.items() if name != "rng"}
-    unknown = sorted(set(params) - set(defaults))
-    if unknown:
-        raise ConfigError(f"unknown parameters {unknown} for mesh kind {kind!r}; expected some of {sorted(defaults)}")
+    check_keys(f"mesh kind {kind!r}", params, sorted(defaults), "parameter")
     return {**defaults, **params}
 
 

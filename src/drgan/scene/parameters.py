@@ -14,7 +14,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, check_keys
 
 # Principled-BSDF parameters (Mitsuba's names) that may be learned or fixed. base_color is grey: the
 # microscope images have one channel.
@@ -125,11 +125,7 @@ class MaterialParameters:
                 f"material.transmission: expected a mapping of {', '.join(TRANSMISSION_PARAMETERS)}, "
                 f"got {transmission!r}"
             )
-        unknown = sorted(set(transmission) - set(TRANSMISSION_PARAMETERS))
-        if unknown:
-            raise ConfigError(
-                f"material.transmission: unknown parameter(s) {unknown}; expected {', '.join(TRANSMISSION_PARAMETERS)}"
-            )
+        check_keys("material.transmission", transmission, TRANSMISSION_PARAMETERS, "parameter")
         params = []
         for name in TRANSMISSION_PARAMETERS:
             spec = transmission.get(name, TRANSMISSION_DEFAULTS.get(name))

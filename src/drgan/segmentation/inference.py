@@ -25,7 +25,7 @@ import inspect
 import numpy as np
 import torch
 
-from drgan.errors import ConfigError, DataError
+from drgan.errors import ConfigError, DataError, check_keys
 from drgan.segmentation.data import normalization
 
 SPLITS = ("watershed", "none")
@@ -167,9 +167,7 @@ def make_predictor(model: torch.nn.Module, inference: dict):
         for name, p in inspect.signature(fn).parameters.items()
         if p.default is not inspect.Parameter.empty
     }
-    unknown = set(inference) - set(defaults)
-    if unknown:
-        raise ConfigError(f"inference: unknown setting(s) {sorted(unknown)}")
+    check_keys("inference", inference, defaults, "setting")
     settings = {**defaults, **inference}
     check_split(settings["split"], settings["split_depth"], settings["split_smooth"])
     return lambda image: predict(model, image, **inference)
