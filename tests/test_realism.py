@@ -181,6 +181,7 @@ def realism_cfg(images: Path, out: Path, synthetic, *extra):
             f"test.input_size={SIZE // 2}",
             "test.width=4",
             "progress=false",
+            "fid=false",
             *extra,
         ],
         config_name="realism",
@@ -192,10 +193,15 @@ def images(tmp_path_factory) -> Path:
     return disc_images(tmp_path_factory.mktemp("real") / "images")
 
 
-def test_cli_real_vs_real_halves_by_image_and_never_reads_test_ids(images, tmp_path):
+def test_cli_real_vs_real_halves_by_image_and_never_reads_test_ids(images, tmp_path, monkeypatch):
+    from drgan.callbacks.fid import RandomProjectionFeatures
+    from drgan.metrics import fid
     from drgan.realism import realism
 
-    summary = realism(realism_cfg(images, tmp_path / "out", "real"))
+    monkeypatch.setattr(fid, "InceptionFeatures", lambda: RandomProjectionFeatures(dim=8))  # FID beside the test
+    summary = realism(realism_cfg(images, tmp_path / "out", "real", "fid=true"))
+    assert np.isfinite(summary["test"]["fid"]) and summary["test"]["fid"] >= 0 and "kid" in summary["test"]
+    assert summary["markdown"].endswith(f" {summary['test']['fid']:.1f} |")
     source, test = summary["source"], summary["test"]
     assert set(source["half_a_ids"]).isdisjoint(source["half_b_ids"])
     assert set(source["half_a_ids"]) | set(source["half_b_ids"]) == {f"img{i}" for i in range(6)}
@@ -249,7 +255,9 @@ def test_cli_renders_a_checkpoint(images, tmp_path):
     summary = realism(realism_cfg(images, tmp_path / "out", run, "n_synthetic=12"))
     assert summary["source"]["kind"] == "checkpoint" and summary["source"]["resolution"] == SIZE
     assert summary["source"]["quantized_8bit"] and summary["source"]["synthetic_read"] == 12
-    assert summary["test"]["n_per_class"] == 12
+    assert summary["test"]["n_per_class"] == 12 and summary["source"]["parameters"] == "trained"
+    middle = realism(realism_cfg(images, tmp_path / "mid", run, "n_synthetic=12", "render.parameters=middle"))
+    assert middle["source"]["parameters"] == "middle"
     with pytest.raises(DataError, match="renders 24 px images"):
         realism(
             realism_cfg(
@@ -272,5 +280,5 @@ def test_cli_bad_inputs(images, tmp_path):
         realism(compose(["synthetic=real", f"out={tmp_path / 'o'}"], config_name="realism"))
     with pytest.raises(DataError, match="at least 40"):  # too few real patches for 20 folds
         realism(realism_cfg(images, tmp_path / "o", "real", "test.folds=20"))
-    with pytest.raises(ConfigError, match="test.colour"):
+    with pytest.raises(ConfigError, match=r"test: unknown setting.*colour"):
         realism(realism_cfg(images, tmp_path / "o", "real", "+test.colour=1"))

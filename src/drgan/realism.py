@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 
 # Renders for the test use seeds of their own, apart from training's and the FID callback's (0x5EED0000 + ...).
 REALISM_SEED_BASE = 0x7EA10000
-HEADER = "| source | patches per class | accuracy [95 % CI] | p (vs 0.5) | AUC |\n|---|---|---|---|---|"
+HEADER = "| source | patches per class | accuracy [95 % CI] | p (vs 0.5) | AUC | FID |\n|---|---|---|---|---|---|"
 
 
 # --- the real patches -------------------------------------------------------------------------------------------
@@ -66,7 +66,7 @@ def real_patches(cfg: DictConfig):
         "cache_dir",
         "polarity",
     }
-    check_keys("realism: data", data, sorted(allowed), "setting")
+    check_keys("data", data, sorted(allowed), "setting")
     module = RealPatchDataModule(**data, augment=False, check_material=False)
     module.setup()
     patches = module.patches
@@ -154,18 +154,22 @@ def _read_all(paths: list[Path], setting: str) -> np.ndarray:
 
 
 def checkpoint_renders(
-    source, n: int, background: np.ndarray, size: int, spp: int | None, quantize: bool
+    source, n: int, background: np.ndarray, size: int, spp: int | None, quantize: bool, parameters="trained"
 ) -> tuple[np.ndarray, dict]:
     """n renders of a generator checkpoint with the FID callback's render_samples; (images, what rendered them).
-    size: the real patches' size, which the checkpoint's resolution must equal (checked before rendering)."""
+    size: the real patches' size, which the checkpoint's resolution must equal (checked before rendering);
+    parameters: the scene values (`drgan.dataset.settings.parameter_source`: trained, initial, middle, a mapping)."""
     import torch
 
     from drgan.callbacks.fid import render_samples
-    from drgan.dataset.source import checkpoint_config, generator_checkpoint, load_module
+    from drgan.dataset.settings import parameter_source
+    from drgan.dataset.source import checkpoint_config, generator_checkpoint, load_module, use_parameters
 
+    parameters = parameter_source(parameters)
     ckpt_file, _ = generator_checkpoint(source)
     model_cfg = checkpoint_config(ckpt_file)
     module = load_module(ckpt_file, model_cfg)
+    use_parameters(module, parameters, model_cfg)
     if module.textured:
         module.use_background_texture(background)
     render = module.generator.scene.spec.render
@@ -187,6 +191,7 @@ def checkpoint_renders(
         "spp": spp or int(render.spp),
         "seed_base": REALISM_SEED_BASE,
         "quantized_8bit": bool(quantize),
+        "parameters": parameters,
     }
 
 
@@ -206,7 +211,7 @@ def real_halves(ids: list[str], seed: int) -> tuple[set[str], set[str]]:
 def classifier_settings(cfg: DictConfig) -> ClassifierSettings:
     test = dict(OmegaConf.to_container(cfg.get("test") or {}, resolve=True))
     allowed = set(ClassifierSettings.__dataclass_fields__) - {"seed"}
-    check_keys("realism: test", test, sorted(allowed), "setting")
+    check_keys("test", test, sorted(allowed), "setting")
     try:
         test = {k: float(v) if k in ("lr", "weight_decay") else v for k, v in test.items()}
     except (TypeError, ValueError):
@@ -260,8 +265,9 @@ def realism(cfg: DictConfig) -> dict:
             b, names = folder_images(Path(source), n, seed)
             label = f"images {source}"
         else:
-            quantize = bool((cfg.get("render") or {}).get("quantize", True))
-            b, detail = checkpoint_renders(source, n, patches.background, size, spp, quantize)
+            render = cfg.get("render") or {}
+            quantize, parameters = bool(render.get("quantize", True)), render.get("parameters", "trained")
+            b, detail = checkpoint_renders(source, n, patches.background, size, spp, quantize, parameters)
             names = [f"render_{i}" for i in range(len(b))]
             label = f"renders of {source}"
         if b.shape[1:] != (size, size):
@@ -273,6 +279,8 @@ def realism(cfg: DictConfig) -> dict:
         detail["synthetic_read"] = len(b)
     log.info("two-sample test: %s: %d patches (A) against %d (B), %d px", label, len(a), len(b), size)
     result = two_sample_test(a, b, settings, groups_a, groups_b, progress=bool(cfg.get("progress", True)))
+    if cfg.get("fid"):
+        result.update(sample_fid(a, b))
     line = markdown_line(label, result)
     out = Path(str(cfg.out))
     summary = {
@@ -296,11 +304,23 @@ def realism(cfg: DictConfig) -> dict:
     return summary
 
 
+def sample_fid(a: np.ndarray, b: np.ndarray) -> dict:
+    """FID and KID (clean-fid's Inception features, `drgan.metrics.fid`) of the two whole samples of the test:
+    what the training's FID would say about them, beside the classifier's accuracy."""
+    from drgan.metrics.fid import FeatureStats, InceptionFeatures, kid
+
+    extractor = InceptionFeatures()
+    fa, fb = extractor.features(a), extractor.features(b)
+    kid_mean, _ = kid(fb, fa)
+    return {"fid": FeatureStats.from_features(fb).fid(FeatureStats.from_features(fa)), "kid": float(kid_mean)}
+
+
 def markdown_line(label: str, result: dict) -> str:
     low, high = result["interval"]
+    fid = f" {result['fid']:.1f} |" if "fid" in result else " - |"
     return (
         f"| {label} | {result['n_per_class']} | {result['accuracy']:.3f} [{low:.3f}, {high:.3f}] | "
-        f"{result['p_value']:.2g} | {result['auc']:.3f} |"
+        f"{result['p_value']:.2g} | {result['auc']:.3f} |{fid}"
     )
 
 
