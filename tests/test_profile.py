@@ -148,7 +148,7 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert cfg.material.particle_size_px == pytest.approx(EXTENT_PER_DIAMETER * median, abs=0.1)
     assert cfg.size.kind == saved["sizes"]["chosen"] and cfg.placement.kind == saved["agglomeration"]["placement"]
     assert cfg.data.dir == str(folder.resolve()) and list(cfg.data.crop_rows) == [320, 336]
-    assert cfg.material.spp == 16  # inherited from the parent
+    assert cfg.renderer.spp == 16 and cfg.material.filter_stddev == 3.0  # inherited from the parent (HIM)
 
     with pytest.raises(ConfigError, match="exists"):
         profile(compose(overrides, config_name="profile"))  # no overwrite without overwrite=true

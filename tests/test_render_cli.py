@@ -25,8 +25,10 @@ def test_material_configs_hold_the_papers_settings(material):
     cfg = compose([f"material={material}"])
     n, spp, stddev, contour = PAPER[material]
     assert cfg.material.n_particles == n and cfg.renderer.spp == spp
-    assert cfg.renderer.filter_stddev == stddev and cfg.material.contour_px == contour
+    assert cfg.material.filter_stddev == stddev and cfg.material.contour_px == contour
+    assert "filter_stddev" not in cfg.renderer and "spp" not in cfg.material  # each setting in one place
     spec = build.scene_spec(cfg.material, cfg.renderer)
+    assert (spec.render.spp, spec.render.filter_stddev) == (spp, stddev)
     assert [p.key for p in spec.parameters.learned] == [
         "stage.base_color",
         "particle.roughness",

@@ -86,7 +86,9 @@ def material_parameters(material: Mapping) -> MaterialParameters:
 
 
 def render_settings(material: Mapping, renderer: Mapping):
-    """RenderSettings from the renderer group, falling back to the material's spp, filter and view width."""
+    """RenderSettings from the renderer group (quality: spp, integrator, ...) and the material (the instrument's blur
+    ``filter_stddev``, the view width). Checkpoints saved when the material held spp and the renderer a copy of the
+    filter still load: a renderer key wins, the material's spp is the fallback."""
     from drgan.scene.scene import RenderSettings
 
     material, renderer = _plain(material), _plain(renderer)
