@@ -257,7 +257,7 @@ def test_cli_renders_a_checkpoint(images, tmp_path):
     assert summary["source"]["quantized_8bit"] and summary["source"]["synthetic_read"] == 12
     assert summary["test"]["n_per_class"] == 12 and summary["source"]["parameters"] == "trained"
     middle = realism(realism_cfg(images, tmp_path / "mid", run, "n_synthetic=12", "render.parameters=middle"))
-    assert middle["source"]["parameters"] == "middle"
+    assert middle["source"]["parameters"] == "middle" and middle["source"]["label"].endswith("(middle values)")
     with pytest.raises(DataError, match="renders 24 px images"):
         realism(
             realism_cfg(

@@ -269,7 +269,10 @@ def realism(cfg: DictConfig) -> dict:
             quantize, parameters = bool(render.get("quantize", True)), render.get("parameters", "trained")
             b, detail = checkpoint_renders(source, n, patches.background, size, spp, quantize, parameters)
             names = [f"render_{i}" for i in range(len(b))]
-            label = f"renders of {source}"
+            chosen = detail["parameters"]
+            label = f"renders of {source}" + (
+                "" if chosen == "trained" else f" ({chosen if isinstance(chosen, str) else 'fixed'} values)"
+            )
         if b.shape[1:] != (size, size):
             raise DataError(
                 f"synthetic={source}: images of {b.shape[2]} x {b.shape[1]} px, but the real patches are "
