@@ -11,7 +11,8 @@
 # use its scene (material, particles, texture) with other values. Outputs: runs/ablation/ROW/ (not committed:
 # the real images are licensed no-derivatives). Environment: SPP (generation, default 16), N (pairs, 1000),
 # MAX_EPOCHS (segmenters, default 25; each stops earlier when its val/loss stops falling: segment's
-# early_stopping, patience 3), SEEDS (default "0 1 2").
+# early_stopping, patience 3), SEEDS (default "0 1 2"). Rerun the same command to resume an interrupted row.
+# Beside other jobs on few cores, OMP_NUM_THREADS=1 (torch's threads wait on each other when oversubscribed).
 set -euo pipefail
 ROW=${1:?usage: ablation.sh ROW GAN_RUN_FOLDER}
 GAN=${2:?usage: ablation.sh ROW GAN_RUN_FOLDER}
@@ -33,18 +34,21 @@ esac
 
 models=()
 for seed in $SEEDS; do
+  models+=("model=$OUT/seg_$seed/checkpoints/last.ckpt")
+  # resumable: a finished segmenter (metrics.json) is kept, an interrupted one goes on from its last.ckpt
+  [ -f $OUT/seg_$seed/metrics.json ] && continue
+  RESUME=$([ -f $OUT/seg_$seed/checkpoints/last.ckpt ] && echo ckpt_path=last || true)
   if [ "$ROW" = e ]; then
     # 32 real train images (29 train / 3 validation), 38 random crops each per epoch ~ 1,200 synthetic pairs
     python -m drgan.segment real=$DATA name=ablation_$ROW run_name=seed$seed seed=$seed out=$OUT/seg_$seed \
-      trainer.max_epochs=$MAX_EPOCHS loader.samples_per_pair=38 trainer.enable_progress_bar=false
+      trainer.max_epochs=$MAX_EPOCHS loader.samples_per_pair=38 trainer.enable_progress_bar=false $RESUME
   else
     if [ ! -f $OUT/synthetic/manifest.json ]; then
       python -m drgan.generate ckpt="$GAN" n=$N n_background=200 out=$OUT/synthetic renderer.spp=$SPP \
         "parameters=$PARAMETERS" progress=false
     fi
     python -m drgan.segment data=$OUT/synthetic name=ablation_$ROW run_name=seed$seed seed=$seed \
-      out=$OUT/seg_$seed trainer.max_epochs=$MAX_EPOCHS trainer.enable_progress_bar=false
+      out=$OUT/seg_$seed trainer.max_epochs=$MAX_EPOCHS trainer.enable_progress_bar=false $RESUME
   fi
-  models+=("model=$OUT/seg_$seed/checkpoints/last.ckpt")
 done
 python -m drgan.evaluate data=$DATA out=$OUT/eval "${models[@]}"
