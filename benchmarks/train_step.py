@@ -52,6 +52,8 @@ except ImportError:  # a checkout from before drgan.configs (comparisons against
                 continue
 
         conf = Path(drgan.__file__).resolve().parent / "conf"
+        if not conf.is_dir():  # checkouts from before conf/ moved into the package
+            conf = Path(drgan.__file__).resolve().parents[2] / "conf"
         with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
             return hydra_compose(config_name=config_name, overrides=list(overrides))
 
@@ -70,9 +72,17 @@ class Clock:
         self.wall, self.cpu = time.perf_counter() - self.wall, time.process_time() - self.cpu
 
 
+# --d-weight-grads: the G step also computes D's weight gradients, as GANModule did before commit d68288a (to time
+# an older checkout's iteration as it trained).
+D_WEIGHT_GRADS_IN_G_STEP = False
+
+
 @contextlib.contextmanager
 def frozen(network: torch.nn.Module):
     """``network``'s weights need no gradient inside (GANModule's G step: Lightning's optimizer toggle)."""
+    if D_WEIGHT_GRADS_IN_G_STEP:
+        yield
+        return
     flags = [p.requires_grad for p in network.parameters()]
     for p in network.parameters():
         p.requires_grad_(False)
@@ -190,7 +200,14 @@ def main():
         help="torch.set_num_threads (default: torch's). On a loaded machine 2 torch threads wait on "
         "each other: a 256 px D forward/backward took 0.4 s with 1 thread and 0.6-2.4 s with 2",
     )
+    parser.add_argument(
+        "--d-weight-grads",
+        action="store_true",
+        help="the G step also computes D's weight gradients (GANModule before commit d68288a; for older checkouts)",
+    )
     args = parser.parse_args()
+    global D_WEIGHT_GRADS_IN_G_STEP
+    D_WEIGHT_GRADS_IN_G_STEP = args.d_weight_grads
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}")
