@@ -16,7 +16,7 @@ import pytest
 import torch
 from conftest import compose
 from test_generate import tiny_run  # noqa: F401  (session fixture: the 1-step GAN run folder)
-from test_segment import disc_image, disc_labels, eval_cfg, make_generated, make_real
+from test_segment import disc_image, disc_labels, eval_cfg, make_generated, make_real, tiny_segment_overrides
 from test_train import make_images, run_train, tiny_overrides
 
 from drgan import generate as gen
@@ -169,24 +169,7 @@ def segmenter_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("seg")
     data = make_generated(root / "gen", n=4)
     out = root / "run"
-    segment(
-        compose(
-            [
-                f"data_dir={data}",
-                f"out={out}",
-                f"paths.root_dir={root}",
-                "model.depth=2",
-                "model.base=4",
-                "loader.crop=32",
-                "loader.batch_size=4",
-                "trainer.accelerator=cpu",
-                "trainer.enable_progress_bar=false",
-                "logger=none",
-                "trainer.max_epochs=1",
-            ],
-            config_name="segment",
-        )
-    )
+    segment(compose(tiny_segment_overrides(data, root, out, "logger=none", "trainer.max_epochs=1"), "segment"))
     return out
 
 

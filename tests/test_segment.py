@@ -308,26 +308,31 @@ def test_evaluate_refuses_bad_inputs_before_writing(case, message, tmp_path):
 # --- training entry point, checkpoint, evaluation with the real model -------------------------------------
 
 
-def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
-    from drgan.evaluate import evaluate
-    from drgan.segment import segment
-
-    data = make_generated(tmp_path / "gen")
-    out = tmp_path / "run"
-    common = [
+def tiny_segment_overrides(data, root, out, *extra) -> list[str]:
+    """Overrides of a segmenter run small enough for tests: a 2-level U-Net with 4 filters on 32 px crops, CPU."""
+    return [
         f"data_dir={data}",
         f"out={out}",
-        f"paths.root_dir={tmp_path}",
+        f"paths.root_dir={root}",
         "model.depth=2",
         "model.base=4",
         "loader.crop=32",
         "loader.batch_size=4",
         "trainer.accelerator=cpu",
         "trainer.enable_progress_bar=false",
-        "trainer.log_every_n_steps=1",
-        "name=tiny",
-        "model.normalize=zscore",
+        *extra,
     ]
+
+
+def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
+    from drgan.evaluate import evaluate
+    from drgan.segment import segment
+
+    data = make_generated(tmp_path / "gen")
+    out = tmp_path / "run"
+    common = tiny_segment_overrides(
+        data, tmp_path, out, "trainer.log_every_n_steps=1", "name=tiny", "model.normalize=zscore"
+    )
     metrics = segment(compose([*common, "trainer.max_epochs=1"], config_name="segment"))
     assert {"train/loss", "val/loss", "val/dsc"} <= set(metrics)
     last = out / "checkpoints" / "last.ckpt"
@@ -528,28 +533,15 @@ def test_segment_stops_when_val_loss_stops_improving_and_says_why(tmp_path):
     from drgan.segment import segment
 
     data = make_generated(tmp_path / "gen")
-    common = [
-        f"data_dir={data}",
-        f"paths.root_dir={tmp_path}",
-        "model.depth=2",
-        "model.base=4",
-        "loader.crop=32",
-        "loader.batch_size=4",
-        "trainer.accelerator=cpu",
-        "trainer.enable_progress_bar=false",
-        "logger=none",
-        "name=tiny",
-    ]
-    out = tmp_path / "stopped"
-    extra = ["trainer.max_epochs=10", "early_stopping.patience=1", "early_stopping.min_delta=1e9"]
-    segment(compose([*common, f"out={out}", *extra], config_name="segment"))
-    record = json.loads((out / "metrics.json").read_text())
+
+    def run(name, *extra):
+        out = tmp_path / name
+        segment(compose(tiny_segment_overrides(data, tmp_path, out, "logger=none", "name=tiny", *extra), "segment"))
+        return json.loads((out / "metrics.json").read_text())
+
+    record = run("stopped", "trainer.max_epochs=10", "early_stopping.patience=1", "early_stopping.min_delta=1e9")
     assert record["epoch"] == 2 and record["stop_reason"].startswith("patience: val/loss")
-    out = tmp_path / "full"
-    segment(compose([*common, f"out={out}", "trainer.max_epochs=3", "early_stopping=null"], config_name="segment"))
-    record = json.loads((out / "metrics.json").read_text())
+    record = run("full", "trainer.max_epochs=3", "early_stopping=null")
     assert record["epoch"] == 3 and record["stop_reason"] == "max_epochs"
     with pytest.raises(ConfigError, match="early_stopping.monitor"):
-        segment(
-            compose([*common, f"out={tmp_path / 'bad'}", "early_stopping.monitor=train/loss"], config_name="segment")
-        )
+        run("bad", "early_stopping.monitor=train/loss")
