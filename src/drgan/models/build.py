@@ -7,6 +7,7 @@ means the same scene everywhere. Inputs are checked here, before any render is s
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import fields
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -92,29 +93,20 @@ def render_settings(material: Mapping, renderer: Mapping):
     from drgan.scene.scene import RenderSettings
 
     material, renderer = _plain(material), _plain(renderer)
-    known = {
-        "variant",
-        "integrator",
-        "max_depth",
-        "resolution",
-        "spp",
-        "grad_spp",
-        "grad_seed",
-        "filter_stddev",
-        "camera_distance",
-    }
+    known = ("variant", *(field.name for field in fields(RenderSettings)))
     check_keys("renderer", renderer, sorted(known))
-    return RenderSettings(
-        resolution=setting_int("renderer.resolution", renderer.get("resolution", material.get("view_width", 256)), 1),
-        spp=renderer.get("spp", material.get("spp", 16)),
-        grad_spp=renderer.get("grad_spp"),
-        # absent (a checkpoint saved before the setting existed): RenderSettings' default
-        **({"grad_seed": renderer["grad_seed"]} if renderer.get("grad_seed") is not None else {}),
-        filter_stddev=float(renderer.get("filter_stddev", material.get("filter_stddev", 0.5))),
-        integrator=renderer.get("integrator", "prb_basic"),
-        max_depth=setting_int("renderer.max_depth", renderer.get("max_depth", 2), 1),
-        camera_distance=float(renderer.get("camera_distance", 10.0)),
-    )
+    # Every default lives in RenderSettings: only the keys given here are passed on.
+    values = {key: renderer[key] for key in known if key != "variant" and renderer.get(key) is not None}
+    for key, fallback in (("resolution", "view_width"), ("spp", "spp"), ("filter_stddev", "filter_stddev")):
+        if key not in values and material.get(fallback) is not None:
+            values[key] = material[fallback]
+    for key in ("resolution", "max_depth"):
+        if key in values:
+            values[key] = setting_int(f"renderer.{key}", values[key], 1)
+    for key in ("filter_stddev", "camera_distance"):
+        if key in values:
+            values[key] = float(values[key])
+    return RenderSettings(**values)
 
 
 def scene_spec(material: Mapping, renderer: Mapping):
