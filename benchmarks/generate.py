@@ -40,7 +40,7 @@ def time_setting(
     if particles is not None:
         overrides.append(f"material.n_particles={particles}")
     cfg = compose(overrides, config_name="train")
-    module = GANModule(cfg, m=1, base_dir=str(Path(__file__).resolve().parents[1])).eval()
+    module = GANModule.from_config(cfg, m=1, base_dir=str(Path(__file__).resolve().parents[1])).eval()
     generator = module.generator
     contour_px = int(cfg.material.contour_px)
     times = {"phi": [], "render": [], "labels": [], "write": []}

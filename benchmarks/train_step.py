@@ -234,7 +234,9 @@ def main():
                 if integrator is not None:
                     overrides.append(f"renderer.integrator={integrator}")
                 cfg = compose(overrides, config_name="train")
-                module = GANModule(cfg, m=124, base_dir=str(ROOT))
+                # GANModule.from_config since the module takes built parts; older checkouts: GANModule(cfg, ...)
+                build_module = getattr(GANModule, "from_config", GANModule)
+                module = build_module(cfg, m=124, base_dir=str(ROOT))
                 t = time_iteration(module, args.steps, args.warmup)
                 row = (
                     f"| {spp} | {grad} | {cfg.renderer.integrator} | {t['render']:.3f} | {t['d_step']:.3f} | "

@@ -390,7 +390,9 @@ def test_parameters_initial_gives_the_network_its_weights_before_training(tiny_r
     ckpt_file, cfg = _module_args(tiny_run)
     module = gen.load_module(ckpt_file, cfg)
     trained = {k: v.clone() for k, v in module.generator.regressor.state_dict().items()}
-    initial = GANModule(cfg).generator.regressor.state_dict()  # what training started from (same seed, config)
+    initial = GANModule.from_config(
+        cfg
+    ).generator.regressor.state_dict()  # what training started from (same seed, config)
     assert any(not torch.equal(trained[k], initial[k]) for k in trained)  # the one training step moved it
     use_parameters(module, "initial", cfg)
     assert all(torch.equal(v, initial[k]) for k, v in module.generator.regressor.state_dict().items())

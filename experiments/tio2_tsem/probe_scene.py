@@ -81,7 +81,7 @@ def main() -> None:
 
     with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf"), version_base="1.3"):
         cfg = compose("train", ["experiment=tio2_tsem", *args.overrides])
-    module = GANModule(cfg, m=args.n, base_dir=str(ROOT))
+    module = GANModule.from_config(cfg, m=args.n, base_dir=str(ROOT))
     module.eval()
     patches = PatchSet.load(args.reference / "patches")
     if module.textured:

@@ -66,7 +66,9 @@ def train(cfg: DictConfig) -> dict:
     datamodule = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
     datamodule.resolve_ids()
     datamodule.check_fits(cfg.material)  # polarity and particle size against the material: seconds, before mining
-    model = GANModule(cfg, base_dir=cfg.paths.root_dir)  # phi bank: after mining, when m is the number of patches
+    model = GANModule.from_config(
+        cfg, base_dir=cfg.paths.root_dir
+    )  # phi bank: after mining, when m is the number of patches
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
     if cfg.get("init_from") and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights
         copied = model.load_weights(Path(cfg.init_from).expanduser())

@@ -7,7 +7,7 @@ means the same scene everywhere. Inputs are checked here, before any render is s
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -180,25 +180,52 @@ def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: i
     )
 
 
-def sample_phi(cfg: DictConfig, m: int, seed: int) -> np.ndarray:
-    """Phi (m, n, 4) for the material with the configured size distribution and placement; with
-    ``material.n_particles_min`` each constellation shows n_particles_min..n_particles of them."""
-    size = layout.size_from_config(_plain(cfg.size))
-    placement = layout.placement_from_config(_plain(cfg.placement))
+def build_discriminator(model: Mapping | None):
+    """The PatchGAN discriminator of the ``model`` group (``model.discriminator``: filters, n_layers, slope)."""
+    from drgan.models.discriminator import PatchDiscriminator
+
+    disc = _plain((model or {}).get("discriminator"))
+    return PatchDiscriminator(
+        1, int(disc.get("filters", 64)), int(disc.get("n_layers", 3)), float(disc.get("slope", 0.2))
+    )
+
+
+@dataclass(frozen=True)
+class LayoutSampler:
+    """Constellations Phi for a material: ``sampler(m, seed)`` -> (m, n, 4) with the size distribution and
+    placement of the config; with ``n_min`` each constellation shows n_min..n of its n particles."""
+
+    size: layout.SizeDistribution
+    placement: layout.Placement
+    n: int
+    view_width: float
+    n_min: int | None = None
+
+    def __call__(self, m: int, seed: int) -> np.ndarray:
+        return layout.sample_layouts(
+            m, self.n, self.size, self.placement, view_width=self.view_width, seed=seed, n_min=self.n_min
+        )
+
+
+def layout_sampler(cfg: DictConfig) -> LayoutSampler:
+    """The LayoutSampler of a composed config (``size``, ``placement``, ``material.n_particles[_min]``, view width)."""
     n, n_min = setting_int("material.n_particles", cfg.material.n_particles, 1), cfg.material.get("n_particles_min")
     if n_min is not None and (isinstance(n_min, bool) or not isinstance(n_min, int) or not 1 <= n_min <= n):
         raise ConfigError(
             f"material.n_particles_min={n_min!r}: expected null or an integer in 1..material.n_particles ({n})"
         )
-    return layout.sample_layouts(
-        m,
-        n,
-        size,
-        placement,
+    return LayoutSampler(
+        size=layout.size_from_config(_plain(cfg.size)),
+        placement=layout.placement_from_config(_plain(cfg.placement)),
+        n=n,
         view_width=setting_float("material.view_width", cfg.material.view_width),
-        seed=seed,
         n_min=n_min,
     )
+
+
+def sample_phi(cfg: DictConfig, m: int, seed: int) -> np.ndarray:
+    """Phi (m, n, 4) for the material with the configured size distribution and placement (`layout_sampler`)."""
+    return layout_sampler(cfg)(m, seed)
 
 
 def textured(material: Mapping) -> bool:
@@ -206,16 +233,27 @@ def textured(material: Mapping) -> bool:
     return bool(_plain(material.get("background_texture")).get("enabled", False))
 
 
-def background_texture(material: Mapping, patches) -> BackgroundTexture | None:
-    """The material's stage texture (``material.background_texture``) from real background patches, or None."""
-    from drgan.models.generator import BackgroundTexture
-
+def texture_highpass_px(material: Mapping) -> float | None:
+    """The high-pass width of the material's stage texture (``material.background_texture``); None: untextured."""
     if not textured(material):
         return None
-    settings = _plain(material.get("background_texture"))
+    return float(_plain(material.get("background_texture")).get("highpass_px", 8.0))
+
+
+def make_background_texture(highpass_px: float | None, patches) -> BackgroundTexture | None:
+    """A stage texture from real background patches (k, H, W), or None when ``highpass_px`` is None."""
+    from drgan.models.generator import BackgroundTexture
+
+    if highpass_px is None:
+        return None
     if patches is None or len(patches) == 0:
         raise ConfigError(
             "material.background_texture.enabled: no real background patches to take the texture from "
             "(set data.n_background > 0 for training, or give generate backgrounds=<run>/patches)"
         )
-    return BackgroundTexture(patches, settings.get("highpass_px", 8.0))
+    return BackgroundTexture(patches, highpass_px)
+
+
+def background_texture(material: Mapping, patches) -> BackgroundTexture | None:
+    """The material's stage texture (``material.background_texture``) from real background patches, or None."""
+    return make_background_texture(texture_highpass_px(material), patches)

@@ -15,6 +15,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from drgan.errors import ConfigError
 from drgan.models import build
-from drgan.models.discriminator import PatchDiscriminator
 
 log = logging.getLogger(__name__)
 
@@ -72,49 +72,149 @@ class LRDecay:
         return 1.0 - (1.0 - self.final_factor) * progress
 
 
-class GANModule(LightningModule):
-    """cfg: the composed config (or its ``model_config``); m: constellations in the phi bank (default:
-    ``model.n_constellations``, else required); base_dir: where relative mesh folders are found."""
+@dataclass(frozen=True)
+class GANTraining:
+    """How the two networks learn (``conf/model``): adversarial loss, Adam learning rates and betas, the optional
+    learning-rate decay, and how many non-finite steps in a row stop training."""
 
-    def __init__(self, cfg: DictConfig | Mapping, m: int | None = None, base_dir: str | None = None):
-        super().__init__()
-        self.automatic_optimization = False
-        cfg = OmegaConf.create(model_config(cfg))
-        self.save_hyperparameters({"cfg": OmegaConf.to_container(cfg), "m": m, "base_dir": base_dir}, logger=False)
-        self.cfg = cfg
-        model = cfg.get("model") or OmegaConf.create({})
-        self.seed = int(cfg.get("seed", 0))
-        self.loss_kind = str(model.get("loss", "lsgan"))
-        if self.loss_kind not in LOSSES:
-            raise ConfigError(f"model.loss={self.loss_kind!r}: expected one of {LOSSES}")
-        self.lr_g, self.lr_d = float(model.get("lr_g", 2e-4)), float(model.get("lr_d", 1e-4))
-        self.betas = tuple(float(b) for b in model.get("betas", (0.5, 0.999)))
+    loss: str = "lsgan"
+    lr_g: float = 2e-4
+    lr_d: float = 1e-4
+    betas: tuple[float, float] = (0.5, 0.999)
+    lr_decay: LRDecay | None = None
+    max_consecutive_nonfinite: int = 5
+
+    def __post_init__(self):
+        if self.loss not in LOSSES:
+            raise ConfigError(f"model.loss={self.loss!r}: expected one of {LOSSES}")
         if self.lr_g <= 0 or self.lr_d <= 0 or len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
             raise ConfigError(
                 f"model: lr_g={self.lr_g}, lr_d={self.lr_d}, betas={self.betas}: expected lr > 0 and two betas in [0, 1)"
             )
-        self.lr_decay = LRDecay.from_config(model.get("lr_decay"))
-        self.max_consecutive_nonfinite = int(model.get("max_consecutive_nonfinite", 5))
         if self.max_consecutive_nonfinite < 1:
             raise ConfigError(f"model.max_consecutive_nonfinite={self.max_consecutive_nonfinite}: expected >= 1")
 
-        self.generator = build.build_generator(cfg, base_dir=base_dir, seed=self.seed)
-        disc = model.get("discriminator") or {}
-        self.discriminator = PatchDiscriminator(
-            1, int(disc.get("filters", 64)), int(disc.get("n_layers", 3)), float(disc.get("slope", 0.2))
-        )
+    @classmethod
+    def from_config(cls, model: Mapping | None) -> GANTraining:
+        """From the ``model`` group; absent keys take the defaults above (one place for them)."""
+        model = dict(model or {})
+        given = {k: model[k] for k in ("loss", "lr_g", "lr_d", "max_consecutive_nonfinite") if model.get(k) is not None}
+        casts = {"loss": str, "lr_g": float, "lr_d": float, "max_consecutive_nonfinite": int}
+        values = {k: casts[k](v) for k, v in given.items()}
+        if model.get("betas") is not None:
+            values["betas"] = tuple(float(b) for b in model["betas"])
+        return cls(**values, lr_decay=LRDecay.from_config(model.get("lr_decay")))
+
+
+class GANModule(LightningModule):
+    """The GAN from built parts, as Lightning modules of the lightning-hydra-template take theirs:
+
+    generator: `drgan.models.generator.Generator` (FCN + scene + noise); discriminator: `PatchDiscriminator`;
+    layouts: ``layouts(m, seed) -> (m, n, 4)`` constellations (`drgan.models.build.LayoutSampler`); training:
+    `GANTraining`; texture_highpass_px: the stage texture's high-pass width, None for an untextured material;
+    m: constellations in the phi bank (None: drawn later with `set_constellations`); seed: phi bank, phi
+    order and render seeds. ``config`` is what rebuilds the same module from a checkpoint (`from_config`'s input:
+    the model config and base_dir); `from_config` fills it, a module built by hand may leave it out (and then
+    cannot be loaded with `load_from_checkpoint`).
+    """
+
+    def __init__(
+        self,
+        generator: torch.nn.Module,
+        discriminator: torch.nn.Module | None = None,
+        layouts=None,
+        training: GANTraining | None = None,
+        *,
+        texture_highpass_px: float | None = None,
+        m: int | None = None,
+        seed: int = 0,
+        config: Mapping | None = None,
+    ):
+        if isinstance(generator, (Mapping, DictConfig)):
+            raise TypeError(
+                "GANModule(generator, discriminator, layouts, ...) takes built parts; "
+                "from a config: GANModule.from_config(cfg, m=None, base_dir=None)"
+            )
+        if discriminator is None or layouts is None:
+            raise TypeError("GANModule: discriminator and layouts are required (or build all parts with from_config)")
+        super().__init__()
+        self.automatic_optimization = False
+        config = dict(config or {})
+        self.save_hyperparameters({"cfg": config.get("cfg"), "m": m, "base_dir": config.get("base_dir")}, logger=False)
+        training = training if training is not None else GANTraining()
+        self.training_settings = training
+        self.seed = int(seed)
+        self.loss_kind = training.loss
+        self.lr_g, self.lr_d, self.betas = training.lr_g, training.lr_d, tuple(training.betas)
+        self.lr_decay = training.lr_decay
+        self.max_consecutive_nonfinite = training.max_consecutive_nonfinite
+        self.layouts = layouts
+        self.texture_highpass_px = texture_highpass_px
+
+        self.generator = generator
+        self.discriminator = discriminator
         self.discriminator.check_size(self.generator.scene.spec.render.resolution)
 
         # The phi bank: m constellations drawn once. m defaults to the number of training patches, known only
         # after mining, so drgan.train builds (and so checks) the module first and calls set_constellations later.
         self.register_buffer("phi_bank", torch.zeros(0, self.generator.scene.n_particles, 4))
-        m = m if m is not None else model.get("n_constellations")
         if m is not None:
             self.set_constellations(m)
         # phi indices come from a generator of their own (per rank, saved in checkpoints), not the global RNG.
         self.phi_rng = torch.Generator().manual_seed(self.seed)
         self.skipped_steps = 0
         self.consecutive_nonfinite = 0
+
+    @classmethod
+    def from_config(
+        cls, cfg: DictConfig | Mapping, m: int | None = None, base_dir: str | Path | None = None
+    ) -> GANModule:
+        """The module of a composed config (or its ``model_config``): scene, generator and discriminator built
+        by `drgan.models.build` (generator first: both draw their initial weights from torch's seeded RNG);
+        m: constellations in the phi bank (default: ``model.n_constellations``, else set later)."""
+        plain = model_config(cfg)
+        cfg = OmegaConf.create(plain)
+        model = cfg.get("model") or OmegaConf.create({})
+        seed = int(cfg.get("seed", 0))
+        training = GANTraining.from_config(OmegaConf.to_container(model))
+        generator = build.build_generator(cfg, base_dir=base_dir, seed=seed)
+        discriminator = build.build_discriminator(model)
+        m = m if m is not None else model.get("n_constellations")
+        return cls(
+            generator,
+            discriminator,
+            build.layout_sampler(cfg),
+            training,
+            texture_highpass_px=build.texture_highpass_px(cfg.material),
+            m=m,
+            seed=seed,
+            config={"cfg": plain, "base_dir": None if base_dir is None else str(base_dir)},
+        )
+
+    @classmethod
+    def load_from_checkpoint(
+        cls, checkpoint_path, map_location=None, hparams_file=None, strict=True, cfg=None, weights_only=True, **kwargs
+    ) -> GANModule:
+        """The module of a drgan.train checkpoint, rebuilt with `from_config` from the config saved in it (or
+        ``cfg``, e.g. with another renderer), then its weights, phi bank and step state. Loaded with
+        ``weights_only=True`` always (`drgan.checkpoint_io`): a checkpoint holding code is refused unread."""
+        from drgan.checkpoint_io import load_checkpoint
+
+        if hparams_file is not None or kwargs:
+            raise TypeError(f"GANModule.load_from_checkpoint: unsupported arguments {['hparams_file', *kwargs]}")
+        path = Path(checkpoint_path)
+        checkpoint = load_checkpoint(path, "ckpt", expected="a .ckpt written by drgan.train")
+        hparams = checkpoint.get("hyper_parameters") or {}
+        config = cfg if cfg is not None else hparams.get("cfg")
+        if config is None:
+            raise ConfigError(
+                f"ckpt={path}: no model config in its hyperparameters (a GANModule built by hand, or not a GANModule "
+                "checkpoint); pass cfg= to rebuild it"
+            )
+        module = cls.from_config(config, m=hparams.get("m"), base_dir=hparams.get("base_dir"))
+        module.on_load_checkpoint(checkpoint)
+        module.load_state_dict(checkpoint["state_dict"], strict=strict)
+        return module if map_location is None else module.to(map_location)
 
     def set_constellations(self, m: int) -> None:
         """Draw the phi bank of ``m`` constellations (seeded by ``seed``); saved with the hyperparameters."""
@@ -128,7 +228,7 @@ class GANModule(LightningModule):
     def sample_phi(self, m: int, seed: int) -> np.ndarray:
         """``m`` constellations (m, n, 4) from this module's size and placement distributions, seeded by ``seed``:
         what callbacks draw their fixed evaluation sets from."""
-        return build.sample_phi(self.cfg, int(m), seed=int(seed))
+        return self.layouts(int(m), seed=int(seed))
 
     @property
     def learned_keys(self) -> list[str]:
@@ -144,12 +244,12 @@ class GANModule(LightningModule):
     @property
     def textured(self) -> bool:
         """Whether the material adds real background texture to the stage (``material.background_texture``)."""
-        return build.textured(self.cfg.material)
+        return self.texture_highpass_px is not None
 
     def use_background_texture(self, patches) -> None:
         """Give the generator its stage texture from real background patches (k, H, W). Training does this in
         ``setup``; a module loaded from a checkpoint for rendering needs it from the run's ``patches/``."""
-        self.generator.set_background(build.background_texture(self.cfg.material, patches))
+        self.generator.set_background(build.make_background_texture(self.texture_highpass_px, patches))
 
     # --- optimisers and losses ----------------------------------------------------------------------------
 
