@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import compose
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
 from scipy.sparse.csgraph import connected_components
 
 from drgan.errors import ConfigError
@@ -308,7 +310,16 @@ def test_config_group_files_build_their_dataclass(group, name, expected):
     built = build(cfg)
     assert type(built) is expected
     # Every field is spelled out in the file, so the defaults are visible where they are changed.
-    assert set(cfg) == {field.name for field in dataclasses.fields(expected)} | {"kind"}
+    assert set(cfg) == {field.name for field in dataclasses.fields(expected)} | {"_target_"}
+    # The class the file names is the one Hydra would instantiate, too (and the short `kind` of older configs
+    # and checkpoints builds the same object).
+    assert cfg._target_ == f"{expected.__module__}.{expected.__qualname__}"
+    assert type(instantiate(cfg)) is expected
+    old_style = {
+        "kind": name,
+        **{k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k != "_target_"},
+    }
+    assert build(old_style) == built
 
 
 def test_config_files_sample_paper_like_layouts():
@@ -324,6 +335,13 @@ def test_config_unknown_kind_lists_valid_kinds():
         size_from_config({"kind": "gamma", "mean": 24.0})
     with pytest.raises(ConfigError, match="kind.*poisson.*random_2d.*random_3d"):
         placement_from_config({"kind": "grid"})
+
+
+def test_config_target_must_name_a_known_class_and_agree_with_kind():
+    with pytest.raises(ConfigError, match=r"size._target_ must be one of.*LognormalSize.*got 'os.system'"):
+        size_from_config({"_target_": "os.system", "median": 24.0})
+    with pytest.raises(ConfigError, match="name different classes"):
+        placement_from_config({"_target_": "drgan.scene.layout.Random2D", "kind": "poisson"})
 
 
 def test_config_unknown_field_lists_valid_fields():

@@ -146,7 +146,11 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
 
     median = saved["sizes"]["fits"][1]["params"]["median"]
     assert cfg.material.particle_size_px == pytest.approx(EXTENT_PER_DIAMETER * median, abs=0.1)
-    assert cfg.size.kind == saved["sizes"]["chosen"] and cfg.placement.kind == saved["agglomeration"]["placement"]
+    from drgan.scene import layout
+
+    size, placement = layout.size_from_config(cfg.size), layout.placement_from_config(cfg.placement)
+    assert type(size) is layout._SIZE_KINDS[saved["sizes"]["chosen"]]
+    assert type(placement) is layout._PLACEMENT_KINDS[saved["agglomeration"]["placement"]]
     assert cfg.data.dir == str(folder.resolve()) and list(cfg.data.crop_rows) == [320, 336]
     assert cfg.renderer.spp == 16 and cfg.material.filter_stddev == 3.0  # inherited from the parent (HIM)
 
