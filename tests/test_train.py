@@ -70,6 +70,7 @@ def tiny_overrides(
         "material.meshes.count=3",
         f"renderer.resolution={SIZE}",
         "renderer.spp=1",
+        "data.view_width=null",  # windows of the render size: the tiny discs at a 24 px scale, not a 256 px view
         f"data.dir={data_dir}",
         "data.crop_rows=null",
         "data.check_material=false",  # tiny discs of ~9 px against the material's 30 px: tests/test_polarity.py checks it
@@ -124,6 +125,33 @@ def test_datamodule_mines_caches_and_augments(images, tmp_path):
     again = datamodule(images, tmp_path)
     again.setup("fit")
     np.testing.assert_array_equal(again.real_patches, dm.real_patches)
+
+
+def test_real_patches_cover_the_view_at_any_render_resolution(images, tmp_path):
+    """Rendering 24 px for a 48 px view: 48 px windows are mined and area-averaged to 24 px, so real and rendered
+    patches show particles at one scale (mining 24 px windows would show them twice as large)."""
+    from skimage.transform import resize
+
+    from drgan.data.images import read_grey
+
+    dm = datamodule(images, tmp_path, view_width=2 * SIZE, stride=16)
+    dm.setup("fit")
+    patches = dm.patches
+    assert patches.train.shape[1:] == (SIZE, SIZE) and patches.background.shape[1:] == (SIZE, SIZE)
+    assert patches.params["window"] == 2 * SIZE
+    source = {p.stem: read_grey(p, None) for p in sorted(images.glob("*.png"))}
+    for patch, name, (row, col) in zip(patches.train[:3], patches.train_ids, patches.train_positions):
+        window = source[name][row : row + 2 * SIZE, col : col + 2 * SIZE]
+        expected = resize(window, (SIZE, SIZE), order=1, anti_aliasing=True, preserve_range=True)
+        np.testing.assert_allclose(patch, expected, atol=1e-6)
+    # Without view_width (or equal to the patch size) nothing is resampled: the windows are the patches.
+    plain = datamodule(images, tmp_path / "plain")
+    plain.setup("fit")
+    row, col = plain.patches.train_positions[0]
+    window = source[plain.patches.train_ids[0]][row : row + SIZE, col : col + SIZE]
+    np.testing.assert_array_equal(plain.patches.train[0], window)
+    with pytest.raises(ConfigError, match="view_width=12.*less than data.patch_size=24"):
+        datamodule(images, tmp_path, view_width=SIZE // 2)
 
 
 def test_split_keeps_test_images_out(images, tmp_path):

@@ -83,6 +83,7 @@ def train(work: Path, env: dict) -> Path:
             "material.meshes.count=3",
             f"renderer.resolution={SIZE}",
             "renderer.spp=1",
+            "data.view_width=null",  # mine windows of the render size (tiny images)
             f"data.dir={work / 'real' / 'images'}",
             "data.crop_rows=null",
             "data.check_material=false",

@@ -34,6 +34,7 @@ DATA = Path(os.environ.get("DRGAN_DATA", ROOT.parent / "shared" / "datasets")).r
 TINY = [
     "renderer.resolution=24",
     "renderer.spp=1",
+    "data.view_width=null",
     "material.n_particles=3",
     "material.meshes.count=3",
     "data.crop_rows=null",

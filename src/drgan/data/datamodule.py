@@ -26,6 +26,7 @@ from drgan.data.patches import (
     contact_sheet,
     dihedral_augment,
     mine_patches,
+    resample_patches,
 )
 from drgan.data.polarity import check_polarity, detect_polarity
 from drgan.errors import ConfigError, DataError
@@ -84,6 +85,7 @@ class RealPatchDataModule(LightningDataModule):
         resolution: int | None = None,
         polarity: str = "auto",
         check_material: bool = True,
+        view_width: int | None = None,
     ):
         super().__init__()
         if dir is None or str(dir) in ("", "None", "null"):
@@ -103,6 +105,15 @@ class RealPatchDataModule(LightningDataModule):
             crop_rows if crop_rows is None or isinstance(crop_rows, str) else tuple(int(v) for v in crop_rows)
         )
         self.patch_size = int(patch_size)
+        # Real px a patch covers (the camera's view, material.view_width); windows of this size are mined and then
+        # resampled to patch_size (the render's pixels) when the two differ, so real and rendered patches show the
+        # same scale at any render resolution. None: patch_size.
+        self.window = self.patch_size if view_width is None else int(view_width)
+        if self.window < self.patch_size:
+            raise ConfigError(
+                f"material.view_width={self.window} px is less than data.patch_size={self.patch_size} (the render's "
+                "pixels): the real patches would be upsampled; render at most view_width pixels per side"
+            )
         self.stride = int(stride)
         self.min_particles = int(min_particles)
         self.n_background = int(n_background)
@@ -172,6 +183,7 @@ class RealPatchDataModule(LightningDataModule):
             "train_ids": ids,
             "crop_rows": list(self.crop_rows) if isinstance(self.crop_rows, tuple) else self.crop_rows,
             "patch_size": self.patch_size,
+            **({"window": self.window} if self.window != self.patch_size else {}),
             "stride": self.stride,
             "min_particles": self.min_particles,
             "n_background": self.n_background,
@@ -205,12 +217,12 @@ class RealPatchDataModule(LightningDataModule):
         patches = self._load_cache(source)
         if patches is None:
             images = [read_grey(p, self.crop_rows) for p in paths]
-            check_image_sizes(images, ids, self.patch_size)
+            check_image_sizes(images, ids, self.window)
             self.resolve_polarity(images)
             patches = mine_patches(
                 images,
                 ids,
-                size=self.patch_size,
+                size=self.window,
                 stride=self.stride,
                 min_particles=self.min_particles,
                 n_background=self.n_background,
@@ -220,6 +232,8 @@ class RealPatchDataModule(LightningDataModule):
                 progress=False,
             )
             patches.params["polarity_estimate"] = self.polarity_estimate
+            if self.window != self.patch_size:
+                patches = resample_patches(patches, self.patch_size)
             if self.cache_dir is not None:
                 patches.save(self.cache_dir)
                 contact_sheet(patches, self.cache_dir / "contact_sheet.png")
@@ -250,7 +264,7 @@ class RealPatchDataModule(LightningDataModule):
 
         paths, ids, _ = self.resolve_ids()
         images = [read_grey(p, self.crop_rows) for p in paths[:N_IMAGES]]
-        check_image_sizes(images, ids, self.patch_size)
+        check_image_sizes(images, ids, self.window)
         polarity = self.resolve_polarity(images)
         if not self.check_material:
             return None

@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -345,6 +345,27 @@ class _DuplicateFilter:
         self.kept += 1
         self.windows.setdefault(image, []).append((row, col))
         return True
+
+
+def resample_patches(patches: PatchSet, size: int) -> PatchSet:
+    """The same patches area-averaged to ``size`` x ``size`` px (a render resolution below the real px a patch
+    covers); positions stay in the source image's px. Anti-aliased, so the real grain is averaged as the render's
+    pixels average their samples."""
+    from skimage.transform import resize
+
+    def shrink(stack: np.ndarray) -> np.ndarray:
+        if stack.ndim != 3 or len(stack) == 0:
+            return np.zeros((0, size, size), np.float32)
+        return np.stack([
+            resize(p, (size, size), order=1, anti_aliasing=True, preserve_range=True) for p in stack
+        ]).astype(np.float32)  # fmt: skip
+
+    return replace(
+        patches,
+        train=shrink(patches.train),
+        background=shrink(patches.background),
+        params={**patches.params, "window": patches.patch_size, "size": int(size)},
+    )
 
 
 def check_image_sizes(images: Sequence[np.ndarray], ids: Sequence[str], size: int) -> None:
