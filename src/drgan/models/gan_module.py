@@ -142,7 +142,6 @@ class GANModule(LightningModule):
         config = dict(config or {})
         self.save_hyperparameters({"cfg": config.get("cfg"), "m": m, "base_dir": config.get("base_dir")}, logger=False)
         training = training if training is not None else GANTraining()
-        self.training_settings = training
         self.seed = int(seed)
         self.loss_kind = training.loss
         self.lr_g, self.lr_d, self.betas = training.lr_g, training.lr_d, tuple(training.betas)
