@@ -101,7 +101,7 @@ def elements(args, cube_meshes):
         print(f"| {name} | {n} | {resolution} | {spp} | {fwd:.3f} | {fb:.3f} |", flush=True)
 
 
-# The TiO2 SEM lighting (conf/material/tio2_sem.yaml): a grazing band ring and a dimmer top light.
+# The TiO2 SEM lighting (conf/gan/material/tio2_sem.yaml): a grazing band ring and a dimmer top light.
 SEM_LIGHTS = {
     "torus_light": TorusLight(radiance=4.0, major_radius=1.0, minor_radius=0.08, height=0.1),
     "top_light": TopLight(radiance=0.3),

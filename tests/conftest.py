@@ -71,13 +71,7 @@ def tiny_scene():
 
 
 def compose(overrides=(), config_name="render"):
-    from pathlib import Path
+    """A composed config of any entry point (`drgan.configs.compose`)."""
+    from drgan.configs import compose as drgan_compose
 
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    import drgan  # noqa: F401  (registers the config resolvers)
-
-    conf = Path(__file__).resolve().parents[1] / "src" / "drgan" / "conf"
-    with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
-        return hydra_compose(config_name=config_name, overrides=list(overrides))
+    return drgan_compose(overrides, config_name=config_name)

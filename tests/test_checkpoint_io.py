@@ -120,12 +120,14 @@ def test_segment_evaluate_and_analyze_refuse_a_crafted_checkpoint(crafted, tmp_p
     with pytest.raises(DataError, match=f"model=.*{REFUSED}"):
         evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{path}]"]))
     with pytest.raises(DataError, match=f"model=.*{REFUSED}"):
-        analyze(compose([f"ckpt={path}", f"images={real / 'images'}", f"out={tmp_path / 'an'}"], config_name="analyze"))
+        analyze(
+            compose([f"model={path}", f"images={real / 'images'}", f"out={tmp_path / 'an'}"], config_name="analyze")
+        )
     data = make_generated(tmp_path / "gen", n=4)
     with pytest.raises(ConfigError, match=f"ckpt_path=.*{REFUSED}"):
         segment(
             compose(
-                [f"data_dir={data}", f"out={tmp_path / 'seg'}", f"ckpt_path={path}", "logger=none"],
+                [f"data={data}", f"out={tmp_path / 'seg'}", f"ckpt_path={path}", "logger=none"],
                 config_name="segment",
             )
         )

@@ -9,7 +9,8 @@ import pytest
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from drgan.configs import compose, conf_dir
+from drgan.configs import ROOTS, compose, conf_dir
+from drgan.errors import ConfigError
 
 # The required keys (???) of each CLI's config, filled with placeholders: composition is what is tested here.
 REQUIRED = {
@@ -27,20 +28,28 @@ REQUIRED = {
 
 
 def group_options(group: str) -> list[str]:
-    return sorted(p.stem for p in (conf_dir() / group).glob("*.yaml"))
+    return sorted(p.stem for p in (conf_dir("gan") / group).glob("*.yaml"))
 
 
 def test_every_cli_has_a_config_and_it_composes():
-    names = sorted(p.stem for p in conf_dir().glob("*.yaml"))
+    names = sorted(p.stem for root in ROOTS for p in conf_dir(root).glob("*.yaml"))
     assert names == sorted(REQUIRED), "a CLI config was added or removed: list it in REQUIRED"
     for name in names:
-        if name == "export_nnunet":  # its `data` key shares a name with train's group: composed from its own file
-            from drgan.export_nnunet import compose_config
-
-            cfg = compose_config(REQUIRED[name])
-        else:
-            cfg = compose(REQUIRED[name], config_name=name)
+        cfg = compose(REQUIRED[name], config_name=name)
         assert len(cfg) > 0, name
+
+
+def test_segmentation_entry_points_take_data_and_model_as_plain_keys():
+    """Their own config root has no `data`/`model` groups: the folder and checkpoint are plain values."""
+    assert compose(["data=/some/pairs"], config_name="segment").data == "/some/pairs"
+    assert compose(["data=/real", "model=a.ckpt"], config_name="evaluate").model == "a.ckpt"
+    assert compose(["model=a.ckpt"], config_name="analyze").model == "a.ckpt"
+    assert compose(["data=/pairs", "out=raw"], config_name="export_nnunet").data == "/pairs"
+    # the shared groups reach both roots
+    seg, train = compose([], config_name="segment"), compose([], config_name="train")
+    assert seg.paths.log_dir == train.paths.log_dir and "mlflow" in seg.logger and "mlflow" in train.logger
+    with pytest.raises(ConfigError, match="expected one of"):
+        compose([], config_name="no_such_cli")
 
 
 @pytest.mark.parametrize("material", group_options("material"))

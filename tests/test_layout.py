@@ -27,7 +27,7 @@ from drgan.scene.layout import (
     size_from_config,
 )
 
-CONF = Path(__file__).resolve().parents[1] / "src" / "drgan" / "conf"
+CONF = Path(__file__).resolve().parents[1] / "src" / "drgan" / "conf" / "gan"
 DRAWS = 20_000  # size samples per statistical check
 LOGNORMAL = LognormalSize(median=24.0, sigma=0.2)
 PLACEMENTS = [Random2D(), Random3D(max_height=24.0), PoissonAgglomerates()]

@@ -53,7 +53,7 @@ def hydra_job(tmp_path):
     OmegaConf.save({"hydra": {"overrides": {"task": ["debug=fast", "seed=0,1"]}}}, sweep_dir / "multirun.yaml")
     overrides = ["debug=fast", "seed=1", "hydra.mode=MULTIRUN", "hydra.job.num=1", f"hydra.sweep.dir={sweep_dir}"]
     with initialize_config_dir(
-        version_base="1.3", config_dir=str(Path(__file__).resolve().parents[1] / "src" / "drgan" / "conf")
+        version_base="1.3", config_dir=str(Path(__file__).resolve().parents[1] / "src" / "drgan" / "conf" / "gan")
     ):
         HydraConfig.instance().set_config(hydra_compose("train", overrides=overrides, return_hydra_config=True))
     yield sweep_dir

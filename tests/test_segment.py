@@ -17,7 +17,7 @@ import torch
 from conftest import compose
 from PIL import Image
 
-from drgan.errors import DataError
+from drgan.errors import ConfigError, DataError
 from drgan.scene.labels import class_mask
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -238,7 +238,7 @@ def _hand_case(tmp_path):
 
 
 def eval_cfg(data, out, extra=()):
-    return compose([f"data_dir={data}", f"out={out}", "crop_rows=null", *extra], config_name="evaluate")
+    return compose([f"data={data}", f"out={out}", "crop_rows=null", *extra], config_name="evaluate")
 
 
 def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
@@ -311,7 +311,7 @@ def test_evaluate_refuses_bad_inputs_before_writing(case, message, tmp_path):
 def tiny_segment_overrides(data, root, out, *extra) -> list[str]:
     """Overrides of a segmenter run small enough for tests: a 2-level U-Net with 4 filters on 32 px crops, CPU."""
     return [
-        f"data_dir={data}",
+        f"data={data}",
         f"out={out}",
         f"paths.root_dir={root}",
         "model.depth=2",
@@ -368,19 +368,37 @@ def test_segment_refuses_bad_data_before_writing(tmp_path):
     Image.fromarray(np.full((32, 32), 3, np.uint8)).save(data / "masks" / "001.png")
     out = tmp_path / "run"
     with pytest.raises(DataError, match="unexpected values"):
-        segment(compose([f"data_dir={data}", f"out={out}", "logger=none"], config_name="segment"))
+        segment(compose([f"data={data}", f"out={out}", "logger=none"], config_name="segment"))
     assert not out.exists()
 
 
-def test_cli_spelling():
-    from drgan.segmentation.cli import rewrite_argv
+def test_segmentation_clis_take_data_and_model_on_the_command_line(tmp_path):
+    """`python -m drgan.evaluate data=DIR model=CKPT` as a user types it: `data` and `model` are plain keys of the
+    segmentation config root (no group of drgan.train's root is in the way); the missing folder is named."""
+    import subprocess
+    import sys
 
-    assert rewrite_argv(["data=/d", "model=a.ckpt", "model=/b/c.ckpt", "out=o"], many_models=True) == [
-        "data_dir=/d",
-        "out=o",
-        "models=[a.ckpt,/b/c.ckpt]",
-    ]
-    assert rewrite_argv(["model=a.ckpt", "images=i"], many_models=False) == ["images=i", "ckpt=a.ckpt"]
+    missing = tmp_path / "nowhere"
+    run = subprocess.run(
+        [sys.executable, "-m", "drgan.evaluate", f"data={missing}", "model=a.ckpt", f"out={tmp_path / 'out'}"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert run.returncode != 0
+    assert f"data={missing}: no such folder" in run.stderr, run.stderr[-2000:]
+    assert not (tmp_path / "out" / "results.json").exists()
+
+
+def test_evaluate_takes_one_model_and_a_list(tmp_path):
+    from drgan.evaluate import model_checkpoints
+
+    cfg = compose(["data=/d", "model=a.ckpt", "models=[b.ckpt,c.ckpt]"], config_name="evaluate")
+    assert model_checkpoints(cfg) == ["a.ckpt", "b.ckpt", "c.ckpt"]
+    with pytest.raises(ConfigError, match="models='b.ckpt': expected a list"):
+        model_checkpoints(compose(["models=b.ckpt"], config_name="evaluate"))
+    with pytest.raises(ConfigError, match="give model=CHECKPOINT"):
+        model_checkpoints(compose([], config_name="evaluate"))
 
 
 # --- analysis ---------------------------------------------------------------------------------------------
@@ -434,7 +452,7 @@ def test_mask_of_another_size_is_reported_with_both_sizes_not_as_a_crop_problem(
     # A TiO2-style crop [712, 768]: the image has 770 rows, its mask half of them.
     image, mask = np.full((770, 16), 0.5), np.zeros((385, 8), np.uint8)
     data = make_real(tmp_path / "real", {"a": image}, {"a": mask}, {"train": [], "test": ["a"]})
-    cfg = compose([f"data_dir={data}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate")
+    cfg = compose([f"data={data}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate")
     with pytest.raises(DataError) as caught:
         evaluate(cfg, predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
     message = str(caught.value)
@@ -449,7 +467,7 @@ def test_mask_of_another_size_is_reported_with_both_sizes_not_as_a_crop_problem(
     )
     with pytest.raises(DataError, match=r"a\.tif: crop_rows .*inside its 20 rows"):
         evaluate(
-            compose([f"data_dir={small}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate"),
+            compose([f"data={small}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate"),
             predictors={"x": lambda im: np.zeros(im.shape, np.uint8)},
         )
 
@@ -484,17 +502,16 @@ def test_info_bars_are_found_and_masks_published_without_them_are_accepted(tmp_p
         load_real(data, ["a"], mask_suffix="_lbl")
 
 
-@pytest.mark.parametrize("key, entry", [("real", "segment"), ("data_dir", "segment"), ("data_dir", "evaluate")])
+@pytest.mark.parametrize("key, entry", [("real", "segment"), ("data", "segment"), ("data", "evaluate")])
 def test_missing_dataset_folder_is_named_with_its_setting(key, entry, tmp_path):
     from drgan.evaluate import evaluate
     from drgan.segment import segment
 
     missing = tmp_path / "nowhere"
-    spelled = "real" if key == "real" else "data"  # the command line's `data=` is `data_dir=` inside
     no_logger = ["logger=none"] if entry == "segment" else []
     cfg = compose([f"{key}={missing}", f"out={tmp_path / 'out'}", *no_logger], config_name=entry)
     run = segment if entry == "segment" else lambda c: evaluate(c, predictors={"x": lambda im: im})
-    with pytest.raises(DataError, match=rf"^{spelled}={missing}: no such folder \(expected a") as caught:
+    with pytest.raises(DataError, match=rf"^{key}={missing}: no such folder \(expected a") as caught:
         run(cfg)
     assert "split.json: no such file" not in str(caught.value) and not (tmp_path / "out").exists()
 

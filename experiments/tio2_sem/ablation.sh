@@ -34,7 +34,7 @@ esac
 
 models=()
 for seed in $SEEDS; do
-  models+=("model=$OUT/seg_$seed/checkpoints/last.ckpt")
+  models+=("$OUT/seg_$seed/checkpoints/last.ckpt")
   # resumable: a finished segmenter (metrics.json) is kept, an interrupted one goes on from its last.ckpt
   [ -f $OUT/seg_$seed/metrics.json ] && continue
   RESUME=$([ -f $OUT/seg_$seed/checkpoints/last.ckpt ] && echo ckpt_path=last || true)
@@ -51,4 +51,4 @@ for seed in $SEEDS; do
       out=$OUT/seg_$seed trainer.max_epochs=$MAX_EPOCHS trainer.enable_progress_bar=false $RESUME
   fi
 done
-python -m drgan.evaluate data=$DATA out=$OUT/eval "${models[@]}"
+python -m drgan.evaluate data=$DATA out=$OUT/eval "models=[$(IFS=,; echo "${models[*]}")]"

@@ -44,7 +44,7 @@ def render_components(overrides: list[str], n: int) -> dict[str, np.ndarray]:
         ("ring", ["material.scene.top_light.radiance=0.0"]),
         ("top", ["material.scene.torus_light.radiance=0.0", "material.scene.top_light.radiance=1.0"]),
     ):
-        with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf"), version_base="1.3"):
+        with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf" / "gan"), version_base="1.3"):
             cfg = compose("train", ["experiment=tio2_sem", *overrides, *lights])
         scene = build_scene(cfg, base_dir=ROOT)
         bsdf = torch.tensor([DEFAULTS[f"{p.surface}.{p.name}"] for p in scene.learned_bsdf])

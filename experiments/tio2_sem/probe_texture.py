@@ -33,7 +33,7 @@ vals = {
     "particle.spec_tint": 2.725,
     "sigma": 0.0392,
 }
-with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf"), version_base="1.3"):
+with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf" / "gan"), version_base="1.3"):
     cfg = compose(
         "train", ["experiment=tio2_sem", "material.n_particles=32", "material.n_particles_min=8", "renderer.spp=121"]
     )

@@ -28,9 +28,7 @@ for seed in 0 1 2; do
 done
 
 # 3. Scores on the 8 test ids: DSC, AP50, PQ per run and mean +- std.
-python -m drgan.evaluate data=$DATA out=$OUT/eval_synthetic \
-  model=$OUT/seg_synthetic_0/checkpoints/last.ckpt model=$OUT/seg_synthetic_1/checkpoints/last.ckpt \
-  model=$OUT/seg_synthetic_2/checkpoints/last.ckpt
-python -m drgan.evaluate data=$DATA out=$OUT/eval_real \
-  model=$OUT/seg_real_0/checkpoints/last.ckpt model=$OUT/seg_real_1/checkpoints/last.ckpt \
-  model=$OUT/seg_real_2/checkpoints/last.ckpt
+for kind in synthetic real; do
+  python -m drgan.evaluate data=$DATA out=$OUT/eval_$kind \
+    "models=[$OUT/seg_${kind}_0/checkpoints/last.ckpt,$OUT/seg_${kind}_1/checkpoints/last.ckpt,$OUT/seg_${kind}_2/checkpoints/last.ckpt]"
+done

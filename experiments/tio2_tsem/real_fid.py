@@ -43,8 +43,8 @@ from drgan.io import write_with
 from drgan.metrics.fid import FeatureStats, InceptionFeatures, kid
 
 PATCH_SIZE = 256  # as renderer.resolution in training
-STRIDE = 288  # conf/experiment/tio2_sem.yaml and tio2_tsem.yaml
-MIN_PARTICLES = 3  # conf/data/real_patches.yaml
+STRIDE = 288  # conf/gan/experiment/tio2_sem.yaml and tio2_tsem.yaml
+MIN_PARTICLES = 3  # conf/gan/data/real_patches.yaml
 KID_SUBSETS = 100  # as the FID callback
 
 

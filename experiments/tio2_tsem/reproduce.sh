@@ -30,6 +30,5 @@ done
 # 4. Scores on the 8 test ids: DSC, AP50, PQ per run and mean +- std.
 for kind in synthetic real; do
   python -m drgan.evaluate data=$DATA out=$OUT/eval_$kind \
-    model=$OUT/seg_${kind}_0/checkpoints/last.ckpt model=$OUT/seg_${kind}_1/checkpoints/last.ckpt \
-    model=$OUT/seg_${kind}_2/checkpoints/last.ckpt
+    "models=[$OUT/seg_${kind}_0/checkpoints/last.ckpt,$OUT/seg_${kind}_1/checkpoints/last.ckpt,$OUT/seg_${kind}_2/checkpoints/last.ckpt]"
 done

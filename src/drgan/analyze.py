@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import io
 import logging
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -91,12 +92,12 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
         raise ConfigError(f"analyze: nm_per_px={nm}: expected a positive pixel size")
     paths = list_images(cfg.images)
     if predictor is None:
-        if not cfg.get("ckpt"):
+        if not cfg.get("model"):
             raise ConfigError("analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment)")
         from drgan.segmentation.inference import make_predictor
         from drgan.segmentation.module import load_segmenter
 
-        predictor = make_predictor(load_segmenter(cfg.ckpt), cfg.inference)
+        predictor = make_predictor(load_segmenter(cfg.model), cfg.inference)
     crop = cfg.get("crop_rows")
     crop = crop if crop is None or isinstance(crop, str) else tuple(crop)
     images = [(p.stem, read_grey(p, crop)) for p in paths]  # all read (and checked) before predicting
@@ -166,12 +167,11 @@ def _thickness_histogram(plt, values, nm, bins):
     return fig
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="analyze")
+@hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="analyze")
 def main(cfg: DictConfig):
     analyze(cfg)
 
 
 if __name__ == "__main__":
-    from drgan.segmentation.cli import run_cli
-
-    run_cli(main, many_models=False)
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    main()

@@ -1,4 +1,6 @@
-"""`python -m drgan.evaluate model=A.ckpt [model=B.ckpt ...] data=DATASET out=DIR`: score segmenters on real test images.
+"""`python -m drgan.evaluate model=A.ckpt data=DATASET out=DIR`: score segmenters on real test images.
+
+Several runs (seeds): ``models=[A.ckpt,B.ckpt,...]``, each scored, then mean +- std over them.
 
 Per test image: sliding-window prediction (touching particles split, ``inference.split``, see
 drgan.segmentation.inference) -> particle class only (contour and background are both "not
@@ -25,6 +27,7 @@ from __future__ import annotations
 import csv
 import io
 import logging
+import os
 from pathlib import Path
 
 import hydra
@@ -128,19 +131,29 @@ def tables(rows: list[dict], runs: list[str], ids: list[str], inference: str = "
     return buf.getvalue(), "\n".join(md)
 
 
+def model_checkpoints(cfg: DictConfig) -> list[str]:
+    """The segmenters to score: ``model=CKPT`` (one) and ``models=[A,B,...]`` (several runs), in that order."""
+    if isinstance(cfg.get("models"), str):
+        raise ConfigError(f"evaluate: models={cfg.models!r}: expected a list, e.g. models=[a.ckpt,b.ckpt]")
+    models = [str(m) for m in cfg.get("models") or []]
+    if cfg.get("model"):
+        models.insert(0, str(cfg.model))
+    if not models:
+        raise ConfigError("evaluate: give model=CHECKPOINT or models=[CKPT_A,CKPT_B,...] (one per run)")
+    return models
+
+
 def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     """Score every model on the test ids; returns {"runs": {run: {score: value}}, "mean": {...}, "std": {...}}.
 
     predictors: optional {run name: f(image) -> class map} instead of cfg.models (tests)."""
     from drgan.segmentation.data import REAL_DATASET, check_dataset_folder, load_real, real_ids
 
-    if not cfg.get("data_dir"):
+    if not cfg.get("data"):
         raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")
-    data_dir = check_dataset_folder(cfg.data_dir, "data", REAL_DATASET)  # before any checkpoint is read
+    data_dir = check_dataset_folder(cfg.data, "data", REAL_DATASET)  # before any checkpoint is read
     if predictors is None:
-        models = list(cfg.get("models") or [])
-        if not models:
-            raise ConfigError("evaluate: give at least one model=CHECKPOINT")
+        models = model_checkpoints(cfg)
         from drgan.segmentation.inference import make_predictor
         from drgan.segmentation.module import load_segmenter
 
@@ -190,12 +203,11 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     }
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="evaluate")
 def main(cfg: DictConfig):
     evaluate(cfg)
 
 
 if __name__ == "__main__":
-    from drgan.segmentation.cli import run_cli
-
-    run_cli(main, many_models=True)
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    main()

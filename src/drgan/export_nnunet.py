@@ -126,30 +126,14 @@ def _copy(source: Path, destination: Path) -> None:
     io.write_bytes(destination, data)
 
 
-# `data` is also the name of a config group in conf/ (the training data), so `data=DIR` would select a group
-# there: this entry point composes its one file from the ConfigStore, where no groups live.
-CONFIG_FILE = Path(__file__).resolve().parent / "conf" / "export_nnunet.yaml"
-
-
-def _store_config() -> None:
-    from hydra.core.config_store import ConfigStore
-
-    ConfigStore.instance().store(name="export_nnunet", node=OmegaConf.load(CONFIG_FILE))
-
-
 def compose_config(overrides=()) -> DictConfig:
     """The composed config, e.g. for tests: ``compose_config(["data=DIR", "out=RAW"])``."""
-    from hydra import compose, initialize
+    from drgan.configs import compose
 
-    _store_config()
-    with initialize(version_base="1.3", config_path=None):
-        return compose(config_name="export_nnunet", overrides=list(overrides))
+    return compose(overrides, config_name="export_nnunet")
 
 
-_store_config()
-
-
-@hydra.main(version_base="1.3", config_path=None, config_name="export_nnunet")
+@hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="export_nnunet")
 def main(cfg: DictConfig) -> None:
     export(cfg)
 

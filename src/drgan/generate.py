@@ -267,7 +267,7 @@ def _progress(cfg: DictConfig, total: int):
     return tqdm(total=total, desc="kept", unit="img", disable=not cfg.get("progress", True), dynamic_ncols=True)
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="generate")
+@hydra.main(version_base="1.3", config_path="conf/gan", config_name="generate")
 def main(cfg: DictConfig) -> None:
     generate(cfg)
 

@@ -198,14 +198,11 @@ RUNS_VIEW = "runs?workflowType=machine_learning"
 def tracking_store(overrides: Sequence[str] = ()) -> tuple[str, str]:
     """(tracking URI, experiment name) that `python -m drgan.train <overrides>` logs to: its logger config, which
     reads MLFLOW_TRACKING_URI and DRGAN_ROOT as a training run does."""
-    from hydra import compose, initialize_config_dir
     from omegaconf import open_dict
 
-    import drgan  # noqa: F401  (registers the config resolvers)
+    from drgan.configs import compose
 
-    conf = Path(__file__).resolve().parent / "conf"  # drgan.train's config_path
-    with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
-        cfg = compose("train", overrides=list(overrides))
+    cfg = compose(overrides, config_name="train")
     with open_dict(cfg):  # as drgan.train: the project root, absolute, from the folder it runs in
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
     entry = (cfg.get("logger") or {}).get("mlflow")

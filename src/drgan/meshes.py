@@ -31,7 +31,7 @@ def write_mesh_library(kind: str, count: int, seed: int, out: str | Path, params
     return save_mesh_set(meshes, out, manifest)
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="meshes")
+@hydra.main(version_base="1.3", config_path="conf/gan", config_name="meshes")
 def main(cfg: DictConfig) -> None:
     params = OmegaConf.to_container(cfg.params, resolve=True)
     manifest_path = write_mesh_library(cfg.kind, cfg.count, cfg.seed, Path(cfg.out), params)

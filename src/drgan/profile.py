@@ -432,7 +432,7 @@ def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrou
     write_bytes(out / "background_noise.png", figure_png(background))
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="profile")
+@hydra.main(version_base="1.3", config_path="conf/gan", config_name="profile")
 def main(cfg: DictConfig):
     OmegaConf.resolve(cfg)
     profile(cfg)

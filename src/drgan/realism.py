@@ -327,7 +327,7 @@ def markdown_line(label: str, result: dict) -> str:
     )
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="realism")
+@hydra.main(version_base="1.3", config_path="conf/gan", config_name="realism")
 def main(cfg: DictConfig):
     realism(cfg)
 

@@ -47,7 +47,7 @@ def render_to_folder(cfg: DictConfig, out: Path, base_dir: Path | None = None) -
     return record
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="render")
+@hydra.main(version_base="1.3", config_path="conf/gan", config_name="render")
 def main(cfg: DictConfig) -> None:
     base = Path(get_original_cwd())
     out = Path(cfg.out)

@@ -11,6 +11,7 @@ Resume: same `out` and `ckpt_path=last` (no checkpoint yet: a fresh start).
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -26,11 +27,11 @@ log = logging.getLogger(__name__)
 def load_training_pairs(cfg: DictConfig):
     from drgan.segmentation.data import load_generated_pairs, load_real_pairs, real_ids
 
-    if bool(cfg.get("data_dir")) == bool(cfg.get("real")):
+    if bool(cfg.get("data")) == bool(cfg.get("real")):
         raise ConfigError("segment: give exactly one of data=DIR (generated pairs) or real=DATASET (real baseline)")
     loader_settings(cfg)  # a bad loader.* value fails before any image is read
-    if cfg.get("data_dir"):
-        return load_generated_pairs(cfg.data_dir, setting="data")
+    if cfg.get("data"):
+        return load_generated_pairs(cfg.data, setting="data")
     real = Path(cfg.real)
     ids = real_ids(real, cfg.get("split"), "train", setting="real")
     return load_real_pairs(
@@ -194,12 +195,11 @@ def segment(cfg: DictConfig) -> dict:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="segment")
+@hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="segment")
 def main(cfg: DictConfig):
     return segment(cfg)
 
 
 if __name__ == "__main__":
-    from drgan.segmentation.cli import run_cli
-
-    run_cli(main, many_models=False)
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    main()

@@ -1,6 +1,6 @@
 """`python -m drgan.train material=sio2_him data.dir=/path/to/images`: train DiffRenderGAN.
 
-Composes conf/train.yaml, mines the real patches, and fits the GANModule with Lightning. Everything of
+Composes conf/gan/train.yaml, mines the real patches, and fits the GANModule with Lightning. Everything of
 one run lands in its folder, runs/<material>/<run_name>/ (patches/, checkpoints/, train.log, metrics.json,
 .hydra/); metrics and parameters go to MLflow (one experiment per material, one run per training run).
 
@@ -144,7 +144,7 @@ def train(cfg: DictConfig) -> dict:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="train")
+@hydra.main(version_base="1.3", config_path="conf/gan", config_name="train")
 def main(cfg: DictConfig):
     metrics = train(cfg)
     # Hydra sweepers (e.g. Optuna) optimise the value returned: `optimized_metric=val/fid`.

@@ -65,7 +65,7 @@ FID_SEED_BASE = 0x5EED0000
 
 
 def run_dir(trainer: Trainer) -> Path:
-    """The run folder: the trainer's default_root_dir (conf/trainer sets it to paths.output_dir)."""
+    """The run folder: the trainer's default_root_dir (conf/gan/trainer sets it to paths.output_dir)."""
     return Path(trainer.default_root_dir)
 
 

@@ -5,7 +5,7 @@ top-k file, and only after every other epoch-end callback (FID, best epoch, plot
 A run killed in between restarted from an older epoch or from scratch. This callback owns ``last.ckpt``:
 
 1. At every epoch end, *before* the other epoch-end callbacks (it must come first in the callback list; see
-   conf/callbacks/default.yaml), it writes the full training state atomically: weights, optimisers,
+   conf/gan/callbacks/default.yaml), it writes the full training state atomically: weights, optimisers,
    schedulers, loop counters, the phi bank and its generator, the global RNG states, the callbacks' state
    (FID history) and the MLflow run id (kept beside it in the run folder). The checkpoint records that the
    epoch-end work of that epoch is still *pending*.

@@ -39,7 +39,7 @@ def fixed_settings(settings: dict) -> dict:
 
 
 def settings_from(cfg: DictConfig) -> dict:
-    """Checked, resolved settings of a run (conf/generate.yaml); raises before any model is built or image rendered.
+    """Checked, resolved settings of a run (conf/gan/generate.yaml); raises before any model is built or image rendered.
 
     Keys (in the order manifests record them): ckpt, material, n, n_background, seed, contour_px, min_contrast,
     min_background, polarity, max_attempts, renderer, backgrounds, shard, and model_cfg (the checkpoint's config

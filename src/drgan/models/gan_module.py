@@ -74,7 +74,7 @@ class LRDecay:
 
 @dataclass(frozen=True)
 class GANTraining:
-    """How the two networks learn (``conf/model``): adversarial loss, Adam learning rates and betas, the optional
+    """How the two networks learn (``conf/gan/model``): adversarial loss, Adam learning rates and betas, the optional
     learning-rate decay, and how many non-finite steps in a row stop training."""
 
     loss: str = "lsgan"

@@ -563,7 +563,7 @@ def particle_counts(layouts: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Construction from Hydra config groups (conf/size/*.yaml, conf/placement/*.yaml).
+# Construction from Hydra config groups (conf/gan/size/*.yaml, conf/gan/placement/*.yaml).
 
 _SIZE_KINDS: dict[str, type] = {"normal": NormalSize, "lognormal": LognormalSize, "bimodal": BimodalSize}
 _PLACEMENT_KINDS: dict[str, type] = {

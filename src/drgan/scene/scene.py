@@ -93,7 +93,7 @@ class RenderSettings:
     # paths, so fewer samples give an unbiased gradient of the same image, only noisier (see `render`).
     grad_spp: int | None = None
     filter_stddev: float = 0.5  # Gaussian reconstruction filter, in render pixels
-    integrator: str = "direct_light_mis"  # conf/renderer/default.yaml says why
+    integrator: str = "direct_light_mis"  # conf/gan/renderer/default.yaml says why
     max_depth: int = 2  # 2 = direct illumination, all that BSDF-parameter gradients need here
     camera_distance: float = 10.0  # x view_width; far camera = nearly orthographic view
     # Which samples the adjoint (gradient) pass uses, i.e. which gradient estimator training gets (`adjoint_seed`):
