@@ -73,3 +73,29 @@ def test_every_experiment_builds_its_callbacks_and_trainer(experiment, tmp_path)
 def test_every_option_of_the_train_groups_composes(group):
     for option in group_options(group):
         compose([f"{group}={option}", "paths.output_dir=/tmp/drgan_cfg"], config_name="train")
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("renderer:\n  sppp: 4\n", "Key 'sppp' not in 'RendererSchema'"),
+        ("renderer:\n  spp: many\n", "'many' of type 'str' could not be converted to Integer"),
+        ("model:\n  lr_decay:\n    steps: 1.5\n", "could not be converted to Integer"),
+        ("model:\n  betas: 0.5\n", "betas"),
+    ],
+)
+def test_typed_groups_refuse_a_wrong_key_or_type_when_composing(text, message, tmp_path):
+    """A user's file (here an experiment on the search path) with a typo or a wrong type fails at compose time,
+    naming the key; a user's search path (which replaces the configs' own list) still finds the shared groups."""
+    from hydra.errors import ConfigCompositionException
+
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "mine.yaml").write_text("# @package _global_\n" + text)
+    overrides = ["experiment=mine", f"hydra.searchpath=[file://{tmp_path}]"]
+    with pytest.raises(ConfigCompositionException, match=message):
+        compose(overrides, config_name="train")
+    (tmp_path / "experiment" / "mine.yaml").write_text("# @package _global_\nrenderer:\n  spp: 4\n")
+    cfg = compose(overrides, config_name="train")
+    assert cfg.renderer.spp == 4 and cfg.paths.log_dir and "mlflow" in cfg.logger
+    with pytest.raises(ConfigCompositionException, match="Error merging override model.lr_g=fast"):
+        compose(["model.lr_g=fast"], config_name="train")

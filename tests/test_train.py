@@ -365,6 +365,38 @@ def test_lr_decay_factor_and_bad_settings():
             LRDecay.from_config(bad)
 
 
+def test_optimisers_are_named_by_the_config_and_checked_before_training(tmp_path):
+    """model.optimizer_g/_d: `_target_` + `_partial_`, built when training starts; any torch.optim class, no other
+    code; bad keywords fail when the module is built. Configs without them (old checkpoints) mean Adam."""
+    from drgan.models.gan_module import GANModule, GANTraining
+
+    base = tiny_overrides(tmp_path / "none", tmp_path / "run")
+    module = GANModule.from_config(compose([*base, "model.lr_g=3e-5"], config_name="train"), m=2)
+    opt_g, opt_d = module.configure_optimizers()
+    assert type(opt_g) is torch.optim.Adam and opt_g.param_groups[0]["lr"] == 3e-5
+    assert opt_g.param_groups[0]["betas"] == (0.5, 0.999) and opt_d.param_groups[0]["lr"] == 1e-4
+    assert {id(p) for p in opt_g.param_groups[0]["params"]} == {id(p) for p in module.generator.parameters()}
+    swapped = [
+        *base,
+        "model.optimizer_d._target_=torch.optim.SGD",
+        "~model.optimizer_d.betas",
+        "+model.optimizer_d.momentum=0.9",
+    ]
+    opt_d = GANModule.from_config(compose(swapped, config_name="train"), m=2).configure_optimizers()[1]
+    assert type(opt_d) is torch.optim.SGD and opt_d.param_groups[0]["momentum"] == 0.9
+
+    for bad, message in (
+        (["model.optimizer_g._target_=os.system"], "expected a torch.optim optimiser class"),
+        (["model.optimizer_g._target_=torch.optim.SGD"], "unexpected keyword argument 'betas'"),
+        (["model.lr_d=-1"], "model.optimizer_d: .*Invalid learning rate"),
+        (["model.optimizer_g._partial_=false"], "expected _partial_: true"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            GANModule.from_config(compose([*base, *bad], config_name="train"), m=2)
+    old = GANTraining.from_config({"lr_g": 1e-5, "lr_d": 2e-5, "betas": [0.4, 0.9]})  # a config saved before
+    assert (old.lr_g, old.lr_d, old.optimizer_g.keywords["betas"]) == (1e-5, 2e-5, (0.4, 0.9))
+
+
 def test_module_takes_built_parts_and_rebuilds_from_its_saved_config(tmp_path):
     from drgan.models import build
     from drgan.models.gan_module import GANModule, GANTraining

@@ -9,3 +9,6 @@ __version__ = "0.1.0"
 warnings.filterwarnings("ignore", message=r"provider=hydra\.searchpath in main, path=drgan_conf is not available")
 
 from drgan import resolvers  # noqa: E402,F401  (${mul:}, ${mlflow_uri:}: every config composes with them)
+from drgan.configs import register_configs  # noqa: E402  (schemas and shared groups, before anything composes)
+
+register_configs()

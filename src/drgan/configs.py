@@ -9,17 +9,95 @@ for drgan.segment but a config group for drgan.train):
 
 - ``drgan/conf/gan/``: train, generate, render, profile, realism, meshes (groups: material, renderer, model, ...);
 - ``drgan/conf/segmentation/``: segment, evaluate, analyze, export_nnunet;
-- ``drgan/conf/common/``: the groups both use (paths, logger), on their search path as ``pkg://drgan.conf.common``.
+- ``drgan/conf/common/``: the groups both use (paths, logger), put in Hydra's ConfigStore by `register_configs`, so
+  that every root finds them whatever search path a user gives (``hydra.searchpath=[...]`` replaces the list).
+
+Groups whose values the code reads as typed settings have a schema here (`SCHEMAS`), registered with Hydra's
+ConfigStore as ``drgan_schema/<group>`` (a group name no entry point's setting uses) and named first in the group's
+defaults list (``- /drgan_schema/renderer@_here_``): a value of the wrong type
+(``renderer.spp=abc``, or ``spp: many`` in a material's file) or a key the schema lacks (``sppp: 4`` in a config
+file) fails when the config is composed, naming the key, before anything is built. The schemas hold types only (every field MISSING): the defaults stay in the group's YAML, the
+value checks in the objects built from it (`drgan.scene.scene.RenderSettings`, `drgan.models.gan_module.GANTraining`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Optional
+
+from omegaconf import MISSING
 
 from drgan.errors import ConfigError
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
+
+
+# Optional[...] rather than `X | None`: OmegaConf reads these annotations at run time.
+@dataclass
+class RendererSchema:
+    """``renderer``: the render-quality settings of `drgan.scene.scene.RenderSettings` plus the Mitsuba variant."""
+
+    variant: str = MISSING
+    integrator: str = MISSING
+    max_depth: int = MISSING
+    resolution: int = MISSING
+    spp: int = MISSING
+    grad_spp: Optional[int] = MISSING  # noqa: UP045
+    grad_seed: str = MISSING
+    camera_distance: float = MISSING
+
+
+@dataclass
+class LRDecaySchema:
+    start_step: Optional[int] = MISSING  # noqa: UP045
+    steps: int = MISSING
+    final_factor: float = MISSING
+
+
+@dataclass
+class DiscriminatorSchema:
+    filters: int = MISSING
+    n_layers: int = MISSING
+    slope: float = MISSING
+
+
+@dataclass
+class ModelSchema:
+    """``model``: the FCN, the discriminator and how both learn (`drgan.models.gan_module.GANTraining`)."""
+
+    hidden: int = MISSING
+    blocks: int = MISSING
+    dropout: float = MISSING
+    loss: str = MISSING
+    lr_g: float = MISSING
+    lr_d: float = MISSING
+    betas: list[float] = MISSING
+    optimizer_g: dict[str, Any] = MISSING  # `_target_` a torch.optim class, `_partial_: true`, its keywords
+    optimizer_d: dict[str, Any] = MISSING
+    lr_decay: LRDecaySchema = MISSING
+    n_constellations: Optional[int] = MISSING  # noqa: UP045
+    max_consecutive_nonfinite: int = MISSING
+    discriminator: DiscriminatorSchema = MISSING
+
+
+SCHEMAS = {"renderer": RendererSchema, "model": ModelSchema}
+
+
+def register_configs() -> None:
+    """Put `SCHEMAS` and the shared groups of ``conf/common/`` in Hydra's ConfigStore (idempotent); drgan's import
+    does it, before any entry point composes."""
+    from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    store = ConfigStore.instance()
+    for group, schema in SCHEMAS.items():
+        store.store(group="drgan_schema", name=group, node=schema)
+    for path in sorted((CONF_DIR / "common").glob("*/*.yaml")):
+        store.store(group=path.parent.name, name=path.stem, node=OmegaConf.load(path))
+
+
 ROOTS = ("gan", "segmentation")
 
 

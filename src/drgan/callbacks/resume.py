@@ -92,7 +92,7 @@ class ResumeCheckpoint(Callback):
         # the checkpoint IO writes the file whole, and we rename it into place so a kill never leaves half a file.
         path = self.path(trainer)
         tmp = path.with_name(f".{path.name}.partial")
-        trainer.save_checkpoint(tmp)
+        trainer.save_checkpoint(tmp, weights_only=False)  # the whole training state (said, so Lightning logs no default)
         if trainer.is_global_zero:
             tmp.replace(path)
         trainer.strategy.barrier("drgan_resume_checkpoint")

@@ -257,3 +257,36 @@ def make_background_texture(highpass_px: float | None, patches) -> BackgroundTex
 def background_texture(material: Mapping, patches) -> BackgroundTexture | None:
     """The material's stage texture (``material.background_texture``) from real background patches, or None."""
     return make_background_texture(texture_highpass_px(material), patches)
+
+
+def optimizer_factory(spec: Mapping, setting: str):
+    """An optimiser config (``model.optimizer_g``: ``_target_`` a torch.optim class, ``_partial_: true``, its
+    keywords) as a factory ``parameters -> optimizer``, checked now: the class must be a `torch.optim.Optimizer`
+    (a config, e.g. one saved in a checkpoint, names no other code to run) and its keywords must build one."""
+    import functools
+
+    import torch
+    from hydra.utils import get_class
+
+    spec = _plain(spec)
+    target = str(spec.get("_target_", ""))
+    if not spec.get("_partial_", False):
+        raise ConfigError(f"{setting}: expected _partial_: true (the parameters are given when training starts)")
+    cls = None
+    if target.startswith("torch.optim."):
+        try:
+            cls = get_class(target)
+        except Exception:  # noqa: BLE001  (hydra wraps the import error; the message below says what to give)
+            cls = None
+    if not (isinstance(cls, type) and issubclass(cls, torch.optim.Optimizer)):
+        raise ConfigError(
+            f"{setting}._target_={target!r}: expected a torch.optim optimiser class, e.g. torch.optim.Adam"
+        )
+    keywords = {k: v for k, v in spec.items() if not k.startswith("_")}
+    keywords = {k: tuple(v) if isinstance(v, list) else v for k, v in keywords.items()}
+    factory = functools.partial(cls, **keywords)
+    try:
+        factory([torch.nn.Parameter(torch.zeros(1))])
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{setting}: {target}({', '.join(f'{k}={v}' for k, v in keywords.items())}): {err}") from None
+    return factory

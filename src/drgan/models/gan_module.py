@@ -11,11 +11,12 @@ fails); it is counted, and after
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 import math
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -72,37 +73,57 @@ class LRDecay:
         return 1.0 - (1.0 - self.final_factor) * progress
 
 
+def _adam(lr: float):
+    return functools.partial(torch.optim.Adam, lr=lr, betas=(0.5, 0.999))
+
+
 @dataclass(frozen=True)
 class GANTraining:
-    """How the two networks learn (``conf/gan/model``): adversarial loss, Adam learning rates and betas, the optional
-    learning-rate decay, and how many non-finite steps in a row stop training."""
+    """How the two networks learn (``conf/gan/model``): adversarial loss, the two optimisers (factories
+    ``parameters -> optimizer``, from the ``_target_``/``_partial_`` configs ``model.optimizer_g``/``optimizer_d``),
+    the optional learning-rate decay, and how many non-finite steps in a row stop training."""
 
     loss: str = "lsgan"
-    lr_g: float = 2e-4
-    lr_d: float = 1e-4
-    betas: tuple[float, float] = (0.5, 0.999)
+    optimizer_g: Callable = field(default_factory=lambda: _adam(2e-4))
+    optimizer_d: Callable = field(default_factory=lambda: _adam(1e-4))
     lr_decay: LRDecay | None = None
     max_consecutive_nonfinite: int = 5
 
     def __post_init__(self):
         if self.loss not in LOSSES:
             raise ConfigError(f"model.loss={self.loss!r}: expected one of {LOSSES}")
-        if self.lr_g <= 0 or self.lr_d <= 0 or len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
-            raise ConfigError(
-                f"model: lr_g={self.lr_g}, lr_d={self.lr_d}, betas={self.betas}: expected lr > 0 and two betas in [0, 1)"
-            )
         if self.max_consecutive_nonfinite < 1:
             raise ConfigError(f"model.max_consecutive_nonfinite={self.max_consecutive_nonfinite}: expected >= 1")
 
+    @property
+    def lr_g(self) -> float | None:
+        return getattr(self.optimizer_g, "keywords", {}).get("lr")
+
+    @property
+    def lr_d(self) -> float | None:
+        return getattr(self.optimizer_d, "keywords", {}).get("lr")
+
     @classmethod
     def from_config(cls, model: Mapping | None) -> GANTraining:
-        """From the ``model`` group; absent keys take the defaults above (one place for them)."""
+        """From the ``model`` group; absent keys take the defaults above. Configs without ``optimizer_g``/``_d``
+        (checkpoints from before the optimisers were named) mean Adam with ``lr_g``/``lr_d`` and ``betas``."""
         model = dict(model or {})
-        given = {k: model[k] for k in ("loss", "lr_g", "lr_d", "max_consecutive_nonfinite") if model.get(k) is not None}
-        casts = {"loss": str, "lr_g": float, "lr_d": float, "max_consecutive_nonfinite": int}
-        values = {k: casts[k](v) for k, v in given.items()}
-        if model.get("betas") is not None:
-            values["betas"] = tuple(float(b) for b in model["betas"])
+        values = {}
+        if model.get("loss") is not None:
+            values["loss"] = str(model["loss"])
+        if model.get("max_consecutive_nonfinite") is not None:
+            values["max_consecutive_nonfinite"] = int(model["max_consecutive_nonfinite"])
+        default = cls()
+        for net in ("g", "d"):
+            spec = model.get(f"optimizer_{net}")
+            if spec is None:
+                keywords = dict(getattr(default, f"optimizer_{net}").keywords)
+                if model.get(f"lr_{net}") is not None:
+                    keywords["lr"] = float(model[f"lr_{net}"])
+                if model.get("betas") is not None:
+                    keywords["betas"] = [float(b) for b in model["betas"]]
+                spec = {"_target_": "torch.optim.Adam", "_partial_": True, **keywords}
+            values[f"optimizer_{net}"] = build.optimizer_factory(spec, f"model.optimizer_{net}")
         return cls(**values, lr_decay=LRDecay.from_config(model.get("lr_decay")))
 
 
@@ -144,7 +165,8 @@ class GANModule(LightningModule):
         training = training if training is not None else GANTraining()
         self.seed = int(seed)
         self.loss_kind = training.loss
-        self.lr_g, self.lr_d, self.betas = training.lr_g, training.lr_d, tuple(training.betas)
+        self.optimizer_g, self.optimizer_d = training.optimizer_g, training.optimizer_d
+        self.lr_g, self.lr_d = training.lr_g, training.lr_d
         self.lr_decay = training.lr_decay
         self.max_consecutive_nonfinite = training.max_consecutive_nonfinite
         self.layouts = layouts
@@ -253,8 +275,8 @@ class GANModule(LightningModule):
     # --- optimisers and losses ----------------------------------------------------------------------------
 
     def configure_optimizers(self):
-        opt_g = torch.optim.Adam(self.generator.parameters(), lr=self.lr_g, betas=self.betas)
-        opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=self.lr_d, betas=self.betas)
+        opt_g = self.optimizer_g(self.generator.parameters())
+        opt_d = self.optimizer_d(self.discriminator.parameters())
         if self.lr_decay is None:
             return [opt_g, opt_d]
         # Stepped once per training step in training_step (manual optimisation steps schedulers by hand).
