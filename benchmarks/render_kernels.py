@@ -69,7 +69,9 @@ def main():
     generator = module.generator
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; drgan: {ROOT}")
     print(f"scene: TiO2 SEM, {args.resolution} px, spp {args.spp} (adjoint too), {args.integrator}\n")
-    print("| pass | wall s | CPU s | kernels | kernel execution s | codegen s | largest kernel's share | its operations |")
+    print(
+        "| pass | wall s | CPU s | kernels | kernel execution s | codegen s | largest kernel's share | its operations |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     rows: dict[str, list[dict]] = {"primal": [], "adjoint": []}
     dr.set_flag(dr.JitFlag.KernelHistory, True)

@@ -92,7 +92,8 @@ class ResumeCheckpoint(Callback):
         # the checkpoint IO writes the file whole, and we rename it into place so a kill never leaves half a file.
         path = self.path(trainer)
         tmp = path.with_name(f".{path.name}.partial")
-        trainer.save_checkpoint(tmp, weights_only=False)  # the whole training state (said, so Lightning logs no default)
+        # weights_only=False: the whole training state (said, so that Lightning logs no default on every save)
+        trainer.save_checkpoint(tmp, weights_only=False)
         if trainer.is_global_zero:
             tmp.replace(path)
         trainer.strategy.barrier("drgan_resume_checkpoint")
