@@ -27,7 +27,6 @@ from drgan.data.patches import PatchSet
 from drgan.dataset.settings import parameter_source
 from drgan.dataset.source import checkpoint_config, use_parameters
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
-from drgan.models.build import sample_phi
 from drgan.models.gan_module import GANModule
 
 
@@ -59,7 +58,7 @@ def main():
         scores = []
         for draw in range(args.draws):
             start = time.perf_counter()
-            bank = module.phi_bank if draw == 0 else torch.as_tensor(sample_phi(module.cfg, len(real), seed=draw))
+            bank = module.phi_bank if draw == 0 else torch.as_tensor(module.layouts(len(real), draw))
             images = np.stack(
                 [
                     module.generator.sample(bank[i % len(bank)], seed=10_000 + draw * 100_000 + i, spp=spp).image
