@@ -14,10 +14,10 @@ for drgan.segment but a config group for drgan.train):
 
 Groups whose values the code reads as typed settings have a schema here (`SCHEMAS`), registered with Hydra's
 ConfigStore as ``drgan_schema/<group>`` (a group name no entry point's setting uses) and named first in the group's
-defaults list (``- /drgan_schema/renderer@_here_``): a value of the wrong type
-(``renderer.spp=abc``, or ``spp: many`` in a material's file) or a key the schema lacks (``sppp: 4`` in a config
-file) fails when the config is composed, naming the key, before anything is built. The schemas hold types only (every field MISSING): the defaults stay in the group's YAML, the
-value checks in the objects built from it (`drgan.scene.scene.RenderSettings`, `drgan.models.gan_module.GANTraining`).
+defaults list (``- /drgan_schema/renderer@_here_``): a value of the wrong type (``renderer.spp=abc``, or
+``spp: many`` in a material's file) or a key the schema lacks (``sppp: 4`` in a config file) fails when the config
+is composed, naming the key, before anything is built. The schemas hold types only (every field MISSING): the
+defaults stay in the group's YAML, the value checks in the objects built from it (`drgan.scene.scene.RenderSettings`, `drgan.models.gan_module.GANTraining`).
 """
 
 from __future__ import annotations
@@ -116,10 +116,11 @@ def conf_dir(root: str = "gan") -> Path:
 
 def config_root(config_name: str) -> Path:
     """The root that holds the primary config ``config_name`` (e.g. "train", "segment")."""
-    for root in ROOTS:
-        if (conf_dir(root) / f"{config_name}.yaml").is_file():
-            return conf_dir(root)
-    names = sorted(p.stem for root in ROOTS for p in conf_dir(root).glob("*.yaml"))
+    folders = [conf_dir(root) for root in ROOTS]
+    for folder in folders:
+        if (folder / f"{config_name}.yaml").is_file():
+            return folder
+    names = sorted(p.stem for folder in folders for p in folder.glob("*.yaml"))
     raise ConfigError(f"config_name={config_name!r}: expected one of {names}")
 
 
