@@ -164,3 +164,54 @@ def test_settings_are_checked():
     )
     with pytest.raises(ValueError, match=r"bsdf_sampling names shapes the scene lacks: \['nope'\]"):
         scene.integrator().render(scene, seed=0, spp=1)
+
+
+@pytest.mark.parametrize("integrator", ["direct_light", "direct_light_mis"])
+def test_emitter_culling_changes_no_image_or_gradient(integrator):
+    """A BSDF-sampled ray is traced through the scene only if it hits the emitters' geometry: the same images
+    and gradients per seed as tracing every one (the culled rays hit no emitter, so they added nothing)."""
+    scene = scene_with(integrator, resolution=24)
+    integrator_object = scene.scene.integrator()
+    assert integrator_object.emitter_culling  # on by default
+
+    def render_and_grad(culling):
+        integrator_object.emitter_culling = culling
+        values = MID.clone().requires_grad_(True)
+        image = scene.render(values, seed=7)
+        (image * torch.linspace(0.5, 1.5, image.shape[-1])).sum().backward()
+        return image.detach(), values.grad
+
+    culled, traced = render_and_grad(True), render_and_grad(False)
+    torch.testing.assert_close(culled[0], traced[0], rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(culled[1], traced[1], rtol=1e-4, atol=1e-6)
+    assert float(culled[0].mean()) > 0.01
+
+
+def test_emitter_geometry_is_the_emitters_and_nothing_else():
+    """Mesh emitters are copied triangle for triangle; another shape becomes a box around it; delta emitters
+    are left out; an environment emitter (reached by rays that hit nothing) turns culling off."""
+    from drgan.backend import dr, mi
+    from drgan.scene import direct
+
+    scene = scene_with("direct_light_mis")
+    geometry = direct.emitter_geometry(scene.scene)
+    lights = {s.id(): s for s in scene.scene.shapes() if s.emitter() is not None}
+    assert sorted(s.face_count() for s in geometry.shapes()) == sorted(s.face_count() for s in lights.values())
+    assert "particles" not in lights and "stage" not in lights
+
+    def scene_of(**emitters):
+        return mi.load_dict({"type": "scene", "floor": {"type": "rectangle"}, **emitters})
+
+    sphere = {"type": "sphere", "center": [0, 0, 3], "radius": 0.5, "emitter": {"type": "area"}}
+    boxed = direct.emitter_geometry(scene_of(lamp=sphere, point={"type": "point", "position": [0, 0, 1]}))
+    (box,) = boxed.shapes()
+    assert box.face_count() == 12
+    assert np.all(np.array(box.bbox().min) <= [-0.5, -0.5, 2.5]) and np.all(np.array(box.bbox().max) >= [0.5, 0.5, 3.5])
+    assert np.all(np.array(box.bbox().min) > [-0.51, -0.51, 2.49])  # a little larger, not a lot
+    # Every ray from below that hits the sphere hits its box, and upward rays beside it miss both.
+    x = dr.linspace(mi.Float, -0.7, 0.7, 101)
+    rays = mi.Ray3f(mi.Point3f(x, x * 0.3, 0.0), mi.Vector3f(0, 0, 1))
+    lamp = scene_of(lamp=sphere)  # held: the traced call runs when its result is read
+    hits_sphere, hits_box = lamp.ray_test(rays), boxed.ray_test(rays)
+    assert dr.all(~hits_sphere | hits_box) and dr.count(hits_sphere)[0] > 10 and not dr.all(hits_box)
+    assert direct.emitter_geometry(scene_of(sky={"type": "constant"})) is None

@@ -130,6 +130,32 @@ def test_unused_scene_elements_are_not_built():
     assert {shape.id() for shape in full.scene.shapes()} == {"particles", "stage", "torus_light", "top_light"}
 
 
+def test_stage_and_top_light_are_mitsubas_rectangles_as_triangles():
+    """`rectangle_mesh`: the surface of Mitsuba's ``rectangle`` under the same transform (rays hit it at the same
+    t with the same normal, and miss it alike), as two triangles Embree intersects natively."""
+    from drgan.backend import dr, mi
+    from drgan.scene.scene import rectangle_mesh
+
+    scene = make_scene()
+    shapes = {shape.id(): shape for shape in scene.scene.shapes()}
+    assert shapes["stage"].is_mesh() and shapes["top_light"].is_mesh()
+    assert shapes["stage"].face_count() == 2 and shapes["top_light"].emitter() is not None
+    to_world = mi.ScalarTransform4f().translate([1, -2, 5]).rotate([1, 0.3, 0], 160).scale([3, 2, 1])
+    triangles = mi.load_dict({"type": "scene", "shape": rectangle_mesh("lamp", to_world)})
+    rectangle = mi.load_dict({"type": "scene", "shape": {"type": "rectangle", "to_world": to_world}})
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, (2, 4000)).astype(np.float32)
+    rays = mi.Ray3f(mi.Point3f(mi.Float(xy[0]), mi.Float(xy[1]), 0.0), mi.Vector3f(0.05, -0.1, 1.0))
+    a, b = triangles.ray_intersect(rays), rectangle.ray_intersect(rays)
+    assert dr.all(a.is_valid() == b.is_valid()) and 500 < dr.count(a.is_valid())[0] < 3500
+    hit = a.is_valid()
+    assert dr.max(dr.select(hit, dr.abs(a.t - b.t) / b.t, 0.0))[0] < 1e-6
+    assert dr.min(dr.select(hit, dr.dot(a.n, b.n), 1.0))[0] > 1 - 1e-6
+    area = [s.shapes()[0].surface_area()[0] for s in (triangles, rectangle)]
+    assert area[0] == pytest.approx(area[1], rel=1e-5)  # so an emitter on it has the same pdf
+    assert shapes["stage"].surface_area()[0] == pytest.approx((8 * scene.spec.view_width) ** 2, rel=1e-5)
+
+
 def test_new_layouts_compile_no_new_kernels(tiny_scene):
     from drgan.backend import dr
 
