@@ -13,8 +13,8 @@ Two tables, CPU seconds (all threads of the process), median of --repeats:
    the time goes, not what each step costs inside the fused kernel.
 2. The primal render and the adjoint pass, alternating in one process, for the scene as drgan builds it
    (stage and top light as two triangles each, emitter culling on), with culling off, and with the stage and
-   top light as Mitsuba ``rectangle`` shapes (Embree user geometry, as drgan built them before), with the
-   image means (the same scene in expectation).
+   top light as Mitsuba ``rectangle`` shapes (as drgan built them before: the same surface, with the shape's own
+   interaction and sampling code), with the image means (the same scene in expectation).
 """
 
 from __future__ import annotations

@@ -25,14 +25,14 @@ sum_s f_theta(w_s) Le w_s(theta0) / p_s(theta0) has expectation I(theta) for eve
 of the two strategies sum to one at each direction.
 
 Rays are most of a render's time (``benchmarks/render_parts.py``), so none is traced that cannot add light; the
-image and gradients are those of tracing them all:
+images are those of tracing them all (and the gradients, up to the order of their sums):
 
 - the shadow ray of a light sample, not where the point on the emitter faces away or where the BSDF is zero (a
   BSDF without transmission, the light behind the surface);
-- the BSDF-sampled ray, only if it hits the emitters' geometry (``emitter_culling``, on by default): a second,
-  tiny scene holds that geometry alone (the emitters' triangles; a box around any other shape); a ray that
-  misses it misses every emitter (38 % of them in the TiO2 SEM scene). Scenes with an environment emitter are
-  not culled.
+- the BSDF-sampled ray, only if it hits the emitters' geometry (``emitter_culling``, on by default on the CPU):
+  a second, tiny scene holds that geometry alone (the emitters' triangles; a box around any other shape); a ray
+  that misses it misses every emitter (38 % of them in the TiO2 SEM scene). Scenes with an environment emitter
+  are not culled, nor are renders on the GPU (OptiX answers one scene per kernel).
 
 Each saves ~6 % of a render at spp 16 (experiments/benchmarks/train_step.md, "Fewer rays").
 """
@@ -62,16 +62,15 @@ def emitter_geometry(scene):
     without hitting any geometry (an environment emitter).
 
     A mesh emitter is copied triangle for triangle (the same vertices, so a ray hits the copy wherever it hits
-    the original); any other emitter shape (sphere, rectangle, instance) becomes the box of its bounds, a little
-    larger. Delta emitters (point, spot, directional) are left out: no ray hits them.
+    the original); any other emitter shape (sphere, disk, ...) becomes the box of its bounds, a little larger.
+    Delta emitters (point, spot, directional) are left out: no ray hits them.
     """
+    for emitter in scene.emitters():
+        if not mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta) and emitter.get_shape() is None:
+            return None  # environment or other infinite emitter
     shapes = {}
-    for k, emitter in enumerate(scene.emitters()):
-        if mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta):
-            continue
-        shape = emitter.get_shape()
-        if shape is None:  # environment or other infinite emitter
-            return None
+    # The scene's shapes, not the emitters' get_shape(): that may return a plain Shape without the mesh buffers.
+    for k, shape in enumerate(s for s in scene.shapes() if s.emitter() is not None):
         if shape.is_mesh():
             vertices = np.array(shape.vertex_positions_buffer(), dtype=np.float32)
             faces = np.array(shape.faces_buffer(), dtype=np.uint32)
@@ -95,17 +94,18 @@ def emitter_geometry(scene):
 
 
 def _geometry_key(scene) -> tuple:
-    """What `emitter_geometry` depends on: each emitter's flags and shape (a mesh's vertices, else its bounds)."""
-    key = []
-    for emitter in scene.emitters():
-        shape = emitter.get_shape()
-        if shape is None:
-            geometry = None
-        elif shape.is_mesh():
-            geometry = hash(np.array(shape.vertex_positions_buffer(), dtype=np.float32).tobytes())
+    """What `emitter_geometry` depends on: the emitters' flags and their shapes (a mesh's vertices and faces, else
+    its bounds)."""
+    key: list = [tuple(int(e.flags()) for e in scene.emitters())]
+    for shape in scene.shapes():
+        if shape.emitter() is None:
+            continue
+        if shape.is_mesh():
+            buffers = (shape.vertex_positions_buffer(), shape.faces_buffer())
+            geometry = tuple(hash(np.array(b).tobytes()) for b in buffers)
         else:
             geometry = (tuple(shape.bbox().min), tuple(shape.bbox().max))
-        key.append((int(emitter.flags()), None if shape is None else shape.id(), geometry))
+        key.append((shape.id(), geometry))
     return tuple(key)
 
 
@@ -157,7 +157,12 @@ def _integrator_class():
             ids = str(props.get("bsdf_sampling", "*"))
             self.bsdf_sampling = None if ids.strip() == "*" else {i.strip() for i in ids.split(",") if i.strip()}
             # Trace a BSDF-sampled ray through the scene only if it hits an emitter's geometry (module docstring).
-            self.emitter_culling = bool(props.get("emitter_culling", True))
+            # CPU (Embree) only: OptiX drops a ray query on a second scene inside one kernel (another shader
+            # binding table), which would lose light silently.
+            cuda = mi.variant().startswith("cuda")
+            self.emitter_culling = bool(props.get("emitter_culling", not cuda))
+            if cuda and self.emitter_culling:
+                raise ValueError(f"{NAME}: emitter_culling needs a CPU (llvm) variant; {mi.variant()} is set")
             self._emitters = (None, None)  # (_geometry_key, emitter_geometry) of the last scene rendered
 
         def _emitter_geometry(self, scene):
@@ -235,8 +240,8 @@ def _integrator_class():
 
                 # Light sampling (em_weight = Le / p_light), then the shadow ray, traced only where the sample can
                 # add light: not where the point on the emitter faces away, nor where a BSDF without
-                # transmission is zero (the light behind the surface): ~6 % of a render, the same image and
-                # gradient to the bit.
+                # transmission is zero (the light behind the surface): ~6 % of a render, the same image to the bit
+                # (and gradient, to the order of the sums).
                 ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(valid), False, smooth)
                 wo_light = si.to_local(ds.d)
                 light_ok = smooth & (ds.pdf > 0) & dr.any(em_weight != 0.0)
@@ -249,7 +254,8 @@ def _integrator_class():
                 bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(valid), sampler.next_2d(valid), sampled)
                 bsdf_ok = sampled & (bs.pdf > 0)
                 ray_b = si.spawn_ray(si.to_world(bs.wo))
-                emitters = self._emitter_geometry(scene) if self.emitter_culling else None
+                cull = self.emitter_culling and not mi.variant().startswith("cuda")  # (see __init__)
+                emitters = self._emitter_geometry(scene) if cull else None
                 if emitters is not None:
                     bsdf_ok &= emitters.ray_test(ray_b, False, bsdf_ok)
                 # Only the emitter it may hit is read at this point (its radiance and pdf: position and normal), so
