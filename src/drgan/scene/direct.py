@@ -241,7 +241,8 @@ def _integrator_class():
                 # Light sampling (em_weight = Le / p_light), then the shadow ray, traced only where the sample can
                 # add light: not where the point on the emitter faces away, nor where a BSDF without
                 # transmission is zero (the light behind the surface): ~6 % of a render, the same image to the bit
-                # (and gradient, to the order of the sums).
+                # (and gradient, to the order of the sums). The side test uses si's shading frame: a BSDF that
+                # turns that frame itself (normalmap, bumpmap; none in drgan's scenes) could be lit from behind it.
                 ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(valid), False, smooth)
                 wo_light = si.to_local(ds.d)
                 light_ok = smooth & (ds.pdf > 0) & dr.any(em_weight != 0.0)
