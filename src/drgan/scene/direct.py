@@ -42,6 +42,7 @@ from __future__ import annotations
 import numpy as np
 
 from drgan import backend
+from drgan.scene.scene import mitsuba_mesh
 
 dr = backend.dr
 mi = backend.mi
@@ -72,24 +73,14 @@ def emitter_geometry(scene):
     # The scene's shapes, not the emitters' get_shape(): that may return a plain Shape without the mesh buffers.
     for k, shape in enumerate(s for s in scene.shapes() if s.emitter() is not None):
         if shape.is_mesh():
-            vertices = np.array(shape.vertex_positions_buffer(), dtype=np.float32)
-            faces = np.array(shape.faces_buffer(), dtype=np.uint32)
+            vertices, faces = np.array(shape.vertex_positions_buffer()), np.array(shape.faces_buffer())
         else:
             box = shape.bbox()
             lo, hi = np.array(box.min, dtype=np.float64), np.array(box.max, dtype=np.float64)
             pad = 1e-4 * max(float(np.max(hi - lo)), 1.0)
-            lo, hi = lo - pad, hi + pad
-            vertices = np.array(
-                [[(lo, hi)[i & 1][0], (lo, hi)[i >> 1 & 1][1], (lo, hi)[i >> 2 & 1][2]] for i in range(8)],
-                dtype=np.float32,
-            ).ravel()
-            faces = _BOX_FACES.ravel()
-        mesh = mi.Mesh(f"emitter_{k}", len(vertices) // 3, len(faces) // 3, has_vertex_normals=False)
-        buffers = mi.traverse(mesh)
-        buffers["vertex_positions"] = mi.Float(vertices)
-        buffers["faces"] = mi.UInt32(faces)
-        buffers.update()
-        shapes[f"emitter_{k}"] = mesh
+            vertices, faces = np.where(_BOX_CORNERS, hi + pad, lo - pad), _BOX_FACES
+        name = f"emitter_{k}"
+        shapes[name] = mitsuba_mesh(name, vertices.reshape(-1, 3), faces.reshape(-1, 3), normals=False)
     return mi.load_dict({"type": "scene", **shapes})
 
 
@@ -109,7 +100,8 @@ def _geometry_key(scene) -> tuple:
     return tuple(key)
 
 
-# The 12 triangles of the box whose corner i is (x, y, z) = bits (0, 1, 2) of i; outward-facing.
+# The box's corner i is (x, y, z) = bits (0, 1, 2) of i (1: the upper bound); its 12 triangles face outwards.
+_BOX_CORNERS = (np.arange(8)[:, None] >> np.arange(3) & 1).astype(bool)
 _BOX_FACES = np.array(
     [[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
      [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]],

@@ -228,7 +228,8 @@ def torus_light_mesh(light: TorusLight, view_width: float) -> trimesh.Trimesh:
     return ring
 
 
-def _mitsuba_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, props=None, normals: bool = True):
+def mitsuba_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, props=None, normals: bool = True):
+    """A Mitsuba mesh of ``vertices`` (n x 3) and ``faces`` (m x 3), with ``props`` (a BSDF, an emitter)."""
     mesh = mi.Mesh(name, len(vertices), len(faces), props=props or mi.Properties(), has_vertex_normals=normals)
     buffers = mi.traverse(mesh)
     buffers["vertex_positions"] = mi.Float(np.ascontiguousarray(vertices, dtype=np.float32).ravel())
@@ -252,7 +253,7 @@ def rectangle_mesh(name: str, to_world, props=None):
     corners = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
     matrix = np.array(to_world.matrix, dtype=np.float64)
     vertices = corners @ matrix[:3, :3].T + matrix[:3, 3]
-    return _mitsuba_mesh(name, vertices, np.array([[0, 1, 2], [0, 2, 3]]), props, normals=False)
+    return mitsuba_mesh(name, vertices, np.array([[0, 1, 2], [0, 2, 3]]), props, normals=False)
 
 
 def _principled(parameters: Sequence[Parameter]) -> dict:
@@ -316,7 +317,7 @@ class MeshParticles:
         # Face f belongs to particle face_owner[f]; +1 because label 0 is the background.
         self._face_label = mi.UInt32(np.repeat(np.arange(1, self.n_particles + 1), face_counts).astype(np.uint32))
 
-        self.particles = _mitsuba_mesh("particles", self._unit_vertices, faces)
+        self.particles = mitsuba_mesh("particles", self._unit_vertices, faces)
         bsdf = self._particle_bsdf()
         if bsdf is not None:
             self.particles.set_bsdf(mi.load_dict(bsdf))
@@ -478,7 +479,7 @@ class ParticleScene(MeshParticles):
             ring = torus_light_mesh(t, w)
             props = mi.Properties()
             props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "uniform", "value": t.radiance}})
-            scene["torus_light"] = _mitsuba_mesh("torus_light", ring.vertices, ring.faces, props, normals=False)
+            scene["torus_light"] = mitsuba_mesh("torus_light", ring.vertices, ring.faces, props, normals=False)
         if spec.top_light is not None and spec.top_light.radiance > 0:
             t = spec.top_light
             distance = spec.render.camera_distance * w
