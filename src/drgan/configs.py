@@ -17,7 +17,8 @@ ConfigStore as ``drgan_schema/<group>`` (a group name no entry point's setting u
 defaults list (``- /drgan_schema/renderer@_here_``): a value of the wrong type (``renderer.spp=abc``, or
 ``spp: many`` in a material's file) or a key the schema lacks (``sppp: 4`` in a config file) fails when the config
 is composed, naming the key, before anything is built. The schemas hold types only (every field MISSING): the
-defaults stay in the group's YAML, the value checks in the objects built from it (`drgan.scene.scene.RenderSettings`, `drgan.models.gan_module.GANTraining`).
+defaults stay in the group's YAML, the value checks in the objects built from it
+(`drgan.scene.scene.RenderSettings`, `drgan.models.gan_module.GANTraining`).
 """
 
 from __future__ import annotations

@@ -246,9 +246,9 @@ def rectangle_mesh(name: str, to_world, props=None):
     triangles to Embree but keeps its own code for surface interactions and sampling, so the render kernel's calls
     over shapes run two implementations; as plain meshes every shape of drgan's scenes runs one. Measured: a render
     of the TiO2 SEM scene at spp 16 costs ~10 % less CPU time (primal and adjoint; ``benchmarks/render_parts.py``,
-    experiments/benchmarks/train_step.md). The image's expectation is unchanged;
-    an emitter on it samples its points through the triangles (uniform over the area, as the rectangle), so the
-    same seed places them elsewhere. No UVs: the BSDFs on these surfaces are untextured.
+    experiments/benchmarks/train_step.md). The image's expectation is unchanged; an emitter on it samples its points
+    through the triangles (uniform over the area, as the rectangle), so the same seed places them elsewhere. No
+    UVs: the BSDFs on these surfaces are untextured.
     """
     corners = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
     matrix = np.array(to_world.matrix, dtype=np.float64)
@@ -527,8 +527,8 @@ class ParticleScene(MeshParticles):
         ``seed`` must change between calls, or every step reuses one sample pattern.
         ``spp`` / ``grad_spp``: samples per pixel of the image and of its adjoint pass (None: the scene's
         ``renderer.spp`` / ``renderer.grad_spp``, the latter defaulting to, and capped at, the image's spp). The
-        adjoint pass (Mitsuba's ``render_backward``) traces paths of its own, so a lower ``grad_spp`` keeps the gradient
-        unbiased for the image's expectation and only adds variance, at a fraction of the cost of the
+        adjoint pass (Mitsuba's ``render_backward``) traces paths of its own, so a lower ``grad_spp`` keeps the
+        gradient unbiased for the image's expectation and only adds variance, at a fraction of the cost of the
         backward pass (the larger half of a training step at spp 121).
         """
         if self._layout is None:
