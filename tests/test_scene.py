@@ -132,7 +132,7 @@ def test_unused_scene_elements_are_not_built():
 
 def test_stage_and_top_light_are_mitsubas_rectangles_as_triangles():
     """`rectangle_mesh`: the surface of Mitsuba's ``rectangle`` under the same transform (rays hit it at the same
-    t with the same normal, and miss it alike), as two triangles Embree intersects natively."""
+    t with the same normal, and miss it alike), as two plain triangles; the top light faces the stage."""
     from drgan.backend import dr, mi
     from drgan.scene.scene import rectangle_mesh
 
@@ -140,6 +140,9 @@ def test_stage_and_top_light_are_mitsubas_rectangles_as_triangles():
     shapes = {shape.id(): shape for shape in scene.scene.shapes()}
     assert shapes["stage"].is_mesh() and shapes["top_light"].is_mesh()
     assert shapes["stage"].face_count() == 2 and shapes["top_light"].emitter() is not None
+    up = mi.Ray3f(mi.Point3f(0.0, 0.0, 1.0), mi.Vector3f(0, 0, 1))
+    light = scene.scene.ray_intersect(up)
+    assert light.shape == mi.ShapePtr(shapes["top_light"]) and light.n.z[0] < -0.99  # emits downwards
     to_world = mi.ScalarTransform4f().translate([1, -2, 5]).rotate([1, 0.3, 0], 160).scale([3, 2, 1])
     triangles = mi.load_dict({"type": "scene", "shape": rectangle_mesh("lamp", to_world)})
     rectangle = mi.load_dict({"type": "scene", "shape": {"type": "rectangle", "to_world": to_world}})
