@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from drgan.scene import layout, meshes
-from drgan.scene.parameters import MaterialParameters
+from drgan.scene.config import SecondaryImaging
 from drgan.scene.scene import GRAD_SEEDS, INTEGRATORS, ParticleScene, RenderSettings, SceneSpec
 
 PARTICLE = {name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")}
@@ -66,13 +66,13 @@ def main():
     print(f"command: python {' '.join(sys.argv)}")
     for grad_seed in args.grad_seed:
         spec = SceneSpec(
-            MaterialParameters.from_config(PARTICLE, STAGE, {"min": 0.001, "max": 0.1}),
+            SecondaryImaging(particle_bsdf=PARTICLE, stage_bsdf=STAGE).material_parameters({"min": 0.001, "max": 0.1}),
             RenderSettings(resolution=args.resolution, spp=16, integrator=args.integrator, grad_seed=grad_seed),
         )
         scene = ParticleScene(meshes_, args.particles, spec)
         scene.set_layout(phi)
         reference = gradients(scene, weight, args.ref_spp, range(10_000, 10_000 + args.ref_seeds)).mean(0)
-        names = [p.key for p in scene.learned_bsdf]
+        names = [p.key for p in scene.learned]
         print(
             f"\n{args.integrator}, grad_seed {grad_seed}; reference: spp {args.ref_spp} x {args.ref_seeds} seeds; "
             f"{args.resolution} px, {args.particles} particles\n"

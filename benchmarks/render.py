@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from drgan.scene import layout, meshes
-from drgan.scene.parameters import MaterialParameters
+from drgan.scene.config import SecondaryImaging
 from drgan.scene.scene import (
     ParticleScene,
     RenderSettings,
@@ -39,7 +39,9 @@ SIGMA = {"min": 0.001, "max": 0.1}
 
 def make_scene(n, resolution, spp, integrator, variant, cube_meshes, **elements):
     spec = SceneSpec(
-        MaterialParameters.from_config(PARTICLE, STAGE if elements.get("stage", True) else None, SIGMA),
+        SecondaryImaging(
+            particle_bsdf=PARTICLE, stage_bsdf=STAGE if elements.get("stage", True) else None
+        ).material_parameters(SIGMA),
         RenderSettings(
             resolution=resolution, spp=spp, integrator=integrator, filter_stddev=elements.get("filter_stddev", 0.5)
         ),
@@ -54,7 +56,7 @@ def make_scene(n, resolution, spp, integrator, variant, cube_meshes, **elements)
 def time_scene(scene, n, repeats, seed=0):
     sizes, placement = layout.LognormalSize(24.0, 0.25), layout.PoissonAgglomerates()
     phis = layout.sample_layouts(2 * repeats + 2, n, sizes, placement, view_width=256.0, seed=seed)
-    values = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6][: len(scene.learned_bsdf)])
+    values = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6][: len(scene.learned)])
     forward, both = [], []
     for i, phi in enumerate(phis):
         scene.set_layout(phi)

@@ -138,7 +138,7 @@ def time_parts(module: GANModule, steps: int, warmup: int) -> dict[str, float]:
         values = values.detach()[0]
         with Clock() as primal, torch.no_grad():
             fake = generator.render_one(phi[0], values).unsqueeze(0)
-        bsdf_values = values[: len(scene.learned_bsdf)].clone().requires_grad_(True)
+        bsdf_values = values[: len(scene.learned)].clone().requires_grad_(True)
         image = scene.render(bsdf_values, seed=generator.next_seed())
         grad = torch.randn_like(image)
         with Clock() as adjoint:

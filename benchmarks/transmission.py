@@ -42,7 +42,7 @@ def time_scene(material: str, resolution: int, n_particles: int, repeats: int, w
     )
     scene = build.build_scene(cfg)
     phis = build.sample_phi(cfg, warmup + repeats, seed=0)
-    learned = scene.learned_bsdf
+    learned = scene.learned
     values = torch.tensor([0.5 * (p.low + p.high) for p in learned], requires_grad=True)
     weights = torch.linspace(-1.0, 1.0, resolution).expand(resolution, resolution)
     times: dict[str, list[float]] = {"layout": [], "trace": [], "render+backward": [], "iteration": []}

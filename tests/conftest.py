@@ -22,10 +22,12 @@ def make_scene(
     resolution=16, spp=4, n=4, integrator="prb_basic", particle=None, stage=PAPER_STAGE, sigma=PAPER_SIGMA, **spec_kw
 ):
     from drgan.scene import meshes
-    from drgan.scene.parameters import MaterialParameters
+    from drgan.scene.config import SecondaryImaging
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
-    params = MaterialParameters.from_config(PAPER_PARTICLE if particle is None else particle, stage, sigma)
+    params = SecondaryImaging(
+        particle_bsdf=PAPER_PARTICLE if particle is None else particle, stage_bsdf=stage
+    ).material_parameters(sigma)
     spec = SceneSpec(
         params,
         RenderSettings(

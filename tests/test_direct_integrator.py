@@ -18,10 +18,10 @@ STEPS = [0.01, 0.1, 0.01, 0.01, 0.01, 0.01]
 
 def scene_with(integrator, resolution=16, spp=4, grad_seed="independent", stage=PAPER_STAGE):
     from drgan.scene import meshes
-    from drgan.scene.parameters import MaterialParameters
+    from drgan.scene.config import SecondaryImaging
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
-    params = MaterialParameters.from_config(PAPER_PARTICLE, stage, PAPER_SIGMA)
+    params = SecondaryImaging(particle_bsdf=PAPER_PARTICLE, stage_bsdf=stage).material_parameters(PAPER_SIGMA)
     render = RenderSettings(resolution=resolution, spp=spp, integrator=integrator, grad_seed=grad_seed)
     scene = ParticleScene([meshes.sphere(2)], 4, SceneSpec(params, render, view_width=64.0), variant="llvm_ad_rgb")
     scene.set_layout(TINY_PHI)
@@ -126,7 +126,7 @@ def test_gradient_of_a_nonlinear_loss_matches_finite_differences(integrator):
 @pytest.mark.parametrize("where", ["low", "high"])
 def test_gradients_finite_at_the_limits(where):
     scene = scene_with("direct_light")
-    values = torch.tensor([p.low if where == "low" else p.high for p in scene.learned_bsdf], requires_grad=True)
+    values = torch.tensor([p.low if where == "low" else p.high for p in scene.learned], requires_grad=True)
     image = scene.render(values, seed=3)
     assert torch.isfinite(image).all() and (image >= 0).all()
     image.square().mean().backward()

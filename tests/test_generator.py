@@ -11,7 +11,7 @@ from drgan.models.generator import Generator, add_noise
 @pytest.fixture(scope="module")
 def generator():
     torch.manual_seed(0)
-    return Generator(make_scene(resolution=16, spp=1), seed=3)
+    return Generator(make_scene(resolution=16, spp=1), hidden=128, blocks=4, dropout=0.1, seed=3)
 
 
 def test_output_shape_range_and_batches(generator):
@@ -113,7 +113,7 @@ def test_seeds_change_between_renders(generator):
 
 def test_sample_spp_override_renders_with_less_noise_than_training_spp():
     scene = make_scene(resolution=32, spp=1, sigma={"value": 0.001})
-    gen = Generator(scene, seed=0)
+    gen = Generator(scene, hidden=128, blocks=4, dropout=0.1, seed=0)
     noise = {}
     for spp in (None, 64):
         a, b = (gen.sample(TINY_PHI, seed=s, spp=spp).image for s in (1, 2))
@@ -175,7 +175,7 @@ def test_background_texture_changes_stage_pixels_only_and_no_gradient(one_render
     from drgan.models.generator import BackgroundTexture
 
     scene = make_scene(resolution=32, spp=4, sigma={"value": 0.001})
-    gen = Generator(scene, seed=0).eval()
+    gen = Generator(scene, hidden=128, blocks=4, dropout=0.1, seed=0).eval()
     texture = BackgroundTexture(striped_backgrounds(32), highpass_px=4.0)
     phi = torch.as_tensor(TINY_PHI).unsqueeze(0)
 

@@ -22,16 +22,18 @@ THETA = torch.tensor([0.2, 0.5])  # stage.base_color, particle.base_color
 
 def grad_scene(grad_seed: str, integrator: str = "prb"):
     from drgan.scene import meshes
-    from drgan.scene.parameters import MaterialParameters
+    from drgan.scene.config import SecondaryImaging
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
-    params = MaterialParameters.from_config({"base_color": {"min": 0.01, "max": 5.0}}, PAPER_STAGE, PAPER_SIGMA)
+    params = SecondaryImaging(
+        particle_bsdf={"base_color": {"min": 0.01, "max": 5.0}}, stage_bsdf=PAPER_STAGE
+    ).material_parameters(PAPER_SIGMA)
     spec = SceneSpec(
         params, RenderSettings(resolution=16, spp=4, integrator=integrator, grad_seed=grad_seed), view_width=64.0
     )
     scene = ParticleScene([meshes.sphere(2)], len(TINY_PHI), spec, variant="llvm_ad_rgb")
     scene.set_layout(TINY_PHI)
-    assert [p.key for p in scene.learned_bsdf] == ["stage.base_color", "particle.base_color"]
+    assert [p.key for p in scene.learned] == ["stage.base_color", "particle.base_color"]
     return scene
 
 
@@ -90,15 +92,20 @@ def test_bad_grad_seed_names_the_setting():
     with pytest.raises(ConfigError, match=r"renderer\.grad_seed='Same'.*independent, same"):
         RenderSettings(grad_seed="Same")
     material = {
+        "name": "spheres",
+        "n_particles": 2,
+        "particle_size_px": 8,
         "view_width": 32,
-        "spp": 4,
         "filter_stddev": 0.5,
-        "particle_bsdf": {"base_color": {"min": 0.1, "max": 1.0}},
+        "imaging": {
+            "_target_": "drgan.scene.scene.ParticleScene",
+            "particle_bsdf": {"base_color": {"min": 0.1, "max": 1.0}},
+        },
     }
     with pytest.raises(ConfigError, match=r"renderer\.grad_seed='decorrelated'"):
-        scene_spec(material, {"grad_seed": "decorrelated"})
+        scene_spec(material, {"grad_seed": "decorrelated", "spp": 4})
     assert scene_spec(material, {"grad_seed": "independent"}).render.grad_seed == "independent"
-    assert scene_spec(material, {}).render.grad_seed == RenderSettings().grad_seed  # older checkpoints: the default
+    assert scene_spec(material, {}).render.grad_seed == RenderSettings().grad_seed
 
 
 def test_same_is_the_derivative_of_the_realised_noisy_image(scenes, target):

@@ -89,7 +89,7 @@ def test_fewer_adjoint_samples_keep_the_gradient_unbiased():
 
 @pytest.mark.parametrize("where", ["low", "high"])
 def test_gradients_finite_at_limits(tiny_scene, where):
-    learned = tiny_scene.learned_bsdf
+    learned = tiny_scene.learned
     values = torch.tensor([p.low if where == "low" else p.high for p in learned], requires_grad=True)
     image = tiny_scene.render(values, seed=3)
     assert torch.isfinite(image).all() and (image >= 0).all()
@@ -105,7 +105,7 @@ def test_differentiable_parameters_are_exactly_the_learned_ones():
     particle["metallic"] = 0.2
     scene = make_scene(particle=particle)
     scene.set_layout(TINY_PHI)
-    values = torch.full((len(scene.learned_bsdf),), 0.5, requires_grad=True)
+    values = torch.full((len(scene.learned),), 0.5, requires_grad=True)
     scene.render(values, seed=0).sum().backward()
     params = mi.traverse(scene.scene)
     enabled = {k for k in params.keys() if dr.grad_enabled(params[k])}
@@ -250,10 +250,10 @@ def test_bad_render_settings_fail_clearly(kwargs, match):
     ],
 )
 def test_bad_limits_fail_clearly(particle, match):
-    from drgan.scene.parameters import MaterialParameters
+    from drgan.scene.config import SecondaryImaging
 
     with pytest.raises(ConfigError, match=match):
-        MaterialParameters.from_config(particle, PAPER_STAGE, {"min": 0.001, "max": 0.1})
+        SecondaryImaging(particle_bsdf=particle, stage_bsdf=PAPER_STAGE).material_parameters({"min": 0.001, "max": 0.1})
 
 
 def test_bad_layout_fails_clearly(tiny_scene):

@@ -36,7 +36,7 @@ MID = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6])
 @pytest.mark.parametrize("end", ["low", "high"])
 def test_each_parameter_alone_at_its_limit(scene, index, end):
     values = MID.clone()
-    p = scene.learned_bsdf[index]
+    p = scene.learned[index]
     values[index] = p.low if end == "low" else p.high
     check_render(scene, TINY_PHI, values)
 
@@ -46,7 +46,7 @@ def test_ad_matches_fd_at_upper_limits(index, step):
     """Colour-like parameters are smooth up to their upper limits (radiance is not clamped in the render)."""
     scene = make_scene(resolution=16, spp=16)
     scene.set_layout(TINY_PHI)
-    values = torch.tensor([p.high for p in scene.learned_bsdf])
+    values = torch.tensor([p.high for p in scene.learned])
     values[index] -= step  # stay inside the limit for the central difference
     weight = torch.rand(16, 16, generator=torch.Generator().manual_seed(4))
     seeds = range(8)
@@ -105,7 +105,7 @@ def test_spp_one(scene):
 @pytest.mark.parametrize("saturate", [-50.0, 50.0])
 def test_saturated_fcn_outputs_stay_finite(saturate):
     torch.manual_seed(0)
-    generator = Generator(make_scene(resolution=16, spp=1))
+    generator = Generator(make_scene(resolution=16, spp=1), hidden=128, blocks=4, dropout=0.1)
     last = generator.regressor.net[-2]
     with torch.no_grad():
         last.bias.fill_(saturate)  # sigmoid -> 0 or 1: every parameter at a limit, sigma included

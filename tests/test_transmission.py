@@ -20,13 +20,20 @@ SIGMA = {"min": 0.001, "max": 0.2}
 VIEW = 64.0
 
 
+def transmission_parameters(limits, sigma=SIGMA):
+    from drgan.scene.config import ParameterRange, TransmissionImaging
+    from drgan.scene.parameters import MaterialParameters, noise_parameter
+
+    imaging = TransmissionImaging(**{key: ParameterRange(**spec) for key, spec in limits.items()})
+    return MaterialParameters(imaging.scene_parameters(), noise_parameter(ParameterRange(**sigma)))
+
+
 def make_scene(meshes=None, n=4, resolution=16, spp=4, transmission=None, filter_stddev=0.5):
     from drgan.scene import meshes as procedural
-    from drgan.scene.parameters import MaterialParameters
     from drgan.scene.scene import RenderSettings
     from drgan.scene.transmission import TransmissionScene, TransmissionSpec
 
-    params = MaterialParameters.from_transmission(LIMITS if transmission is None else transmission, SIGMA)
+    params = transmission_parameters(LIMITS if transmission is None else transmission)
     spec = TransmissionSpec(params, RenderSettings(resolution=resolution, spp=spp, filter_stddev=filter_stddev), VIEW)
     return TransmissionScene(meshes or [procedural.sphere(2)], n, spec, variant="llvm_ad_rgb")
 
@@ -144,7 +151,7 @@ def test_image_formula_without_blur():
 def test_fixed_parameters_are_constants():
     fixed = {"background": {"value": 0.7}, "absorption": {"min": 0.01, "max": 0.5}}  # floor absent: 0
     scene = make_scene(transmission=fixed, n=1)
-    assert [p.name for p in scene.learned_bsdf] == ["absorption"]
+    assert [p.name for p in scene.learned] == ["absorption"]
     scene.set_layout(np.array([[0, 0, 0, 30]], np.float32))
     image = scene.render(torch.tensor([0.5]), seed=0)
     assert image[0, 0] == pytest.approx(0.7) and image[8, 8] < 0.01
@@ -184,14 +191,15 @@ def test_gradients_match_finite_differences(tiny, kind):
     torch.testing.assert_close(values.grad, expected, rtol=1e-6, atol=1e-8)
 
 
-def test_seed_and_grad_spp_change_nothing(tiny):
+def test_the_seed_changes_nothing(tiny):
     values = torch.tensor([0.8, 0.12, 0.15])
-    torch.testing.assert_close(tiny.render(values, seed=1), tiny.render(values, seed=2, grad_spp=1), rtol=0, atol=0)
+    torch.testing.assert_close(tiny.render(values, seed=1), tiny.render(values, seed=2), rtol=0, atol=0)
 
 
 # -- labels ---------------------------------------------------------------------------------------
 def test_labels_exact_for_particles_at_known_positions():
-    from drgan.scene.parameters import MaterialParameters
+    from drgan.scene.config import ParameterRange, SecondaryImaging
+    from drgan.scene.parameters import MaterialParameters, noise_parameter
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
     size, side = 32, 12.0
@@ -210,7 +218,8 @@ def test_labels_exact_for_particles_at_known_positions():
     np.testing.assert_array_equal(labels[~unsure], expected[~unsure])
     assert set(np.unique(labels)) == {0, 1, 2, 3}
     # The same code as the SEM scene's labels: identical label images for the same meshes and layout.
-    params = MaterialParameters.from_config({"base_color": {"value": 0.5}}, None, {"value": 0.0})
+    imaging = SecondaryImaging(particle_bsdf={"base_color": ParameterRange(value=0.5)})
+    params = MaterialParameters(imaging.scene_parameters(), noise_parameter(None))
     sem = ParticleScene(
         [unit_cube()],
         4,
@@ -222,8 +231,15 @@ def test_labels_exact_for_particles_at_known_positions():
 
 
 # -- configuration --------------------------------------------------------------------------------
-def _material(**extra):
-    material = {"imaging": "transmission", "view_width": VIEW, "transmission": dict(LIMITS), "noise_sigma": SIGMA}
+def _material(imaging=None, **extra):
+    material = {
+        "name": "tem",
+        "n_particles": 4,
+        "particle_size_px": 10,
+        "view_width": int(VIEW),
+        "noise_sigma": SIGMA,
+        "imaging": {"_target_": "drgan.scene.transmission.TransmissionScene", **LIMITS, **(imaging or {})},
+    }
     material.update(extra)
     return material
 
@@ -233,14 +249,14 @@ def _material(**extra):
     [
         ("particle_bsdf", {"base_color": {"value": 0.5}}),
         ("stage_bsdf", {"base_color": {"value": 0.1}}),
-        ("scene", {"torus_light": {"radiance": 1.0}}),
+        ("torus_light", {"radiance": 1.0}),
     ],
 )
 def test_secondary_keys_are_refused_in_a_transmission_material(key, value):
     from drgan.models import build
 
-    with pytest.raises(ConfigError, match=f"material.{key}"):
-        build.scene_spec(_material(**{key: value}), {"resolution": 16, "spp": 1})
+    with pytest.raises(ConfigError, match=f"material.imaging.{key}: Key '{key}' not in 'TransmissionImaging'"):
+        build.scene_spec(_material({key: value}), {"resolution": 16, "spp": 1})
 
 
 def test_imaging_and_transmission_settings_are_checked():
@@ -254,20 +270,23 @@ def test_imaging_and_transmission_settings_are_checked():
         "floor",
         "sigma",
     ]
-    with pytest.raises(ConfigError, match="secondary, transmission"):
-        build.scene_spec(_material(imaging="tem"), {})
-    with pytest.raises(ConfigError, match="material.transmission.absorption: missing"):
-        build.scene_spec(_material(transmission={"background": {"value": 0.8}}), {})
-    with pytest.raises(ConfigError, match="unknown parameter"):
-        build.scene_spec(_material(transmission={**LIMITS, "gamma": {"value": 1.0}}), {})
-    with pytest.raises(ConfigError, match="material.transmission.background"):
-        build.scene_spec(_material(transmission={**LIMITS, "background": {"min": 0.9, "max": 0.1}}), {})
-    with pytest.raises(ConfigError, match="material.transmission is set"):
-        build.scene_spec({"particle_bsdf": {"base_color": {"value": 0.5}}, "transmission": LIMITS}, {})
-    with pytest.raises(ConfigError, match="material.transmission: missing"):
-        build.scene_spec({"imaging": "transmission"}, {})
+    floorless = _material()
+    del floorless["imaging"]["floor"]
+    assert [p.name for p in build.scene_spec(floorless, {}).parameters.learned] == ["background", "absorption", "sigma"]
+    with pytest.raises(ConfigError, match=r"material.imaging._target_='tem': not a registered scene class"):
+        build.scene_spec(_material({"_target_": "tem"}), {})
+    missing = _material()
+    del missing["imaging"]["absorption"]
+    with pytest.raises(ConfigError, match="material.imaging.absorption"):
+        build.scene_spec(missing, {})
+    with pytest.raises(ConfigError, match="material.imaging.gamma"):
+        build.scene_spec(_material({"gamma": {"value": 1.0}}), {})
+    with pytest.raises(ConfigError, match="material.imaging.background"):
+        build.scene_spec(_material({"background": {"min": 0.9, "max": 0.1}}), {})
+    with pytest.raises(ConfigError, match="material.imaging._target_: missing"):
+        build.scene_spec(_material(imaging=None) | {"imaging": {}}, {})
     with pytest.raises(ConfigError, match="material.noise_grain_px"):
-        build.noise_grain_px({"noise_grain_px": -1})
+        build.scene_spec(_material(noise_grain_px=-1), {})
 
 
 def test_open_meshes_are_refused():

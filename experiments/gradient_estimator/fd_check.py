@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from drgan.scene import meshes
-from drgan.scene.parameters import MaterialParameters
+from drgan.scene.config import SecondaryImaging
 from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec, TopLight, TorusLight
 
 # learned: stage base colour, particle base colour / roughness / sheen (the GAN's informative parameters)
@@ -69,7 +69,7 @@ PHI = np.array(
 def make_scene(resolution: int, integrator: str, grad_seed: str) -> ParticleScene:
     """The TiO2 SEM lighting (grazing ring, radiance 4; top light 0.3) on a small view of spheres."""
     spec = SceneSpec(
-        MaterialParameters.from_config(PARTICLE, STAGE, {"value": 0.0}),
+        SecondaryImaging(particle_bsdf=PARTICLE, stage_bsdf=STAGE).material_parameters({"value": 0.0}),
         RenderSettings(resolution=resolution, spp=16, integrator=integrator, grad_seed=grad_seed),
         view_width=64.0,
         torus_light=TorusLight(radiance=4.0, major_radius=1.0, minor_radius=0.08, height=0.1),
@@ -149,7 +149,7 @@ def main():
 
     scenes = {mode: make_scene(args.resolution, args.integrator, mode) for mode in ("same", "independent")}
     ref = scenes["same"]
-    names = [p.key for p in ref.learned_bsdf]
+    names = [p.key for p in ref.learned]
     theta = torch.tensor([THETA[n] for n in names], dtype=torch.float32)
     target = render(ref, torch.tensor([TARGET[n] for n in names], dtype=torch.float32), 999_999, args.ref_spp).double()
     loss = make_loss(args.loss, target)

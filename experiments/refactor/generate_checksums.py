@@ -11,6 +11,9 @@ without its "throughput" (the only part that times the run) as "NAME#timeless".
 --shards: shard=0/2, then shard=1/2, then merge=true (after removing manifest.json) into the same folder.
 --rev: run src/drgan/generate.py as it was at GIT_REV (a self-contained file before drgan.dataset existed),
 copied under WORK_DIR/rev_GIT_REV with a link to conf/, so one command gives the "before" of a change.
+--render: instead, `python -m drgan.render material=M out=WORK_DIR/NAME/M seed=0` at 32 px, spp 4 for both scenes
+(tio2_sem: secondary electrons, tio2_tsem: transmission); params.json#timeless is params.json without
+"render_seconds". Run it once before and once after a change, from checkouts of each.
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ from PIL import Image
 
 SIZE = 24
 GENERATE = ["n=3", "n_background=2", "seed=0", "min_contrast=0", "progress=false"]
+RENDER_MATERIALS = ("tio2_sem", "tio2_tsem")
+RENDER = ["seed=0", "renderer.resolution=32", "renderer.spp=4"]
 
 
 def make_images(folder: Path, n: int = 3, size: int = 96) -> None:
@@ -118,6 +123,11 @@ def checksums(out: Path) -> dict[str, str]:
             manifest.pop("throughput", None)
             timeless = json.dumps(manifest, sort_keys=True).encode()
             sums[f"{path.relative_to(out)}#timeless"] = hashlib.sha256(timeless).hexdigest()
+        if path.name == "params.json":
+            record = json.loads(data)
+            record.pop("render_seconds", None)
+            timeless = json.dumps(record, sort_keys=True).encode()
+            sums[f"{path.relative_to(out)}#timeless"] = hashlib.sha256(timeless).hexdigest()
     return sums
 
 
@@ -127,9 +137,19 @@ def main() -> None:
     parser.add_argument("--out", default="gen")
     parser.add_argument("--shards", action="store_true", help="two shards, then merge=true")
     parser.add_argument("--rev", help="run generate.py of this git revision")
+    parser.add_argument("--render", action="store_true", help="drgan.render of both scenes instead of generate")
     args = parser.parse_args()
     work = args.work.resolve()
     env = {**os.environ, "OMP_NUM_THREADS": "1", "DRGAN_RENDER_THREADS": "1", "HYDRA_FULL_ERROR": "1"}
+    if args.render:
+        out = work / args.out
+        if out.exists():
+            sys.exit(f"{out} exists: pick another --out")
+        for material in RENDER_MATERIALS:
+            run([sys.executable, "-m", "drgan.render", f"material={material}", f"out={out / material}", *RENDER], env)
+        for name, digest in checksums(out).items():
+            print(f"{digest}  {name}")
+        return
     ckpt = train(work, env)
     out = work / args.out
     if out.exists():

@@ -47,7 +47,7 @@ def render_components(overrides: list[str], n: int) -> dict[str, np.ndarray]:
         with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf" / "gan"), version_base="1.3"):
             cfg = compose("train", ["experiment=tio2_sem", *overrides, *lights])
         scene = build_scene(cfg, base_dir=ROOT)
-        bsdf = torch.tensor([DEFAULTS[f"{p.surface}.{p.name}"] for p in scene.learned_bsdf])
+        bsdf = torch.tensor([DEFAULTS[f"{p.surface}.{p.name}"] for p in scene.learned])
         images, labels = [], []
         for i, phi in enumerate(sample_phi(cfg, n, seed=7)):
             scene.set_layout(phi)

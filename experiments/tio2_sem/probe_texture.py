@@ -42,7 +42,7 @@ real, bgs = ps.train, ps.background
 ex = InceptionFeatures(batch_size=16)
 rs = FeatureStats.from_features(ex.features(real))
 scene = build_scene(cfg, base_dir=ROOT)
-bsdf = torch.tensor([vals[f"{p.surface}.{p.name}"] for p in scene.learned_bsdf])
+bsdf = torch.tensor([vals[f"{p.surface}.{p.name}"] for p in scene.learned])
 rng = np.random.default_rng(3)
 t = time.perf_counter()
 clean, labels = [], []

@@ -12,17 +12,23 @@ for drgan.segment but a config group for drgan.train):
 - ``drgan/conf/common/``: the groups both use (paths, logger), put in Hydra's ConfigStore by `register_configs`, so
   that every root finds them whatever search path a user gives (``hydra.searchpath=[...]`` replaces the list).
 
-Groups whose values the code reads as typed settings have a schema here (`SCHEMAS`), registered with Hydra's
-ConfigStore as ``drgan_schema/<group>`` (a group name no entry point's setting uses) and named first in the group's
-defaults list (``- /drgan_schema/renderer@_here_``): a value of the wrong type (``renderer.spp=abc``, or
-``spp: many`` in a material's file) or a key the schema lacks (``sppp: 4`` in a config file) fails when the config
-is composed, naming the key, before anything is built. The schemas hold types only (every field MISSING): the
-defaults stay in the group's YAML, the value checks in the objects built from it
-(`drgan.scene.scene.RenderSettings`, `drgan.models.gan_module.GANTraining`).
+Groups whose values the code reads as typed settings have a schema, registered with Hydra's ConfigStore as
+``drgan_schema/<group>`` (a group name no entry point's setting uses) and named first in the group's defaults list
+(``- /drgan_schema/renderer@_here_``; a material file: ``- /drgan_schema/material@material`` and its imaging mode's
+``- /drgan_schema/imaging/secondary@material.imaging``): a value of the wrong type (``renderer.spp=abc``,
+``n_particles: many`` in a material's file) or a key the schema lacks (``sppp: 4``, ``n_particles_mn: 8``) fails
+when the config is composed, naming the key, before anything is built. The renderer and model schemas hold types
+only (every field MISSING; the defaults are the group's YAML, the value checks in the objects built from it:
+`drgan.scene.scene.RenderSettings`, `drgan.models.gan_module.GANTraining`); the material's are the typed material
+itself (`drgan.scene.config.Material`, defaults and checks included).
+
+Nothing is registered on import: `setup` does it (schemas, shared groups, resolvers), called by `compose` and by
+every entry point before Hydra composes.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,20 +89,45 @@ class ModelSchema:
     discriminator: DiscriminatorSchema = MISSING
 
 
-SCHEMAS = {"renderer": RendererSchema, "model": ModelSchema}
+def schemas() -> dict[str, type]:
+    """The typed groups: ConfigStore name under ``drgan_schema/`` -> dataclass."""
+    from drgan.scene import config
+
+    return {
+        "renderer": RendererSchema,
+        "model": ModelSchema,
+        "material": config.Material,
+        "imaging/secondary": config.SecondaryImaging,
+        "imaging/transmission": config.TransmissionImaging,
+    }
 
 
-def register_configs() -> None:
-    """Put `SCHEMAS` and the shared groups of ``conf/common/`` in Hydra's ConfigStore (idempotent); drgan's import
-    does it, before any entry point composes."""
+def setup() -> None:
+    """Register drgan's config resolvers, the schemas (`schemas`) and the shared groups of ``conf/common/`` with
+    Hydra's ConfigStore (idempotent): what composing any of drgan's configs needs."""
     from hydra.core.config_store import ConfigStore
     from omegaconf import OmegaConf
 
+    from drgan.resolvers import register_resolvers
+
+    # The configs put ./drgan_conf (users' own materials, e.g. from `python -m drgan.profile`) on Hydra's search
+    # path; Hydra warns on every run in a folder that has none, which is the usual case and nothing to act on.
+    warnings.filterwarnings("ignore", message=r"provider=hydra\.searchpath in main, path=drgan_conf is not available")
+    register_resolvers()
     store = ConfigStore.instance()
-    for group, schema in SCHEMAS.items():
-        store.store(group="drgan_schema", name=group, node=schema)
+    for name, schema in schemas().items():
+        group, _, leaf = f"drgan_schema/{name}".rpartition("/")
+        store.store(group=group, name=leaf, node=schema)
     for path in sorted((CONF_DIR / "common").glob("*/*.yaml")):
         store.store(group=path.parent.name, name=path.stem, node=OmegaConf.load(path))
+
+
+def register_imaging_schema(name: str, schema: type) -> None:
+    """Make ``- /drgan_schema/imaging/NAME@material.imaging`` available to material files: the compose-time check of
+    a scene class's imaging keys (`drgan.scene.protocol.register_scene` registers the class itself)."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(group="drgan_schema/imaging", name=name, node=schema)
 
 
 ROOTS = ("gan", "segmentation")
@@ -130,7 +161,7 @@ def compose(overrides: Sequence[str] = (), config_name: str = "render"):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    import drgan  # noqa: F401  (registers the config resolvers)
+    setup()
 
     if isinstance(overrides, str):
         raise ConfigError(f"overrides={overrides!r}: expected a list of strings such as ['renderer.spp=16']")

@@ -57,4 +57,7 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    from drgan.configs import setup
+
+    setup()
     main()

@@ -1,5 +1,5 @@
-"""The config resolvers of drgan's YAML files, registered when drgan is imported (drgan/__init__.py): every CLI,
-test and script that composes a config has them without importing anything else."""
+"""The config resolvers of drgan's YAML files, registered by `drgan.configs.setup` (every entry point and
+`drgan.configs.compose` calls it): ``${mul:a,b}`` and ``${mlflow_uri:default}``."""
 
 from __future__ import annotations
 
@@ -7,14 +7,25 @@ import os
 
 from omegaconf import OmegaConf
 
-# `${mul:a,b}` lets size configs scale the material's typical particle size (e.g. std = 0.25 x size).
-if not OmegaConf.has_resolver("mul"):
-    OmegaConf.register_new_resolver("mul", lambda a, b: float(a) * float(b))
+_USER_TRACKING_URI: list[str | None] = []  # MLFLOW_TRACKING_URI as it was at the first `register_resolvers`
 
-# `${mlflow_uri:default}`: the user's MLFLOW_TRACKING_URI as it was when drgan was imported, else default.
-# Read once because mlflow.set_tracking_uri (which Lightning's MLFlowLogger calls) overwrites the variable
-# for the rest of the process: a second run in the same process (tests, in-process sweeps) would otherwise
-# log into the first run's store.
-_USER_TRACKING_URI = os.environ.get("MLFLOW_TRACKING_URI") or None
-if not OmegaConf.has_resolver("mlflow_uri"):
-    OmegaConf.register_new_resolver("mlflow_uri", lambda default: _USER_TRACKING_URI or default)
+
+def user_tracking_uri() -> str | None:
+    """The user's MLFLOW_TRACKING_URI as it was when the resolvers were registered. Read once, because
+    mlflow.set_tracking_uri (which Lightning's MLFlowLogger calls) overwrites the variable for the rest of the
+    process: a second run in the same process (tests, in-process sweeps) would otherwise log into the first run's
+    store."""
+    if not _USER_TRACKING_URI:
+        _USER_TRACKING_URI.append(os.environ.get("MLFLOW_TRACKING_URI") or None)
+    return _USER_TRACKING_URI[0]
+
+
+def register_resolvers() -> None:
+    """Register drgan's resolvers with OmegaConf (idempotent)."""
+    user_tracking_uri()
+    # `${mul:a,b}` lets size configs scale the material's typical particle size (e.g. std = 0.25 x size).
+    if not OmegaConf.has_resolver("mul"):
+        OmegaConf.register_new_resolver("mul", lambda a, b: float(a) * float(b))
+    # `${mlflow_uri:default}`: the user's MLFLOW_TRACKING_URI, else default.
+    if not OmegaConf.has_resolver("mlflow_uri"):
+        OmegaConf.register_new_resolver("mlflow_uri", lambda default: user_tracking_uri() or default)

@@ -65,7 +65,10 @@ def train(cfg: DictConfig) -> dict:
         )
     datamodule = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
     datamodule.resolve_ids()
-    datamodule.check_fits(cfg.material)  # polarity and particle size against the material: seconds, before mining
+    from drgan.scene.config import typed_material
+
+    # polarity and particle size against the material: seconds, before mining
+    datamodule.check_fits(typed_material(cfg.material))
     model = GANModule.from_config(
         cfg, base_dir=cfg.paths.root_dir
     )  # phi bank: after mining, when m is the number of patches
@@ -158,4 +161,7 @@ def main(cfg: DictConfig):
 
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    from drgan.configs import setup
+
+    setup()
     main()

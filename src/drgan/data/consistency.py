@@ -9,13 +9,13 @@ transmission images, or a 40 px material on 200 px particles, runs for hours and
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from drgan.data.patches import SegmentParams, particle_diameters
-from drgan.data.polarity import check_polarity
 from drgan.errors import ConfigError
+from drgan.scene.config import Material
 
 log = logging.getLogger(__name__)
 
@@ -31,32 +31,31 @@ def data_particle_size(
     return float(np.median(diameters)) if diameters.size else None
 
 
-def check_material_fits_data(material: Mapping, polarity: str, size_px: float | None, data_dir) -> dict:
+def check_material_fits_data(material: Material, polarity: str, size_px: float | None, data_dir) -> dict:
     """Refuse (ConfigError) a material whose polarity or particle size contradicts the data; return the comparison.
 
     ``material.particle_size_px`` is a particle's largest extent, ``size_px`` the data's median equivalent
     diameter (~0.9 x the largest extent for the TiO2 particles); SIZE_FACTOR leaves room for both that and the
     classical segmentation's error (on the TiO2 train images it gives 21.5 px SEM, 29.3 px TSEM; masks: 26.5)."""
-    name = material.get("name", "?")
-    expected = check_polarity(material.get("polarity", "bright"), "material.polarity")
+    name, expected = material.name, material.polarity
     report = {
         "material": name,
         "material_polarity": expected,
         "data_polarity": polarity,
-        "material_particle_size_px": material.get("particle_size_px"),
+        "material_particle_size_px": material.particle_size_px,
         "data_particle_size_px": size_px,
     }
     override = "data.check_material=false runs it anyway"
     if polarity != expected:
         raise ConfigError(
-            f"material={name} is made for {expected} particles ({material.get('made_for', 'its images')}), but the "
+            f"material={name} is made for {expected} particles ({material.made_for or 'its images'}), but the "
             f"particles in data.dir={data_dir} are {polarity}er than their background. Choose a material for {polarity} "
             f"particles (e.g. material=tio2_tsem for transmission images), or profile your images to get one: python -m "
             f"drgan.profile data.dir={data_dir} name=my_particles. If the detection is wrong, set data.polarity; "
             f"{override}"
         )
-    size = material.get("particle_size_px")
-    if size_px is not None and size:
+    size = material.particle_size_px
+    if size_px is not None:
         ratio = size_px / float(size)
         report["size_ratio"] = ratio
         if not 1.0 / SIZE_FACTOR <= ratio <= SIZE_FACTOR:

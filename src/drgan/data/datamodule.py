@@ -31,6 +31,7 @@ from drgan.data.patches import (
 from drgan.data.polarity import check_polarity, detect_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_with
+from drgan.scene.config import Material
 
 log = logging.getLogger(__name__)
 
@@ -257,7 +258,7 @@ class RealPatchDataModule(LightningDataModule):
             )
         return self.polarity
 
-    def check_fits(self, material: Mapping) -> dict | None:
+    def check_fits(self, material: Material) -> dict | None:
         """Refuse a material whose polarity or particle size contradicts these images (`drgan.data.consistency`),
         looking at a few training images (seconds, before mining); None when data.check_material is false."""
         from drgan.data.consistency import N_IMAGES, check_material_fits_data, data_particle_size

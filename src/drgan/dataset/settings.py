@@ -15,6 +15,7 @@ from drgan.data.polarity import check_polarity
 from drgan.dataset.shards import Shard
 from drgan.dataset.source import checkpoint_config, effective_renderer, generator_checkpoint
 from drgan.errors import ConfigError
+from drgan.scene.config import typed_material
 
 FIXED_SETTINGS = (
     "ckpt",
@@ -65,16 +66,17 @@ def settings_from(cfg: DictConfig) -> dict:
 
     ckpt_file, run_dir = generator_checkpoint(cfg.ckpt)
     saved = checkpoint_config(ckpt_file)
-    material = str(saved["material"].get("name"))
+    typed = typed_material(saved["material"])
+    material = typed.name
     wanted = OmegaConf.select(cfg, "material.name")
     if wanted is not None and str(wanted) != material:
         raise ConfigError(f"checkpoint {ckpt_file} was trained for material {material}, not {wanted}")
     contour_px = cfg.get("contour_px")
-    contour_px = saved["material"].get("contour_px", 1) if contour_px is None else contour_px
+    contour_px = typed.contour_px if contour_px is None else contour_px
     if isinstance(contour_px, bool) or int(contour_px) != contour_px or contour_px < 0:
         raise ConfigError(f"contour_px={contour_px!r}: expected an integer >= 0")
     renderer = effective_renderer(saved.get("renderer"), cfg.get("renderer"))
-    polarity = cfg.get("polarity") or saved["material"].get("polarity", "bright")
+    polarity = cfg.get("polarity") or typed.polarity
     check_polarity(polarity, "polarity" if cfg.get("polarity") else "the checkpoint's material.polarity")
     backgrounds = background_source(cfg.get("backgrounds"), run_dir)
     if n_background and backgrounds is None:
@@ -82,9 +84,7 @@ def settings_from(cfg: DictConfig) -> dict:
             f"n_background={n_background}: the checkpoint has no run folder with patches/; "
             "give backgrounds=PATCHSET_FOLDER or n_background=0"
         )
-    from drgan.models.build import textured
-
-    if textured(saved["material"]) and backgrounds is None:
+    if typed.background_texture.enabled and backgrounds is None:
         raise ConfigError(
             f"checkpoint {ckpt_file} was trained with material.background_texture, which takes its texture from real "
             "background patches, and it has no run folder with patches/; give backgrounds=PATCHSET_FOLDER"

@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from drgan.errors import ConfigError
 from drgan.models import build
+from drgan.scene.config import typed_material
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +207,7 @@ class GANModule(LightningModule):
             discriminator,
             build.layout_sampler(cfg),
             training,
-            texture_highpass_px=build.texture_highpass_px(cfg.material),
+            texture_highpass_px=typed_material(cfg.material).texture_highpass_px,
             m=m,
             seed=seed,
             config={"cfg": plain, "base_dir": None if base_dir is None else str(base_dir)},

@@ -17,7 +17,8 @@ from torch import nn
 
 from drgan.errors import ConfigError
 from drgan.models.regressor import ParameterRegressor
-from drgan.scene.scene import MeshParticles, gaussian_kernel
+from drgan.scene.protocol import Scene
+from drgan.scene.scene import gaussian_kernel
 
 
 def clamp_straight_through(x: torch.Tensor) -> torch.Tensor:
@@ -124,14 +125,18 @@ class Sample:
 
 
 class Generator(nn.Module):
-    """FCN + scene + noise. ``forward(phi)`` maps (B, n, 4) constellations to (B, 1, H, W) images."""
+    """FCN + scene + noise. ``forward(phi)`` maps (B, n, 4) constellations to (B, 1, H, W) images.
+
+    ``scene`` is any `drgan.scene.protocol.Scene`; the FCN's widths come from the ``model`` group
+    (conf/gan/model/diffrendergan.yaml)."""
 
     def __init__(
         self,
-        scene: MeshParticles,
-        hidden: int = 128,
-        blocks: int = 4,
-        dropout: float = 0.1,
+        scene: Scene,
+        *,
+        hidden: int,
+        blocks: int,
+        dropout: float,
         seed: int = 0,
         noise_grain_px: float = 0.0,
     ):
@@ -175,7 +180,7 @@ class Generator(nn.Module):
 
     def _split(self, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(k,) -> (BSDF values for the scene, sigma)."""
-        n_bsdf = len(self.scene.learned_bsdf)
+        n_bsdf = len(self.scene.learned)
         sigma = (
             values[n_bsdf] if self.material.noise_sigma.learned else values.new_tensor(self.material.noise_sigma.value)
         )

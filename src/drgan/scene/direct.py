@@ -42,7 +42,7 @@ from __future__ import annotations
 import numpy as np
 
 from drgan import backend
-from drgan.scene.scene import mitsuba_mesh
+from drgan.scene.mitsuba_shapes import mitsuba_mesh
 
 dr = backend.dr
 mi = backend.mi

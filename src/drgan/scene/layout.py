@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, fields
 
 import numpy as np
 
@@ -574,39 +574,32 @@ _PLACEMENT_KINDS: dict[str, type] = {
 
 
 def _from_config(group: str, kinds: dict[str, type], cfg: Mapping) -> object:
-    """The object a ``group`` config names: ``_target_`` (a class of ``kinds``, by its import path) or, in
-    configs and checkpoints written before the groups named their classes, ``kind`` (its short name)."""
+    """The object a ``group`` config names: ``_target_``, the import path of one of ``kinds`` (an allow-list: a
+    config, e.g. one saved in a checkpoint, names no other code to run), plus the dataclass's fields."""
+    from hydra.utils import instantiate
+
     if not isinstance(cfg, Mapping):
         raise ConfigError(f"{group} config must be a mapping with a '_target_' key, got {type(cfg).__name__}")
     values = dict(cfg)
-    kind, target = values.pop("kind", None), values.pop("_target_", None)
-    paths = {f"{cls.__module__}.{cls.__qualname__}": name for name, cls in kinds.items()}
-    if target is not None:
-        if target not in paths:
-            raise ConfigError(f"{group}._target_ must be one of {sorted(paths)}, got {target!r}")
-        if kind is not None and kind != paths[target]:
-            raise ConfigError(
-                f"{group}: _target_={target} and kind={kind!r} name different classes; keep one (_target_)"
-            )
-        kind = paths[target]
-    if kind not in kinds:
-        raise ConfigError(f"{group}.kind must be one of {sorted(kinds)}, got {kind!r} (or set {group}._target_)")
-    cls = kinds[kind]
-    valid = [field.name for field in fields(cls)]
-    check_keys(f"{group} kind {kind!r}", values, valid, "field")
-    try:
-        return cls(**values)
-    except TypeError as error:  # a required field is missing
-        raise ConfigError(f"{group} kind {kind!r}: {error}; fields are {valid}") from None
+    target = values.pop("_target_", None)
+    paths = {f"{cls.__module__}.{cls.__qualname__}": cls for cls in kinds.values()}
+    if target not in paths:
+        raise ConfigError(f"{group}._target_ must be one of {sorted(paths)}, got {target!r}")
+    valid = [field.name for field in fields(paths[target])]
+    check_keys(f"{group} ({target})", values, valid, "field")
+    missing = [field.name for field in fields(paths[target]) if field.name not in values and field.default is MISSING]
+    if missing:
+        raise ConfigError(f"{group} ({target}): missing field(s) {missing}; fields are {valid}")
+    return instantiate({"_target_": target, **values})
 
 
 def size_from_config(cfg: Mapping) -> SizeDistribution:
-    """Size distribution from a mapping: _target_ (NormalSize | LognormalSize | BimodalSize here; or kind normal |
-    lognormal | bimodal) plus the dataclass fields."""
+    """Size distribution from a mapping: _target_ (NormalSize | LognormalSize | BimodalSize here) plus the
+    dataclass fields."""
     return _from_config("size", _SIZE_KINDS, cfg)  # type: ignore[return-value]
 
 
 def placement_from_config(cfg: Mapping) -> Placement:
-    """Placement from a mapping: _target_ (Random2D | Random3D | PoissonAgglomerates here; or kind random_2d |
-    random_3d | poisson) plus the dataclass fields."""
+    """Placement from a mapping: _target_ (Random2D | Random3D | PoissonAgglomerates here) plus the dataclass
+    fields."""
     return _from_config("placement", _PLACEMENT_KINDS, cfg)  # type: ignore[return-value]

@@ -10,7 +10,8 @@ compiled kernels (no Python scalar is baked into them), and a ray's primitive in
 hit, which gives exact, occlusion-correct instance labels (`instance_labels`).
 
 `MeshParticles` holds what every drgan scene shares (merged mesh, layouts, camera, labels); `ParticleScene`
-adds the secondary-electron picture below, drgan.scene.transmission.TransmissionScene the transmission one.
+adds the secondary-electron picture below, drgan.scene.transmission.TransmissionScene the transmission one. Both
+implement `drgan.scene.protocol.Scene`.
 
 Only BSDF parameters get gradients. Uniform scaling and translation keep vertex normals' directions, and
 Mitsuba recomputes them from the new positions anyway.
@@ -27,8 +28,11 @@ import torch
 import trimesh
 
 from drgan import backend
-from drgan.errors import ConfigError, check_spp  # noqa: F401  (check_spp: imported from here too)
-from drgan.scene.parameters import MaterialParameters, Parameter
+from drgan.errors import ConfigError, check_spp
+from drgan.scene import direct
+from drgan.scene.config import Material, SecondaryImaging, TopLight, TorusLight, register_scene
+from drgan.scene.mitsuba_shapes import mitsuba_mesh, rectangle_mesh
+from drgan.scene.parameters import MaterialParameters, Parameter, noise_parameter
 
 dr = backend.dr
 mi = backend.mi
@@ -38,51 +42,7 @@ mi = backend.mi
 # (`ParticleScene._bsdf_sampled_shapes`)
 INTEGRATORS = ("prb_basic", "direct_projective", "prb", "direct_light", "direct_light_mis")
 DIRECT_INTEGRATORS = ("direct_light", "direct_light_mis")
-LIGHT_SHAPES = ("band", "torus")
 GRAD_SEEDS = ("independent", "same")  # renderer.grad_seed: see RenderSettings and `adjoint_seed`
-
-
-@dataclass(frozen=True)
-class TorusLight:
-    """Ring-shaped area light around the stage (SEM/HIM detectors collect electrons from the side)."""
-
-    radiance: float = 1.0
-    # Ring at 45 degrees elevation seen from the view centre. Chosen so the real TiO2 SEM background
-    # (mean grey 0.13) lies mid-range of the paper's stage limits (base colour ~0.25 of 0.01-0.4); the
-    # first geometry tried (ring of 1.5 at height 0.5) lit the stage so weakly that training pushed the
-    # stage colour, particle colour, roughness and sheen all to their upper limits within two epochs.
-    major_radius: float = 1.0  # x view_width
-    minor_radius: float = 0.3  # x view_width
-    height: float = 1.0  # centre above the stage, x view_width
-    # Emitting surface: "band", a conical strip of width 2 x minor_radius facing the view centre, or
-    # "torus", the paper's tube. Same ring of directions; the band wastes no light samples on surface
-    # that faces away, so an integrator that samples lights (prb) renders the particles with less Monte
-    # Carlo noise: 0.060 vs 0.086 for the torus at spp 16 (see `torus_light_mesh`).
-    shape: str = "band"
-    segments: int = 128  # around the ring
-
-    def __post_init__(self):
-        if self.shape not in LIGHT_SHAPES:
-            raise ConfigError(f"torus_light.shape={self.shape!r}: expected one of {', '.join(LIGHT_SHAPES)}")
-        for name in ("radiance", "major_radius", "minor_radius", "height"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ConfigError(f"torus_light.{name}={value!r}: expected a finite number >= 0")
-        if self.minor_radius >= self.major_radius:
-            raise ConfigError(
-                f"torus_light.minor_radius={self.minor_radius} must be < major_radius={self.major_radius}"
-            )
-        if int(self.segments) < 8:
-            raise ConfigError(f"torus_light.segments={self.segments}: expected >= 8")
-
-
-@dataclass(frozen=True)
-class TopLight:
-    """Rectangle area light above the camera, facing down."""
-
-    radiance: float = 0.1
-    size: float = 1.0  # half side, x camera height
-    height: float = 1.1  # x camera height
 
 
 @dataclass(frozen=True)
@@ -228,34 +188,6 @@ def torus_light_mesh(light: TorusLight, view_width: float) -> trimesh.Trimesh:
     return ring
 
 
-def mitsuba_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, props=None, normals: bool = True):
-    """A Mitsuba mesh of ``vertices`` (n x 3) and ``faces`` (m x 3), with ``props`` (a BSDF, an emitter)."""
-    mesh = mi.Mesh(name, len(vertices), len(faces), props=props or mi.Properties(), has_vertex_normals=normals)
-    buffers = mi.traverse(mesh)
-    buffers["vertex_positions"] = mi.Float(np.ascontiguousarray(vertices, dtype=np.float32).ravel())
-    buffers["faces"] = mi.UInt32(np.ascontiguousarray(faces, dtype=np.uint32).ravel())
-    buffers.update()
-    return mesh
-
-
-def rectangle_mesh(name: str, to_world, props=None):
-    """Mitsuba's ``rectangle`` ([-1, 1]^2 in its local xy plane, facing local +z, placed by ``to_world``) as two
-    triangles.
-
-    The same surface (rays hit it at the same t with the same normal). Mitsuba 3.9's ``rectangle`` is itself two
-    triangles to Embree but keeps its own code for surface interactions and sampling, so the render kernel's calls
-    over shapes run two implementations; as plain meshes every shape of drgan's scenes runs one. Measured: a render
-    of the TiO2 SEM scene at spp 16 costs ~10 % less CPU time (primal and adjoint; ``benchmarks/render_parts.py``,
-    experiments/benchmarks/train_step.md). The image's expectation is unchanged; an emitter on it samples its points
-    through the triangles (uniform over the area, as the rectangle), so the same seed places them elsewhere. No
-    UVs: the BSDFs on these surfaces are untextured.
-    """
-    corners = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
-    matrix = np.array(to_world.matrix, dtype=np.float64)
-    vertices = corners @ matrix[:3, :3].T + matrix[:3, 3]
-    return mitsuba_mesh(name, vertices, np.array([[0, 1, 2], [0, 2, 3]]), props, normals=False)
-
-
 def _principled(parameters: Sequence[Parameter]) -> dict:
     """A Principled BSDF with fixed values set and learned ones at their mid-range (overwritten per render)."""
     bsdf = {"type": "principled"}
@@ -294,10 +226,30 @@ class MeshParticles:
     the straight-down camera, and the exact instance labels traced through it.
 
     ``meshes`` are unit meshes (largest extent 1, centred); particle k uses ``meshes[k % len(meshes)]``.
-    A subclass gives the rest of its Mitsuba scene (`_scene_dict`, which must hold ``self.particles`` under
-    the key "particles"), the scene parameters a render changes (`_render_keys`) and, optionally, the
-    particles' BSDF (`_particle_bsdf`); `_layout_changed` drops whatever it caches per layout.
+    A subclass is a `drgan.scene.protocol.Scene`: it gives its ``Config`` (the material.imaging dataclass),
+    `spec_from_config` (its spec from a material), `render` and `learned`, the rest of its Mitsuba scene
+    (`_scene_dict`, which must hold ``self.particles`` under the key "particles"), the scene parameters a render
+    changes (`_render_keys`) and, optionally, the particles' BSDF (`_particle_bsdf`); `_layout_changed` drops
+    whatever it caches per layout.
     """
+
+    Config: type
+
+    @classmethod
+    def from_config(cls, material: Material, render: RenderSettings, meshes: Sequence[trimesh.Trimesh], variant="auto"):
+        """The scene of a typed material (`drgan.scene.config.typed_material`) with render settings ``render``."""
+        return cls(meshes, material.n_particles, cls.spec_from_config(material, render), variant)
+
+    @classmethod
+    def spec_from_config(cls, material: Material, render: RenderSettings):
+        raise NotImplementedError
+
+    @property
+    def learned(self) -> tuple[Parameter, ...]:
+        raise NotImplementedError
+
+    def render(self, values: torch.Tensor, seed: int, spp: int | None = None) -> torch.Tensor:
+        raise NotImplementedError
 
     def __init__(self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec, variant: str = "auto"):
         if n_particles < 1:
@@ -416,6 +368,7 @@ class MeshParticles:
             return np.asarray(labels, dtype=np.int32).reshape(size, size)
 
 
+@register_scene
 class ParticleScene(MeshParticles):
     """A Mitsuba scene of n particles, re-posed per layout and rendered differentiably from torch.
 
@@ -423,6 +376,20 @@ class ParticleScene(MeshParticles):
     rendered by a Mitsuba integrator. ``meshes`` are unit meshes (largest extent 1, centred); particle k
     uses ``meshes[k % len(meshes)]``.
     """
+
+    Config = SecondaryImaging
+
+    @classmethod
+    def spec_from_config(cls, material: Material, render: RenderSettings) -> SceneSpec:
+        imaging: SecondaryImaging = material.imaging
+        return SceneSpec(
+            parameters=MaterialParameters(imaging.scene_parameters(), noise_parameter(material.noise_sigma)),
+            render=render,
+            view_width=float(material.view_width),
+            stage=imaging.stage,
+            torus_light=imaging.torus_light,
+            top_light=imaging.top_light,
+        )
 
     def __init__(self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: SceneSpec, variant: str = "auto"):
         self._learned = spec.parameters.learned_bsdf
@@ -442,8 +409,6 @@ class ParticleScene(MeshParticles):
             # Only BSDF parameters are differentiated: no silhouette (projective) samples are needed.
             return {"type": "direct_projective", "sppp": 0, "sppi": 0}
         if r.integrator in DIRECT_INTEGRATORS:
-            from drgan.scene import direct
-
             shapes = "*" if r.integrator == "direct_light_mis" else self._bsdf_sampled_shapes()
             return {"type": direct.register(), "max_depth": r.max_depth, "bsdf_sampling": shapes}
         return {"type": r.integrator, "max_depth": r.max_depth}
@@ -502,7 +467,8 @@ class ParticleScene(MeshParticles):
 
     # -- state ----------------------------------------------------------------------------------
     @property
-    def learned_bsdf(self) -> tuple[Parameter, ...]:
+    def learned(self) -> tuple[Parameter, ...]:
+        """The learned BSDF parameters: the stage's, then the particles' (the material's order)."""
         return self._learned
 
     # -- rendering ------------------------------------------------------------------------------
@@ -521,7 +487,7 @@ class ParticleScene(MeshParticles):
     def render(
         self, values: torch.Tensor, seed: int, spp: int | None = None, grad_spp: int | None = None
     ) -> torch.Tensor:
-        """Render the current layout; ``values`` holds the learned BSDF parameters in ``learned_bsdf`` order.
+        """Render the current layout; ``values`` holds the learned BSDF parameters in ``learned`` order.
 
         Returns linear radiance (H x W, float32; not clamped), differentiable w.r.t. ``values``.
         ``seed`` must change between calls, or every step reuses one sample pattern.

@@ -24,9 +24,12 @@ import numpy as np
 import torch
 import trimesh
 
-from drgan.errors import ConfigError, MeshError
-from drgan.scene.parameters import TRANSMISSION_PARAMETERS, MaterialParameters, Parameter
-from drgan.scene.scene import MeshParticles, RenderSettings, check_spp, dr, mi, reconstruction_blur
+from drgan.errors import ConfigError, MeshError, check_spp
+from drgan.scene.config import Material, TransmissionImaging, register_scene
+from drgan.scene.parameters import MaterialParameters, Parameter, noise_parameter
+from drgan.scene.scene import MeshParticles, RenderSettings, dr, mi, reconstruction_blur
+
+PARAMETERS = ("background", "absorption", "floor")  # the scene's values, in the FCN's output order
 
 
 @dataclass(frozen=True)
@@ -43,10 +46,10 @@ class TransmissionSpec:
             raise ConfigError(f"view_width={self.view_width}: expected > 0 (pixels of the real image)")
         names = tuple(p.name for p in self.parameters.bsdf)
         others = sorted(p.key for p in self.parameters.bsdf if p.surface != "transmission")
-        if others or names != TRANSMISSION_PARAMETERS:
+        if others or names != PARAMETERS:
             raise ConfigError(
-                f"transmission scene: expected the parameters {', '.join(TRANSMISSION_PARAMETERS)} "
-                f"(material.transmission), got {', '.join(p.key for p in self.parameters.bsdf) or 'none'}"
+                f"transmission scene: expected the parameters {', '.join(PARAMETERS)} "
+                f"(material.imaging), got {', '.join(p.key for p in self.parameters.bsdf) or 'none'}"
             )
 
 
@@ -71,9 +74,18 @@ def outward(mesh: trimesh.Trimesh, index: int) -> trimesh.Trimesh:
     return mesh
 
 
+@register_scene
 class TransmissionScene(MeshParticles):
-    """n particle meshes seen in transmission; the interface of `ParticleScene` (set_layout, render,
-    instance_labels, learned_bsdf: the learned ones of background, absorption, floor, in that order)."""
+    """n particle meshes seen in transmission (`drgan.scene.protocol.Scene`; ``learned``: the learned ones of
+    background, absorption, floor, in that order)."""
+
+    Config = TransmissionImaging
+
+    @classmethod
+    def spec_from_config(cls, material: Material, render: RenderSettings) -> TransmissionSpec:
+        imaging: TransmissionImaging = material.imaging
+        parameters = MaterialParameters(imaging.scene_parameters(), noise_parameter(material.noise_sigma))
+        return TransmissionSpec(parameters=parameters, render=render, view_width=float(material.view_width))
 
     def __init__(
         self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: TransmissionSpec, variant: str = "auto"
@@ -93,7 +105,7 @@ class TransmissionScene(MeshParticles):
         self._thickness, self._covered = {}, {}
 
     @property
-    def learned_bsdf(self) -> tuple[Parameter, ...]:
+    def learned(self) -> tuple[Parameter, ...]:
         return self._learned
 
     # -- path lengths ---------------------------------------------------------------------------
@@ -165,16 +177,14 @@ class TransmissionScene(MeshParticles):
         learned = iter(values)
         return {p.name: next(learned) if p.learned else values.new_tensor(p.value) for p in self.spec.parameters.bsdf}
 
-    def render(
-        self, values: torch.Tensor, seed: int, spp: int | None = None, grad_spp: int | None = None
-    ) -> torch.Tensor:
+    def render(self, values: torch.Tensor, seed: int, spp: int | None = None) -> torch.Tensor:
         """The image of the current layout: (H, W), float32 (float64 when ``values`` is), differentiable w.r.t.
-        ``values`` (the learned ones of background, absorption, floor, in ``learned_bsdf`` order).
+        ``values`` (the learned ones of background, absorption, floor, in ``learned`` order).
 
-        ``seed`` and ``grad_spp`` are accepted for the interface of `ParticleScene` and change nothing: the
-        sub-pixel rays are the strata centres, and autograd gives the exact gradient.
+        No Monte Carlo sampling: the sub-pixel rays are the strata centres and autograd gives the exact gradient,
+        so ``seed`` (`drgan.scene.protocol.Scene`) changes nothing.
         """
-        del seed, grad_spp
+        del seed
         values = torch.as_tensor(values)
         dtype = torch.float64 if values.dtype == torch.float64 else torch.float32
         values = values.to(dtype)

@@ -1,0 +1,209 @@
+"""The seams of drgan's scenes and materials: a typed material checked at compose time, a scene registry that a
+new imaging mode joins without touching drgan, and a package whose import changes nothing and has no cycles."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import textwrap
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+from conftest import compose
+from omegaconf import MISSING
+from test_train import SIZE, run_train, tiny_overrides
+
+from drgan.errors import ConfigError
+from drgan.scene.config import ImagingConfig, ParameterRange, register_scene, typed_material
+from drgan.scene.parameters import parse_parameter
+from drgan.scene.scene import MeshParticles, reconstruction_blur
+
+
+# -- a toy imaging mode, defined here only ------------------------------------------------------------------
+@dataclass
+class SilhouetteImaging(ImagingConfig):
+    """Flat silhouettes: every particle pixel one grey, every other pixel another."""
+
+    _target_: str = f"{__name__}.SilhouetteScene"
+    background: ParameterRange = MISSING
+    particle: ParameterRange = MISSING
+
+    def scene_parameters(self):
+        return tuple(
+            parse_parameter("silhouette", name, getattr(self, name), f"material.imaging.{name}")
+            for name in ("background", "particle")
+        )
+
+
+@dataclass(frozen=True)
+class SilhouetteSpec:
+    parameters: object
+    render: object
+    view_width: float
+
+
+@register_scene
+class SilhouetteScene(MeshParticles):
+    Config = SilhouetteImaging
+
+    @classmethod
+    def spec_from_config(cls, material, render):
+        return SilhouetteSpec(material.imaging.material_parameters(material.noise_sigma), render, material.view_width)
+
+    def _scene_dict(self) -> dict:
+        return {"type": "scene", "sensor": self._sensor_dict(), "particles": self.particles}
+
+    @property
+    def learned(self):
+        return self.spec.parameters.learned_bsdf
+
+    def render(self, values, seed, spp=None):
+        del seed, spp  # no sampling: the silhouette is the label image
+        given = iter(values)
+        grey = {p.name: next(given) if p.learned else values.new_tensor(p.value) for p in self.spec.parameters.bsdf}
+        inside = torch.from_numpy(self.instance_labels() > 0).to(values.dtype)
+        image = grey["background"] + (grey["particle"] - grey["background"]) * inside
+        return reconstruction_blur(image, self.spec.render.filter_stddev)
+
+
+TOY_MATERIAL = f"""\
+# @package _global_
+defaults:
+  - /drgan_schema/material@material
+material:
+  name: silhouettes
+  polarity: bright
+  n_particles: 3
+  particle_size_px: 8
+  view_width: 96
+  meshes: {{kind: sphere, count: 1}}
+  noise_sigma: {{min: 0.001, max: 0.05}}
+  imaging:
+    _target_: {__name__}.SilhouetteScene
+    background: {{min: 0.0, max: 0.4}}
+    particle: {{min: 0.5, max: 1.0}}
+"""
+
+
+def write_material(root, name: str, text: str) -> None:
+    folder = root / "drgan_conf" / "material"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"{name}.yaml").write_text(textwrap.dedent(text))
+
+
+def test_a_new_imaging_mode_is_a_scene_class_and_a_material(tmp_path, monkeypatch):
+    """The toy mode above, registered here, renders through drgan's generator: background and particle greys come
+    from the FCN within the material's limits, labels are exact, and the gradient reaches the FCN."""
+    from drgan.models import build
+
+    write_material(tmp_path, "silhouettes", TOY_MATERIAL)
+    monkeypatch.chdir(tmp_path)
+    cfg = compose(["material=silhouettes", "renderer.resolution=24", "renderer.spp=1"], config_name="render")
+    generator = build.build_generator(cfg, seed=0)
+    assert isinstance(generator.scene, SilhouetteScene)
+    assert [p.key for p in generator.learned] == ["silhouette.background", "silhouette.particle", "noise.sigma"]
+    phi = build.sample_phi(cfg, 1, seed=0)[0]
+    sample = generator.sample(phi, seed=3)
+    values = sample.parameters
+    assert 0.0 <= values["silhouette.background"] <= 0.4 and 0.5 <= values["silhouette.particle"] <= 1.0
+    inside, outside = sample.image[sample.labels > 0], sample.image[sample.labels == 0]
+    assert inside.size and outside.size and inside.mean() > outside.mean() + 0.2
+    images, _ = generator.render_batch(torch.as_tensor(phi)[None])
+    images.mean().backward()
+    grads = [p.grad for p in generator.regressor.parameters() if p.grad is not None]
+    assert grads and any(float(g.abs().sum()) > 0 for g in grads)
+
+
+def test_a_new_imaging_mode_trains_a_step(tmp_path, monkeypatch):
+    from test_train import make_images
+
+    images = make_images(tmp_path / "real" / "images")
+    write_material(tmp_path, "silhouettes", TOY_MATERIAL)
+    monkeypatch.chdir(tmp_path)
+    overrides = tiny_overrides(images, tmp_path / "run", "silhouettes", extra=["trainer.fast_dev_run=1"])
+    metrics = run_train([*overrides, f"material.view_width={SIZE}"])
+    assert math.isfinite(metrics["train/g_loss"]) and math.isfinite(metrics["train/d_loss"])
+
+
+def test_a_misspelt_or_mistyped_material_key_fails_at_compose_naming_it(tmp_path, monkeypatch):
+    from hydra.errors import ConfigCompositionException
+
+    for name, body, key in (
+        ("misspelt", "n_particles_mn: 8", "n_particles_mn"),
+        ("mistyped", "n_particles: many", "n_particles"),
+        ("misspelt_light", "imaging:\n    torus_lihgt: {radiance: 2.0}", "torus_lihgt"),
+        ("mistyped_limit", "imaging:\n    particle_bsdf:\n      sheen: {min: low, max: 1.0}", "min"),
+    ):
+        write_material(
+            tmp_path, name, f"# @package _global_\ndefaults:\n  - tio2_sem\nmaterial:\n  name: {name}\n  {body}\n"
+        )
+        monkeypatch.chdir(tmp_path)
+        with pytest.raises(ConfigCompositionException) as error:
+            compose([f"material={name}"], config_name="train")
+        assert key in str(error.value.__cause__ or error.value), (name, str(error.value))
+
+
+def test_a_saved_material_is_checked_too_and_names_only_registered_scenes():
+    from omegaconf import OmegaConf
+
+    saved = OmegaConf.to_container(compose(["material=tio2_sem"]).material, resolve=True)  # as a checkpoint holds it
+    assert typed_material(saved).imaging.stage_bsdf["base_color"].max == 0.4
+    with pytest.raises(ConfigError, match=r"material\.imaging\._target_='os\.system': not a registered scene class"):
+        typed_material({**saved, "imaging": {"_target_": "os.system"}})
+    with pytest.raises(ConfigError, match=r"material\.n_particles_mn"):
+        typed_material({**saved, "n_particles_mn": 3})
+    with pytest.raises(ConfigError, match=r"material\.polarity='grey'"):
+        typed_material({**saved, "polarity": "grey"})
+    with pytest.raises(ConfigError, match=r"material\.imaging\.background: .*missing"):
+        typed_material({**saved, "imaging": {"_target_": SilhouetteImaging._target_}})
+
+
+def test_a_scene_class_without_its_config_is_not_registered():
+    class NoConfig(MeshParticles):
+        pass
+
+    with pytest.raises(ConfigError, match="expected a Config dataclass"):
+        register_scene(NoConfig)
+
+    class WrongTarget(SilhouetteScene):
+        Config = SilhouetteImaging  # its _target_ names SilhouetteScene, not WrongTarget
+
+    with pytest.raises(ConfigError, match="defaults to"):
+        register_scene(WrongTarget)
+
+
+# -- the package's imports -------------------------------------------------------------------------------
+def test_importing_drgan_changes_no_global_state():
+    """No Hydra, OmegaConf resolver or Mitsuba on import: a label helper imports numpy and scipy, not a config
+    system."""
+    code = (
+        "import sys, drgan, drgan.scene.labels, drgan.errors\n"
+        "heavy = sorted(m for m in ('hydra', 'mitsuba', 'drjit', 'lightning', 'torch') if m in sys.modules)\n"
+        "from omegaconf import OmegaConf\n"
+        "print(heavy, OmegaConf.has_resolver('mul'))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "[] False", out
+
+
+def test_no_two_modules_import_each_other():
+    """No import cycle in drgan (grimp, import-linter's graph: imports inside functions count too)."""
+    import grimp
+
+    graph = grimp.build_graph("drgan")
+    cycles = []
+    for module in sorted(graph.modules):
+        for imported in graph.find_modules_directly_imported_by(module):
+            if imported != module and graph.chain_exists(importer=imported, imported=module):
+                cycles.append((module, imported))
+    assert not cycles, cycles
+
+
+def test_the_scene_protocol_is_what_both_scenes_implement(tiny_scene):
+    from drgan.scene.protocol import Scene
+
+    assert isinstance(tiny_scene, Scene)
+    assert np.array_equal(tiny_scene.instance_labels(), tiny_scene.instance_labels())
