@@ -157,13 +157,23 @@ def config_root(config_name: str) -> Path:
 
 
 def compose(overrides: Sequence[str] = (), config_name: str = "render"):
-    """The composed config ``config_name`` (e.g. "render", "train", "segment") with Hydra ``overrides`` applied."""
+    """The composed config ``config_name`` (e.g. "render", "train", "segment") with Hydra ``overrides`` applied.
+
+    Works inside a running Hydra app too (an entry point composing a parent material): Hydra's global state is
+    set aside for the call and restored after it."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.initialize import get_gh_backup, restore_gh_from_backup
 
     setup()
-
     if isinstance(overrides, str):
         raise ConfigError(f"overrides={overrides!r}: expected a list of strings such as ['renderer.spp=16']")
-    with initialize_config_dir(version_base="1.3", config_dir=str(config_root(config_name))):
-        return hydra_compose(config_name=config_name, overrides=list(overrides))
+    running = get_gh_backup() if GlobalHydra.instance().is_initialized() else None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(version_base="1.3", config_dir=str(config_root(config_name))):
+            return hydra_compose(config_name=config_name, overrides=list(overrides))
+    finally:
+        if running is not None:
+            restore_gh_from_backup(running)

@@ -10,7 +10,6 @@ a material inheriting the closest paper material, ready for `python -m drgan.tra
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -234,100 +233,120 @@ def choose_parent(polarity: str, kind: str, median_px: float) -> tuple[str, str]
     return parent, f"bright, irregular: the TiO2 material of the nearest size ({PAPER_SIZES[parent]:.0f} px)"
 
 
-def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
-    """(parent name, the text of drgan_conf/material/NAME.yaml), every value commented measured or inherited."""
-    name, polarity = result["name"], result["polarity"]["value"]
+def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict, dict, dict]:
+    """(parent, why, material, size, notes): what the profile measured, as the keys of a material inheriting the
+    closest paper material (`choose_parent`), the size group's parameters for a bimodal fit (else {}), and per key
+    why it was set."""
+    polarity = result["polarity"]["value"]
     sizes, counts = result["sizes"], result["particles_per_patch"]
     kind = result["shape"]["mesh_kind"]
     parent, why = choose_parent(polarity, kind, sizes["median_diameter_px"])
     by_kind = {f.kind: f for f in fits}
     if chosen.kind == "normal":
         size_px, spread = chosen.params["mean"], chosen.params["std"] / chosen.params["mean"]
-        spread_note = "measured: std / mean of the normal fit"
+        spread_note = "std / mean of the normal fit"
     else:
         lognormal = by_kind["lognormal"].params
         size_px, spread = lognormal["median"], lognormal["sigma"]
-        spread_note = "measured: sigma of log(diameter), lognormal fit"
+        spread_note = "sigma of log(diameter), lognormal fit"
     # A material's sizes are largest extents (a mesh's scale); the profile measures equivalent diameters of
     # projected areas: ~0.9 x the largest extent for the TiO2 particles (tio2_sem: masks 26.5 px, extent 30 px).
     size_px *= EXTENT_PER_DIAMETER
     kept = counts["with_3_or_more"] if counts["with_3_or_more"]["windows"] else counts
     n_max = max(1, int(math.ceil(kept["p90"])))
     n_min = max(1, min(n_max, int(math.floor(kept["p10"]))))
-    agg = result["agglomeration"]
-    placement = agg["placement"]
-    data = result["data"]
     pol_note = "detected" if result["polarity"]["setting"] == "auto" else "set on the command line"
-    lines = [
-        "# @package _global_",
-        f"# Written by `python -m drgan.profile` from {data['images']} image(s) of {data['dir']}",
-        f"# (report: {result['out']}/report.md).",
-        f"# Parent: {parent} ({why}).",
-        "# Everything not set here (BSDF / transmission limits, lights, spp, filter, noise_sigma limits, view_width)",
-        "# comes from the parent material, unmeasured.",
-        "defaults:",
-        f"  - {parent}",
-        f"  - override /size: {chosen.kind}        # measured: lowest BIC of normal / lognormal / bimodal",
-        f"  - override /placement: {placement}   # measured: touching fraction "
-        f"{agg['touching_fraction']:.2f}, Clark-Evans {agg['clark_evans_median']}",
-        "",
-        "material:",
-        f"  name: {name}",
-        f"  polarity: {polarity}           # {pol_note}",
-        f"  particle_size_px: {size_px:.1f}   # measured: median equivalent diameter of segmented particles x "
-        f"{EXTENT_PER_DIAMETER}",
-        "                           # (a material's size is a particle's largest extent, ~1.1x its equivalent diameter)",
-        f"  size_spread: {spread:.3f}       # {spread_note}",
-        f"  n_particles: {n_max}           # measured: p90 of particles per {counts['patch_size']} px patch over the "
-        "patches with >= 3",
-        f"                           # (those training keeps; mean over all patches {counts['mean']:.1f})",
-        f"  n_particles_min: {n_min}       # measured: p10 (same patches); a constellation draws min..n_particles",
-        "  meshes:",
-        f"    kind: {kind}            # measured: median major/minor axis ratio "
-        f"{result['shape']['axis_ratio_median']:.2f}",
-    ]
-    if parent == "tio2_tsem":
-        lines.append(
-            f"  noise_grain_px: {result['background']['grain_px']:.2f}   # measured: lag-1 autocorrelation "
-            f"{result['background']['lag1_autocorrelation']:.3f} of the background's high-pass residual"
+    material = {
+        "name": result["name"],
+        "polarity": polarity,
+        "particle_size_px": round(float(size_px), 1),
+        "size_spread": round(float(spread), 3),
+        "n_particles": n_max,
+        "n_particles_min": n_min,
+        "meshes": {"kind": kind},
+    }
+    notes = {
+        "polarity": pol_note,
+        "particle_size_px": f"median equivalent diameter of the segmented particles x {EXTENT_PER_DIAMETER} (a "
+        "material's size is a particle's largest extent)",
+        "size_spread": spread_note,
+        "n_particles": f"p90 of particles per {counts['patch_size']} px patch over the patches with >= 3 (those "
+        f"training keeps; mean over all patches {counts['mean']:.1f})",
+        "n_particles_min": "p10 over the same patches; a constellation draws n_particles_min..n_particles",
+        "meshes.kind": f"median major/minor axis ratio {result['shape']['axis_ratio_median']:.2f}",
+    }
+    background = result["background"]
+    if parent_renders_without_sampling_noise(parent):
+        # Such a render has no Monte Carlo grain: the image's noise is the detector's, which the background shows,
+        # so it bounds the learned noise (tio2_tsem: 0.018 measured; wider limits start far too grainy).
+        material["noise_grain_px"] = round(float(background["grain_px"]), 2)
+        material["noise_sigma"] = {
+            "min": 0.001,
+            "max": round(max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * background["noise_sigma"]), 4),
+        }
+        notes["noise_grain_px"] = (
+            f"lag-1 autocorrelation {background['lag1_autocorrelation']:.3f} of the background's high-pass residual"
         )
-        # A transmission render has no Monte Carlo noise: the image's noise is the detector's, which the background
-        # shows. Limits around it (tio2_tsem: 0.018 measured; 0.001-0.2 made the first epoch far too grainy).
-        high = max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * result["background"]["noise_sigma"])
-        lines.append(
-            f"  noise_sigma: {{min: 0.001, max: {high:.4f}}}   # measured: {NOISE_LIMIT_FACTOR} x the "
-            "background's noise sigma"
-        )
-    lines.append(
-        f"  # measured, for reference: background grey {result['background']['background_grey']:.3f}, noise "
-        f"sigma {result['background']['noise_sigma']:.4f} (the parent's noise_sigma limits are kept)"
-    )
+        notes["noise_sigma.max"] = f"{NOISE_LIMIT_FACTOR} x the background's noise sigma"
+    size = {}
     if chosen.kind == "bimodal":
         p = chosen.params
         m1, s1 = (EXTENT_PER_DIAMETER * v for v in est.lognormal_to_normal(p["median1"], p["sigma1"]))
         m2, s2 = (EXTENT_PER_DIAMETER * v for v in est.lognormal_to_normal(p["median2"], p["sigma2"]))
-        lines += [
-            "",
-            f"size:                      # measured: the two lognormal components as normals (mean, std), px, x "
-            f"{EXTENT_PER_DIAMETER}",
-            f"  mean1: {m1:.2f}",
-            f"  std1: {s1:.2f}",
-            f"  mean2: {m2:.2f}",
-            f"  std2: {s2:.2f}",
-            f"  weight1: {p['weight1']:.3f}",
-        ]
-    lines += [
-        "",
-        "data:",
-        f"  dir: {json.dumps(data['dir'])}",
-        f"  crop_rows: {json.dumps(data['crop_rows'])}   # as profiled"
-        if data["crop_rows"] != "auto"
-        else "  crop_rows: auto   # as profiled: the info bar found in each image",
-        f"  split: {json.dumps(data['split'])}   # as profiled (null: every image trains)",
-        f"  polarity: {polarity}           # {pol_note}",
-        "",
+        size = {
+            k: round(float(v), 3)
+            for k, v in zip(("mean1", "std1", "mean2", "std2", "weight1"), (m1, s1, m2, s2, p["weight1"]))
+        }
+        notes["size"] = f"the two lognormal components as normals (mean, std, px) x {EXTENT_PER_DIAMETER}"
+    return parent, why, material, size, notes
+
+
+def parent_renders_without_sampling_noise(parent: str) -> bool:
+    """Whether the parent material's scene renders without Monte Carlo grain (its imaging config says so)."""
+    from drgan.configs import compose
+    from drgan.scene.config import typed_material
+
+    return typed_material(compose([f"material={parent}"], config_name="render").material).imaging.noiseless
+
+
+def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
+    """(parent name, the text of drgan_conf/material/NAME.yaml): the measured keys, checked against the typed
+    material (`drgan.scene.config.typed_material`, merged over the parent) and dumped, with why each was set."""
+    from drgan.configs import compose
+    from drgan.scene.config import typed_material
+
+    parent, why, material, size, notes = material_settings(result, fits, chosen)
+    inherited = OmegaConf.to_container(compose([f"material={parent}"], config_name="render").material, resolve=True)
+    typed_material(OmegaConf.merge(inherited, material))  # a value the schema refuses fails here, not in training
+    agg, data = result["agglomeration"], result["data"]
+    notes["size group"] = f"{chosen.kind}: lowest BIC of normal / lognormal / bimodal"
+    notes["placement group"] = (
+        f"{agg['placement']}: touching fraction {agg['touching_fraction']:.2f}, Clark-Evans {agg['clark_evans_median']}"
+    )
+    body = {"material": material}
+    if size:
+        body["size"] = size
+    body["data"] = {
+        "dir": data["dir"],
+        "crop_rows": data["crop_rows"],
+        "split": data["split"],
+        "polarity": material["polarity"],
+    }
+    header = [
+        "# @package _global_",
+        f"# Written by `python -m drgan.profile` from {data['images']} image(s) of {data['dir']}",
+        f"# (report: {result['out']}/report.md).",
+        f"# Parent: {parent} ({why}); everything not set here comes from it, unmeasured.",
+        "# Measured:",
+        *(f"#   {key}: {note}" for key, note in notes.items()),
+        f"#   for reference: background grey {result['background']['background_grey']:.3f}, noise sigma "
+        f"{result['background']['noise_sigma']:.4f}",
+        "defaults:",
+        f"  - {parent}",
+        f"  - override /size: {chosen.kind}",
+        f"  - override /placement: {agg['placement']}",
     ]
-    return parent, "\n".join(lines)
+    return parent, "\n".join(header) + "\n" + OmegaConf.to_yaml(OmegaConf.create(body))
 
 
 # --- report and figures -----------------------------------------------------------------------------------

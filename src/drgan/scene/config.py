@@ -17,7 +17,7 @@ import importlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Dict, Optional  # noqa: UP035  (OmegaConf reads these annotations at run time)
+from typing import Any, ClassVar, Dict, Optional  # noqa: UP035  (OmegaConf reads these annotations at run time)
 
 from omegaconf import MISSING
 
@@ -120,7 +120,11 @@ class TopLight:
 
 
 class ImagingConfig:
-    """What every ``material.imaging`` dataclass gives: its scene's parameters, in the FCN's output order."""
+    """What every ``material.imaging`` dataclass gives: its scene's parameters, in the FCN's output order, and
+    whether its renders are free of Monte Carlo grain (``noiseless``: then all of an image's noise is the
+    detector's, which a real image's background shows, and `drgan.profile` bounds the learned noise by it)."""
+
+    noiseless: ClassVar[bool] = False
 
     def scene_parameters(self) -> tuple[Parameter, ...]:
         raise NotImplementedError
@@ -168,6 +172,7 @@ class TransmissionImaging(ImagingConfig):
     opaque particle (a detector offset; fixed at 0 unless set)."""
 
     _target_: str = "drgan.scene.transmission.TransmissionScene"
+    noiseless: ClassVar[bool] = True  # path lengths through the particles: no sampling
     background: ParameterRange = MISSING
     absorption: ParameterRange = MISSING
     floor: Optional[ParameterRange] = None  # noqa: UP045  (null: fixed at 0, a detector without offset)
