@@ -128,7 +128,7 @@ def segment(cfg: DictConfig) -> dict:
 
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
-    from drgan.segmentation.module import SegmenterModule
+    from drgan.segmentation.registry import build_segmenter
 
     wall_start = time.perf_counter()
     with open_dict(cfg):
@@ -136,13 +136,14 @@ def segment(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     L.seed_everything(int(cfg.seed), workers=True)
 
-    stopper = early_stopping(cfg.get("early_stopping"))  # settings first, then data: nothing is written before
-    # Data first: bad folders, sizes or mask values fail here, before the run folder gets anything.
+    # Settings first (early stopping; the model: an allow-listed class, or a ConfigError naming model._target_),
+    # then data: bad folders, sizes or mask values fail here, before the run folder gets anything.
+    stopper = early_stopping(cfg.get("early_stopping"))
+    model = build_segmenter(cfg.model, "model")
     pairs = load_training_pairs(cfg)
     train_loader, val_loader, n_train, n_val = dataloaders(cfg, pairs)
     out.mkdir(parents=True, exist_ok=True)
 
-    model = SegmenterModule(**{k: v for k, v in cfg.model.items()})
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
     tags = {"name": str(cfg.name), "output_dir": str(out), **{str(t): "1" for t in cfg.get("tags") or []}}
     loggers = instantiate_loggers(cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags)
