@@ -391,14 +391,14 @@ def test_segmentation_clis_take_data_and_model_on_the_command_line(tmp_path):
 
 
 def test_evaluate_takes_one_model_and_a_list(tmp_path):
-    from drgan.evaluate import model_checkpoints
+    from drgan.evaluate import model_sources
 
     cfg = compose(["data=/d", "model=a.ckpt", "models=[b.ckpt,c.ckpt]"], config_name="evaluate")
-    assert model_checkpoints(cfg) == ["a.ckpt", "b.ckpt", "c.ckpt"]
+    assert model_sources(cfg) == ["a.ckpt", "b.ckpt", "c.ckpt"]
     with pytest.raises(ConfigError, match="models='b.ckpt': expected a list"):
-        model_checkpoints(compose(["models=b.ckpt"], config_name="evaluate"))
+        model_sources(compose(["models=b.ckpt"], config_name="evaluate"))
     with pytest.raises(ConfigError, match="give model=CHECKPOINT"):
-        model_checkpoints(compose([], config_name="evaluate"))
+        model_sources(compose([], config_name="evaluate"))
 
 
 # --- analysis ---------------------------------------------------------------------------------------------
