@@ -340,6 +340,8 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     from drgan.segmentation.module import load_segmenter
 
     assert load_segmenter(last).input_normalization == "zscore"  # travels with the checkpoint to inference
+    saved = torch.load(last, map_location="cpu", weights_only=True)["hyper_parameters"]
+    assert saved["_target_"] == "drgan.segmentation.module.SegmenterModule"  # the class, for the registry's loader
     again = segment(compose([*common, "trainer.max_epochs=2", "ckpt_path=last"], config_name="segment"))
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 2 and "train/loss" in again
 

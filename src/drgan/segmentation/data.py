@@ -76,10 +76,11 @@ def read_raw_mask(path: Path, crop_rows=None) -> np.ndarray:
         arr = arr[..., 0]
     if arr.ndim != 2 or not (arr.dtype == bool or np.issubdtype(arr.dtype, np.integer)):
         raise DataError(f"mask {path}: expected a 2-D integer mask, got shape {arr.shape}, dtype {arr.dtype}")
-    return _drop_mask_rows(arr, crop_rows, path)
+    return drop_mask_rows(arr, crop_rows, path)
 
 
-def _drop_mask_rows(arr: np.ndarray, crop_rows, path: Path) -> np.ndarray:
+def drop_mask_rows(arr: np.ndarray, crop_rows, path: Path) -> np.ndarray:
+    """``arr`` without the rows [start, stop) of ``crop_rows`` (None: as it is); ``path`` names the file in errors."""
     if crop_rows is None:
         return arr
     start, stop = (int(v) for v in crop_rows)
@@ -205,7 +206,7 @@ def load_real_items(
             _check_same_size(
                 item.file_shape, raw.shape, image_path, mask_path, cropped=item.image.shape if item.rows else None
             )
-            raw = _drop_mask_rows(raw, item.rows, mask_path)
+            raw = drop_mask_rows(raw, item.rows, mask_path)
         out.append((item, instance_labels(binary_mask(raw, mask_path))))
     return out
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from drgan.data.images import IMAGE_SUFFIXES
 from drgan.errors import DataError
-from drgan.segmentation.data import ImageItem, _drop_mask_rows, read_raw_mask
+from drgan.segmentation.data import ImageItem, drop_mask_rows, read_raw_mask
 
 __all__ = [
     "CLASSES",
@@ -123,7 +123,7 @@ class MaskFolder:
             if item.rows is None or raw.shape != item.file_shape:
                 also = f" (its file, with the info bar: {_size(item.file_shape)})" if item.rows else ""
                 return None, f"{path.name}: size {_size(raw.shape)}, its image {item.id} is {_size(image_shape)}{also}"
-            raw = _drop_mask_rows(raw, item.rows, path)  # predicted on the whole file: the info bar goes
+            raw = drop_mask_rows(raw, item.rows, path)  # predicted on the whole file: the info bar goes
         bad = sorted(set(np.unique(raw).tolist()) - set(CLASSES))
         if bad:
             return None, f"{path.name}: values {bad[:5]} (expected classes 0 background, 1 particle, 2 contour)"

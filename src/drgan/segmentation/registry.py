@@ -93,9 +93,11 @@ def _from_entry_point(target: str) -> type | None:
 
 
 def registered_segmenters() -> list[str]:
-    """The allow-listed names known without loading any entry point: drgan's own and those registered so far."""
+    """The allow-listed names: drgan's own, those registered so far and those installed packages declare as entry
+    points (read from the packages' metadata, not loaded)."""
     _import_builtins()
-    return sorted(_REGISTRY)
+    declared = {point.value.replace(":", ".").strip() for point in entry_points(group=ENTRY_POINT_GROUP)}
+    return sorted(set(_REGISTRY) | declared)
 
 
 def segmenter_class(target: object, where: str, note: str = "") -> type:
@@ -143,9 +145,13 @@ def build_segmenter(node, where: str = "model"):
     except Exception as error:
         raise ConfigError(f"{where}._target_={target}: no such class ({str(error).splitlines()[0]})") from None
     name = target_name(cls)
-    if segmenter_class(name, f"{where}._target_={target}") is not cls:
+    if segmenter_class(name, where, "" if name == target else f" (given as {target})") is not cls:
         raise ConfigError(f"{where}._target_={target}: a different class is registered under {name!r}")
-    model = instantiate(settings, _convert_="all")
+    try:
+        model = instantiate(settings, _convert_="all")
+    except Exception as error:  # Hydra wraps the class's own error (an unknown keyword, a bad value)
+        detail = str(error.__cause__ or error).splitlines()[0]
+        raise ConfigError(f"{where}._target_={target}: cannot be built from {where}'s keywords ({detail})") from None
     hparams = getattr(model, "hparams", None)
     keywords = [k for k in settings if not k.startswith("_")]
     if not isinstance(hparams, Mapping) or any(k not in hparams for k in keywords):
