@@ -59,7 +59,9 @@ def loader_settings(cfg: DictConfig) -> dict:
     }
 
 
-def dataloaders(cfg: DictConfig, pairs):
+def dataloaders(cfg: DictConfig, pairs, normalize: str = "none"):
+    """Train and validation loaders of the pairs; ``normalize``: the segmenter's input normalisation, which its
+    training crops get as its inference will (``input_normalization``)."""
     from torch.utils.data import DataLoader
 
     from drgan.segmentation.data import CropDataset, split_pairs
@@ -71,7 +73,7 @@ def dataloaders(cfg: DictConfig, pairs):
         brightness=ld["brightness"],
         contrast=ld["contrast"],
         seed=ld["seed"],
-        normalize=str(cfg.model.get("normalize", "none")),
+        normalize=normalize,
     )
     train = DataLoader(
         CropDataset(train_pairs, augment=True, samples_per_pair=ld["samples_per_pair"], **kw),
@@ -141,7 +143,9 @@ def segment(cfg: DictConfig) -> dict:
     stopper = early_stopping(cfg.get("early_stopping"))
     model = build_segmenter(cfg.model, "model")
     pairs = load_training_pairs(cfg)
-    train_loader, val_loader, n_train, n_val = dataloaders(cfg, pairs)
+    train_loader, val_loader, n_train, n_val = dataloaders(
+        cfg, pairs, str(getattr(model, "input_normalization", "none"))
+    )
     out.mkdir(parents=True, exist_ok=True)
 
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
