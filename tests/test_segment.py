@@ -340,6 +340,8 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     from drgan.segmentation.module import load_segmenter
 
     assert load_segmenter(last).input_normalization == "zscore"  # travels with the checkpoint to inference
+    saved = torch.load(last, map_location="cpu", weights_only=True)["hyper_parameters"]
+    assert saved["_target_"] == "drgan.segmentation.module.SegmenterModule"  # the class, for the registry's loader
     again = segment(compose([*common, "trainer.max_epochs=2", "ckpt_path=last"], config_name="segment"))
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 2 and "train/loss" in again
 
@@ -391,14 +393,14 @@ def test_segmentation_clis_take_data_and_model_on_the_command_line(tmp_path):
 
 
 def test_evaluate_takes_one_model_and_a_list(tmp_path):
-    from drgan.evaluate import model_checkpoints
+    from drgan.evaluate import model_sources
 
     cfg = compose(["data=/d", "model=a.ckpt", "models=[b.ckpt,c.ckpt]"], config_name="evaluate")
-    assert model_checkpoints(cfg) == ["a.ckpt", "b.ckpt", "c.ckpt"]
+    assert model_sources(cfg) == ["a.ckpt", "b.ckpt", "c.ckpt"]
     with pytest.raises(ConfigError, match="models='b.ckpt': expected a list"):
-        model_checkpoints(compose(["models=b.ckpt"], config_name="evaluate"))
+        model_sources(compose(["models=b.ckpt"], config_name="evaluate"))
     with pytest.raises(ConfigError, match="give model=CHECKPOINT"):
-        model_checkpoints(compose([], config_name="evaluate"))
+        model_sources(compose([], config_name="evaluate"))
 
 
 # --- analysis ---------------------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """`python -m drgan.analyze model=CKPT images=DIR out=DIR [nm_per_px=...] [wires=true]`: particle statistics.
 
-Each image -> sliding-window class map -> particle class (contour separates touching particles) ->
+``model``: a segmenter checkpoint, or a folder of predicted masks named like the images (e.g. nnU-Net's output
+folder; drgan.segmentation.predictors). Each image -> class map (a checkpoint: sliding windows) -> particle class (contour separates touching particles) ->
 4-connected instances. Writes:
 - particles.csv: one row per particle: id, image, area_px, equivalent_diameter_px (diameter of the disk of
   equal area, 2 sqrt(area / pi)), centroid_y/x, bbox (min_row, min_col, max_row, max_col; max exclusive),
@@ -17,7 +18,6 @@ import csv
 import io
 import logging
 import os
-from collections.abc import Callable
 from pathlib import Path
 
 import hydra
@@ -81,9 +81,12 @@ def local_thickness(particle: np.ndarray) -> np.ndarray:
     return 2.0 * radius * particle
 
 
-def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | None = None) -> list[dict]:
-    """Analyse every image of cfg.images; returns the particle rows. predictor: image -> class map (tests)."""
-    from drgan.data.images import list_images, read_grey
+def analyze(cfg: DictConfig, predictor=None) -> list[dict]:
+    """Analyse every image of cfg.images; returns the particle rows.
+    predictor: a Predictor or a function image -> class map, instead of cfg.model (tests)."""
+    from drgan.data.images import list_images
+    from drgan.segmentation.data import read_image_item
+    from drgan.segmentation.predictors import as_predictor, load_predictor
 
     if not cfg.get("images"):
         raise ConfigError("analyze: give images=DIR (a folder of images)")
@@ -93,19 +96,23 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
     paths = list_images(cfg.images)
     if predictor is None:
         if not cfg.get("model"):
-            raise ConfigError("analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment)")
-        from drgan.segmentation.inference import make_predictor
-        from drgan.segmentation.module import load_segmenter
-
-        predictor = make_predictor(load_segmenter(cfg.model), cfg.inference)
+            raise ConfigError(
+                "analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment) or a folder of "
+                "predicted masks named like the images"
+            )
+        predictor = load_predictor(cfg.model, cfg.inference)
+    else:
+        predictor = as_predictor(predictor, "predictor")
     crop = cfg.get("crop_rows")
     crop = crop if crop is None or isinstance(crop, str) else tuple(crop)
-    images = [(p.stem, read_grey(p, crop)) for p in paths]  # all read (and checked) before predicting
+    items = [read_image_item(p, p.stem, crop) for p in paths]  # all read (and checked) before predicting
+    predictor.check(items)
 
     out = Path(cfg.out)
     rows, thickness_values = [], []
-    for image_id, image in images:
-        class_map = np.asarray(predictor(image))
+    for item in items:
+        image_id, image = item.id, item.image
+        class_map = np.asarray(predictor(item))
         labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
         rows += particle_rows(
             image_id, labels, float(nm) if nm else None, int(cfg.min_area_px), bool(cfg.exclude_border)
@@ -130,7 +137,7 @@ def analyze(cfg: DictConfig, predictor: Callable[[np.ndarray], np.ndarray] | Non
             out / "thickness_histogram.png",
             figure_png(lambda plt: _thickness_histogram(plt, values, nm, int(cfg.bins))),
         )
-    log.info("wrote %s: %d particles in %d images", out / "particles.csv", len(rows), len(images))
+    log.info("wrote %s: %d particles in %d images", out / "particles.csv", len(rows), len(items))
     return rows
 
 

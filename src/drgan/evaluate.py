@@ -1,9 +1,12 @@
 """`python -m drgan.evaluate model=A.ckpt data=DATASET out=DIR`: score segmenters on real test images.
 
-Several runs (seeds): ``models=[A.ckpt,B.ckpt,...]``, each scored, then mean +- std over them.
+Several runs (seeds): ``models=[A.ckpt,B.ckpt,...]``, each scored, then mean +- std over them. A run is a
+segmenter checkpoint or a folder of predicted masks, e.g. nnU-Net's output folder (``model=PRED_DIR``: one
+``<id>.png`` per test id, values 0 background, 1 particle, 2 contour); drgan.segmentation.predictors turns either
+into class maps, and a folder is checked against every test image (missing, extra, size, values) first.
 
-Per test image: sliding-window prediction (touching particles split, ``inference.split``, see
-drgan.segmentation.inference) -> particle class only (contour and background are both "not
+Per test image: the run's class map (a checkpoint: sliding-window prediction, touching particles split,
+``inference.split``, see drgan.segmentation.inference) -> particle class only (contour and background are both "not
 particle", so the contour separates touching particles) -> 4-connected components -> scores against the
 4-connected components of the true binary mask (drgan.metrics.segmentation):
 - DSC: Dice of particle pixels;
@@ -19,7 +22,7 @@ count). Over several runs (one checkpoint each): mean +- sample std (ddof = 1) o
 Writes results.csv (one row per run and image, plus per-run "mean" rows), results.md (per-image table as
 mean +- std over runs, and the per-run and overall summary) and overlays/ID.png (first model's prediction:
 true positive instances green, false positives red, missed true instances yellow, over the grey image).
-All inputs (checkpoints, images, masks, split) are read and checked before any prediction.
+All inputs (checkpoints, predicted mask folders, images, masks, split) are read and checked before any prediction.
 """
 
 from __future__ import annotations
@@ -131,55 +134,65 @@ def tables(rows: list[dict], runs: list[str], ids: list[str], inference: str = "
     return buf.getvalue(), "\n".join(md)
 
 
-def model_checkpoints(cfg: DictConfig) -> list[str]:
-    """The segmenters to score: ``model=CKPT`` (one) and ``models=[A,B,...]`` (several runs), in that order."""
+def model_sources(cfg: DictConfig) -> list[str]:
+    """The runs to score: ``model=`` (one) and ``models=[A,B,...]`` (several), in that order; each a segmenter
+    checkpoint or a folder of predicted masks."""
     if isinstance(cfg.get("models"), str):
         raise ConfigError(f"evaluate: models={cfg.models!r}: expected a list, e.g. models=[a.ckpt,b.ckpt]")
     models = [str(m) for m in cfg.get("models") or []]
     if cfg.get("model"):
         models.insert(0, str(cfg.model))
     if not models:
-        raise ConfigError("evaluate: give model=CHECKPOINT or models=[CKPT_A,CKPT_B,...] (one per run)")
+        raise ConfigError(
+            "evaluate: give model=CHECKPOINT (or a folder of predicted masks, one <id>.png per test image) "
+            "or models=[A,B,...] (one per run)"
+        )
     return models
 
 
-def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
-    """Score every model on the test ids; returns {"runs": {run: {score: value}}, "mean": {...}, "std": {...}}.
+def _inference_line(predictors: dict) -> str:
+    """How the class maps were made: one line for all runs when they agree, else one per run."""
+    hows = {run: p.how for run, p in predictors.items() if p.how}
+    distinct = list(dict.fromkeys(hows.values()))
+    if len(distinct) == 1 and len(hows) == len(predictors):
+        return distinct[0]
+    return "; ".join(f"{run}: {how}" for run, how in hows.items())
 
-    predictors: optional {run name: f(image) -> class map} instead of cfg.models (tests)."""
-    from drgan.segmentation.data import REAL_DATASET, check_dataset_folder, load_real, real_ids
+
+def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
+    """Score every run on the test ids; returns {"runs": {run: {score: value}}, "mean": {...}, "std": {...}}.
+
+    predictors: optional {run name: Predictor, or f(image) -> class map} instead of cfg.model(s) (tests)."""
+    from drgan.segmentation.data import REAL_DATASET, check_dataset_folder, load_real_items, real_ids
+    from drgan.segmentation.predictors import as_predictor, load_predictor
 
     if not cfg.get("data"):
         raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")
     data_dir = check_dataset_folder(cfg.data, "data", REAL_DATASET)  # before any checkpoint is read
     if predictors is None:
-        models = model_checkpoints(cfg)
-        from drgan.segmentation.inference import make_predictor
-        from drgan.segmentation.module import load_segmenter
-
-        loaded = [(Path(m), load_segmenter(m)) for m in models]  # every checkpoint checked before work
-        inf = dict(cfg.inference)
-        predictors = {f"run{k}": make_predictor(net, inf) for k, (_, net) in enumerate(loaded)}
-        model_names = {f"run{k}": str(p) for k, (p, _) in enumerate(loaded)}
-        how = ", ".join(f"{k} {v}" for k, v in inf.items())
+        inference = dict(cfg.inference)
+        predictors = {f"run{k}": load_predictor(m, inference) for k, m in enumerate(model_sources(cfg))}
     else:
-        model_names, how = {r: r for r in predictors}, ""
+        predictors = {run: as_predictor(p, run) for run, p in predictors.items()}
     ids = real_ids(data_dir, cfg.get("split"), str(cfg.subset), setting="data")
-    samples = load_real(
+    samples = load_real_items(
         data_dir, ids, cfg.get("crop_rows"), cfg.get("mask_suffix", "auto"), cfg.get("masks", "masks")
     )  # every image/mask read and checked first
+    for predictor in predictors.values():
+        predictor.check([item for item, _ in samples])  # a mask folder: every mask read and compared with its image
 
     out = Path(cfg.out)
     rows = []
     for k, (run, predictor) in enumerate(predictors.items()):
-        for image_id, image, true_labels in samples:
-            class_map = np.asarray(predictor(image))
+        for item, true_labels in samples:
+            image_id, image = item.id, item.image
+            class_map = np.asarray(predictor(item))
             if class_map.shape != image.shape:
                 raise ConfigError(
                     f"evaluate: {run} returned a class map of shape {class_map.shape} for image {image_id} {image.shape}"
                 )
             scores, pred_labels = score_image(class_map, true_labels)
-            rows.append({"run": run, "model": model_names[run], "image": image_id, **scores})
+            rows.append({"run": run, "model": predictor.source, "image": image_id, **scores})
             log.info("%s %s: %s", run, image_id, {s: round(scores[s], 3) for s in SCORES})
             if k == 0 and cfg.get("overlays", True):
                 from PIL import Image
@@ -189,7 +202,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
                     out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG")
                 )
     runs = list(predictors)
-    csv_text, md_text = tables(rows, runs, ids, how)
+    csv_text, md_text = tables(rows, runs, ids, _inference_line(predictors))
     write_bytes(out / "results.csv", csv_text.encode())
     write_bytes(out / "results.md", md_text.encode())
     per_run = {r: {s: float(np.mean([x[s] for x in rows if x["run"] == r])) for s in SCORES} for r in runs}

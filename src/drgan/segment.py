@@ -59,7 +59,9 @@ def loader_settings(cfg: DictConfig) -> dict:
     }
 
 
-def dataloaders(cfg: DictConfig, pairs):
+def dataloaders(cfg: DictConfig, pairs, normalize: str = "none"):
+    """Train and validation loaders of the pairs; ``normalize``: the segmenter's input normalisation, which its
+    training crops get as its inference will (``input_normalization``)."""
     from torch.utils.data import DataLoader
 
     from drgan.segmentation.data import CropDataset, split_pairs
@@ -71,7 +73,7 @@ def dataloaders(cfg: DictConfig, pairs):
         brightness=ld["brightness"],
         contrast=ld["contrast"],
         seed=ld["seed"],
-        normalize=str(cfg.model.get("normalize", "none")),
+        normalize=normalize,
     )
     train = DataLoader(
         CropDataset(train_pairs, augment=True, samples_per_pair=ld["samples_per_pair"], **kw),
@@ -128,7 +130,7 @@ def segment(cfg: DictConfig) -> dict:
 
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
-    from drgan.segmentation.module import SegmenterModule
+    from drgan.segmentation.registry import build_segmenter
 
     wall_start = time.perf_counter()
     with open_dict(cfg):
@@ -136,13 +138,16 @@ def segment(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     L.seed_everything(int(cfg.seed), workers=True)
 
-    stopper = early_stopping(cfg.get("early_stopping"))  # settings first, then data: nothing is written before
-    # Data first: bad folders, sizes or mask values fail here, before the run folder gets anything.
+    # Settings first (early stopping; the model: an allow-listed class, or a ConfigError naming model._target_),
+    # then data: bad folders, sizes or mask values fail here, before the run folder gets anything.
+    stopper = early_stopping(cfg.get("early_stopping"))
+    model = build_segmenter(cfg.model, "model")
     pairs = load_training_pairs(cfg)
-    train_loader, val_loader, n_train, n_val = dataloaders(cfg, pairs)
+    train_loader, val_loader, n_train, n_val = dataloaders(
+        cfg, pairs, str(getattr(model, "input_normalization", "none"))
+    )
     out.mkdir(parents=True, exist_ok=True)
 
-    model = SegmenterModule(**{k: v for k, v in cfg.model.items()})
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
     tags = {"name": str(cfg.name), "output_dir": str(out), **{str(t): "1" for t in cfg.get("tags") or []}}
     loggers = instantiate_loggers(cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags)

@@ -76,10 +76,11 @@ def read_raw_mask(path: Path, crop_rows=None) -> np.ndarray:
         arr = arr[..., 0]
     if arr.ndim != 2 or not (arr.dtype == bool or np.issubdtype(arr.dtype, np.integer)):
         raise DataError(f"mask {path}: expected a 2-D integer mask, got shape {arr.shape}, dtype {arr.dtype}")
-    return _drop_mask_rows(arr, crop_rows, path)
+    return drop_mask_rows(arr, crop_rows, path)
 
 
-def _drop_mask_rows(arr: np.ndarray, crop_rows, path: Path) -> np.ndarray:
+def drop_mask_rows(arr: np.ndarray, crop_rows, path: Path) -> np.ndarray:
+    """``arr`` without the rows [start, stop) of ``crop_rows`` (None: as it is); ``path`` names the file in errors."""
     if crop_rows is None:
         return arr
     start, stop = (int(v) for v in crop_rows)
@@ -157,10 +158,33 @@ def check_dataset_folder(data_dir, setting: str, what: str) -> Path:
 REAL_DATASET = "a real dataset folder with images/, masks/ and split.json"
 
 
-def load_real(
+@dataclass(frozen=True)
+class ImageItem:
+    """An image to segment: its id, its grey values without the info bar, and the rows [start, stop) dropped from
+    the file's image (None: none), so that a class map of the file's full size can lose the same rows."""
+
+    id: str
+    image: np.ndarray  # float32 (H, W) in [0, 1]
+    rows: tuple[int, int] | None = None
+
+    @property
+    def file_shape(self) -> tuple[int, int]:
+        """The image file's (H, W), info bar included."""
+        h, w = self.image.shape
+        return (h + self.rows[1] - self.rows[0], w) if self.rows else (h, w)
+
+
+def read_image_item(path: Path, image_id: str, crop_rows="auto") -> ImageItem:
+    """One image file as an ImageItem; crop_rows as in ``read_grey`` ("auto": the info bar found in this image)."""
+    full = read_grey(path)
+    rows = resolve_crop_rows(crop_rows, full, path)
+    return ImageItem(image_id, read_grey(path, rows) if rows else full, rows)
+
+
+def load_real_items(
     data_dir, ids, crop_rows="auto", mask_suffix: str | None = "auto", masks: str = "masks"
-) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(id, image, instance labels) of real images; every file is read and checked before returning.
+) -> list[tuple[ImageItem, np.ndarray]]:
+    """(image, instance labels) of real images; every file is read and checked before returning.
 
     crop_rows: info-bar rows [start, stop) to drop, "auto" (detected per image, `info_bar_rows`) or None.
     A mask of the image's full size loses the same rows; a mask already the size of the cropped image is
@@ -171,20 +195,29 @@ def load_real(
         raise DataError(f"real dataset {data_dir}: no {masks}/ folder (expected binary masks named like the images)")
     out = []
     for image_path, image_id in zip(list_images(images_dir, ids), ids):
-        full = read_grey(image_path)
-        rows = resolve_crop_rows(crop_rows, full, image_path)
-        image = read_grey(image_path, rows) if rows else full
+        item = read_image_item(image_path, image_id, crop_rows)
         mask_path = real_mask_path(masks_dir, image_id, mask_suffix)
         raw = read_raw_mask(mask_path)
         # The files' own sizes are compared (the image's rows before the crop), so a mask of another size is
         # reported as such and not as a crop_rows range that does not fit it.
-        if rows and raw.shape == image.shape:
+        if item.rows and raw.shape == item.image.shape:
             pass  # published without the info bar already
         else:
-            _check_same_size(full.shape, raw.shape, image_path, mask_path, cropped=image.shape if rows else None)
-            raw = _drop_mask_rows(raw, rows, mask_path)
-        out.append((image_id, image, instance_labels(binary_mask(raw, mask_path))))
+            _check_same_size(
+                item.file_shape, raw.shape, image_path, mask_path, cropped=item.image.shape if item.rows else None
+            )
+            raw = drop_mask_rows(raw, item.rows, mask_path)
+        out.append((item, instance_labels(binary_mask(raw, mask_path))))
     return out
+
+
+def load_real(
+    data_dir, ids, crop_rows="auto", mask_suffix: str | None = "auto", masks: str = "masks"
+) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(id, image, instance labels) of real images: ``load_real_items`` as plain tuples."""
+    return [
+        (item.id, item.image, labels) for item, labels in load_real_items(data_dir, ids, crop_rows, mask_suffix, masks)
+    ]
 
 
 def load_real_pairs(

@@ -1,24 +1,21 @@
 """SegmenterModule: U-Net, loss = soft Dice (mean over classes) + cross-entropy, Adam.
 
 Logged keys: train/loss, train/ce, train/dice_loss, val/loss, val/dsc (particle-class Dice of the argmax
-map, over the whole validation batch). Checkpoints carry `kind: drgan_segmenter` in their hyperparameters,
-which `load_segmenter` checks before use.
+map, over the whole validation batch). Registered as a segmenter (drgan.segmentation.registry), so its checkpoints
+load by the ``_target_`` among their hyperparameters; ``load_segmenter`` is the registry's loader.
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import lightning.pytorch as L
 import torch
 import torch.nn.functional as F
 
-from drgan.checkpoint_io import load_checkpoint
-from drgan.errors import DataError
 from drgan.segmentation.data import check_normalize
+from drgan.segmentation.registry import KIND, load_segmenter, register_segmenter
 from drgan.segmentation.unet import UNet
 
-KIND = "drgan_segmenter"
+__all__ = ["KIND", "SegmenterModule", "load_segmenter", "soft_dice_loss"]
 
 
 def soft_dice_loss(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0) -> torch.Tensor:
@@ -30,6 +27,7 @@ def soft_dice_loss(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0)
     return 1.0 - ((2 * inter + eps) / (total + eps)).mean()
 
 
+@register_segmenter
 class SegmenterModule(L.LightningModule):
     def __init__(
         self,
@@ -79,20 +77,3 @@ class SegmenterModule(L.LightningModule):
 
     def configure_optimizers(self):
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
-
-
-def load_segmenter(path: str | Path) -> SegmenterModule:
-    """A trained segmenter from a Lightning checkpoint, in eval mode on the CPU.
-
-    Refuses (DataError) missing files, files that hold code (``drgan.checkpoint_io``: nothing in them runs),
-    files that are not checkpoints and checkpoints of other models (e.g. a GAN checkpoint from drgan.train)."""
-    expected = "a segmenter checkpoint written by `python -m drgan.segment`"
-    ckpt = load_checkpoint(path, "model", expected=expected, error=DataError)
-    hparams = ckpt.get("hyper_parameters")
-    if not isinstance(hparams, dict) or hparams.get("kind") != KIND:
-        raise DataError(
-            f"model={path}: not a drgan segmenter checkpoint (expected one written by `python -m drgan.segment`)"
-        )
-    model = SegmenterModule(**{k: v for k, v in hparams.items() if not k.startswith("_")})
-    model.load_state_dict(ckpt["state_dict"])
-    return model.eval()

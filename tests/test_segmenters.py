@@ -1,0 +1,318 @@
+"""The segmenter seam: segmenters built from `_target_` configs, checkpoints rebuilt only from the allow-list
+(drgan.segmentation.registry), and one loader from what a user names (a checkpoint, or a folder of predicted masks
+such as nnU-Net's output) to class maps (drgan.segmentation.predictors), used by evaluate and analyze.
+
+Masks are written by hand with numpy and PIL; their scores are counted by hand in the docstrings.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+import sys
+from importlib.metadata import EntryPoint
+from pathlib import Path
+
+import lightning.pytorch as L
+import numpy as np
+import pytest
+import torch
+from conftest import compose
+from PIL import Image
+from test_segment import disc_image, disc_labels, eval_cfg, make_real
+
+from drgan.errors import ConfigError, DataError
+from drgan.segmentation import registry
+from drgan.segmentation.module import SegmenterModule
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+TARGET = "drgan.segmentation.module.SegmenterModule"
+TINY = ["model.depth=2", "model.base=4"]
+
+
+class TinySegmenter(SegmenterModule):
+    """A segmenter class outside drgan, registered by the tests that use it."""
+
+
+class Forgetful(L.LightningModule):
+    """Registered but does not save its hyperparameters: its checkpoints could not be rebuilt."""
+
+    def __init__(self, width: int = 1):
+        super().__init__()
+        self.net = torch.nn.Conv2d(1, 3, width)
+
+
+@pytest.fixture
+def own_registry(monkeypatch):
+    """A copy of the allow-list, so that classes registered by a test leave with it."""
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    return registry
+
+
+def save_checkpoint(path: Path, hparams: dict, state_dict: dict | None = None) -> Path:
+    """What Lightning writes, as far as loading reads it: the weights and the hyperparameters."""
+    torch.save({"state_dict": state_dict or {}, "hyper_parameters": hparams}, path)
+    return path
+
+
+def tiny_model(*extra) -> SegmenterModule:
+    return registry.build_segmenter(compose([*TINY, *extra], config_name="segment").model)
+
+
+# --- segmenters from _target_ configs ------------------------------------------------------------------------
+
+
+def test_segment_config_builds_its_model_with_instantiate():
+    from hydra.utils import instantiate
+
+    cfg = compose([*TINY, "model.normalize=zscore"], config_name="segment")
+    assert cfg.model._target_ == TARGET == registry.target_name(SegmenterModule)
+    assert type(instantiate(cfg.model)) is SegmenterModule  # a plain Hydra _target_ node
+    model = registry.build_segmenter(cfg.model)
+    assert type(model) is SegmenterModule and model.input_normalization == "zscore"
+    assert model.hparams["_target_"] == TARGET and model.hparams["depth"] == 2 and model.hparams["base"] == 4
+    assert TARGET in registry.registered_segmenters()
+
+
+@pytest.mark.parametrize(
+    "target, message",
+    [
+        (
+            "torch.nn.Identity",
+            "model: _target_ 'torch.nn.modules.linear.Identity' is not an allowed segmenter (given as",
+        ),
+        ("no_such_package.Net", "model._target_=no_such_package.Net: no such class"),
+    ],
+)
+def test_segment_refuses_a_target_outside_the_allow_list_before_reading_data(target, message, tmp_path):
+    from drgan.segment import segment
+
+    out = tmp_path / "run"
+    cfg = compose([f"model._target_={target}", f"data={tmp_path}", f"out={out}", "logger=none"], config_name="segment")
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        segment(cfg)
+    assert not out.exists()
+
+
+def test_a_segmenter_is_built_only_when_its_checkpoints_could_be_rebuilt(own_registry):
+    own_registry.register_segmenter(Forgetful)
+    with pytest.raises(ConfigError, match=r"does not record its keywords \['width'\] with self.save_hyperparameters"):
+        registry.build_segmenter({"_target_": "test_segmenters.Forgetful", "width": 1})
+    with pytest.raises(ConfigError, match=rf"model._target_={TARGET}: cannot be built .*colour"):
+        registry.build_segmenter({"_target_": TARGET, "depth": 2, "colour": "red"})
+    with pytest.raises(ConfigError, match="model: no _target_"):
+        registry.build_segmenter({"depth": 2})
+
+
+# --- the allow-list at load time ----------------------------------------------------------------------------
+
+
+def test_checkpoint_round_trip_and_checkpoints_without_target(tmp_path):
+    """A checkpoint's hyperparameters are the model's _target_ node; a checkpoint from before checkpoints named
+    their class (only `kind: drgan_segmenter`) loads as a SegmenterModule."""
+    model = tiny_model("model.normalize=zscore")
+    path = save_checkpoint(tmp_path / "a.ckpt", dict(model.hparams), model.state_dict())
+    loaded = registry.load_segmenter(path)
+    assert type(loaded) is SegmenterModule and not loaded.training and loaded.input_normalization == "zscore"
+    for name, tensor in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], tensor), name
+    legacy = save_checkpoint(
+        tmp_path / "old.ckpt", {k: v for k, v in model.hparams.items() if k != "_target_"}, model.state_dict()
+    )
+    assert type(registry.load_segmenter(legacy)) is SegmenterModule
+    with pytest.raises(DataError, match="cannot be rebuilt from the saved keywords and weights"):
+        registry.load_segmenter(save_checkpoint(tmp_path / "w.ckpt", {**model.hparams, "depth": 3}, model.state_dict()))
+
+
+@pytest.mark.parametrize("target", ["payload_mod.Segmenter", "os.system", "drgan.models.gan_module.GANModule"])
+def test_checkpoint_naming_a_class_outside_the_allow_list_is_refused_before_importing_it(target, tmp_path, monkeypatch):
+    """The module a refused name points to is not imported: importing payload_mod would create the marker."""
+    from drgan.analyze import analyze
+    from drgan.evaluate import evaluate
+
+    marker = tmp_path / "payload_ran"
+    (tmp_path / "payload_mod.py").write_text(
+        f"import pathlib\npathlib.Path({str(marker)!r}).touch()\n\nclass Segmenter:\n    pass\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    gan_loaded = "drgan.models.gan_module" in sys.modules
+    path = save_checkpoint(tmp_path / "x.ckpt", {"_target_": target, "depth": 2, "kind": "drgan_segmenter"})
+    refused = rf"model={path}: _target_ '{target}' is not an allowed segmenter \(refused: nothing the file names"
+    with pytest.raises(ConfigError, match=refused) as caught:
+        registry.load_segmenter(path)
+    assert TARGET in str(caught.value)  # the message lists what is allowed
+    labels = disc_labels(32, seed=3)
+    real = make_real(
+        tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]}
+    )
+    with pytest.raises(ConfigError, match=refused):
+        evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{path}]"]))
+    with pytest.raises(ConfigError, match=refused):
+        analyze(
+            compose([f"model={path}", f"images={real / 'images'}", f"out={tmp_path / 'an'}"], config_name="analyze")
+        )
+    assert not marker.exists() and "payload_mod" not in sys.modules
+    assert ("drgan.models.gan_module" in sys.modules) == gan_loaded
+    assert not (tmp_path / "eval").exists() and not (tmp_path / "an").exists()
+
+
+def test_registered_and_entry_point_segmenters_load(own_registry, tmp_path, monkeypatch):
+    """A class joins the allow-list with @register_segmenter, or as an entry point of an installed package (only the
+    entry point a checkpoint asks for is loaded)."""
+    model = tiny_model()
+    weights = model.state_dict()
+    mine = {**model.hparams, "_target_": registry.target_name(TinySegmenter)}
+    with pytest.raises(ConfigError, match="test_segmenters.TinySegmenter' is not an allowed segmenter"):
+        registry.load_segmenter(save_checkpoint(tmp_path / "mine.ckpt", mine, weights))
+    own_registry.register_segmenter(TinySegmenter)
+    assert type(registry.load_segmenter(tmp_path / "mine.ckpt")) is TinySegmenter
+
+    (tmp_path / "plugin_seg.py").write_text(
+        "from drgan.segmentation.module import SegmenterModule\n\nclass PluginSegmenter(SegmenterModule):\n    pass\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    points = [
+        EntryPoint("other", "never_imported_mod:Net", registry.ENTRY_POINT_GROUP),
+        EntryPoint("plugin", "plugin_seg:PluginSegmenter", registry.ENTRY_POINT_GROUP),
+    ]
+    monkeypatch.setattr(registry, "entry_points", lambda group: [p for p in points if p.group == group])
+    plugin = {**model.hparams, "_target_": "plugin_seg.PluginSegmenter"}
+    loaded = registry.load_segmenter(save_checkpoint(tmp_path / "plugin.ckpt", plugin, weights))
+    assert type(loaded).__name__ == "PluginSegmenter" and "never_imported_mod" not in sys.modules
+    assert "plugin_seg.PluginSegmenter" in registry.registered_segmenters()
+
+
+# --- a folder of predicted masks ----------------------------------------------------------------------------
+
+
+def write_png(path: Path, values: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.asarray(values, np.uint8)).save(path)
+
+
+def bar_dataset(tmp_path: Path) -> Path:
+    """Test images a and b, 20 x 20 px above a 4-row info bar (rows 20-23), masks of the files' full size.
+    a: true squares A (rows 2-5, cols 2-5) and B (rows 12-15, cols 12-15), 16 px each.
+    b: true rectangles D (rows 4-9, cols 4-8) and E (rows 4-9, cols 10-14), 30 px each, column 9 between them."""
+    truth = {k: np.zeros((24, 20), np.uint8) for k in "ab"}
+    truth["a"][2:6, 2:6] = truth["a"][12:16, 12:16] = 255
+    truth["b"][4:10, 4:9] = truth["b"][4:10, 10:15] = 255
+    images = {k: np.where(m > 0, 0.8, 0.2) for k, m in truth.items()}
+    for image in images.values():
+        image[20:] = 0.0
+    return make_real(tmp_path / "real", images, truth, {"train": [], "test": ["a", "b"]})
+
+
+def test_evaluate_scores_a_folder_of_predicted_masks_like_a_checkpoint(tmp_path):
+    """nnU-Net's output layout: <case>.png per test id, classes 0/1/2, its json files beside them.
+
+    a.png (20 x 20, the cropped image's size): A exactly, plus a false square C (rows 2-3, cols 14-15), B missed:
+    particle pixels P = 20, true T = 32, P & T = 16 -> DSC = 32 / 52; TP 1, FP 1, FN 1 -> AP50 = 1 / 3.
+    b.png (20 x 24, the file's size: its bar rows go, as the image's do): D and E as particle, column 9 between them
+    contour (class 2) -> DSC 1, AP50 1. Contour counted as particle would merge D and E into one 66-px instance
+    (IoU 30 / 66 < 0.5 with each): AP50 0."""
+    from drgan.evaluate import SCORES, evaluate
+
+    data = bar_dataset(tmp_path)
+    preds = tmp_path / "nnunet_out"
+    a = np.zeros((20, 20), np.uint8)
+    a[2:6, 2:6] = a[2:4, 14:16] = 1
+    b = np.zeros((24, 20), np.uint8)
+    b[4:10, 4:9] = b[4:10, 10:15] = 1
+    b[4:10, 9] = 2
+    b[20:] = 1  # the info bar: dropped before scoring
+    write_png(preds / "a.png", a)
+    write_png(preds / "b.png", b)
+    for name in ("dataset.json", "plans.json", "predict_from_raw_data_args.json"):
+        (preds / name).write_text("{}")
+
+    truth_a = np.zeros((20, 20), bool)
+    truth_a[2:6, 2:6] = truth_a[12:16, 12:16] = True
+    dsc_a = 2 * ((a == 1) & truth_a).sum() / ((a == 1).sum() + truth_a.sum())  # independent of drgan.metrics
+    assert dsc_a == pytest.approx(32 / 52)
+
+    model = tiny_model()
+    ckpt = save_checkpoint(tmp_path / "net.ckpt", dict(model.hparams), model.state_dict())
+    out = tmp_path / "eval"
+    cfg = eval_cfg(data, out, ["crop_rows=[20,24]", f"models=[{preds},{ckpt}]", "inference.tile=32"])
+    result = evaluate(cfg)
+    folder = result["runs"]["run0"]
+    assert folder["dsc"] == pytest.approx((32 / 52 + 1) / 2) and folder["ap50"] == pytest.approx((1 / 3 + 1) / 2)
+    rows = {(r["run"], r["image"]): r for r in result["rows"]}
+    assert rows["run0", "b"]["ap50"] == pytest.approx(1.0) and rows["run0", "b"]["pq"] == pytest.approx(1.0)
+    assert (rows["run0", "a"]["tp"], rows["run0", "a"]["fp"], rows["run0", "a"]["fn"]) == (1, 1, 1)
+    assert set(result["runs"]["run1"]) == set(SCORES)  # the checkpoint run, in the same tables
+    table = list(csv.DictReader((out / "results.csv").open()))
+    assert [(r["run"], r["model"], r["image"]) for r in table] == [
+        ("run0", str(preds), "a"),
+        ("run0", str(preds), "b"),
+        ("run0", str(preds), "mean"),
+        ("run1", str(ckpt), "a"),
+        ("run1", str(ckpt), "b"),
+        ("run1", str(ckpt), "mean"),
+    ]
+    assert float(table[2]["dsc"]) == pytest.approx((32 / 52 + 1) / 2, abs=1e-6)
+    md = (out / "results.md").read_text()
+    assert f"run0: class maps read from {preds}; run1: tile 32" in md
+    assert (out / "overlays" / "a.png").is_file()
+
+
+def test_a_mask_folder_that_does_not_fit_the_test_images_is_refused_naming_every_file(tmp_path):
+    from drgan.evaluate import evaluate
+
+    images = {k: np.full((16, 16), 0.5) for k in ("a", "b", "d", "e")}
+    masks = {k: np.zeros((16, 16), np.uint8) for k in images}
+    data = make_real(tmp_path / "real", images, masks, {"train": [], "test": sorted(images)})
+    preds = tmp_path / "preds"
+    write_png(preds / "a.png", np.zeros((17, 16)))  # one row too many
+    bad = np.zeros((16, 16), np.uint8)
+    bad[0, :3] = (1, 2, 255)  # 255: a binary 0/255 mask, not classes
+    write_png(preds / "d.png", bad)
+    write_png(preds / "e.png", np.zeros((16, 16)))
+    write_png(preds / "e.tif", np.zeros((16, 16)))
+    write_png(preds / "z.png", np.zeros((16, 16)))  # no test image z
+    out = tmp_path / "eval"
+    with pytest.raises(DataError) as caught:
+        evaluate(eval_cfg(data, out, [f"model={preds}"]))
+    message = str(caught.value)
+    assert message.startswith(f"model={preds}: the predicted masks do not match the 4 image(s)")
+    for line in [
+        "missing: no mask for 1 image(s): b",
+        "extra: 1 mask(s) of no image to score: z.png",
+        "a.png: size 16 x 17 px (W x H), its image a is 16 x 16 px",
+        "d.png: values [255] (expected classes 0 background, 1 particle, 2 contour)",
+        "e: several masks (e.png, e.tif)",
+    ]:
+        assert f"\n  {line}" in message, message
+    assert not out.exists()  # refused before anything was computed or written
+
+    empty = tmp_path / "run_folder"
+    (empty / "checkpoints").mkdir(parents=True)
+    with pytest.raises(DataError, match=r"a folder without predicted masks .*give model=.*last\.ckpt"):
+        evaluate(eval_cfg(data, out, [f"model={empty}"]))
+    with pytest.raises(DataError, match=r"model=.*nowhere: no such file or folder \(expected a segmenter checkpoint"):
+        evaluate(eval_cfg(data, out, [f"model={tmp_path / 'nowhere'}"]))
+
+
+def test_analyze_measures_a_folder_of_predicted_masks(tmp_path):
+    from drgan.analyze import analyze
+
+    labels = disc_labels(48, n=4, seed=2)
+    images, preds = tmp_path / "images", tmp_path / "preds"
+    write_png(images / "img.png", disc_image(labels) * 255)
+    write_png(preds / "img.png", labels > 0)
+    (preds / "dataset.json").write_text(json.dumps({"labels": {"background": 0, "particle": 1}}))
+    cfg = compose(
+        [f"model={preds}", f"images={images}", f"out={tmp_path / 'out'}", "min_area_px=0", "crop_rows=null"],
+        config_name="analyze",
+    )
+    rows = analyze(cfg)
+    from drgan.metrics.segmentation import binarize_and_label
+
+    expected = np.bincount(binarize_and_label((labels > 0).astype(np.int64)).ravel())[1:]
+    assert sorted(r["area_px"] for r in rows) == sorted(expected.tolist())
+    write_png(images / "second.png", disc_image(labels) * 255)
+    with pytest.raises(DataError, match="missing: no mask for 1 image.*: second"):
+        analyze(cfg)
