@@ -110,18 +110,18 @@ def test_a_segmenter_is_built_only_when_its_checkpoints_could_be_rebuilt(own_reg
 
 
 def test_checkpoint_round_trip_and_checkpoints_without_target(tmp_path):
-    """A checkpoint's hyperparameters are the model's _target_ node; a checkpoint from before checkpoints named
-    their class (only `kind: drgan_segmenter`) loads as a SegmenterModule."""
+    """A checkpoint's hyperparameters are the model's _target_ node; a checkpoint that names no class is refused."""
     model = tiny_model("model.normalize=zscore")
     path = save_checkpoint(tmp_path / "a.ckpt", dict(model.hparams), model.state_dict())
     loaded = registry.load_segmenter(path)
     assert type(loaded) is SegmenterModule and not loaded.training and loaded.input_normalization == "zscore"
     for name, tensor in model.state_dict().items():
         assert torch.equal(loaded.state_dict()[name], tensor), name
-    legacy = save_checkpoint(
+    nameless = save_checkpoint(
         tmp_path / "old.ckpt", {k: v for k, v in model.hparams.items() if k != "_target_"}, model.state_dict()
     )
-    assert type(registry.load_segmenter(legacy)) is SegmenterModule
+    with pytest.raises(DataError, match="not a drgan segmenter checkpoint"):
+        registry.load_segmenter(nameless)
     with pytest.raises(DataError, match="cannot be rebuilt from the saved keywords and weights"):
         registry.load_segmenter(save_checkpoint(tmp_path / "w.ckpt", {**model.hparams, "depth": 3}, model.state_dict()))
 
@@ -138,7 +138,7 @@ def test_checkpoint_naming_a_class_outside_the_allow_list_is_refused_before_impo
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     gan_loaded = "drgan.models.gan_module" in sys.modules
-    path = save_checkpoint(tmp_path / "x.ckpt", {"_target_": target, "depth": 2, "kind": "drgan_segmenter"})
+    path = save_checkpoint(tmp_path / "x.ckpt", {"_target_": target, "depth": 2})
     refused = rf"model={path}: _target_ '{target}' is not an allowed segmenter \(refused: nothing the file names"
     with pytest.raises(ConfigError, match=refused) as caught:
         registry.load_segmenter(path)

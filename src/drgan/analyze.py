@@ -181,4 +181,7 @@ def main(cfg: DictConfig):
 
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    from drgan.configs import setup
+
+    setup()
     main()

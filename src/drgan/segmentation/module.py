@@ -12,10 +12,10 @@ import torch
 import torch.nn.functional as F
 
 from drgan.segmentation.data import check_normalize
-from drgan.segmentation.registry import KIND, load_segmenter, register_segmenter
+from drgan.segmentation.registry import load_segmenter, register_segmenter
 from drgan.segmentation.unet import UNet
 
-__all__ = ["KIND", "SegmenterModule", "load_segmenter", "soft_dice_loss"]
+__all__ = ["SegmenterModule", "load_segmenter", "soft_dice_loss"]
 
 
 def soft_dice_loss(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0) -> torch.Tensor:
@@ -37,11 +37,10 @@ class SegmenterModule(L.LightningModule):
         lr: float = 1e-3,
         dice_weight: float = 1.0,
         ce_weight: float = 1.0,
-        kind: str = KIND,
         normalize: str = "none",
     ):
         super().__init__()
-        # "none" by default so that checkpoints written before the setting existed load as they were trained.
+        # "none" by default: the synthetic images' grey levels are the real ones, so no normalisation is needed.
         check_normalize(normalize, "model.normalize")
         self.save_hyperparameters()
         self.net = UNet(1, n_classes, depth, base)

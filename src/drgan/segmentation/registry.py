@@ -46,9 +46,6 @@ __all__ = [
 ENTRY_POINT_GROUP = "drgan.segmenters"
 # Modules whose import registers drgan's own segmenters; a lookup imports them (constant names, never a file's).
 BUILTIN_MODULES = ("drgan.segmentation.module",)
-# Checkpoints of `python -m drgan.segment` written before they named their class carry only this hyperparameter.
-KIND = "drgan_segmenter"
-LEGACY_TARGET = "drgan.segmentation.module.SegmenterModule"
 EXPECTED = "a segmenter checkpoint written by `python -m drgan.segment`"
 
 _REGISTRY: dict[str, type] = {}
@@ -179,8 +176,6 @@ def load_segmenter(path: str | Path, setting: str = "model"):
     checkpoint = load_checkpoint(path, setting, expected=EXPECTED, error=DataError)
     hparams = checkpoint.get("hyper_parameters")
     target = hparams.get("_target_") if isinstance(hparams, dict) else None
-    if target is None and isinstance(hparams, dict) and hparams.get("kind") == KIND:
-        target = LEGACY_TARGET
     if target is None:
         raise DataError(f"{setting}={path}: not a drgan segmenter checkpoint (expected {EXPECTED})")
     cls = segmenter_class(target, f"{setting}={path}", " (refused: nothing the file names was imported or built)")
