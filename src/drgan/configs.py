@@ -89,12 +89,25 @@ class ModelSchema:
     discriminator: DiscriminatorSchema = MISSING
 
 
+def renderer_overrides_schema() -> type:
+    """``renderer`` of drgan.generate: every key of `RendererSchema`, optional, default None (= the checkpoint's)."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(RendererSchema)
+    fields = [
+        (f.name, Optional[hints[f.name]], dataclasses.field(default=None)) for f in dataclasses.fields(RendererSchema)
+    ]  # noqa: UP045
+    return dataclasses.make_dataclass("RendererOverrides", fields, bases=(RendererSchema,))
+
+
 def schemas() -> dict[str, type]:
     """The typed groups: ConfigStore name under ``drgan_schema/`` -> dataclass."""
     from drgan.scene import config
 
     return {
         "renderer": RendererSchema,
+        "renderer_overrides": renderer_overrides_schema(),
         "model": ModelSchema,
         "material": config.Material,
         "imaging/secondary": config.SecondaryImaging,
