@@ -25,8 +25,7 @@ from omegaconf import DictConfig, open_dict
 
 from drgan.errors import ConfigError
 from drgan.io import write_json
-from drgan.runtime import (  # noqa: F401  (resolve_checkpoint, MLFLOW_RUN_ID_FILE: imported from here by older code)
-    MLFLOW_RUN_ID_FILE,
+from drgan.runtime import (
     flat_config,
     instantiate_callbacks,
     instantiate_loggers,
