@@ -367,8 +367,8 @@ def test_lr_decay_factor_and_bad_settings():
 
 def test_optimisers_are_named_by_the_config_and_checked_before_training(tmp_path):
     """model.optimizer_g/_d: `_target_` + `_partial_`, built when training starts; any torch.optim class, no other
-    code; bad keywords fail when the module is built. Configs without them (old checkpoints) mean Adam."""
-    from drgan.models.gan_module import GANModule, GANTraining
+    code; bad keywords fail when the module is built."""
+    from drgan.models.gan_module import GANModule
 
     base = tiny_overrides(tmp_path / "none", tmp_path / "run")
     module = GANModule.from_config(compose([*base, "model.lr_g=3e-5"], config_name="train"), m=2)
@@ -393,8 +393,6 @@ def test_optimisers_are_named_by_the_config_and_checked_before_training(tmp_path
     ):
         with pytest.raises(ConfigError, match=message):
             GANModule.from_config(compose([*base, *bad], config_name="train"), m=2)
-    old = GANTraining.from_config({"lr_g": 1e-5, "lr_d": 2e-5, "betas": [0.4, 0.9]})  # a config saved before
-    assert (old.lr_g, old.lr_d, old.optimizer_g.keywords["betas"]) == (1e-5, 2e-5, (0.4, 0.9))
 
 
 def test_module_takes_built_parts_and_rebuilds_from_its_saved_config(tmp_path):
