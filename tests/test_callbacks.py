@@ -10,6 +10,7 @@ import pytest
 from test_train import images, make_images, run_train, tiny_overrides  # noqa: F401  (fixtures)
 
 from drgan.callbacks import RandomProjectionFeatures, parameter_spread, select_best
+from drgan.callbacks.best_epoch import within_brightness
 from drgan.errors import ConfigError
 
 
@@ -124,12 +125,16 @@ def test_select_best_treats_nearly_equal_spreads_as_a_tie():
 
 
 def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
-    # Epoch 0 has the lowest FID but is 4.6x too dark (the grazing-ring generator); epoch 3 is too bright.
+    # Epoch 0 has the lowest FID but is 4.6x too dark; epoch 3 is too bright.
+    def entry(epoch, fid, spread, level):
+        tones = {"particle_brightness": level, "background_brightness": level, "contrast": 2.0}
+        return {"epoch": epoch, "fid": fid, "spread": spread, "brightness": level, **tones}
+
     history = [
-        {"epoch": 0, "fid": 200.0, "spread": 0.3, "brightness": 0.22},
-        {"epoch": 1, "fid": 290.0, "spread": 0.1, "brightness": 0.9},
-        {"epoch": 2, "fid": 300.0, "spread": 0.2, "brightness": 1.1},
-        {"epoch": 3, "fid": 250.0, "spread": 0.5, "brightness": 2.5},
+        entry(0, 200.0, 0.3, 0.22),
+        entry(1, 290.0, 0.1, 0.9),
+        entry(2, 300.0, 0.2, 1.1),
+        entry(3, 250.0, 0.5, 2.5),
     ]
     assert select_best(history, top_k=5, fid_margin=None)[0]["epoch"] == 3  # no range, no margin: broadest of all
     best, table = select_best(history, top_k=5, brightness_range=(0.5, 2.0))
@@ -138,6 +143,8 @@ def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
     # None inside the range: all compete rather than nothing being chosen; unknown brightness competes.
     assert select_best(history[:1], top_k=5, brightness_range=(0.5, 2.0))[0]["epoch"] == 0
     assert select_best([{"epoch": 0, "fid": 1.0, "spread": 0.1}], 5, (0.5, 2.0))[0]["epoch"] == 0
+    # the particles far too dark on a background of the right grey: out as well
+    assert not within_brightness({**entry(4, 1.0, 0.1, 1.0), "particle_brightness": 0.3}, (0.5, 2.0))
 
 
 @pytest.mark.parametrize("bad", [[2.0, 0.5], [0.0, 1.0], [1.0]])
