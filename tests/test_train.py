@@ -245,7 +245,9 @@ def test_every_material_trains_a_step(material, images, tmp_path):
     assert metrics["train/skipped_steps"] == 0 and metrics["time/render_s"] > 0
 
 
-def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
+def test_resume_continues_epochs_and_mlflow_run(images, tmp_path, caplog):
+    import logging
+
     import mlflow
 
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
@@ -262,7 +264,10 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
     assert (out / "checkpoints" / "last.ckpt").is_file()
     run_id = (out / "mlflow_run_id.txt").read_text()
 
-    run_train(base + ["trainer.max_epochs=2", "ckpt_path=last"])
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="drgan"):
+        run_train(base + ["trainer.max_epochs=2", "ckpt_path=last"])
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "param" in r.getMessage()]
     second = json.loads((out / "metrics.json").read_text())
     assert second["epoch"] == 2 and second["global_step"] == 2 * first["global_step"]
     assert (out / "mlflow_run_id.txt").read_text() == run_id
@@ -273,6 +278,9 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
     assert [r.info.run_id for r in runs] == [run_id]
     run = runs[0]
     assert run.data.params["model/lr_g"] == "0.0002" and run.data.params["material/name"] == "tio2_sem"
+    # the resume is recorded: the params keep the first start's values, the tags hold the resume's
+    assert run.data.params["ckpt_path"] == "None" and run.data.params["trainer/max_epochs"] == "1"
+    assert run.data.tags["resumed/ckpt_path"] == "last" and run.data.tags["resumed/trainer/max_epochs"] == "2"
     for key in (
         "train/g_loss",
         "train/d_loss",

@@ -101,7 +101,7 @@ def train(cfg: DictConfig) -> dict:
     for logger in loggers:
         try:
             logger.log_hyperparams(params)
-        except Exception as error:  # MLflow refuses to change a logged param, e.g. max_epochs on resume
+        except Exception as error:  # an unreachable store must not stop training (a resume's changes: tags)
             log.warning("%s: config params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
     log.info(
