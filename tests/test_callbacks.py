@@ -33,7 +33,7 @@ def test_select_best_prefers_broadest_of_top_k():
 
 
 def test_in_a_short_run_the_fid_still_weighs():
-    """Three epochs are all among the "5 lowest": before the margin, the broadest won whatever its FID."""
+    """Three epochs are all among the "5 lowest": without the margin, the broadest wins whatever its FID."""
     history = [
         {"epoch": 0, "fid": 300.0, "spread": 0.40},
         {"epoch": 1, "fid": 150.0, "spread": 0.30},
@@ -90,7 +90,7 @@ def test_fid_levels_and_contrast_by_hand():
 def test_particle_levels_are_measured_alike_on_real_and_synthetic_images(polarity):
     """Particles with a bright core and a shaded rim at the background's grey (as TiO2 SEM particles are):
     the threshold keeps the core. Synthetic images identical to the real ones must read 1.0x real; their exact
-    labels, which include the rim, would read the particles ~0.5x as bright (the guard's old bias)."""
+    labels, which include the rim, would read the particles ~0.5x as bright (a bias the like-for-like masks avoid)."""
     from types import SimpleNamespace
 
     from drgan.callbacks.fid import FIDCallback, classical_masks, level_ratio, level_sums, levels
