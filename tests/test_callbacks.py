@@ -10,6 +10,7 @@ import pytest
 from test_train import images, make_images, run_train, tiny_overrides  # noqa: F401  (fixtures)
 
 from drgan.callbacks import RandomProjectionFeatures, parameter_spread, select_best
+from drgan.callbacks.best_epoch import within_brightness
 from drgan.errors import ConfigError
 
 
@@ -32,7 +33,7 @@ def test_select_best_prefers_broadest_of_top_k():
 
 
 def test_in_a_short_run_the_fid_still_weighs():
-    """Three epochs are all among the "5 lowest": before the margin, the broadest won whatever its FID."""
+    """Three epochs are all among the "5 lowest": without the margin, the broadest wins whatever its FID."""
     history = [
         {"epoch": 0, "fid": 300.0, "spread": 0.40},
         {"epoch": 1, "fid": 150.0, "spread": 0.30},
@@ -89,7 +90,7 @@ def test_fid_levels_and_contrast_by_hand():
 def test_particle_levels_are_measured_alike_on_real_and_synthetic_images(polarity):
     """Particles with a bright core and a shaded rim at the background's grey (as TiO2 SEM particles are):
     the threshold keeps the core. Synthetic images identical to the real ones must read 1.0x real; their exact
-    labels, which include the rim, would read the particles ~0.5x as bright (the guard's old bias)."""
+    labels, which include the rim, would read the particles ~0.5x as bright (a bias the like-for-like masks avoid)."""
     from types import SimpleNamespace
 
     from drgan.callbacks.fid import FIDCallback, classical_masks, level_ratio, level_sums, levels
@@ -124,12 +125,16 @@ def test_select_best_treats_nearly_equal_spreads_as_a_tie():
 
 
 def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
-    # Epoch 0 has the lowest FID but is 4.6x too dark (the grazing-ring generator); epoch 3 is too bright.
+    # Epoch 0 has the lowest FID but is 4.6x too dark; epoch 3 is too bright.
+    def entry(epoch, fid, spread, level):
+        tones = {"particle_brightness": level, "background_brightness": level, "contrast": 2.0}
+        return {"epoch": epoch, "fid": fid, "spread": spread, "brightness": level, **tones}
+
     history = [
-        {"epoch": 0, "fid": 200.0, "spread": 0.3, "brightness": 0.22},
-        {"epoch": 1, "fid": 290.0, "spread": 0.1, "brightness": 0.9},
-        {"epoch": 2, "fid": 300.0, "spread": 0.2, "brightness": 1.1},
-        {"epoch": 3, "fid": 250.0, "spread": 0.5, "brightness": 2.5},
+        entry(0, 200.0, 0.3, 0.22),
+        entry(1, 290.0, 0.1, 0.9),
+        entry(2, 300.0, 0.2, 1.1),
+        entry(3, 250.0, 0.5, 2.5),
     ]
     assert select_best(history, top_k=5, fid_margin=None)[0]["epoch"] == 3  # no range, no margin: broadest of all
     best, table = select_best(history, top_k=5, brightness_range=(0.5, 2.0))
@@ -138,6 +143,8 @@ def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
     # None inside the range: all compete rather than nothing being chosen; unknown brightness competes.
     assert select_best(history[:1], top_k=5, brightness_range=(0.5, 2.0))[0]["epoch"] == 0
     assert select_best([{"epoch": 0, "fid": 1.0, "spread": 0.1}], 5, (0.5, 2.0))[0]["epoch"] == 0
+    # the particles far too dark on a background of the right grey: out as well
+    assert not within_brightness({**entry(4, 1.0, 0.1, 1.0), "particle_brightness": 0.3}, (0.5, 2.0))
 
 
 @pytest.mark.parametrize("bad", [[2.0, 0.5], [0.0, 1.0], [1.0]])

@@ -21,6 +21,7 @@ from test_train import make_images, run_train, tiny_overrides
 
 from drgan import generate as gen
 from drgan.checkpoint_io import load_checkpoint
+from drgan.dataset.source import checkpoint_config, load_module
 from drgan.errors import ConfigError, DataError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -72,10 +73,10 @@ def test_the_payload_would_run(crafted, tmp_path):
 def test_generate_refuses_a_crafted_checkpoint(crafted, tiny_run):  # noqa: F811
     path, marker = crafted
     with pytest.raises(ConfigError, match=f"ckpt=.*{REFUSED}"):
-        gen.checkpoint_config(path)
-    saved = gen.checkpoint_config(tiny_run / "checkpoints" / "best.ckpt")
+        checkpoint_config(path)
+    saved = checkpoint_config(tiny_run / "checkpoints" / "best.ckpt")
     with pytest.raises(ConfigError, match=f"ckpt=.*{REFUSED}"):
-        gen.load_module(path, saved)
+        load_module(path, saved)
     out = path.parent / "out"
     with pytest.raises(ConfigError, match=f"ckpt=.*{REFUSED}"):
         gen.generate(
@@ -191,9 +192,9 @@ def test_real_checkpoints_load_at_every_site(tiny_run, segmenter_run, tmp_path):
     from drgan.segmentation.module import load_segmenter
 
     best, last = tiny_run / "checkpoints" / "best.ckpt", tiny_run / "checkpoints" / "last.ckpt"
-    saved = gen.checkpoint_config(best)
+    saved = checkpoint_config(best)
     assert saved["material"]["n_particles"] == 3
-    module = gen.load_module(best, saved)
+    module = load_module(best, saved)
     assert not module.training and module.phi_bank.shape[1:] == (3, 4)
     assert module.load_weights(last) > 0  # init_from's reader
     assert resolve_checkpoint(str(last), tmp_path) == str(last)  # train / segment resume: checked, then Lightning

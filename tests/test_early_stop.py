@@ -148,6 +148,25 @@ def test_the_kid_screen_skips_the_full_fid_of_an_epoch_that_is_no_better(images,
     assert not list((out / "checkpoints" / "epochs").glob("epoch_001.ckpt"))
 
 
+def test_the_progress_bar_shows_a_screened_out_epoch_as_screened(images, tmp_path, monkeypatch):  # noqa: F811
+    """The bar shows the last logged val/fid: NaN for an epoch the screen turned away, which reads "screened"."""
+    from drgan.callbacks import TrainingProgressBar
+
+    kid_by_epoch(monkeypatch, [1.0, 1.5])  # epoch 1: 50 % above the lowest screen, screened out
+    shown = []
+
+    def on_train_end(self, trainer, pl_module):
+        shown.append(self.get_metrics(trainer, pl_module))
+
+    monkeypatch.setattr(TrainingProgressBar, "on_train_end", on_train_end)
+    bar = ["callbacks.progress_bar._target_=drgan.callbacks.TrainingProgressBar"]
+    screen = ["callbacks.fid.n_images=8", "callbacks.fid.screen_images=4", "~callbacks.early_stopping"]
+    train_one_batch_epochs(images, tmp_path / "run", ["trainer.max_epochs=2", *screen, *bar])
+    assert shown[-1]["val/fid"] == "screened"
+    train_one_batch_epochs(images, tmp_path / "one", ["trainer.max_epochs=1", *screen, *bar])
+    assert np.isfinite(shown[-1]["val/fid"])  # a full FID is shown as its value
+
+
 def test_a_full_fid_after_the_screen_equals_the_fid_without_one(images, tmp_path):  # noqa: F811
     """The screen's images are the first of the full set (same seeds): the candidate's FID is unchanged."""
     fids = []

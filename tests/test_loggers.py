@@ -1,7 +1,9 @@
-"""MLflow as a user meets it: sweep jobs told apart by their run names, and the UI helper's store and addresses."""
+"""MLflow as a user meets it: sweep jobs told apart by their run names, a resumed run's changed params, and the UI
+helper's store and addresses."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
@@ -72,6 +74,34 @@ def test_the_logger_of_a_sweep_job_names_its_run_after_the_job(hydra_job, tmp_pa
 def test_a_single_run_keeps_its_run_name(tmp_path):
     logger = MLFlowLogger(experiment_name="tio2_sem", run_name="sem_a", tracking_uri=f"sqlite:///{tmp_path}/m.db")
     assert logger._run_name == "sem_a" and logger.tags is None
+
+
+def test_a_resumed_run_keeps_its_params_and_records_what_the_resume_changed_as_tags(tmp_path, caplog):
+    """MLflow params never change: `ckpt_path=last` and a larger max_epochs go to tags, with no warning."""
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
+    first = MLFlowLogger(experiment_name="tio2_sem", tracking_uri=uri)
+    first.log_hyperparams({"ckpt_path": None, "trainer": {"max_epochs": 1}, "model/lr_g": 2e-4})
+    resumed = MLFlowLogger(experiment_name="tio2_sem", tracking_uri=uri, run_id=first.run_id)
+    caplog.clear()  # the first start's "Experiment ... not found. Creating it."
+    with caplog.at_level(logging.INFO, logger="drgan.loggers"):
+        resumed.log_hyperparams(
+            {"ckpt_path": "last", "trainer": {"max_epochs": 2}, "model/lr_g": 2e-4, "data/n_train_patches": 130}
+        )
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert "ckpt_path=last" in caplog.text
+    run = mlflow.MlflowClient(tracking_uri=uri).get_run(first.run_id)
+    assert run.data.params == {
+        "ckpt_path": "None", "trainer/max_epochs": "1", "model/lr_g": "0.0002", "data/n_train_patches": "130"
+    }  # fmt: skip
+    resumed_tags = {k: v for k, v in run.data.tags.items() if k.startswith("resumed/")}
+    assert resumed_tags == {"resumed/ckpt_path": "last", "resumed/trainer/max_epochs": "2"}
+    # the next resume at the first max_epochs: that tag goes, ckpt_path's stays
+    again = MLFlowLogger(experiment_name="tio2_sem", tracking_uri=uri, run_id=first.run_id)
+    again.log_hyperparams({"ckpt_path": "last", "trainer": {"max_epochs": 1}})
+    tags = mlflow.MlflowClient(tracking_uri=uri).get_run(first.run_id).data.tags
+    assert {k for k in tags if k.startswith("resumed/")} == {"resumed/ckpt_path"}
 
 
 def test_the_ui_serves_the_store_train_logs_to_and_links_each_runs_table(tmp_path):

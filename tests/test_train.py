@@ -245,7 +245,9 @@ def test_every_material_trains_a_step(material, images, tmp_path):
     assert metrics["train/skipped_steps"] == 0 and metrics["time/render_s"] > 0
 
 
-def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
+def test_resume_continues_epochs_and_mlflow_run(images, tmp_path, caplog):
+    import logging
+
     import mlflow
 
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
@@ -262,7 +264,10 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
     assert (out / "checkpoints" / "last.ckpt").is_file()
     run_id = (out / "mlflow_run_id.txt").read_text()
 
-    run_train(base + ["trainer.max_epochs=2", "ckpt_path=last"])
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="drgan"):
+        run_train(base + ["trainer.max_epochs=2", "ckpt_path=last"])
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "param" in r.getMessage()]
     second = json.loads((out / "metrics.json").read_text())
     assert second["epoch"] == 2 and second["global_step"] == 2 * first["global_step"]
     assert (out / "mlflow_run_id.txt").read_text() == run_id
@@ -273,6 +278,9 @@ def test_resume_continues_epochs_and_mlflow_run(images, tmp_path):
     assert [r.info.run_id for r in runs] == [run_id]
     run = runs[0]
     assert run.data.params["model/lr_g"] == "0.0002" and run.data.params["material/name"] == "tio2_sem"
+    # the resume is recorded: the params keep the first start's values, the tags hold the resume's
+    assert run.data.params["ckpt_path"] == "None" and run.data.params["trainer/max_epochs"] == "1"
+    assert run.data.tags["resumed/ckpt_path"] == "last" and run.data.tags["resumed/trainer/max_epochs"] == "2"
     for key in (
         "train/g_loss",
         "train/d_loss",
@@ -367,8 +375,8 @@ def test_lr_decay_factor_and_bad_settings():
 
 def test_optimisers_are_named_by_the_config_and_checked_before_training(tmp_path):
     """model.optimizer_g/_d: `_target_` + `_partial_`, built when training starts; any torch.optim class, no other
-    code; bad keywords fail when the module is built. Configs without them (old checkpoints) mean Adam."""
-    from drgan.models.gan_module import GANModule, GANTraining
+    code; bad keywords fail when the module is built."""
+    from drgan.models.gan_module import GANModule
 
     base = tiny_overrides(tmp_path / "none", tmp_path / "run")
     module = GANModule.from_config(compose([*base, "model.lr_g=3e-5"], config_name="train"), m=2)
@@ -393,8 +401,6 @@ def test_optimisers_are_named_by_the_config_and_checked_before_training(tmp_path
     ):
         with pytest.raises(ConfigError, match=message):
             GANModule.from_config(compose([*base, *bad], config_name="train"), m=2)
-    old = GANTraining.from_config({"lr_g": 1e-5, "lr_d": 2e-5, "betas": [0.4, 0.9]})  # a config saved before
-    assert (old.lr_g, old.lr_d, old.optimizer_g.keywords["betas"]) == (1e-5, 2e-5, (0.4, 0.9))
 
 
 def test_module_takes_built_parts_and_rebuilds_from_its_saved_config(tmp_path):

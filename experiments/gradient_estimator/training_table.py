@@ -17,7 +17,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from drgan.generate import checkpoint_config, load_module
+from drgan.dataset.source import checkpoint_config, load_module
 from drgan.models import build
 
 

@@ -115,7 +115,3 @@ def use_variant(requested: str = "auto") -> str:
             raise ValueError(f"{THREADS_ENV}={threads!r}: expected a positive integer (Dr.Jit CPU threads)")
         dr.set_thread_count(int(threads))
     return variant
-
-
-def torch_device_for(variant: str) -> str:
-    return "cuda" if variant.startswith("cuda") else "cpu"

@@ -29,7 +29,6 @@ from drgan.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-LABELS = {"background": 0, "particle": 1, "contour": 2}
 CHANNEL = "_0000"  # nnU-Net's channel suffix: one channel
 
 

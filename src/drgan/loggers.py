@@ -4,6 +4,9 @@ A run killed mid-epoch resumes from the last epoch end and trains the lost steps
 those steps a second time. ``MLFlowLogger`` (a Lightning ``MLFlowLogger``) continuing an existing MLflow run
 reads, once, the last step logged for each metric and drops any later value logged at or before it, so every
 metric's steps stay strictly increasing. (The re-trained steps repeat the lost ones: same seeds, same data.)
+A resumed run's config differs from its start at least in ``ckpt_path`` (``last``), often in
+``trainer/max_epochs``; MLflow params never change, so each param keeps its first value and the value of the
+latest resume goes to the tag ``resumed/<param>``.
 
 In a Hydra sweep (`-m`) every job shares the config's ``run_name`` (it names the sweep's folder); each job's
 MLflow run is named after the overrides that set it apart (`sweep_run_name`), e.g. "seed=1".
@@ -28,6 +31,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from lightning.fabric.utilities.logger import _convert_params, _flatten_dict
 from lightning.pytorch.loggers import MLFlowLogger as _LightningMLFlowLogger
 from lightning.pytorch.utilities import rank_zero_only
 
@@ -38,6 +42,9 @@ log = logging.getLogger(__name__)
 
 # Overrides that name the MLflow run: a sweep job's run name keeps their value in front of the job's own overrides.
 NAME_KEYS = ("run_name", "logger.mlflow.run_name")
+# A resumed run's param whose value changed since the run started: its new value, as the tag "resumed/<param>".
+RESUMED_TAG = "resumed/"
+PARAM_LENGTH = 250  # Lightning's MLFlowLogger logs str(value)[:250]
 
 
 @dataclass(frozen=True)
@@ -122,6 +129,35 @@ class MLFlowLogger(_LightningMLFlowLogger):
         if run and self.id_file is not None:
             write_bytes(self.id_file, run.encode())
         return run
+
+    @rank_zero_only
+    def log_hyperparams(self, params) -> None:
+        """Lightning's, except on a resumed run: params logged before are not logged again, and one whose value
+        changed (``ckpt_path=last``, a larger ``trainer/max_epochs``) keeps its first value, the new one going to
+        the tag ``resumed/<param>`` (MLflow refuses to change a param)."""
+        if not self._resumed:
+            super().log_hyperparams(params)
+            return
+        flat = {k: (v, str(v)[:PARAM_LENGTH]) for k, v in _flatten_dict(_convert_params(params)).items()}
+        run = self.experiment.get_run(self.run_id)
+        logged = run.data.params
+        new = {k: v for k, (v, _) in flat.items() if k not in logged}
+        changed = {k: text for k, (_, text) in flat.items() if k in logged and logged[k] != text}
+        if new:
+            super().log_hyperparams(new)
+        for key, text in changed.items():
+            self.experiment.set_tag(self.run_id, RESUMED_TAG + key, text)
+        for key in (logged.keys() & flat.keys()) - changed.keys():  # back to its first value after an earlier resume
+            if RESUMED_TAG + key in run.data.tags:
+                self.experiment.delete_tag(self.run_id, RESUMED_TAG + key)
+        if changed:
+            log.info(
+                "MLflow run %s resumed: %s changed since it started; params keep their first values, the new ones "
+                "are its tags %s<param>",
+                self.run_id,
+                ", ".join(f"{k}={v}" for k, v in changed.items()),
+                RESUMED_TAG,
+            )
 
     def last_steps(self) -> dict[str, int]:
         """Metric key -> the largest step logged so far in this MLflow run (read once, then kept up to date)."""

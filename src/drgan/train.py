@@ -25,8 +25,7 @@ from omegaconf import DictConfig, open_dict
 
 from drgan.errors import ConfigError
 from drgan.io import write_json
-from drgan.runtime import (  # noqa: F401  (resolve_checkpoint, MLFLOW_RUN_ID_FILE: imported from here by older code)
-    MLFLOW_RUN_ID_FILE,
+from drgan.runtime import (
     flat_config,
     instantiate_callbacks,
     instantiate_loggers,
@@ -105,7 +104,7 @@ def train(cfg: DictConfig) -> dict:
     for logger in loggers:
         try:
             logger.log_hyperparams(params)
-        except Exception as error:  # MLflow refuses to change a logged param, e.g. max_epochs on resume
+        except Exception as error:  # an unreachable store must not stop training (a resume's changes: tags)
             log.warning("%s: config params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
     log.info(

@@ -1,8 +1,9 @@
-"""Training callbacks: per-epoch FID/KID, best-epoch selection (low FID, broad parameters) and plots."""
+"""Training callbacks: per-epoch FID/KID, best-epoch selection (low FID, broad parameters), plots, progress bar."""
 
 from drgan.callbacks.best_epoch import BestEpochCallback, parameter_spread, select_best
 from drgan.callbacks.early_stop import FIDEarlyStopping, should_stop, stop_reason
 from drgan.callbacks.fid import FIDCallback, RandomProjectionFeatures
+from drgan.callbacks.progress import TrainingProgressBar
 from drgan.callbacks.resume import ResumeCheckpoint
 from drgan.callbacks.visuals import ParameterHistogramCallback, SampleGridCallback
 
@@ -18,4 +19,5 @@ __all__ = [
     "select_best",
     "ParameterHistogramCallback",
     "SampleGridCallback",
+    "TrainingProgressBar",
 ]

@@ -6,8 +6,8 @@ parameters; a broad distribution generalises better to downstream segmentation. 
 sort evaluated epochs by FID, keep the ``top_k`` lowest, and of those the ones whose FID is at most
 (1 + fid_margin) x the lowest (default 10 %), then pick the one with the largest *parameter spread* (spreads
 within 5 % of the largest count as tied; the lower FID wins among them). The margin keeps the FID weighing in
-short runs: with 5 epochs or fewer every epoch is among the "5 lowest", and a run of 5 epochs chose an epoch
-of far higher FID on spread alone.
+short runs: with 5 epochs or fewer every epoch is among the "5 lowest", and spread alone would pick an epoch of
+far higher FID.
 
 Parameter spread (``parameter_spread``): for a fixed set of ``n_phi`` constellations (drawn once from the
 configured size and placement distributions), the regressor's learned values are normalised by their
@@ -19,8 +19,9 @@ Brightness guard: the FID hardly sees global brightness (see drgan.callbacks.fid
 or whose background are far darker or brighter than the real ones (``val/particle_brightness`` or
 ``val/background_brightness`` outside ``brightness_range``, default 0.5-2x), or whose contrast is inverted
 (``val/contrast`` <= 1: particles on the wrong side of the background), do not compete, unless no epoch
-passes (then all do, with a warning). Entries without the separate values (older runs) use ``val/brightness``. A TiO2 SEM generator with a grazing ring light scored its lowest FID with images 4.6x too dark,
-and a segmenter trained on them found nothing in the real images (experiments/tio2_sem/README.md).
+passes (then all do, with a warning). A generator can reach its lowest FID with images several times too dark
+(4.6x in a TiO2 SEM run, experiments/tio2_sem/RESULTS.md), and a segmenter trained on such images finds nothing
+in the real ones.
 
 Each epoch's weights are saved to ``<checkpoints>/epochs/epoch_XXX.ckpt`` (weights only); those that fall
 out of the top_k are deleted, since the best can only be among the top_k. After every evaluated epoch
@@ -57,19 +58,17 @@ def parameter_spread(values: np.ndarray, low, high) -> float:
 
 def within_brightness(entry: dict, brightness_range) -> bool:
     """True when the entry's particles and background (synthetic / real mean grey of each) are inside [low, high]
-    and its contrast is not inverted (``contrast`` > 1); for entries without those, when its whole-image
-    ``brightness`` is inside; True when unknown or when there is no range."""
+    and its contrast is not inverted (``contrast`` > 1); True when there is no range or the entry has no such
+    values (a history written by hand)."""
     if brightness_range is None:
         return True
     low, high = brightness_range
     separate = [entry.get(k) for k in ("particle_brightness", "background_brightness")]
-    if all(v is not None for v in separate):
-        if entry.get("contrast") is not None and not entry["contrast"] > 1.0:  # NaN (no particle pixel) fails too
-            return False
-        return all(low <= v <= high for v in separate)
-    if entry.get("brightness") is None:
+    if any(v is None for v in separate):
         return True
-    return low <= entry["brightness"] <= high
+    if entry.get("contrast") is not None and not entry["contrast"] > 1.0:  # NaN (no particle pixel) fails too
+        return False
+    return all(low <= v <= high for v in separate)
 
 
 def select_best(
@@ -83,8 +82,8 @@ def select_best(
 
     Epochs with a non-finite FID are never chosen. Of the top_k lowest FIDs, only those at most (1 + fid_margin)
     x the lowest compete on spread (None: all top_k). Spreads within ``spread_tolerance`` (relative) of the
-    largest count as tied, and ties go to the lower FID (a TiO2 SEM run otherwise chose FID 148.9 over
-    140.0 for a spread larger by 0.0003). With a ``brightness_range`` (low, high), only epochs inside it
+    largest count as tied, and ties go to the lower FID (spreads that close are noise: a spread larger by 0.0003
+    would otherwise win with FID 148.9 over 140.0, experiments/tio2_sem/README.md). With a ``brightness_range`` (low, high), only epochs inside it
     (`within_brightness`) compete, unless none is (then all do)."""
     finite = [h for h in history if math.isfinite(h.get("fid", math.nan)) and math.isfinite(h.get("spread", math.nan))]
     eligible = [h for h in finite if within_brightness(h, brightness_range)]

@@ -27,7 +27,7 @@ images and scores them with KID (unbiased at any sample size, unlike FID); only 
 most (1 + ``screen_margin``) x the lowest screen KID so far goes on to the full FID, rendering the remaining
 images (the screen's images are the first of the full set, same seeds: the full FID is the one the callback
 computes without a screen). An epoch screened out logs ``val/fid`` = NaN (never the best; an early-stopping
-patience counts it as no improvement) and ``val/screen_kid``. It saves most of the evaluation where a run has
+patience counts it as no improvement; ``TrainingProgressBar`` shows it as "screened") and ``val/screen_kid``. It saves most of the evaluation where a run has
 stopped improving, which is where an early stop needs its evaluations (experiments/early_stop/).
 """
 

@@ -243,8 +243,8 @@ class RealPatchDataModule(LightningDataModule):
         if leaked:
             raise DataError(f"data: patches of test image(s) {leaked[:5]} reached the training set")
         self._check_enough(patches, len(ids))
-        self.polarity = patches.params.get("polarity", "bright")
-        self.polarity_estimate = patches.params.get("polarity_estimate")
+        self.polarity = patches.params["polarity"]
+        self.polarity_estimate = patches.params["polarity_estimate"]
         self.patches = patches
         log.info("data: %s", json.dumps(patches.summary()))
 

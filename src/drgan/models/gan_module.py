@@ -106,25 +106,17 @@ class GANTraining:
 
     @classmethod
     def from_config(cls, model: Mapping | None) -> GANTraining:
-        """From the ``model`` group; absent keys take the defaults above. Configs without ``optimizer_g``/``_d``
-        (checkpoints from before the optimisers were named) mean Adam with ``lr_g``/``lr_d`` and ``betas``."""
+        """From the ``model`` group; absent keys take the defaults above."""
         model = dict(model or {})
         values = {}
         if model.get("loss") is not None:
             values["loss"] = str(model["loss"])
         if model.get("max_consecutive_nonfinite") is not None:
             values["max_consecutive_nonfinite"] = int(model["max_consecutive_nonfinite"])
-        default = cls()
         for net in ("g", "d"):
             spec = model.get(f"optimizer_{net}")
-            if spec is None:
-                keywords = dict(getattr(default, f"optimizer_{net}").keywords)
-                if model.get(f"lr_{net}") is not None:
-                    keywords["lr"] = float(model[f"lr_{net}"])
-                if model.get("betas") is not None:
-                    keywords["betas"] = [float(b) for b in model["betas"]]
-                spec = {"_target_": "torch.optim.Adam", "_partial_": True, **keywords}
-            values[f"optimizer_{net}"] = build.optimizer_factory(spec, f"model.optimizer_{net}")
+            if spec is not None:
+                values[f"optimizer_{net}"] = build.optimizer_factory(spec, f"model.optimizer_{net}")
         return cls(**values, lr_decay=LRDecay.from_config(model.get("lr_decay")))
 
 
