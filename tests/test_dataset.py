@@ -28,7 +28,7 @@ def settings(n: int, n_background: int = 1) -> dict:
         "ckpt": "/runs/x/checkpoints/best.ckpt", "material": "tio2_sem", "n": n, "n_background": n_background,
         "seed": 0, "contour_px": 1, "min_contrast": 0.0, "min_background": 0.05, "polarity": "bright",
         "max_attempts": 10 * n + 100, "renderer": {"spp": 1, "resolution": SIZE}, "backgrounds": None,
-        "shard": "0/1", "parameters": "trained", "model_cfg": {"material": {"name": "tio2_sem"}},
+        "shard": "0/1", "model_cfg": {"material": {"name": "tio2_sem"}},
     }  # fmt: skip
 
 

@@ -360,7 +360,7 @@ def test_parameters_middle_and_a_mapping_fix_every_images_values(tiny_run, tmp_p
     out = tmp_path / "middle"
     run_generate(tiny_run, out, "parameters=middle", "n_background=0")
     assert json.loads((out / "config.json").read_text())["fixed"]["parameters"] == "middle"
-    with pytest.raises(ConfigError, match="parameters: 'middle' there, 'trained' now"):  # never completed with others
+    with pytest.raises(ConfigError, match="parameters: 'middle' there, None now"):  # never completed with others
         run_generate(tiny_run, out, "n_background=0")
     for meta in sorted((out / "meta").glob("syn_*.json")):
         values = json.loads(meta.read_text())["parameters"]

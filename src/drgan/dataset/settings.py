@@ -27,13 +27,16 @@ FIXED_SETTINGS = (
     "polarity",
     "renderer",
     "backgrounds",
-    "parameters",
 )
 
 
 def fixed_settings(settings: dict) -> dict:
-    """The part of ``settings`` that config.json records and every later run must repeat."""
-    return {k: settings[k] for k in FIXED_SETTINGS}
+    """The part of ``settings`` that config.json records and every later run must repeat (``parameters`` only
+    when not the trained generator's, so that folders made before the setting existed still resume)."""
+    fixed = {k: settings[k] for k in FIXED_SETTINGS}
+    if settings.get("parameters", "trained") != "trained":
+        fixed["parameters"] = settings["parameters"]
+    return fixed
 
 
 def settings_from(cfg: DictConfig) -> dict:
