@@ -175,7 +175,7 @@ def segment(cfg: DictConfig) -> dict:
     for logger in loggers:
         try:
             logger.log_hyperparams(params)
-        except Exception as error:  # MLflow refuses to change a logged param on resume
+        except Exception as error:  # noqa: BLE001  (a logger refusing a param must not stop training)
             log.warning("%s: params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
     log.info("segmenter %s: %d train / %d val pairs, run folder %s", cfg.name, n_train, n_val, out)

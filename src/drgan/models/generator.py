@@ -26,7 +26,7 @@ def clamp_straight_through(x: torch.Tensor) -> torch.Tensor:
 
     A plain clamp has zero gradient wherever a render exceeds 1, which the paper's limits (particle
     base colour up to 5) make common: the discriminator's verdict on a saturated particle then never
-    reaches the FCN, and training drifts to brighter and brighter particles (seen in a TiO2 SEM run).
+    reaches the FCN, and training drifts to brighter and brighter particles.
     """
     return x + (x.clamp(0.0, 1.0) - x).detach()
 

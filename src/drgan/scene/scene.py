@@ -63,7 +63,7 @@ class RenderSettings:
     #   L(E[I]) nor E[L(I_noisy)] (the chain rule's first factor is still taken at the noisy image), but it
     #   carries no term from the Monte Carlo grain itself. Mitsuba's choice for inverse rendering
     #   (`mi.render` refuses seed_grad == seed).
-    # "same": the image's own seed (drgan before this setting). With grad_spp == spp the adjoint replays the
+    # "same": the image's own seed. With grad_spp == spp the adjoint replays the
     #   image's own paths, so for parameters that do not steer sampling (colours, sheen) the gradient is the
     #   derivative of the realised noisy image, unbiased for d/dtheta E[L(I_noisy)], the expected loss of noisy
     #   renders, grain included: the generator is also rewarded for reshaping its own sampling noise. For
