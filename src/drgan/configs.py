@@ -95,9 +95,8 @@ def renderer_overrides_schema() -> type:
     import typing
 
     hints = typing.get_type_hints(RendererSchema)
-    fields = [
-        (f.name, Optional[hints[f.name]], dataclasses.field(default=None)) for f in dataclasses.fields(RendererSchema)
-    ]  # noqa: UP045
+    optional = [(f.name, Optional[hints[f.name]]) for f in dataclasses.fields(RendererSchema)]  # noqa: UP045
+    fields = [(name, kind, dataclasses.field(default=None)) for name, kind in optional]
     return dataclasses.make_dataclass("RendererOverrides", fields, bases=(RendererSchema,))
 
 

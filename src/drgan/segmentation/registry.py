@@ -136,7 +136,9 @@ def build_segmenter(node, where: str = "model"):
     settings = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node or {})
     target = settings.get("_target_")
     if not target or not isinstance(target, str):
-        raise ConfigError(f"{where}: no _target_ (expected a segmenter class, e.g. _target_: {LEGACY_TARGET})")
+        raise ConfigError(
+            f"{where}: no _target_ (expected a segmenter class, e.g. _target_: drgan.segmentation.module.SegmenterModule)"
+        )
     try:
         cls = get_class(target)
     except Exception as error:
