@@ -311,15 +311,10 @@ def test_config_group_files_build_their_dataclass(group, name, expected):
     assert type(built) is expected
     # Every field is spelled out in the file, so the defaults are visible where they are changed.
     assert set(cfg) == {field.name for field in dataclasses.fields(expected)} | {"_target_"}
-    # The class the file names is the one Hydra would instantiate, too (and the short `kind` of older configs
-    # and checkpoints builds the same object).
+    # The class the file names is the one Hydra would instantiate, too.
     assert cfg._target_ == f"{expected.__module__}.{expected.__qualname__}"
     assert type(instantiate(cfg)) is expected
-    old_style = {
-        "kind": name,
-        **{k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k != "_target_"},
-    }
-    assert build(old_style) == built
+    assert build(OmegaConf.to_container(cfg, resolve=True)) == built
 
 
 def test_config_files_sample_paper_like_layouts():
@@ -330,32 +325,27 @@ def test_config_files_sample_paper_like_layouts():
     assert 0.8 * cfg.material.particle_size_px < np.median(layouts[..., 3]) < 1.25 * cfg.material.particle_size_px
 
 
-def test_config_unknown_kind_lists_valid_kinds():
-    with pytest.raises(ConfigError, match="kind.*bimodal.*lognormal.*normal"):
-        size_from_config({"kind": "gamma", "mean": 24.0})
-    with pytest.raises(ConfigError, match="kind.*poisson.*random_2d.*random_3d"):
-        placement_from_config({"kind": "grid"})
-
-
-def test_config_target_must_name_a_known_class_and_agree_with_kind():
+def test_config_target_must_name_a_known_class():
     with pytest.raises(ConfigError, match=r"size._target_ must be one of.*LognormalSize.*got 'os.system'"):
         size_from_config({"_target_": "os.system", "median": 24.0})
-    with pytest.raises(ConfigError, match="name different classes"):
-        placement_from_config({"_target_": "drgan.scene.layout.Random2D", "kind": "poisson"})
+    with pytest.raises(
+        ConfigError, match=r"placement._target_ must be one of.*PoissonAgglomerates.*Random2D.*got None"
+    ):
+        placement_from_config({"kind": "grid"})
 
 
 def test_config_unknown_field_lists_valid_fields():
     with pytest.raises(ConfigError, match=r"stdev.*expected some of.*mean.*std.*min_size"):
-        size_from_config({"kind": "normal", "mean": 24.0, "stdev": 3.0})
+        size_from_config({"_target_": "drgan.scene.layout.NormalSize", "mean": 24.0, "stdev": 3.0})
     with pytest.raises(ConfigError, match=r"radius.*expected some of.*cluster_radius"):
-        placement_from_config({"kind": "poisson", "radius": 10.0})
+        placement_from_config({"_target_": "drgan.scene.layout.PoissonAgglomerates", "radius": 10.0})
 
 
 def test_config_missing_field_raises_config_error():
     with pytest.raises(ConfigError, match="sigma"):
-        size_from_config({"kind": "lognormal", "median": 24.0})
+        size_from_config({"_target_": "drgan.scene.layout.LognormalSize", "median": 24.0})
 
 
 def test_config_values_are_validated():
     with pytest.raises(ConfigError, match="sigma"):
-        size_from_config({"kind": "lognormal", "median": 24.0, "sigma": -1.0})
+        size_from_config({"_target_": "drgan.scene.layout.LognormalSize", "median": 24.0, "sigma": -1.0})

@@ -340,6 +340,7 @@ def test_cli_rejects_unknown_kind(tmp_path):
 
 def test_missing_meshes_dir_is_named_as_the_setting(tmp_path):
     from drgan.models.build import load_particle_meshes
+    from drgan.scene.config import MeshSource
 
     with pytest.raises(MeshError, match=r"^material\.meshes\.dir=nowhere: no such folder or mesh file \(.*nowhere\)$"):
-        load_particle_meshes({"dir": "nowhere"}, base_dir=tmp_path)
+        load_particle_meshes(MeshSource(dir="nowhere"), base_dir=tmp_path)

@@ -183,12 +183,19 @@ def test_a_material_whose_particles_are_over_twice_the_datas_is_refused(tmp_path
 
 
 def test_the_material_check_passes_data_that_fits_and_records_what_it_compared(tmp_path, field):
+    import dataclasses
+
+    from conftest import compose
+
+    from drgan.scene.config import typed_material
+
     folder = write_field(tmp_path / "sem", field[0])
     dm = RealPatchDataModule(str(folder), split=None, crop_rows=None, patch_size=SIZE)
-    report = dm.check_fits({"name": "m", "polarity": "bright", "particle_size_px": 14})
+    material = typed_material(compose(["material=tio2_sem"]).material)
+    report = dm.check_fits(dataclasses.replace(material, name="m", particle_size_px=14))
     assert report["data_polarity"] == "bright" and 0.8 < report["size_ratio"] < 1.0
     off = RealPatchDataModule(str(folder), split=None, crop_rows=None, patch_size=SIZE, check_material=False)
-    assert off.check_fits({"name": "m", "polarity": "dark", "particle_size_px": 100}) is None
+    assert off.check_fits(dataclasses.replace(material, polarity="dark", particle_size_px=100)) is None
     assert off.polarity == "bright"  # still detected: mining needs it
 
 

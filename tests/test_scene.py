@@ -102,7 +102,7 @@ def test_differentiable_parameters_are_exactly_the_learned_ones():
 
     particle = dict(PAPER_PARTICLE)
     particle["sheen_tint"] = {"value": 0.5}  # fixed: must not carry a gradient
-    particle["metallic"] = 0.2
+    particle["metallic"] = {"value": 0.2}
     scene = make_scene(particle=particle)
     scene.set_layout(TINY_PHI)
     values = torch.full((len(scene.learned),), 0.5, requires_grad=True)

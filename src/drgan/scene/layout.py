@@ -576,6 +576,7 @@ _PLACEMENT_KINDS: dict[str, type] = {
 def _from_config(group: str, kinds: dict[str, type], cfg: Mapping) -> object:
     """The object a ``group`` config names: ``_target_``, the import path of one of ``kinds`` (an allow-list: a
     config, e.g. one saved in a checkpoint, names no other code to run), plus the dataclass's fields."""
+    from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     if not isinstance(cfg, Mapping):
@@ -590,7 +591,12 @@ def _from_config(group: str, kinds: dict[str, type], cfg: Mapping) -> object:
     missing = [field.name for field in fields(paths[target]) if field.name not in values and field.default is MISSING]
     if missing:
         raise ConfigError(f"{group} ({target}): missing field(s) {missing}; fields are {valid}")
-    return instantiate({"_target_": target, **values})
+    try:
+        return instantiate({"_target_": target, **values})
+    except InstantiationException as error:  # the dataclass's own check: its message names the field
+        if isinstance(error.__cause__, ConfigError):
+            raise error.__cause__ from None
+        raise
 
 
 def size_from_config(cfg: Mapping) -> SizeDistribution:
