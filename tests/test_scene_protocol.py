@@ -207,3 +207,25 @@ def test_the_scene_protocol_is_what_both_scenes_implement(tiny_scene):
 
     assert isinstance(tiny_scene, Scene)
     assert np.array_equal(tiny_scene.instance_labels(), tiny_scene.instance_labels())
+
+
+def test_configs_name_only_allowed_classes_wherever_they_build_objects():
+    """Size, placement and discriminator come from `_target_` configs through one allow-listed builder: a foreign
+    class is refused before it is imported or called, a misspelt field is named with the valid ones, and the
+    class's own check keeps its message."""
+    from drgan.models.build import build_discriminator
+    from drgan.models.discriminator import PatchDiscriminator
+    from drgan.scene.layout import size_from_config
+
+    model = compose(["material=tio2_sem"]).model
+    assert isinstance(build_discriminator(model), PatchDiscriminator)
+    with pytest.raises(
+        ConfigError, match=r"model\.discriminator\._target_ must be one of .*PatchDiscriminator.*'os\.system'"
+    ):
+        build_discriminator({"discriminator": {"_target_": "os.system", "filters": 8}})
+    with pytest.raises(ConfigError, match=r"unknown field\(s\) \['filter'\]; expected some of .*'filters'"):
+        build_discriminator(
+            {"discriminator": {"_target_": "drgan.models.discriminator.PatchDiscriminator", "filter": 8}}
+        )
+    with pytest.raises(ConfigError, match=r"LognormalSize\.sigma must be > 0"):
+        size_from_config({"_target_": "drgan.scene.layout.LognormalSize", "median": 20.0, "sigma": -1.0})

@@ -65,6 +65,7 @@ class LRDecaySchema:
 
 @dataclass
 class DiscriminatorSchema:
+    _target_: str = MISSING
     filters: int = MISSING
     n_layers: int = MISSING
     slope: float = MISSING

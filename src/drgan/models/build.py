@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from drgan import targets
 from drgan.errors import ConfigError, MeshError, check_keys
 from drgan.scene import layout, meshes
 from drgan.scene.config import Material, MeshSource, scene_class, typed_material
@@ -93,12 +94,17 @@ def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: i
     )
 
 
-def build_discriminator(model: Mapping | None):
-    """The PatchGAN discriminator of the ``model`` group (``model.discriminator``: filters, n_layers, slope)."""
-    from drgan.models.discriminator import PatchDiscriminator
+DISCRIMINATORS = (
+    "PatchDiscriminator",
+)  # the classes model.discriminator._target_ may name (drgan.models.discriminator)
 
-    disc = _plain(model["discriminator"])
-    return PatchDiscriminator(1, int(disc["filters"]), int(disc["n_layers"]), float(disc["slope"]))
+
+def build_discriminator(model: Mapping):
+    """The discriminator of the ``model`` group: ``model.discriminator``, a ``_target_`` config (the PatchGAN)."""
+    from drgan.models import discriminator
+
+    allowed = [getattr(discriminator, name) for name in DISCRIMINATORS]
+    return targets.build(_plain(model["discriminator"]), allowed, "model.discriminator")
 
 
 @dataclass(frozen=True)

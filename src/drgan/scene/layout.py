@@ -19,11 +19,12 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
-from drgan.errors import ConfigError, check_keys
+from drgan import targets
+from drgan.errors import ConfigError
 
 __all__ = [
     "NormalSize",
@@ -576,27 +577,7 @@ _PLACEMENT_KINDS: dict[str, type] = {
 def _from_config(group: str, kinds: dict[str, type], cfg: Mapping) -> object:
     """The object a ``group`` config names: ``_target_``, the import path of one of ``kinds`` (an allow-list: a
     config, e.g. one saved in a checkpoint, names no other code to run), plus the dataclass's fields."""
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
-
-    if not isinstance(cfg, Mapping):
-        raise ConfigError(f"{group} config must be a mapping with a '_target_' key, got {type(cfg).__name__}")
-    values = dict(cfg)
-    target = values.pop("_target_", None)
-    paths = {f"{cls.__module__}.{cls.__qualname__}": cls for cls in kinds.values()}
-    if target not in paths:
-        raise ConfigError(f"{group}._target_ must be one of {sorted(paths)}, got {target!r}")
-    valid = [field.name for field in fields(paths[target])]
-    check_keys(f"{group} ({target})", values, valid, "field")
-    missing = [field.name for field in fields(paths[target]) if field.name not in values and field.default is MISSING]
-    if missing:
-        raise ConfigError(f"{group} ({target}): missing field(s) {missing}; fields are {valid}")
-    try:
-        return instantiate({"_target_": target, **values})
-    except InstantiationException as error:  # the dataclass's own check: its message names the field
-        if isinstance(error.__cause__, ConfigError):
-            raise error.__cause__ from None
-        raise
+    return targets.build(cfg, kinds.values(), group)
 
 
 def size_from_config(cfg: Mapping) -> SizeDistribution:
