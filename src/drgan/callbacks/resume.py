@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
-from lightning.pytorch.callbacks import Checkpoint
+from lightning.pytorch.callbacks import Checkpoint, ProgressBar
 
 from drgan.callbacks.fid import checkpoint_dir
 
@@ -154,7 +154,11 @@ class ResumeCheckpoint(Callback):
 
 
 def _lightnings_own(callback: Callback) -> bool:
-    return type(callback).__module__.startswith(("lightning.", "pytorch_lightning."))
+    """Lightning's callbacks and progress bars (drgan's is one): they keep their own state, and a bar has no
+    epoch to close before the loop has opened one."""
+    return isinstance(callback, ProgressBar) or type(callback).__module__.startswith(
+        ("lightning.", "pytorch_lightning.")
+    )
 
 
 class _EpochEndDone(Checkpoint):
