@@ -479,6 +479,7 @@ def test_non_finite_steps_are_skipped_then_stop_training(images, tmp_path, monke
         run_train(base + ["trainer.limit_train_batches=5"])
 
 
+@pytest.mark.slow  # two processes' start-up: ~25 s
 def test_ddp_on_two_cpu_processes_scores_the_same_fid_images(images, tmp_path):
     """trainer=ddp_cpu with 2 processes trains, and its FID (each rank renders a share, features gathered)
     equals the FID of the same images rendered in one process from the saved weights."""
@@ -522,6 +523,7 @@ LAUNCHERS = {
 }
 
 
+@pytest.mark.slow  # a process per job: ~40 s each
 @pytest.mark.parametrize("launcher", sorted(LAUNCHERS))
 def test_sweep_makes_two_mlflow_runs(launcher, images, tmp_path):
     import mlflow
