@@ -2,7 +2,7 @@
 
     python experiments/tio2_sem/probe_lights.py NAME [-- hydra overrides ...]
     python experiments/tio2_sem/probe_lights.py ring01 -- renderer.spp=16 \
-        material.scene.torus_light.height=0.1 material.scene.torus_light.minor_radius=0.08
+        material.imaging.torus_light.height=0.1 material.imaging.torus_light.minor_radius=0.08
 
 Light transport is linear in each emitter's radiance, so the scene is rendered once per light (ring alone at
 radiance 1, top light alone at radiance 1; hand-set BSDF values of probe_appearance.py, phi bank seed 7) and
@@ -41,8 +41,8 @@ TOPS = (0.0, 0.1, 0.3, 0.6)
 def render_components(overrides: list[str], n: int) -> dict[str, np.ndarray]:
     out = {}
     for name, lights in (
-        ("ring", ["material.scene.top_light.radiance=0.0"]),
-        ("top", ["material.scene.torus_light.radiance=0.0", "material.scene.top_light.radiance=1.0"]),
+        ("ring", ["material.imaging.top_light.radiance=0.0"]),
+        ("top", ["material.imaging.torus_light.radiance=0.0", "material.imaging.top_light.radiance=1.0"]),
     ):
         with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf" / "gan"), version_base="1.3"):
             cfg = compose("train", ["experiment=tio2_sem", *overrides, *lights])
