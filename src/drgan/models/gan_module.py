@@ -404,7 +404,7 @@ class GANModule(LightningModule):
                 f"training stopped: {self.consecutive_nonfinite} steps in a row had a non-finite loss or gradient "
                 f"(model.max_consecutive_nonfinite={self.max_consecutive_nonfinite}; {self.skipped_steps} skipped in all). "
                 "Try lower learning rates (model.lr_g, model.lr_d), narrower parameter limits in the material config "
-                "(material.particle_bsdf / stage_bsdf / noise_sigma), or a different renderer.integrator."
+                "(material.imaging.* / material.noise_sigma), or a different renderer.integrator."
             )
 
     # --- for callbacks and inference ----------------------------------------------------------------------
