@@ -112,7 +112,9 @@ class SceneSpec:
         if self.torus_light is None and self.top_light is None:
             raise ConfigError("scene has no light: enable torus_light or top_light")
         if not self.stage and self.parameters.surface("stage"):
-            raise ConfigError("material.imaging.stage_bsdf is configured but material.imaging.stage is false; remove one")
+            raise ConfigError(
+                "material.imaging.stage_bsdf is configured but material.imaging.stage is false; remove one"
+            )
 
 
 def gaussian_kernel(sigma: float, dtype=torch.float32, device=None) -> torch.Tensor:
