@@ -110,7 +110,7 @@ def test_the_ui_serves_the_store_train_logs_to_and_links_each_runs_table(tmp_pat
     import drgan.resolvers
 
     if (
-        drgan.resolvers._USER_TRACKING_URI is None
+        drgan.resolvers.user_tracking_uri() is None
     ):  # the default store: <project>/mlruns, absolute, as drgan.train has it
         assert tracking_store() == (f"sqlite:///{Path.cwd().resolve()}/mlruns/mlflow.db", "tio2_sem")
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"
