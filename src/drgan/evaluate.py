@@ -22,6 +22,13 @@ count). Over several runs (one checkpoint each): mean +- sample std (ddof = 1) o
 Writes results.csv (one row per run and image, plus per-run "mean" rows), results.md (per-image table as
 mean +- std over runs, and the per-run and overall summary) and overlays/ID.png (first model's prediction:
 true positive instances green, false positives red, missed true instances yellow, over the grey image).
+
+Particle statistics (``statistics: true``; drgan.metrics.statistics): per run, the predicted particles' median and
+mean equivalent diameter against the masks' (relative errors), the total count's error and the per-image count
+errors, the Kolmogorov-Smirnov and first Wasserstein distances between the two diameter distributions, each with a
+bootstrap interval over images (``bootstrap`` resamples); particles cut by the image border count but are left out
+of sizes, on both sides. statistics.md, statistics.csv and sizes.png (histograms and cumulative curves of the
+diameters, masks and every run overlaid).
 All inputs (checkpoints, predicted mask folders, images, masks, split) are read and checked before any prediction.
 """
 
@@ -40,6 +47,7 @@ from omegaconf import DictConfig
 from drgan.errors import ConfigError
 from drgan.io import write_bytes, write_with
 from drgan.metrics.segmentation import binarize_and_label, match_instances, segmentation_scores
+from drgan.metrics.statistics import compare_sizes, count_errors, particles, pooled
 
 log = logging.getLogger(__name__)
 
@@ -183,6 +191,8 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
 
     out = Path(cfg.out)
     rows = []
+    truth = [particles(true_labels) for _, true_labels in samples]
+    found: dict[str, list] = {run: [] for run in predictors}
     for k, (run, predictor) in enumerate(predictors.items()):
         for item, true_labels in samples:
             image_id, image = item.id, item.image
@@ -192,6 +202,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
                     f"evaluate: {run} returned a class map of shape {class_map.shape} for image {image_id} {image.shape}"
                 )
             scores, pred_labels = score_image(class_map, true_labels)
+            found[run].append(particles(pred_labels))
             rows.append({"run": run, "model": predictor.source, "image": image_id, **scores})
             log.info("%s %s: %s", run, image_id, {s: round(scores[s], 3) for s in SCORES})
             if k == 0 and cfg.get("overlays", True):
@@ -208,12 +219,120 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     per_run = {r: {s: float(np.mean([x[s] for x in rows if x["run"] == r])) for s in SCORES} for r in runs}
     stats = {s: _mean_std([per_run[r][s] for r in runs]) for s in SCORES}
     log.info("wrote %s: %s", out / "results.md", {s: f"{m:.3f} +- {sd:.3f}" for s, (m, sd) in stats.items()})
-    return {
+    result = {
         "runs": per_run,
         "rows": rows,
         "mean": {s: v[0] for s, v in stats.items()},
         "std": {s: v[1] for s, v in stats.items()},
     }
+    if cfg.get("statistics", True):
+        result["statistics"] = particle_statistics(cfg, out, found, truth, ids)
+    return result
+
+
+def particle_statistics(cfg: DictConfig, out: Path, found: dict, truth: list, ids: list[str]) -> dict:
+    """Each run's particle statistics against the masks' (drgan.metrics.statistics); writes statistics.md,
+    statistics.csv and sizes.png. Returns {run: {statistic: {value, low, high}}, plus "count_errors": [...]}."""
+    n_boot, seed = int(cfg.get("bootstrap", 1000)), int(cfg.get("seed", 0))
+    nm = cfg.get("nm_per_px")
+    result = {}
+    for run, mine in found.items():
+        result[run] = compare_sizes(mine, truth, n_boot=n_boot, seed=seed)
+        result[run]["count_errors"] = count_errors(mine, truth).tolist()
+    write_bytes(out / "statistics.csv", statistics_csv(result).encode())
+    write_bytes(out / "statistics.md", statistics_markdown(result, truth, ids, nm, n_boot).encode())
+    write_bytes(out / "sizes.png", size_figure(found, truth, nm))
+    for run, values in result.items():
+        log.info(
+            "%s: median diameter %+.1f %%, count %+.1f %%, KS %.3f, W1 %.2f px",
+            run,
+            100 * values["median_error"]["value"],
+            100 * values["count_error"]["value"],
+            values["ks"]["value"],
+            values["w1"]["value"],
+        )
+    return result
+
+
+def statistics_csv(result: dict) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["run", "statistic", "value", "low", "high"])
+    for run, values in result.items():
+        for key, cell in values.items():
+            if isinstance(cell, dict):
+                writer.writerow([run, key, *(f"{cell[k]:.6g}" for k in ("value", "low", "high"))])
+    return buf.getvalue()
+
+
+def statistics_markdown(result: dict, truth: list, ids: list[str], nm: float | None, n_boot: int) -> str:
+    def interval(cell: dict, scale: float = 1.0, fmt: str = "{:.3f}") -> str:
+        value = fmt.format(scale * cell["value"])
+        if np.isfinite(cell["low"]):
+            return f"{value} [{fmt.format(scale * cell['low'])}, {fmt.format(scale * cell['high'])}]"
+        return value
+
+    unit = "nm" if nm else "px"
+    scale = float(nm) if nm else 1.0
+    whole = sum(t.whole().count for t in truth)
+    first = next(iter(result.values()))
+    md = [
+        "# Particle statistics on real test images",
+        "",
+        f"{len(ids)} test image(s); the masks hold {sum(t.count for t in truth)} particles, {whole} of them not cut by "
+        f"the image border (median equivalent diameter {scale * first['median_diameter_true']['value']:.1f} {unit}, "
+        f"mean {scale * first['mean_diameter_true']['value']:.1f} {unit}). Sizes: equivalent diameter 2 sqrt(area / pi) "
+        "of the particles not touching the border, on both sides; counts: all particles. Errors: prediction / masks - "
+        f"1. Brackets: 95 % percentile bootstrap interval over images ({n_boot} resamples).",
+        "",
+        f"| run | median diameter ({unit}) | median error | mean error | count error | mean abs count error per "
+        f"image | KS | W1 ({unit}) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for run, v in result.items():
+        abs_count = float(np.mean(np.abs(v["count_errors"])))
+        md.append(
+            f"| {run} | {interval(v['median_diameter'], scale, '{:.1f}')} | {interval(v['median_error'], 100, '{:+.1f} %')} "
+            f"| {interval(v['mean_error'], 100, '{:+.1f} %')} | {interval(v['count_error'], 100, '{:+.1f} %')} "
+            f"| {abs_count:.1f} | {interval(v['ks'])} | {interval(v['w1'], scale, '{:.2f}')} |"
+        )
+    if len(result) > 1:
+        keys = ("median_error", "mean_error", "count_error", "ks", "w1")
+        spread = {k: _mean_std([v[k]["value"] for v in result.values()]) for k in keys}
+        md += [
+            "",
+            "Over runs (mean +- sample std): " + ", ".join(f"{k} {m:.3f} +- {s:.3f}" for k, (m, s) in spread.items()),
+        ]
+    md.append("")
+    return "\n".join(md)
+
+
+def size_figure(found: dict, truth: list, nm: float | None) -> bytes:
+    """PNG: histograms (left) and cumulative curves (right) of the whole particles' diameters, masks and runs."""
+    from drgan.io import figure_png
+
+    scale = float(nm) if nm else 1.0
+    unit = "nm" if nm else "px"
+    sets = {"masks": scale * pooled(truth), **{run: scale * pooled(mine) for run, mine in found.items()}}
+    values = np.concatenate([v for v in sets.values() if len(v)] or [np.zeros(1)])
+    bins = np.linspace(0.0, float(values.max()) * 1.05 + 1e-9, 30)
+
+    def draw(plt):
+        fig, (hist, cdf) = plt.subplots(1, 2, figsize=(10, 4))
+        for name, v in sets.items():
+            style = {"color": "black", "linewidth": 2.0} if name == "masks" else {"linewidth": 1.0}
+            if len(v):
+                hist.hist(v, bins=bins, histtype="step", density=True, label=f"{name} ({len(v)})", **style)
+                cdf.plot(np.sort(v), np.arange(1, len(v) + 1) / len(v), label=name, **style)
+        for axis, label in ((hist, "density"), (cdf, "cumulative fraction")):
+            axis.set_xlabel(f"equivalent diameter ({unit})")
+            axis.set_ylabel(label)
+        hist.legend(fontsize=8)
+        fig.suptitle("Particle sizes on the test images: masks (black) and each run")
+        fig.tight_layout()
+        return fig
+
+    return figure_png(draw)
 
 
 @hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="evaluate")

@@ -10,7 +10,11 @@ What a user gives is either
   contours). A mask of the image file's full size loses the info-bar rows its image loses. Files of other types
   (nnU-Net's dataset.json, plans.json, predict_from_raw_data_args.json) are ignored.
 
-Either becomes a ``Predictor``: ``check(items)`` compares it with every image before anything is computed (for a
+- ``classical``: no training at all, the baseline a materials scientist runs in ImageJ/Fiji (threshold + distance
+  transform watershed): drgan's own classical segmentation (drgan.data.patches.segment_particles), the polarity
+  detected from the evaluated images themselves.
+
+Each becomes a ``Predictor``: ``check(items)`` compares it with every image before anything is computed (for a
 folder: each missing, extra, misshapen or wrongly valued mask, all in one message, so that an evaluation does not
 stop at its last image), then ``predictor(item)`` returns the (H, W) uint8 class map of one ImageItem.
 drgan.evaluate and drgan.analyze score and measure whatever a predictor returns, so checkpoint runs and mask folders
@@ -35,6 +39,7 @@ __all__ = [
     "MaskFolder",
     "Predictor",
     "SegmenterPredictor",
+    "ClassicalPredictor",
     "as_predictor",
     "load_predictor",
 ]
@@ -162,10 +167,42 @@ class MaskFolder:
         return self.maps[item.id]
 
 
+CLASSICAL = "classical"
+
+
+class ClassicalPredictor:
+    """The classical baseline (module docstring): segments of `segment_particles`, written as particle class with the
+    pixels where two segments meet as contour, so that the instances scored are the watershed's."""
+
+    source, how = CLASSICAL, "classical segmentation (threshold + distance-transform watershed), no training"
+
+    def __init__(self):
+        self.polarity: str | None = None
+
+    def check(self, items: Sequence[ImageItem]) -> None:
+        from drgan.data.polarity import detect_polarity
+
+        self.polarity = detect_polarity([item.image for item in items]).polarity
+
+    def __call__(self, item: ImageItem) -> np.ndarray:
+        from skimage.segmentation import find_boundaries
+
+        from drgan.data.patches import segment_particles
+
+        if self.polarity is None:
+            self.check([item])
+        labels, _ = segment_particles(item.image, polarity=self.polarity)
+        class_map = (labels > 0).astype(np.uint8)
+        class_map[find_boundaries(labels, connectivity=1, mode="inner") & (labels > 0)] = 2
+        return class_map
+
+
 def load_predictor(source, inference: Mapping | None = None, setting: str = "model") -> Predictor:
-    """The Predictor for what the user named: a folder -> ``MaskFolder``; a file -> the segmenter checkpoint it holds
-    (``load_segmenter``: read without running code, its class allow-listed) with ``inference`` settings.
-    ``setting`` names the key that gave ``source`` in every message."""
+    """The Predictor for what the user named: ``classical`` -> `ClassicalPredictor`; a folder -> ``MaskFolder``; a file
+    -> the segmenter checkpoint it holds (``load_segmenter``: read without running code, its class allow-listed) with
+    ``inference`` settings. ``setting`` names the key that gave ``source`` in every message."""
+    if str(source) == CLASSICAL:
+        return ClassicalPredictor()
     path = Path(str(source)).expanduser()
     if path.is_dir():
         return MaskFolder(path, setting)

@@ -1,0 +1,113 @@
+"""Particle statistics against the truth (drgan.metrics.statistics, drgan.evaluate's statistics): exact values on
+hand-made label images, and the distances against scipy and scikit-image."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import ks_2samp, wasserstein_distance
+from test_segment import disc_image, disc_labels, eval_cfg, make_real
+
+from drgan.metrics.statistics import compare_sizes, count_errors, ks_statistic, particles, pooled, wasserstein1
+
+
+def squares(size: int, boxes) -> np.ndarray:
+    """A label image of axis-aligned rectangles (r0, c0, height, width), label k + 1 for box k."""
+    labels = np.zeros((size, size), np.int32)
+    for k, (r, c, h, w) in enumerate(boxes):
+        labels[r : r + h, c : c + w] = k + 1
+    return labels
+
+
+def test_particles_of_hand_made_labels_are_exact():
+    labels = squares(40, [(5, 5, 4, 4), (20, 10, 6, 12), (0, 30, 5, 5)])  # the last one touches the top border
+    found = particles(labels)
+    assert found.count == 3
+    np.testing.assert_array_equal(found.area, [16, 72, 25])
+    np.testing.assert_allclose(found.diameter, 2 * np.sqrt(np.array([16, 72, 25]) / np.pi))
+    np.testing.assert_array_equal(found.border, [False, False, True])
+    # A w x h block's pixel-centre variances are (w^2 - 1) / 12 and (h^2 - 1) / 12: axis ratio sqrt of their ratio.
+    assert found.axis_ratio[1] == pytest.approx(np.sqrt((12**2 - 1) / (6**2 - 1)))
+    assert found.axis_ratio[0] == pytest.approx(1.0)
+    whole = found.whole()
+    assert whole.count == 2 and set(whole.area) == {16, 72}
+    # The same numbers as scikit-image's regionprops, computed independently of the module's loop.
+    from skimage.measure import regionprops
+
+    assert [r.equivalent_diameter_area for r in regionprops(labels)] == pytest.approx(list(found.diameter))
+
+
+def test_sizes_and_counts_of_a_hand_made_prediction_are_exact():
+    true = [particles(squares(50, [(5, 5, 10, 10), (20, 20, 10, 10)])), particles(squares(50, [(30, 5, 10, 10)]))]
+    # Image 1: both found, one 20 % wider; image 2: the particle found plus a false one cut by the border.
+    pred = [
+        particles(squares(50, [(5, 5, 10, 10), (20, 20, 10, 12)])),
+        particles(squares(50, [(30, 5, 10, 10), (0, 40, 3, 3)])),
+    ]
+    stats = compare_sizes(pred, true, n_boot=0)
+    d10, d_wide = 2 * np.sqrt(100 / np.pi), 2 * np.sqrt(120 / np.pi)
+    assert stats["median_diameter_true"]["value"] == pytest.approx(d10)
+    assert stats["median_diameter"]["value"] == pytest.approx(d10)  # the border particle is not sized
+    assert stats["mean_error"]["value"] == pytest.approx((2 * d10 + d_wide) / (3 * d10) - 1)
+    assert stats["count_error"]["value"] == pytest.approx(4 / 3 - 1)  # the cut particle counts
+    np.testing.assert_array_equal(count_errors(pred, true), [0, 1])
+    assert stats["ks"]["value"] == pytest.approx(1 / 3)
+    assert stats["w1"]["value"] == pytest.approx((d_wide - d10) / 3)
+    assert len(pooled(true)) == 3 and np.isnan(stats["median_error"]["low"])  # no bootstrap asked
+
+
+def test_distances_equal_scipys():
+    rng = np.random.default_rng(0)
+    for n, m in ((5, 7), (40, 40), (100, 13)):
+        a, b = rng.lognormal(3.0, 0.4, n), rng.lognormal(3.1, 0.3, m)
+        assert ks_statistic(a, b) == pytest.approx(ks_2samp(a, b).statistic)
+        assert wasserstein1(a, b) == pytest.approx(wasserstein_distance(a, b))
+    ties = np.array([1.0, 1.0, 2.0, 3.0])
+    assert ks_statistic(ties, ties[:3]) == pytest.approx(ks_2samp(ties, ties[:3]).statistic)
+    assert np.isnan(ks_statistic([], [1.0])) and np.isnan(wasserstein1([1.0], []))
+
+
+def test_bootstrap_intervals_cover_the_value_and_collapse_when_nothing_differs():
+    true = [particles(disc_labels(64, n=6, radius=r, seed=s)) for s, r in enumerate((4.0, 5.0, 6.0, 5.5, 4.5))]
+    same = compare_sizes(true, true, n_boot=200, seed=1)
+    for key in ("median_error", "count_error", "ks", "w1"):
+        assert same[key]["value"] == 0 and same[key]["low"] == 0 and same[key]["high"] == 0, key
+    bigger = [particles(disc_labels(64, n=6, radius=1.2 * r, seed=s)) for s, r in enumerate((4.0, 5.0, 6.0, 5.5, 4.5))]
+    stats = compare_sizes(bigger, true, n_boot=200, seed=1)
+    median = stats["median_error"]
+    assert 0.1 < median["value"] < 0.3 and median["low"] <= median["value"] <= median["high"]
+    assert median["high"] - median["low"] > 0  # images differ, so resampling them moves the median
+
+
+def test_evaluate_writes_particle_statistics_and_the_classical_baseline_finds_the_discs(tmp_path):
+    from drgan.evaluate import evaluate
+
+    ids = ["a", "b", "c"]
+    labels = {i: disc_labels(48, n=4, radius=5.0, seed=k) for k, i in enumerate(ids)}
+    data = make_real(
+        tmp_path / "real",
+        {i: disc_image(labels[i], seed=k) for k, i in enumerate(ids)},
+        {i: (labels[i] > 0) * 255 for i in ids},
+        {"train": [], "test": ids},
+    )
+    from drgan.segmentation.predictors import load_predictor
+
+    class Truth:  # a predictor that returns each image's own mask
+        source, how = "masks", ""
+
+        def check(self, items):
+            pass
+
+        def __call__(self, item):
+            return (labels[item.id] > 0).astype(np.uint8)
+
+    cfg = eval_cfg(data, tmp_path / "out", ["bootstrap=50"])
+    result = evaluate(cfg, predictors={"masks": Truth(), "classical": load_predictor("classical")})
+    exact = result["statistics"]["masks"]
+    assert exact["median_error"]["value"] == 0 and exact["count_error"]["value"] == 0 and exact["ks"]["value"] == 0
+    classical = result["statistics"]["classical"]
+    assert abs(classical["count_error"]["value"]) < 0.2 and abs(classical["median_error"]["value"]) < 0.2
+    text = (tmp_path / "out" / "statistics.md").read_text()
+    assert "| masks | " in text and "| classical | " in text and "bootstrap" in text
+    assert (tmp_path / "out" / "sizes.png").stat().st_size > 1000
+    assert "median_error" in (tmp_path / "out" / "statistics.csv").read_text()
