@@ -50,6 +50,10 @@ def hydra_job(tmp_path):
     from hydra import initialize_config_dir
     from hydra.core.hydra_config import HydraConfig
 
+    from drgan.configs import setup
+
+    setup()  # the schemas and shared groups the raw Hydra compose below needs
+
     sweep_dir = tmp_path / "multirun" / "tio2_sem" / "2026-11-23_23-44-47"
     sweep_dir.mkdir(parents=True)
     OmegaConf.save({"hydra": {"overrides": {"task": ["debug=fast", "seed=0,1"]}}}, sweep_dir / "multirun.yaml")

@@ -243,7 +243,7 @@ def test_bad_render_settings_fail_clearly(kwargs, match):
     "particle, match",
     [
         ({"roughness": {"min": 2.0, "max": 1.0}}, "min=2.0 > max=1.0"),
-        ({"roughness": {"min": -1.0, "max": 1.0}}, "expected >= 0"),
+        ({"roughness": {"min": -1.0, "max": 1.0}}, r"roughness\.min=-1\.0: expected a finite number >= 0"),
         ({"shininess": {"min": 0.0, "max": 1.0}}, "unknown Principled-BSDF parameter"),
         ({"roughness": {"min": 0.1}}, "expected keys"),
         ({"roughness": {"min": 0.1, "max": float("nan")}}, "finite"),

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import compose
-from omegaconf import MISSING
+from omegaconf import MISSING, OmegaConf
 from test_train import SIZE, run_train, tiny_overrides
 
 from drgan.errors import ConfigError
@@ -135,7 +135,6 @@ def test_a_misspelt_or_mistyped_material_key_fails_at_compose_naming_it(tmp_path
         ("misspelt", "n_particles_mn: 8", "n_particles_mn"),
         ("mistyped", "n_particles: many", "n_particles"),
         ("misspelt_light", "imaging:\n    torus_lihgt: {radiance: 2.0}", "torus_lihgt"),
-        ("mistyped_limit", "imaging:\n    particle_bsdf:\n      sheen: {min: low, max: 1.0}", "min"),
     ):
         write_material(
             tmp_path, name, f"# @package _global_\ndefaults:\n  - tio2_sem\nmaterial:\n  name: {name}\n  {body}\n"
@@ -147,10 +146,8 @@ def test_a_misspelt_or_mistyped_material_key_fails_at_compose_naming_it(tmp_path
 
 
 def test_a_saved_material_is_checked_too_and_names_only_registered_scenes():
-    from omegaconf import OmegaConf
-
     saved = OmegaConf.to_container(compose(["material=tio2_sem"]).material, resolve=True)  # as a checkpoint holds it
-    assert typed_material(saved).imaging.stage_bsdf["base_color"].max == 0.4
+    assert typed_material(saved).imaging.stage_bsdf["base_color"]["max"] == 0.4
     with pytest.raises(ConfigError, match=r"material\.imaging\._target_='os\.system': not a registered scene class"):
         typed_material({**saved, "imaging": {"_target_": "os.system"}})
     with pytest.raises(ConfigError, match=r"material\.n_particles_mn"):
@@ -203,10 +200,48 @@ def test_no_two_modules_import_each_other():
 
 
 def test_the_scene_protocol_is_what_both_scenes_implement(tiny_scene):
+    from test_transmission import make_scene as transmission_scene
+
     from drgan.scene.protocol import Scene
 
-    assert isinstance(tiny_scene, Scene)
-    assert np.array_equal(tiny_scene.instance_labels(), tiny_scene.instance_labels())
+    phi = np.array([[0.0, 0.0, 0.0, 20.0], [0.0, 0.0, 0.0, 0.0]], np.float32)  # one particle in the middle
+    for scene in (tiny_scene, transmission_scene(n=2, resolution=16, spp=1)):
+        assert isinstance(scene, Scene), type(scene)
+        if scene is not tiny_scene:
+            scene.set_layout(phi)
+            labels = scene.instance_labels()
+            assert labels[8, 8] == 1 and labels[0, 0] == 0 and set(np.unique(labels)) == {0, 1}
+            image = scene.render(torch.tensor([0.9, 0.5, 0.05]), seed=0)  # background, absorption, floor
+            assert image.shape == (16, 16) and image[8, 8] < image[0, 0]  # dark particle, bright film
+    assert not isinstance(object(), Scene)
+
+
+def test_an_installed_package_adds_an_imaging_mode_through_an_entry_point(tmp_path, monkeypatch):
+    """A scene class declared as an entry point (group drgan.scenes) is found by every command, as configs saved in
+    checkpoints need; other entry points are not imported."""
+    from importlib.metadata import EntryPoint
+
+    from drgan.scene import config
+
+    (tmp_path / "plugin_scene.py").write_text(
+        "from dataclasses import dataclass\n\n"
+        "from test_scene_protocol import SilhouetteImaging, SilhouetteScene\n\n\n"
+        "@dataclass\nclass PluginImaging(SilhouetteImaging):\n    _target_: str = 'plugin_scene.PluginScene'\n\n\n"
+        "class PluginScene(SilhouetteScene):\n    Config = PluginImaging\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    points = [
+        EntryPoint("other", "never_imported_scene:Scene", config.ENTRY_POINT_GROUP),
+        EntryPoint("plugin", "plugin_scene:PluginScene", config.ENTRY_POINT_GROUP),
+    ]
+    monkeypatch.setattr("importlib.metadata.entry_points", lambda group: [p for p in points if p.group == group])
+    assert "plugin_scene.PluginScene" in config.registered_scenes()
+    saved = OmegaConf.to_container(compose(["material=tio2_sem"]).material, resolve=True)
+    plugin = {"_target_": "plugin_scene.PluginScene", "background": {"value": 0.1}, "particle": {"min": 0.5, "max": 1}}
+    material = typed_material({**saved, "imaging": plugin})
+    assert type(material.imaging).__name__ == "PluginImaging"
+    assert config.scene_class("plugin_scene.PluginScene").__name__ == "PluginScene"
+    assert "never_imported_scene" not in sys.modules
 
 
 def test_configs_name_only_allowed_classes_wherever_they_build_objects():
@@ -227,5 +262,25 @@ def test_configs_name_only_allowed_classes_wherever_they_build_objects():
         build_discriminator(
             {"discriminator": {"_target_": "drgan.models.discriminator.PatchDiscriminator", "filter": 8}}
         )
+    with pytest.raises(ConfigError, match=r"size\.median\._target_: a value here cannot name a class"):
+        size_from_config(
+            {"_target_": "drgan.scene.layout.LognormalSize", "median": {"_target_": "os.system"}, "sigma": 0.2}
+        )
     with pytest.raises(ConfigError, match=r"LognormalSize\.sigma must be > 0"):
         size_from_config({"_target_": "drgan.scene.layout.LognormalSize", "median": 20.0, "sigma": -1.0})
+
+
+def test_parameter_limits_are_checked_before_anything_is_built_and_may_come_from_the_command_line():
+    """Limits are typed loosely (OmegaConf refuses command-line mappings and numbers in structured values), so
+    `typed_material` checks every one of them, naming it."""
+    cfg = compose(["+material.imaging.particle_bsdf.metallic={min:0.1,max:0.5}", "material.noise_sigma=0.05"])
+    material = typed_material(cfg.material)
+    learned = [p.key for p in material.imaging.material_parameters(material.noise_sigma).learned]
+    assert learned[-1] == "particle.metallic" and "noise.sigma" not in learned  # a bare number: fixed
+    for override, message in (
+        ("material.imaging.particle_bsdf.sheen.min=low", r"sheen\.min='low': expected a finite number"),
+        ("material.imaging.particle_bsdf.sheen.min=9", r"sheen: min=9\.0 > max=5\.0"),
+        ("+material.imaging.particle_bsdf.shine={value:1}", r"particle_bsdf\.shine: unknown Principled-BSDF"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            typed_material(compose([override]).material)

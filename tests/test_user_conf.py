@@ -50,7 +50,9 @@ def test_a_parameter_with_value_and_stray_keys_is_still_refused():
         **vars(material),
         "imaging": {"_target_": material.imaging._target_, "particle_bsdf": {"sheen": {"value": 0.0, "mean": 1.0}}},
     }
-    with pytest.raises(ConfigError, match=r"material\.imaging\.particle_bsdf\.sheen\.mean"):
+    with pytest.raises(
+        ConfigError, match=r"material\.imaging\.particle_bsdf\.sheen: expected keys .*got \[.mean., .value.\]"
+    ):
         typed_material(saved)
 
 

@@ -22,9 +22,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 
-import drgan  # noqa: F401  (registers the config resolvers)
+from drgan.configs import compose
 from drgan.data.patches import PatchSet, segment_particles
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 from drgan.models.build import build_scene, sample_phi
@@ -44,8 +43,7 @@ def render_components(overrides: list[str], n: int) -> dict[str, np.ndarray]:
         ("ring", ["material.imaging.top_light.radiance=0.0"]),
         ("top", ["material.imaging.torus_light.radiance=0.0", "material.imaging.top_light.radiance=1.0"]),
     ):
-        with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf" / "gan"), version_base="1.3"):
-            cfg = compose("train", ["experiment=tio2_sem", *overrides, *lights])
+        cfg = compose(["experiment=tio2_sem", *overrides, *lights], config_name="train")
         scene = build_scene(cfg, base_dir=ROOT)
         bsdf = torch.tensor([DEFAULTS[f"{p.surface}.{p.name}"] for p in scene.learned])
         images, labels = [], []

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 from scipy.ndimage import gaussian_filter
 
+from drgan.configs import compose
 from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 from drgan.models.build import build_scene, sample_phi
@@ -33,10 +33,10 @@ vals = {
     "particle.spec_tint": 2.725,
     "sigma": 0.0392,
 }
-with initialize_config_dir(str(ROOT / "src" / "drgan" / "conf" / "gan"), version_base="1.3"):
-    cfg = compose(
-        "train", ["experiment=tio2_sem", "material.n_particles=32", "material.n_particles_min=8", "renderer.spp=121"]
-    )
+cfg = compose(
+    ["experiment=tio2_sem", "material.n_particles=32", "material.n_particles_min=8", "renderer.spp=121"],
+    config_name="train",
+)
 ps = PatchSet.load(os.environ.get("PATCHES", ROOT / "runs/tio2_sem/r5_n20_decay/patches"))
 real, bgs = ps.train, ps.background
 ex = InceptionFeatures(batch_size=16)

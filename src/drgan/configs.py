@@ -44,16 +44,18 @@ CONF_DIR = Path(__file__).resolve().parent / "conf"
 # Optional[...] rather than `X | None`: OmegaConf reads these annotations at run time.
 @dataclass
 class RendererSchema:
-    """``renderer``: the render-quality settings of `drgan.scene.scene.RenderSettings` plus the Mitsuba variant."""
+    """``renderer``: the render-quality settings of `drgan.scene.scene.RenderSettings` plus the Mitsuba variant. Every
+    key may be null (= RenderSettings' default; drgan.generate: the checkpoint's), so that generate's overrides can
+    merge over a preset a material picks."""
 
-    variant: str = MISSING
-    integrator: str = MISSING
-    max_depth: int = MISSING
-    resolution: int = MISSING
-    spp: int = MISSING
+    variant: Optional[str] = MISSING  # noqa: UP045
+    integrator: Optional[str] = MISSING  # noqa: UP045
+    max_depth: Optional[int] = MISSING  # noqa: UP045
+    resolution: Optional[int] = MISSING  # noqa: UP045
+    spp: Optional[int] = MISSING  # noqa: UP045
     grad_spp: Optional[int] = MISSING  # noqa: UP045
-    grad_seed: str = MISSING
-    camera_distance: float = MISSING
+    grad_seed: Optional[str] = MISSING  # noqa: UP045
+    camera_distance: Optional[float] = MISSING  # noqa: UP045
 
 
 @dataclass
@@ -95,9 +97,8 @@ def renderer_overrides_schema() -> type:
     import dataclasses
     import typing
 
-    hints = typing.get_type_hints(RendererSchema)
-    optional = [(f.name, Optional[hints[f.name]]) for f in dataclasses.fields(RendererSchema)]  # noqa: UP045
-    fields = [(name, kind, dataclasses.field(default=None)) for name, kind in optional]
+    hints = typing.get_type_hints(RendererSchema)  # every one Optional already
+    fields = [(f.name, hints[f.name], dataclasses.field(default=None)) for f in dataclasses.fields(RendererSchema)]
     return dataclasses.make_dataclass("RendererOverrides", fields, bases=(RendererSchema,))
 
 
@@ -137,7 +138,7 @@ def setup() -> None:
 
 def register_imaging_schema(name: str, schema: type) -> None:
     """Make ``- /drgan_schema/imaging/NAME@material.imaging`` available to material files: the compose-time check of
-    a scene class's imaging keys (`drgan.scene.protocol.register_scene` registers the class itself)."""
+    a scene class's imaging keys (`drgan.scene.config.register_scene` registers the class itself)."""
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(group="drgan_schema/imaging", name=name, node=schema)

@@ -37,6 +37,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from drgan.errors import ConfigError
 from drgan.io import write_bytes
+from drgan.resolvers import user_tracking_uri  # noqa: F401  (the user's store is read before any logger changes it)
 
 log = logging.getLogger(__name__)
 

@@ -7,22 +7,19 @@ import os
 
 from omegaconf import OmegaConf
 
-_USER_TRACKING_URI: list[str | None] = []  # MLFLOW_TRACKING_URI as it was at the first `register_resolvers`
+# The user's MLFLOW_TRACKING_URI as it was when drgan was imported (reading it changes nothing). Read once, because
+# mlflow.set_tracking_uri (which Lightning's MLFlowLogger calls) overwrites the variable for the rest of the process:
+# a second run in the same process (tests, in-process sweeps) would otherwise log into the first run's store.
+_USER_TRACKING_URI = os.environ.get("MLFLOW_TRACKING_URI") or None
 
 
 def user_tracking_uri() -> str | None:
-    """The user's MLFLOW_TRACKING_URI as it was when the resolvers were registered. Read once, because
-    mlflow.set_tracking_uri (which Lightning's MLFlowLogger calls) overwrites the variable for the rest of the
-    process: a second run in the same process (tests, in-process sweeps) would otherwise log into the first run's
-    store."""
-    if not _USER_TRACKING_URI:
-        _USER_TRACKING_URI.append(os.environ.get("MLFLOW_TRACKING_URI") or None)
-    return _USER_TRACKING_URI[0]
+    """The user's MLFLOW_TRACKING_URI as it was when drgan was imported, or None."""
+    return _USER_TRACKING_URI
 
 
 def register_resolvers() -> None:
     """Register drgan's resolvers with OmegaConf (idempotent)."""
-    user_tracking_uri()
     # `${mul:a,b}` lets size configs scale the material's typical particle size (e.g. std = 0.25 x size).
     if not OmegaConf.has_resolver("mul"):
         OmegaConf.register_new_resolver("mul", lambda a, b: float(a) * float(b))

@@ -37,6 +37,9 @@ def build(node: Mapping, allowed: Iterable[type], setting: str, **given):
     if not isinstance(node, Mapping):
         raise ConfigError(f"{setting}: expected a mapping with a '_target_' key, got {type(node).__name__}")
     values = {key: value for key, value in dict(node).items() if not key.startswith("_")}
+    nested = _nested_target(values, setting)
+    if nested:
+        raise ConfigError(f"{nested}._target_: a value here cannot name a class (only {setting}._target_ may)")
     cls = allowed_class(node.get("_target_"), allowed, setting)
     parameters = inspect.signature(cls).parameters
     accepted = [name for name, p in parameters.items() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
@@ -45,9 +48,26 @@ def build(node: Mapping, allowed: Iterable[type], setting: str, **given):
     missing = [name for name in required if name not in values and name not in given]
     if missing:
         raise ConfigError(f"{setting} ({target_path(cls)}): missing field(s) {missing}; fields are {accepted}")
-    try:
-        return instantiate({"_target_": target_path(cls), **values}, **given)
+    try:  # not recursive: a nested mapping stays a plain value, never another object to build
+        return instantiate({"_target_": target_path(cls), **values}, **given, _recursive_=False, _convert_="all")
     except InstantiationException as error:
         if isinstance(error.__cause__, DrganError):
             raise error.__cause__ from None
         raise
+
+
+def _nested_target(value, where: str) -> str | None:
+    """The first setting below ``where`` that is a mapping with a ``_target_`` key, or None."""
+    if isinstance(value, Mapping):
+        if "_target_" in value:
+            return where
+        items = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = _nested_target(item, f"{where}.{key}")
+        if found:
+            return found
+    return None

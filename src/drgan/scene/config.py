@@ -48,8 +48,13 @@ PRINCIPLED_PARAMETERS = (
 @dataclass
 class ParameterRange:
     """One scalar of the scene: learned within ``{min, max}`` (the FCN's sigmoid is rescaled into them) or fixed
-    at ``{value}``. A material that fixes a parameter its parent learns writes ``{value: v}``; Hydra merges that
-    into ``{min, max, value}`` and the value wins."""
+    at ``{value}`` (or a bare number). A material that fixes a parameter its parent learns writes ``{value: v}``;
+    Hydra merges that into ``{min, max, value}`` and the value wins.
+
+    The material's parameter settings are typed ``Any`` rather than ``ParameterRange``: OmegaConf refuses a mapping
+    or a number added from the command line (``+material.imaging.particle_bsdf.metallic={min: 0, max: 1}``,
+    ``material.noise_sigma=0.05``) into a structured value. `typed_material` checks them all instead
+    (`drgan.scene.parameters.parse_parameter`), before anything is built."""
 
     min: Optional[float] = None  # noqa: UP045
     max: Optional[float] = None  # noqa: UP045
@@ -97,17 +102,19 @@ class TorusLight:
 
     def __post_init__(self):
         if self.shape not in LIGHT_SHAPES:
-            raise ConfigError(f"torus_light.shape={self.shape!r}: expected one of {', '.join(LIGHT_SHAPES)}")
+            raise ConfigError(
+                f"material.imaging.torus_light.shape={self.shape!r}: expected one of {', '.join(LIGHT_SHAPES)}"
+            )
         for name in ("radiance", "major_radius", "minor_radius", "height"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ConfigError(f"torus_light.{name}={value!r}: expected a finite number >= 0")
+                raise ConfigError(f"material.imaging.torus_light.{name}={value!r}: expected a finite number >= 0")
         if self.minor_radius >= self.major_radius:
             raise ConfigError(
-                f"torus_light.minor_radius={self.minor_radius} must be < major_radius={self.major_radius}"
+                f"material.imaging.torus_light.minor_radius={self.minor_radius} must be < major_radius={self.major_radius}"
             )
         if int(self.segments) < 8:
-            raise ConfigError(f"torus_light.segments={self.segments}: expected >= 8")
+            raise ConfigError(f"material.imaging.torus_light.segments={self.segments}: expected >= 8")
 
 
 @dataclass
@@ -144,9 +151,10 @@ class SecondaryImaging(ImagingConfig):
     stage: bool = True
     torus_light: Optional[TorusLight] = field(default_factory=TorusLight)  # noqa: UP045
     top_light: Optional[TopLight] = field(default_factory=TopLight)  # noqa: UP045
-    # Principled-BSDF parameters by name, in the FCN's output order (stage first, then particles).
-    particle_bsdf: Dict[str, ParameterRange] = field(default_factory=dict)  # noqa: UP006
-    stage_bsdf: Dict[str, ParameterRange] = field(default_factory=dict)  # noqa: UP006
+    # Principled-BSDF parameters by name ({min, max}, {value} or a number; `ParameterRange`), in the FCN's output
+    # order (stage first, then particles).
+    particle_bsdf: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
+    stage_bsdf: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
 
     def scene_parameters(self) -> tuple[Parameter, ...]:
         """The stage's, then the particles' BSDF parameters (the reference implementation's order)."""
@@ -173,13 +181,13 @@ class TransmissionImaging(ImagingConfig):
 
     _target_: str = "drgan.scene.transmission.TransmissionScene"
     noiseless: ClassVar[bool] = True  # path lengths through the particles: no sampling
-    background: ParameterRange = MISSING
-    absorption: ParameterRange = MISSING
-    floor: Optional[ParameterRange] = None  # noqa: UP045  (null: fixed at 0, a detector without offset)
+    background: Any = MISSING  # each a `ParameterRange`: {min, max}, {value} or a number
+    absorption: Any = MISSING
+    floor: Any = None  # null: fixed at 0, a detector without offset
 
     def scene_parameters(self) -> tuple[Parameter, ...]:
         """background, absorption, floor: also the FCN's output order."""
-        floor = self.floor if self.floor is not None else ParameterRange(value=0.0)
+        floor = self.floor if self.floor is not None else 0.0
         return tuple(
             parse_parameter("transmission", name, spec, f"material.imaging.{name}")
             for name, spec in (("background", self.background), ("absorption", self.absorption), ("floor", floor))
@@ -201,7 +209,7 @@ class Material:
     size_spread: float = 0.25  # relative spread of sizes (lognormal sigma; normal std / mean)
     contour_px: int = 1  # width of the contour class in masks
     filter_stddev: float = 0.5  # px: the instrument's blur (the render's reconstruction filter)
-    noise_sigma: Optional[ParameterRange] = None  # noqa: UP045  (the detector's noise; null: none)
+    noise_sigma: Any = None  # the detector's noise, a `ParameterRange`; null: none
     noise_grain_px: float = 0.0  # stddev (render px) of the noise's spatial correlation; 0 = white noise
     background_texture: TextureSettings = field(default_factory=TextureSettings)
     meshes: MeshSource = field(default_factory=MeshSource)
@@ -241,8 +249,12 @@ class Material:
 
 
 # -- the scene registry ----------------------------------------------------------------------------------
-# The scene classes a config may name (an allow-list). drgan's own, by import path -> (module, Config); their
-# modules import Mitsuba, so they are imported when a config first needs the class, not when configs are checked.
+# The scene classes a config may name (an allow-list): drgan's own, those registered in this process, and those an
+# installed package declares as entry points of the group ENTRY_POINT_GROUP (`name = "module:Class"`; loaded only
+# when a config names exactly that class, so a user's imaging mode works from every CLI and in checkpoints).
+# drgan's own, by import path -> (module, Config): their modules import Mitsuba, so they are imported when a config
+# first needs the class, not when configs are checked.
+ENTRY_POINT_GROUP = "drgan.scenes"
 BUILTIN_SCENES = {
     SecondaryImaging._target_: ("drgan.scene.scene", SecondaryImaging),
     TransmissionImaging._target_: ("drgan.scene.transmission", TransmissionImaging),
@@ -278,24 +290,50 @@ def register_scene(cls: type) -> type:
     return cls
 
 
+def _declared() -> dict[str, object]:
+    """Entry points of ENTRY_POINT_GROUP by the import path they name (read from package metadata, not loaded)."""
+    from importlib.metadata import entry_points
+
+    return {point.value.replace(":", ".").strip(): point for point in entry_points(group=ENTRY_POINT_GROUP)}
+
+
 def registered_scenes() -> Sequence[str]:
-    """Every scene class a config may name: drgan's and those registered."""
-    return sorted({*BUILTIN_SCENES, *_REGISTERED})
+    """Every scene class a config may name: drgan's, those registered, those installed packages declare."""
+    return sorted({*BUILTIN_SCENES, *_REGISTERED, *_declared()})
 
 
 def _unknown(target: str) -> ConfigError:
     return ConfigError(
         f"material.imaging._target_={target!r}: not a registered scene class; expected one of "
-        f"{', '.join(registered_scenes())} (a scene class of your own: drgan.scene.config.register_scene)"
+        f"{', '.join(registered_scenes())} (a scene class of your own: drgan.scene.config.register_scene, and an "
+        f"entry point of the group {ENTRY_POINT_GROUP!r} so that every drgan command finds it)"
     )
+
+
+def _load_declared(target: str) -> None:
+    """Load the entry point that names ``target`` (its class registers itself, or is registered here)."""
+    point = _declared().get(target)
+    if point is None:
+        return
+    try:
+        cls = point.load()
+    except Exception as error:
+        raise ConfigError(
+            f"scene entry point {point.name} = {point.value!r} (group {ENTRY_POINT_GROUP}) cannot be loaded: "
+            f"{type(error).__name__}: {error}"
+        ) from error
+    if target not in _REGISTERED:
+        register_scene(cls)
 
 
 def imaging_config(target: str) -> type:
     """The ``Config`` dataclass of the scene class ``target`` names (without importing drgan's scene modules)."""
-    if target in _REGISTERED:
-        return _REGISTERED[target].Config
     if target in BUILTIN_SCENES:
         return BUILTIN_SCENES[target][1]
+    if target not in _REGISTERED:
+        _load_declared(target)
+    if target in _REGISTERED:
+        return _REGISTERED[target].Config
     raise _unknown(target)
 
 
@@ -303,6 +341,8 @@ def scene_class(target: str) -> type:
     """The registered scene class ``target`` names (drgan's own are imported on first use)."""
     if target not in _REGISTERED and target in BUILTIN_SCENES:
         importlib.import_module(BUILTIN_SCENES[target][0])  # its classes register themselves
+    if target not in _REGISTERED:
+        _load_declared(target)
     if target not in _REGISTERED:
         raise _unknown(target)
     return _REGISTERED[target]
@@ -327,13 +367,16 @@ def typed_material(node: Any) -> Material:
     if not isinstance(imaging, Mapping) or not imaging.get("_target_"):
         raise ConfigError(
             "material.imaging._target_: missing; a material names its scene class, e.g. "
-            f"{SecondaryImaging._target_} (secondary electrons) or {TransmissionImaging._target_} (transmission)"
+            f"{SecondaryImaging._target_} (secondary electrons) or {TransmissionImaging._target_} (transmission). "
+            "A checkpoint or dataset written before materials named their scene class cannot be read: train anew"
         )
     schema = OmegaConf.structured(Material)
     schema.imaging = OmegaConf.structured(imaging_config(str(imaging["_target_"])))
     try:
-        return OmegaConf.to_object(OmegaConf.merge(schema, node))
+        material = OmegaConf.to_object(OmegaConf.merge(schema, node))
     except OmegaConfBaseException as error:
         key = getattr(error, "full_key", None)
         message = str(error).splitlines()[0]
         raise ConfigError(f"material.{key}: {message}" if key else f"material: {message}") from None
+    material.imaging.material_parameters(material.noise_sigma)  # every limit checked now, before anything is built
+    return material

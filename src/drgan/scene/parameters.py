@@ -9,11 +9,10 @@ configs); the noise sigma comes last.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, setting_float
 
 
 @dataclass(frozen=True)
@@ -41,8 +40,10 @@ class Parameter:
 
 
 def parse_parameter(surface: str, name: str, spec, where: str) -> Parameter:
-    """A Parameter from ``spec``: a mapping or an object with ``min``, ``max``, ``value`` (`ParameterRange`), unset
-    ones None. ``where`` names the setting in errors."""
+    """A Parameter from ``spec``: a number (fixed), or a mapping or object with ``min``, ``max``, ``value``
+    (`drgan.scene.config.ParameterRange`), unset ones None. ``where`` names the setting in errors."""
+    if isinstance(spec, (int, float)) and not isinstance(spec, bool):
+        spec = {"value": spec}
     if not isinstance(spec, Mapping):
         if not all(hasattr(spec, key) for key in ("min", "max", "value")):
             raise ConfigError(f"{where}: expected {{min: a, max: b}} (learned) or {{value: v}} (fixed), got {spec!r}")
@@ -52,17 +53,10 @@ def parse_parameter(surface: str, name: str, spec, where: str) -> Parameter:
     if "value" in keys and keys <= {"value", "min", "max"}:
         # A material that inherits another and fixes one of its learned parameters ({value: v} over the parent's
         # {min, max}): Hydra merges the two mappings into {min, max, value}; the value, written last, wins.
-        value = float(spec["value"])
-        if not math.isfinite(value) or value < 0:
-            raise ConfigError(f"{where}.value={spec['value']!r}: expected a finite number >= 0")
-        return Parameter(surface, name, value=value)
+        return Parameter(surface, name, value=setting_float(f"{where}.value", spec["value"], 0.0))
     if keys != {"min", "max"}:
         raise ConfigError(f"{where}: expected keys {{min, max}} or {{value}}, got {sorted(keys)}")
-    low, high = float(spec["min"]), float(spec["max"])
-    if not (math.isfinite(low) and math.isfinite(high)):
-        raise ConfigError(f"{where}: limits must be finite, got min={low}, max={high}")
-    if low < 0:
-        raise ConfigError(f"{where}.min={low}: expected >= 0")
+    low, high = setting_float(f"{where}.min", spec["min"], 0.0), setting_float(f"{where}.max", spec["max"], 0.0)
     if low > high:
         raise ConfigError(f"{where}: min={low} > max={high}; expected min <= max")
     return Parameter(surface, name, low=low, high=high)
