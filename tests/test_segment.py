@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import re
 from pathlib import Path
 
@@ -545,7 +546,7 @@ def test_segment_loader_settings_are_named_when_not_numbers(setting, message, tm
     assert not out.exists()
 
 
-def test_segment_stops_when_val_loss_stops_improving_and_says_why(tmp_path):
+def test_segment_stops_when_val_loss_stops_improving_and_says_why(tmp_path, caplog):
     """min_delta larger than any change: epoch 1 sets the best, epoch 2 is no improvement, patience 1 stops
     there, far before max_epochs; metrics.json names the reason. Without early stopping it runs max_epochs."""
     from drgan.errors import ConfigError
@@ -558,9 +559,50 @@ def test_segment_stops_when_val_loss_stops_improving_and_says_why(tmp_path):
         segment(compose(tiny_segment_overrides(data, tmp_path, out, "logger=none", "name=tiny", *extra), "segment"))
         return json.loads((out / "metrics.json").read_text())
 
-    record = run("stopped", "trainer.max_epochs=10", "early_stopping.patience=1", "early_stopping.min_delta=1e9")
+    with caplog.at_level(logging.WARNING, logger="drgan.segment"):
+        record = run("stopped", "trainer.max_epochs=10", "early_stopping.patience=1", "early_stopping.min_delta=1e9")
     assert record["epoch"] == 2 and record["stop_reason"].startswith("patience: val/loss")
+    # two validation epochs cannot show a settled score: the run says so (metrics.json and a warning)
+    assert not record["settled"] and len(record["val_dsc_history"]) == 2
+    assert "stopped before its validation score settled (only 2 validation epoch(s))" in caplog.text
     record = run("full", "trainer.max_epochs=3", "early_stopping=null")
     assert record["epoch"] == 3 and record["stop_reason"] == "max_epochs"
     with pytest.raises(ConfigError, match="early_stopping.monitor"):
         run("bad", "early_stopping.monitor=train/loss")
+
+
+def test_real_images_are_sampled_by_their_area_and_generated_pairs_once_each(tmp_path):
+    """An epoch of a few large real images is not a few crops: loader.samples_per_pair=auto draws round(area /
+    crop^2) crops of each real image, and one of each generated pair (their number already sets the epoch)."""
+    from drgan.segment import dataloaders, load_training_pairs
+    from drgan.segmentation.data import CropDataset, crops_by_area
+
+    labels = {i: disc_labels(64, seed=k) for k, i in enumerate(("a", "b", "c"))}
+    real = make_real(
+        tmp_path / "real",
+        {i: disc_image(v) for i, v in labels.items()},
+        {i: (v > 0) * 255 for i, v in labels.items()},
+        {"train": ["a", "b", "c"], "test": []},
+    )
+    base = ["crop_rows=null", f"out={tmp_path / 'o'}", "loader.crop=16", "loader.batch_size=4", "val_fraction=0"]
+    cfg = compose([f"real={real}", *base], config_name="segment")
+    pairs = load_training_pairs(cfg)
+    assert crops_by_area(pairs, 16) == [16, 16, 16]
+    train, _, n_train, _ = dataloaders(cfg, pairs)
+    assert n_train == 3 and len(train.dataset) == 48 and len(train) == 12
+    generated = compose([f"data={make_generated(tmp_path / 'gen', n=5, size=64)}", *base], config_name="segment")
+    train, *_ = dataloaders(generated, load_training_pairs(generated))
+    assert len(train.dataset) == 5
+    fixed = compose([f"real={real}", *base, "loader.samples_per_pair=2"], config_name="segment")
+    assert len(dataloaders(fixed, pairs)[0].dataset) == 6
+    with pytest.raises(DataError, match="one count >= 1 per pair"):
+        CropDataset(pairs, crop=16, augment=True, samples_per_pair=[1, 0, 1])
+
+
+def test_a_validation_score_has_settled_only_when_the_last_epochs_stopped_raising_it():
+    from drgan.segmentation.module import settled
+
+    assert settled([0.2, 0.5, 0.6, 0.6, 0.605, 0.6])[0]  # +0.005 over the last 3 epochs
+    rising, why = settled([0.2, 0.3, 0.32, 0.34, 0.36])
+    assert not rising and "0.300 to 0.360" in why
+    assert not settled([0.9, 0.9, 0.9])[0]  # too few epochs to tell

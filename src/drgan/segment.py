@@ -49,7 +49,9 @@ def loader_settings(cfg: DictConfig) -> dict:
     ld = cfg.loader
     return {
         "crop": setting_int("loader.crop", ld.crop, 1),
-        "samples_per_pair": setting_int("loader.samples_per_pair", ld.samples_per_pair, 1),
+        "samples_per_pair": (
+            "auto" if ld.samples_per_pair == "auto" else setting_int("loader.samples_per_pair", ld.samples_per_pair, 1)
+        ),
         "batch_size": setting_int("loader.batch_size", ld.batch_size, 1),
         "num_workers": setting_int("loader.num_workers", ld.num_workers, 0),
         "brightness": setting_float("loader.brightness", ld.brightness, 0.0),
@@ -64,10 +66,15 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none"):
     training crops get as its inference will (``input_normalization``)."""
     from torch.utils.data import DataLoader
 
-    from drgan.segmentation.data import CropDataset, split_pairs
+    from drgan.segmentation.data import CropDataset, crops_by_area, split_pairs
 
     ld = loader_settings(cfg)
     train_pairs, val_pairs = split_pairs(pairs, ld["val_fraction"], ld["seed"])
+    per_pair = ld["samples_per_pair"]
+    if per_pair == "auto":
+        # Real images are sampled by their area (an epoch of 20 large tiles is not 20 crops); generated pairs are
+        # windows the GAN rendered, sampled once each, as their number (1,000 and more) already sets the epoch.
+        per_pair = crops_by_area(train_pairs, ld["crop"]) if cfg.get("real") else 1
     kw = dict(
         crop=ld["crop"],
         brightness=ld["brightness"],
@@ -75,11 +82,12 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none"):
         seed=ld["seed"],
         normalize=normalize,
     )
+    crops = CropDataset(train_pairs, augment=True, samples_per_pair=per_pair, **kw)
     train = DataLoader(
-        CropDataset(train_pairs, augment=True, samples_per_pair=ld["samples_per_pair"], **kw),
+        crops,
         batch_size=ld["batch_size"],
         shuffle=True,
-        drop_last=len(train_pairs) * ld["samples_per_pair"] > ld["batch_size"],
+        drop_last=len(crops) > ld["batch_size"],
         num_workers=ld["num_workers"],
         persistent_workers=ld["num_workers"] > 0,
     )
@@ -130,6 +138,7 @@ def segment(cfg: DictConfig) -> dict:
 
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
+    from drgan.segmentation.module import ScoreHistory, settled
     from drgan.segmentation.registry import build_segmenter
 
     wall_start = time.perf_counter()
@@ -160,7 +169,8 @@ def segment(cfg: DictConfig) -> dict:
         save_last=False,
         save_top_k=1,
     )
-    callbacks = [ResumeCheckpoint(), checkpoint, *([stopper] if stopper is not None else [])]
+    scores = ScoreHistory()
+    callbacks = [ResumeCheckpoint(), checkpoint, scores, *([stopper] if stopper is not None else [])]
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     start_loggers(loggers)
 
@@ -187,6 +197,13 @@ def segment(cfg: DictConfig) -> dict:
     metrics["time/wall_s"] = time.perf_counter() - wall_start
     stop = stop_reason(trainer, stopper)
     log.info("stopped after epoch %d: %s", trainer.current_epoch - 1, stop)
+    is_settled, why = settled(scores.history) if val_loader is not None else (True, "no validation pairs")
+    if not is_settled:
+        log.warning(
+            "the segmenter stopped before its validation score settled (%s): it is likely undertrained; raise "
+            "early_stopping.patience or trainer.max_epochs (or set loader.samples_per_pair for longer epochs)",
+            why,
+        )
     last = out / "checkpoints" / "last.ckpt"
     for logger in loggers:
         logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
@@ -194,7 +211,15 @@ def segment(cfg: DictConfig) -> dict:
             logger.experiment.log_artifact(logger.run_id, str(last), artifact_path="checkpoints")
     write_json(
         out / "metrics.json",
-        {"epoch": trainer.current_epoch, "global_step": trainer.global_step, "stop_reason": stop, **metrics},
+        {
+            "epoch": trainer.current_epoch,
+            "global_step": trainer.global_step,
+            "stop_reason": stop,
+            "settled": is_settled,
+            "settled_why": why,
+            "val_dsc_history": scores.history,
+            **metrics,
+        },
     )
     log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
     return metrics

@@ -259,8 +259,15 @@ def split_pairs(pairs: list[Pair], val_fraction: float, seed: int) -> tuple[list
     return [p for k, p in enumerate(pairs) if k not in val], [p for k, p in enumerate(pairs) if k in val]
 
 
+def crops_by_area(pairs: list[Pair], crop: int) -> list[int]:
+    """Crops per pair and epoch in proportion to each image's area: round(area / crop^2), at least 1, so that an epoch
+    covers the images' area about once whatever their number (20 large tiles are not 20 samples)."""
+    return [max(1, round(p.image.size / float(crop * crop))) for p in pairs]
+
+
 class CropDataset(Dataset):
-    """Random crops of the pairs, `samples_per_pair` per pair and epoch.
+    """Random crops of the pairs, `samples_per_pair` per pair and epoch (one number for all, or one per pair, e.g.
+    `crops_by_area`).
 
     augment: a random dihedral transform (8 flips/rotations) and a small brightness/contrast jitter,
     x -> clip((x - mean) * c + mean + b) with c in [1 - contrast, 1 + contrast], b in [-brightness, brightness].
@@ -275,7 +282,7 @@ class CropDataset(Dataset):
         pairs: list[Pair],
         crop: int,
         augment: bool,
-        samples_per_pair: int = 1,
+        samples_per_pair: int | list[int] = 1,
         brightness: float = 0.05,
         contrast: float = 0.1,
         seed: int = 0,
@@ -284,20 +291,22 @@ class CropDataset(Dataset):
         if not pairs:
             raise DataError("segmentation dataset: no image/mask pairs")
         self.pairs, self.crop, self.augment = pairs, int(crop), augment
-        self.samples_per_pair, self.brightness, self.contrast, self.seed = (
-            int(samples_per_pair),
-            brightness,
-            contrast,
-            seed,
-        )
+        counts = [int(samples_per_pair)] * len(pairs) if isinstance(samples_per_pair, int) else list(samples_per_pair)
+        if len(counts) != len(pairs) or min(counts) < 1:
+            raise DataError(
+                f"samples_per_pair: expected one count >= 1 per pair ({len(pairs)}), got {samples_per_pair}"
+            )
+        self.owner = np.repeat(np.arange(len(pairs)), counts)  # sample index -> pair index
+        self.brightness, self.contrast, self.seed = brightness, contrast, seed
         mode = check_normalize(normalize, "loader normalize")
         self.stats = [normalization(p.image, mode) for p in pairs]  # (shift, scale) of each whole image
 
     def __len__(self) -> int:
-        return len(self.pairs) * self.samples_per_pair
+        return len(self.owner)
 
     def __getitem__(self, index: int):
-        pair, (shift, scale) = self.pairs[index % len(self.pairs)], self.stats[index % len(self.pairs)]
+        owner = int(self.owner[index])
+        pair, (shift, scale) = self.pairs[owner], self.stats[owner]
         rng = np.random.default_rng() if self.augment else np.random.default_rng((self.seed, index))
         image, mask = pair.image, pair.mask
         c = self.crop

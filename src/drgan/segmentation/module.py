@@ -76,3 +76,35 @@ class SegmenterModule(L.LightningModule):
 
     def configure_optimizers(self):
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+
+
+SETTLE_EPOCHS, SETTLE_GAIN = 3, 0.01  # settled: the last 3 epochs raised the best val/dsc by less than 0.01
+
+
+class ScoreHistory(L.Callback):
+    """val/dsc of every validation epoch, saved in checkpoints (a resumed run knows its whole history)."""
+
+    def __init__(self):
+        self.history: list[float] = []
+
+    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+        value = trainer.callback_metrics.get("val/dsc")
+        if value is not None and not trainer.sanity_checking:
+            self.history.append(float(value))
+
+    def state_dict(self) -> dict:
+        return {"history": list(self.history)}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.history = [float(v) for v in state_dict.get("history", [])]
+
+
+def settled(history: list[float]) -> tuple[bool, str]:
+    """(whether the validation score had settled when training stopped, why): the best val/dsc of the last
+    SETTLE_EPOCHS epochs is less than SETTLE_GAIN above the best before them."""
+    if len(history) <= SETTLE_EPOCHS:
+        return False, f"only {len(history)} validation epoch(s)"
+    before, last = max(history[:-SETTLE_EPOCHS]), max(history[-SETTLE_EPOCHS:])
+    if last - before >= SETTLE_GAIN:
+        return False, f"val/dsc still rose from {before:.3f} to {last:.3f} over the last {SETTLE_EPOCHS} epochs"
+    return True, f"val/dsc gained {last - before:+.3f} over the last {SETTLE_EPOCHS} epochs"
