@@ -125,7 +125,7 @@ def profile(cfg: DictConfig) -> dict:
         params, scale = resolve_params(images[::step][:SCALE_IMAGES], setting, polarity)
     except NoParticles as error:
         _write_failure_figure(out, images, polarity, None)
-        raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, str(error), out)) from None
+        raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
 
     tables, foregrounds, labels_kept, counts, ce, separabilities = [], [], [], [], [], []
     for image in tqdm(images, desc="segmenting", unit="image"):

@@ -475,7 +475,7 @@ class NoParticles(DataError):
     """No particle found; the message says what was tried and which keys to set."""
 
     def __init__(self, what: str, params: SegmentParams):
-        self.params = params
+        self.what, self.params = what, params
         super().__init__(
             f"no particles found: {what}. Set the particle size by hand with data.segment.scale=DIAMETER_PX (and, "
             "if needed, data.segment.sigma, min_distance, min_area, max_area, min_separability), or data.polarity="
