@@ -136,13 +136,19 @@ def test_background_patches_hold_no_particle(synthetic, caplog):
     for (r, c), f in zip(ps.background_positions, ps.background_fractions):
         assert f == 0
         assert not mask[r : r + SIZE, c : c + SIZE].any()
-    # Asking for more than exist: the emptiest others fill up, and the shortfall is reported.
+    # Asking for more than exist: only particle-free windows are taken (fewer than asked), and the shortfall is said.
     with caplog.at_level(logging.WARNING, logger="drgan.data.patches"):
         many = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, n_background=40, progress=False)
     report = many.params["background_report"]
-    assert report["empty"] == int(np.sum(many.background_fractions == 0)) < report["found"]
-    assert report["max_foreground_fraction"] == pytest.approx(many.background_fractions.max())
-    assert "free of foreground" in caplog.text
+    assert report["found"] == len(many.background) < 40 and not many.background_fractions.any()
+    for r, c in many.background_positions:
+        assert not mask[r : r + SIZE, c : c + SIZE].any()
+    assert "free of particles" in caplog.text
+    # A field covered with particles has no background window: none is taken, and that is no error.
+    full = mine_patches([image[:, : SIZE + 8]], ["full"], size=SIZE, n_background=5, progress=False)
+    assert full.params["background_report"]["found"] == len(full.background) == 0 or not any(
+        mask[r : r + SIZE, c : c + SIZE].any() for r, c in full.background_positions
+    )
 
 
 def test_image_smaller_than_patch_names_image():
@@ -352,7 +358,8 @@ def test_train_with_too_few_patches_stops_before_fit(tmp_path, monkeypatch):
     monkeypatch.setattr(L.Trainer, "fit", lambda *a, **k: pytest.fail("training started on too few patches"))
     folder = make_images(tmp_path / "images", n=3, size=40, seed=2)
     with pytest.raises(DataError, match=r"only 1 24 px patch.*training needs at least 2.*data\.stride"):
-        run_train(tiny_overrides(folder, tmp_path / "run", extra=["data.min_particles=2"]))
+        segment = [f"data.segment.{k}={v}" for k, v in (("sigma", 1.0), ("min_distance", 7), ("min_area", 40))]
+        run_train(tiny_overrides(folder, tmp_path / "run", extra=["data.min_particles=2", *segment]))
 
 
 # --- user settings converted with their key named -------------------------------------------------------------

@@ -11,7 +11,7 @@ from PIL import Image
 from scipy import ndimage as ndi
 
 from drgan.data import profile as est
-from drgan.data.patches import SegmentParams
+from drgan.data.particles import resolve_params
 from drgan.errors import ConfigError, DataError
 
 GREY = {"bright": 0.25, "dark": 0.75}  # background grey level
@@ -40,10 +40,10 @@ def synthetic(polarity, rng, size=320, n=30, median=20.0, sigma=0.25, noise=0.03
 
 
 def measure(images, polarity):
-    params = est.tune_segment_params(20.0)
+    params, _ = resolve_params(images, None, polarity)  # the scale measured, as the profile does
     tables, fgs = [], []
     for image in images:
-        labels, fg = est.segment_image(image, params, polarity)
+        labels, fg, _ = est.segment_image(image, params, polarity)
         tables.append(est.particle_table(labels))
         fgs.append(fg)
     d = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
@@ -196,11 +196,3 @@ def test_errors_before_compute(tmp_path, monkeypatch):
     with pytest.raises(ConfigError, match="name"):
         profile(compose([f"data.dir={folder}"], config_name="profile"))
     assert not (tmp_path / "drgan_conf").exists()
-
-
-def test_segment_params_scale_with_the_first_pass_size():
-    assert est.tune_segment_params(24.0) == est.tune_segment_params(30.0)  # the calibrated range
-    big = est.tune_segment_params(80.0)
-    assert big.min_distance > 6 and big.min_area > SegmentParams().min_area
-    with pytest.raises(DataError):
-        est.tune_segment_params(float("nan"))

@@ -106,6 +106,8 @@ def datamodule(data_dir, tmp_path, **kw):
         n_background=2,
         cache_dir=str(tmp_path / "patches"),
         resolution=SIZE,
+        # The lengths these tiny images were drawn for (discs of 9 px, partial ones not counted), set by hand.
+        segment={"sigma": 1.0, "min_distance": 7, "min_area": 40, "max_area": 4000},
     )
     args.update(kw)
     return RealPatchDataModule(**args)

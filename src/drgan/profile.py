@@ -23,14 +23,14 @@ from tqdm import tqdm
 
 from drgan.data import profile as est
 from drgan.data.images import list_images, read_grey, read_split
-from drgan.data.patches import SegmentParams
+from drgan.data.particles import NoParticles, SegmentParams, resolve_params
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.io import figure_png, write_bytes, write_json
 
 log = logging.getLogger(__name__)
 
-FIRST_PASS_IMAGES = 8  # images segmented with the default SegmentParams for the first size estimate
+SCALE_IMAGES = 8  # images the particle scale is estimated on (spread over the set)
 
 
 # --- settings and images ----------------------------------------------------------------------------------
@@ -116,27 +116,40 @@ def profile(cfg: DictConfig) -> dict:
     polarity, estimate = resolve_polarity(polarity_setting, images)
     log.info("polarity: %s (%s)", polarity, "detected" if estimate else "set")
 
-    # First pass: default segmentation on a few images -> a size scale for the parameters of the second pass.
-    step = max(1, len(images) // FIRST_PASS_IMAGES)
-    first = []
-    for image in tqdm(images[::step][:FIRST_PASS_IMAGES], desc="first pass", unit="image"):
-        table = est.particle_table(est.segment_image(image, SegmentParams(), polarity)[0])
-        first.append(table["diameter_px"][~table["touches_border"]])
-    first_median = float(np.median(np.concatenate(first))) if sum(map(len, first)) else float("nan")
-    params = est.tune_segment_params(first_median)
+    # The particle scale (and from it every segmentation length), on up to SCALE_IMAGES images spread over the set;
+    # data.segment keys given are kept as given.
+    out = Path(str(cfg.out))
+    setting = _segment_setting(cfg)
+    step = max(1, len(images) // SCALE_IMAGES)
+    try:
+        params, scale = resolve_params(images[::step][:SCALE_IMAGES], setting, polarity)
+    except NoParticles as error:
+        _write_failure_figure(out, images, polarity, None)
+        raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
 
-    tables, foregrounds, labels_kept, counts, ce = [], [], [], [], []
+    tables, foregrounds, labels_kept, counts, ce, separabilities = [], [], [], [], [], []
     for image in tqdm(images, desc="segmenting", unit="image"):
-        labels, foreground = est.segment_image(image, params, polarity)
+        labels, foreground, separability = est.segment_image(image, params, polarity)
         table = est.particle_table(labels)
         tables.append(table)
         foregrounds.append(foreground)
+        separabilities.append(separability)
         labels_kept.append(labels if len(labels_kept) < 4 else None)
         counts.append(est.patch_counts(table["row"], table["col"], labels.shape, patch))
         ce.append(est.clark_evans(table["row"], table["col"], labels.size))
+    if not sum(len(t["diameter_px"]) for t in tables):
+        _write_failure_figure(out, images, polarity, labels_kept)
+        what = (
+            f"the particle scale {params.scale} px was found, but no segment of plausible area "
+            f"({params.min_area}-{params.max_area} px^2) came out of the watershed (settings {params.as_dict()}; Otsu "
+            f"separability {max(separabilities):.2f}, needed {params.min_separability})"
+        )
+        raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, what, out))
     noise = est.background_noise(images, foregrounds)
 
     inner = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
+    if inner.size == 0:  # every particle touches the border: their sizes are cut, but they are all there is
+        inner = np.concatenate([t["diameter_px"] for t in tables])
     fits, chosen = est.fit_sizes(inner, seed=int(cfg.get("seed", 0)))
     counts = np.concatenate(counts)
     touching = float(np.mean(np.concatenate([t["touches_other"] for t in tables])))
@@ -159,8 +172,11 @@ def profile(cfg: DictConfig) -> dict:
         },
         "polarity": {"value": polarity, "setting": polarity_setting, **(estimate.as_dict() if estimate else {})},
         "segmentation": {
-            "first_pass_median_diameter_px": round(first_median, 3),
-            "params": params.__dict__,
+            "scale_px": params.scale,
+            "scale_estimate": scale.as_dict() if scale else None,
+            "setting": {k: v for k, v in setting.as_dict().items() if v != SegmentParams().as_dict()[k]},
+            "separability_median": round(float(np.median(separabilities)), 4),
+            "params": params.as_dict(),
             "particles": int(sum(len(t["diameter_px"]) for t in tables)),
             "particles_not_touching_border": int(inner.size),
         },
@@ -197,16 +213,39 @@ def profile(cfg: DictConfig) -> dict:
             "images_with_size": len(known),
         },
     }
-    out = Path(str(cfg.out))
     result["out"] = str(out.resolve())
     _write_figures(out, images, labels_kept, inner, fits, chosen, noise, foregrounds, counts, polarity)
     parent, yaml_text = material_yaml(result, fits, chosen)
-    result["material"] = {"parent": parent, "config": str(conf_path.resolve())}
+    result["material"] = {"parent": parent, "config": str(conf_path.resolve()), "data": data_settings(result)[0]}
     write_json(out / "profile.json", result)
     write_bytes(out / "report.md", report_markdown(result).encode())
     write_bytes(conf_path, yaml_text.encode())
     log.info("wrote %s and %s (parent material %s)", out / "profile.json", conf_path, parent)
     return result
+
+
+def _segment_setting(cfg: DictConfig) -> SegmentParams:
+    """data.segment: SegmentParams keys to set by hand (null or {}: all from the particle scale)."""
+    segment = cfg.data.get("segment")
+    return SegmentParams.from_config(OmegaConf.to_container(segment) if isinstance(segment, DictConfig) else segment)
+
+
+def _nothing_found(folder: Path, n: int, polarity: str, setting: str, what: str, out: Path) -> str:
+    other = "dark" if polarity == "bright" else "bright"
+    return (
+        f"profile: data.dir={folder}: no particles found in {n} image(s) ({polarity} particles, "
+        f"{'detected' if setting == 'auto' else 'set'}): {what}. The images, as the profile read them, are in "
+        f"{out / 'particles.png'}. If they show particles: set their diameter with data.segment.scale=PX (seen in "
+        f"the figure), data.polarity={other} if they are {other}er than their background, data.crop_rows if a bar "
+        "hides them; data.segment.min_separability lower (e.g. 0.6) for faint particles"
+    )
+
+
+def _write_failure_figure(out: Path, images, polarity: str, labels) -> None:
+    """particles.png even when nothing was found: the images (with any segments) the user is asked to look at."""
+    labels = labels or [None] * min(4, len(images))
+    _outline_figure(out, images, [lab if lab is not None else np.zeros(im.shape, np.int32) for im, lab in
+                                  zip(images, labels)][:4], polarity)  # fmt: skip
 
 
 def _quantiles(counts: np.ndarray) -> dict:
@@ -231,6 +270,39 @@ def choose_parent(polarity: str, kind: str, median_px: float) -> tuple[str, str]
         return "sio2_him", "bright, round (axis ratio < 1.3): the sphere material"
     parent = min(PAPER_SIZES, key=lambda k: abs(math.log(median_px / PAPER_SIZES[k])))
     return parent, f"bright, irregular: the TiO2 material of the nearest size ({PAPER_SIZES[parent]:.0f} px)"
+
+
+def data_settings(result: dict) -> tuple[dict, dict]:
+    """(data keys, notes): the segmentation the profile validated (data.segment, so that training mines with the
+    same lengths) and data.min_particles when too few windows hold the default 3 particles (large particles)."""
+    seg, counts = result["segmentation"], result["particles_per_patch"]
+    given = seg["setting"]
+    data = {"segment": {k: v for k, v in seg["params"].items() if k in SEGMENT_KEYS}}
+    estimate = seg["scale_estimate"]
+    how = (
+        "set by hand (data.segment)"
+        if "scale" in given
+        else f"measured: LoG blob scale {estimate['diameter_px']} px, refined to the segments' own median "
+        f"({estimate['refined_px']} px)"
+    )
+    notes = {
+        "data.segment.scale": f"particle diameter {seg['scale_px']} px, {how}",
+        "data.segment (sigma, min_distance, min_area, max_area, background)": "from the scale unless set by hand"
+        + (f" ({', '.join(sorted(given))} given)" if given else "")
+        + f"; Otsu separability {seg['separability_median']:.2f} (particles segmented: {seg['particles']})",
+    }
+    enough = counts["with_3_or_more"]["windows"] / max(1, counts["windows"])
+    if enough < MIN_WINDOW_SHARE:
+        data["min_particles"] = max(1, min(3, int(counts["median"])))
+        notes["data.min_particles"] = (
+            f"{data['min_particles']}: only {100 * enough:.0f} % of the {counts['patch_size']} px windows hold 3 or "
+            f"more particles (median {counts['median']:g})"
+        )
+    return data, notes
+
+
+SEGMENT_KEYS = ("scale", "sigma", "min_distance", "min_area", "max_area", "background")
+MIN_WINDOW_SHARE = 0.2  # below this share of windows with >= 3 particles, training mines windows with fewer
 
 
 def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict, dict, dict]:
@@ -326,11 +398,14 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
     body = {"material": material}
     if size:
         body["size"] = size
+    segmentation, data_notes = data_settings(result)
+    notes.update(data_notes)
     body["data"] = {
         "dir": data["dir"],
         "crop_rows": data["crop_rows"],
         "split": data["split"],
         "polarity": material["polarity"],
+        **segmentation,
     }
     header = [
         "# @package _global_",
@@ -362,6 +437,13 @@ def report_markdown(r: dict) -> str:
         for f in s["fits"]
     )
     px = r["pixel_size"]
+    _, data_notes = data_settings(r)
+    seg_table = "| key | value | why |\n|---|---|---|\n" + "\n".join(
+        f"| data.segment.{k} | {v} | {'set by hand' if k in seg['setting'] else 'from the scale'} |"
+        for k, v in seg["params"].items()
+        if k in SEGMENT_KEYS
+    )
+    seg_table += "\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in data_notes.items())
     return f"""# Profile: {r["name"]}
 
 {r["data"]["images"]} image(s) of `{r["data"]["dir"]}` (crop_rows {r["data"]["crop_rows"]}, split {r["data"]["split"]}).
@@ -384,8 +466,9 @@ Material config: `{r["material"]["config"]}` (parent `{r["material"]["parent"]}`
 | pixel size | {px["nm_per_px"]} nm ({px["source"]}) |
 
 Particles per patch: {c["definition"]}.
-Segmentation: drgan.data.patches.segment_particles with {r["segmentation"]["params"]}
-(first-pass median diameter {r["segmentation"]["first_pass_median_diameter_px"]} px).
+## Segmentation (drgan.data.particles; written to the material's `data` keys, so training mines alike)
+
+{seg_table}
 
 ## Diameter fits ({s["criterion"]})
 
@@ -398,8 +481,6 @@ Figures: `sizes.png`, `particles.png` (real images: keep them out of repositorie
 
 
 def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrounds, counts, polarity) -> None:
-    from skimage.segmentation import find_boundaries
-
     def sizes(plt):
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.hist(diameters, bins=40, density=True, color="0.8", label=f"{diameters.size} particles")
@@ -410,17 +491,6 @@ def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrou
         ax.set_xlabel("equivalent diameter (px)")
         ax.set_ylabel("density")
         ax.legend()
-        return fig
-
-    def outlines(plt):
-        shown = [(im, lab) for im, lab in zip(images, labels) if lab is not None][:4]
-        fig, axes = plt.subplots(1, len(shown), figsize=(5 * len(shown), 4), squeeze=False)
-        for ax, (im, lab) in zip(axes[0], shown):
-            rgb = np.repeat(im[..., None], 3, axis=2)
-            rgb[find_boundaries(lab, mode="outer")] = (1.0, 0.2, 0.1)
-            ax.imshow(rgb)
-            ax.set_title(f"{int(lab.max() and len(np.unique(lab)) - 1)} segments ({polarity})")
-            ax.axis("off")
         return fig
 
     def background(plt):
@@ -447,8 +517,25 @@ def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrou
         return fig
 
     write_bytes(out / "sizes.png", figure_png(sizes))
-    write_bytes(out / "particles.png", figure_png(outlines))
+    _outline_figure(out, images, labels, polarity)
     write_bytes(out / "background_noise.png", figure_png(background))
+
+
+def _outline_figure(out: Path, images, labels, polarity: str) -> None:
+    from skimage.segmentation import find_boundaries
+
+    def outlines(plt):
+        shown = [(im, lab) for im, lab in zip(images, labels) if lab is not None][:4]
+        fig, axes = plt.subplots(1, len(shown), figsize=(5 * len(shown), 4), squeeze=False)
+        for ax, (im, lab) in zip(axes[0], shown):
+            rgb = np.repeat(im[..., None], 3, axis=2)
+            rgb[find_boundaries(lab, mode="outer")] = (1.0, 0.2, 0.1)
+            ax.imshow(rgb)
+            ax.set_title(f"{int(lab.max() and len(np.unique(lab)) - 1)} segments ({polarity})")
+            ax.axis("off")
+        return fig
+
+    write_bytes(out / "particles.png", figure_png(outlines))
 
 
 @hydra.main(version_base="1.3", config_path="conf/gan", config_name="profile")

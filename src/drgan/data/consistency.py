@@ -13,8 +13,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from drgan.data.patches import SegmentParams, particle_diameters
-from drgan.errors import ConfigError
+from drgan.data.particles import SegmentParams, resolve_params, segment_diameters, segment_particles
+from drgan.errors import ConfigError, DataError
 from drgan.scene.config import Material
 
 log = logging.getLogger(__name__)
@@ -26,8 +26,16 @@ N_IMAGES = 6  # training images looked at (about one second each)
 def data_particle_size(
     images: Sequence[np.ndarray], polarity: str, segment: SegmentParams | None = None
 ) -> float | None:
-    """Median equivalent diameter (px) of the particles segmented in ``images``, or None when none is found."""
-    diameters = np.concatenate([particle_diameters(image, segment, polarity) for image in images] or [np.zeros(0)])
+    """Median equivalent diameter (px) of the particles segmented in ``images`` (one particle scale for all), or None
+    when none is found."""
+    try:
+        segment, _ = resolve_params(list(images), segment, polarity)
+    except DataError:
+        return None
+    diameters = np.concatenate(
+        [segment_diameters(segment_particles(image, segment, polarity)[0], segment) for image in images]
+        or [np.zeros(0)]
+    )
     return float(np.median(diameters)) if diameters.size else None
 
 

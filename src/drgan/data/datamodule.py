@@ -119,10 +119,10 @@ class RealPatchDataModule(LightningDataModule):
         self.min_particles = int(min_particles)
         self.n_background = int(n_background)
         self.background_stride = None if background_stride is None else int(background_stride)
-        try:
-            self.segment = SegmentParams(**dict(segment or {}))
-        except TypeError as error:
-            raise ConfigError(f"data.segment: {error} (expected keys of drgan.data.patches.SegmentParams)") from None
+        # The settings as given (lengths left null follow from the particle scale); after setup, `segment` holds
+        # the resolved ones mining used, which the FID brightness guards apply to real and synthetic patches alike.
+        self.segment_setting = SegmentParams.from_config(segment)
+        self.segment = self.segment_setting
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
         self.augment = bool(augment)
@@ -189,7 +189,7 @@ class RealPatchDataModule(LightningDataModule):
             "min_particles": self.min_particles,
             "n_background": self.n_background,
             "background_stride": self.background_stride,
-            "segment": self.segment.__dict__,
+            "segment": self.segment_setting.as_dict(),
             "polarity": self.polarity_setting,
         }
 
@@ -245,6 +245,7 @@ class RealPatchDataModule(LightningDataModule):
         self._check_enough(patches, len(ids))
         self.polarity = patches.params["polarity"]
         self.polarity_estimate = patches.params["polarity_estimate"]
+        self.segment = SegmentParams.from_config(patches.params["segment"])
         self.patches = patches
         log.info("data: %s", json.dumps(patches.summary()))
 
@@ -270,7 +271,7 @@ class RealPatchDataModule(LightningDataModule):
         if not self.check_material:
             return None
         return check_material_fits_data(
-            material, polarity, data_particle_size(images, polarity, self.segment), self.dir
+            material, polarity, data_particle_size(images, polarity, self.segment_setting), self.dir
         )
 
     def min_train_patches(self) -> int:

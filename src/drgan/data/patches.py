@@ -3,15 +3,16 @@
 The discriminator sees real square patches (256 x 256 in the paper). The paper's authors picked them by
 hand: patches showing at least three fully displayed particles. drgan picks them automatically:
 
-1. segment each whole image classically: Gaussian smoothing, Otsu threshold, distance transform,
-   seeds at its local maxima (peak_local_max), watershed to split touching particles;
-   segments of plausible area are particles;
+1. segment each whole image classically (drgan.data.particles: the particle scale estimated once for the set,
+   smoothing, Otsu threshold, watershed of the distance transform to split touching particles; scale bars
+   and text left out); segments of plausible area are particles;
 2. slide a window over the image (a grid with the given stride, centred so both margins are equal);
    a particle is fully displayed in a window when its bounding box touches no window edge;
 3. keep windows with >= min_particles such particles, best first, dropping near-duplicates: windows
    overlapping an already kept window of the same image by more than max_overlap of their area, and
    patches whose normalised correlation with a kept patch is within min_corr_distance of 1;
-4. background patches: windows with the smallest foreground fraction (ideally none), same duplicate rules.
+4. background patches: windows free of particles (no foreground, scale bar or text pixel), same duplicate
+   rules; fewer than asked (or none) when the images have fewer such windows.
 
 Patch values stay as read: float32 grey in [0, 1].
 """
@@ -21,108 +22,37 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage as ndi
-from skimage.feature import peak_local_max
-from skimage.filters import gaussian, threshold_otsu
-from skimage.segmentation import watershed
 from tqdm import tqdm
 
-from drgan.data.polarity import check_polarity, to_bright
+from drgan.data.particles import (
+    SegmentParams,
+    particle_foreground,
+    prepare,
+    resolve_params,
+    segment_diameters,
+    segment_particles,
+)
+from drgan.data.polarity import check_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_with
 
 log = logging.getLogger(__name__)
 
 
-# --- classical segmentation -------------------------------------------------------------------------------
+# --- classical segmentation (drgan.data.particles) ---------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class SegmentParams:
-    """Classical particle segmentation; lengths in pixels, areas in square pixels.
-
-    Defaults suit particles some 15-50 px across (TiO2 SEM: ~24-35 px, median area ~460 px).
-    """
-
-    sigma: float = 1.0  # Gaussian smoothing before thresholding, px
-    min_distance: int = 7  # least distance between watershed seeds, about a particle's smallest radius, px
-    min_area: int = 40  # smaller segments are noise, specks or watershed slivers, px^2
-    max_area: int = 4000  # larger segments are agglomerates the watershed could not split, px^2
-    # Otsu's between-class / total variance. A unimodal (particle-free) image scores ~0.64 (2/pi for
-    # Gaussian noise); images with particles on a background score > 0.75. Below this: no foreground.
-    min_separability: float = 0.7
-
-    def __post_init__(self) -> None:
-        if self.sigma < 0:
-            raise ConfigError(f"SegmentParams.sigma={self.sigma}: expected >= 0")
-        if self.min_distance < 1:
-            raise ConfigError(f"SegmentParams.min_distance={self.min_distance}: expected >= 1")
-        if not 0 < self.min_area <= self.max_area:
-            raise ConfigError(
-                f"SegmentParams min_area={self.min_area}, max_area={self.max_area}: expected 0 < min_area <= max_area"
-            )
-        if not 0 <= self.min_separability < 1:
-            raise ConfigError(f"SegmentParams.min_separability={self.min_separability}: expected in [0, 1)")
+__all__ = ["SegmentParams", "particle_foreground", "segment_particles"]  # the segmentation, for this module's callers
 
 
-def segment_particles(
-    image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright"
-) -> tuple[np.ndarray, np.ndarray]:
-    """Segment particles: brighter than the background (polarity "bright") or darker ("dark").
-
-    Returns (labels, foreground): int32 labels (0 = none) of the watershed segments, and the bool
-    foreground mask: everything above the threshold except connected specks smaller than min_area
-    (it keeps agglomerates too large to count as particles).
-    """
-    params = params or SegmentParams()
-    foreground = particle_foreground(image, params, polarity)
-    if not foreground.any():
-        return np.zeros(image.shape, np.int32), foreground
-    components, _ = ndi.label(foreground)
-    # Seeds: maxima of the distance to the background; min_distance keeps one seed per particle core.
-    distance = ndi.distance_transform_edt(foreground)
-    peaks = peak_local_max(distance, min_distance=params.min_distance, labels=components, exclude_border=False)
-    seed_mask = np.zeros(image.shape, bool)
-    seed_mask[tuple(peaks.T)] = True
-    seeds, _ = ndi.label(seed_mask)  # a flat top (plateau) yields adjacent peaks: one seed, not several
-    labels = watershed(-distance, seeds, mask=foreground).astype(np.int32)
-    return labels, foreground
-
-
-def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
-    """The bool foreground of `segment_particles` without splitting it into particles (cheaper): pixels past
-    the Otsu threshold of the smoothed image in the particles' direction, less connected specks below
-    ``min_area`` (noise, contamination on the substrate)."""
-    params = params or SegmentParams()
-    image = to_bright(image, polarity)
-    smooth = gaussian(image, sigma=params.sigma, preserve_range=True) if params.sigma > 0 else image
-    foreground = _otsu_foreground(smooth, params.min_separability)
-    components, _ = ndi.label(foreground)
-    foreground &= (np.bincount(components.ravel()) >= params.min_area)[components]
-    return foreground
-
-
-def _otsu_foreground(smooth: np.ndarray, min_separability: float) -> np.ndarray:
-    if smooth.max() - smooth.min() < 1e-6:
-        return np.zeros(smooth.shape, bool)
-    threshold = threshold_otsu(smooth)
-    above = smooth > threshold
-    w1 = above.mean()
-    if w1 in (0.0, 1.0):
-        return np.zeros(smooth.shape, bool)
-    between = w1 * (1 - w1) * (smooth[above].mean() - smooth[~above].mean()) ** 2
-    if between / smooth.var() < min_separability:
-        return np.zeros(smooth.shape, bool)
-    return above
-
-
-def particle_boxes(labels: np.ndarray, params: SegmentParams | None = None) -> np.ndarray:
-    """Bounding boxes (K, 4) int: (row0, col0, row1, col1), ends exclusive, of segments of plausible area."""
-    params = params or SegmentParams()
+def particle_boxes(labels: np.ndarray, params: SegmentParams) -> np.ndarray:
+    """Bounding boxes (K, 4) int: (row0, col0, row1, col1), ends exclusive, of segments of plausible area
+    (``params`` resolved: drgan.data.particles.resolve_params)."""
     areas = np.bincount(labels.ravel())
     boxes = []
     for index, slices in enumerate(ndi.find_objects(labels), start=1):
@@ -145,18 +75,20 @@ def full_particle_counts(boxes: np.ndarray, rows: np.ndarray, cols: np.ndarray, 
 
 def particle_diameters(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
     """Equivalent diameters (px) of the segments of plausible area (min_area..max_area) that touch no border."""
-    params = params or SegmentParams()
+    try:
+        params, _ = resolve_params([image], params, polarity)
+    except DataError:  # no particle stands out
+        return np.zeros(0)
     labels, _ = segment_particles(image, params, polarity)
-    areas = np.bincount(labels.ravel())
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    keep = (areas >= params.min_area) & (areas <= params.max_area)
-    keep[0] = False
-    keep[border] = False
-    return 2.0 * np.sqrt(areas[keep] / np.pi)
+    return segment_diameters(labels, params)
 
 
 def count_particles(patch: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> int:
     """Fully displayed particles in one patch segmented on its own (mining segments whole images instead)."""
+    try:
+        params, _ = resolve_params([patch], params, polarity)
+    except DataError:
+        return 0
     labels, _ = segment_particles(patch, params, polarity)
     height, width = labels.shape
     return int(full_particle_counts(particle_boxes(labels, params), np.array([0]), np.array([0]), height, width)[0, 0])
@@ -293,6 +225,9 @@ class PatchSet:
 # --- mining -----------------------------------------------------------------------------------------------
 
 
+SCALE_IMAGES = 8  # images the particle scale of a set is estimated on
+
+
 def window_starts(length: int, size: int, stride: int) -> np.ndarray:
     """Start offsets of windows of `size` every `stride` pixels, the grid centred in `length`."""
     n = (length - size) // stride + 1
@@ -402,11 +337,11 @@ def mine_patches(
     size // 4: a fine grid finds the empty corners between agglomerates).
     Near-duplicates: overlap with a kept window of the same image above max_overlap (fraction of patch
     area), or correlation with any kept patch above 1 - min_corr_distance. Training patches are taken
-    best first (most particles); background patches emptiest first. If fewer than n_background windows
-    are free of foreground, the emptiest others fill up the count, and a warning states how many were
-    empty and the largest foreground fraction taken (also in PatchSet.params["background_report"]).
+    best first (most particles); background patches only from windows free of particles, scale bars and
+    text: if fewer than n_background such windows exist, fewer are taken (zero allowed) and a warning says
+    so (also in PatchSet.params["background_report"]). ``segment``: drgan.data.particles.SegmentParams;
+    lengths not set follow from the particle scale, estimated once on up to SCALE_IMAGES of the images.
     """
-    segment = segment or SegmentParams()
     check_polarity(polarity, "mine_patches polarity")
     background_stride = background_stride or max(1, size // 4)
     if len(images) != len(ids):
@@ -426,11 +361,16 @@ def mine_patches(
             f"mine_patches: max_overlap={max_overlap}, min_corr_distance={min_corr_distance}: expected in [0, 1)"
         )
     check_image_sizes(images, ids, size)
+    # One particle scale for the whole set (up to SCALE_IMAGES images spread over it): every image is segmented alike.
+    step = max(1, len(images) // SCALE_IMAGES)
+    segment, estimate = resolve_params(list(images[::step][:SCALE_IMAGES]), segment, polarity)
 
     train_candidates: list[_Candidate] = []
     background_candidates: list[_Candidate] = []
     for index, image in enumerate(tqdm(images, desc="segmenting images", unit="image", disable=not progress)):
         labels, foreground = segment_particles(image, segment, polarity)
+        # Background windows hold neither particle nor annotation (scale bar, text) pixels.
+        occupied = foreground | prepare(image, polarity, segment.annotations).annotations
         height, width = image.shape
         rows, cols = window_starts(height, size, stride), window_starts(width, size, stride)
         counts = full_particle_counts(particle_boxes(labels, segment), rows, cols, size, size)
@@ -440,7 +380,7 @@ def mine_patches(
                     train_candidates.append(_Candidate(float(counts[i, j]), index, int(r), int(c), float(counts[i, j])))
         # Foreground fraction of every background window from one summed-area table.
         rows, cols = window_starts(height, size, background_stride), window_starts(width, size, background_stride)
-        table = np.pad(foreground.astype(np.int64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+        table = np.pad(occupied.astype(np.int64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
         sums = (
             table[rows[:, None] + size, cols + size]
             - table[rows[:, None], cols + size]
@@ -449,8 +389,8 @@ def mine_patches(
         )
         for i, r in enumerate(rows):
             for j, c in enumerate(cols):
-                fraction = float(sums[i, j]) / (size * size)
-                background_candidates.append(_Candidate(-fraction, index, int(r), int(c), fraction))
+                if sums[i, j] == 0:  # only windows free of particles are backgrounds
+                    background_candidates.append(_Candidate(0.0, index, int(r), int(c), 0.0))
 
     def select(candidates: list[_Candidate], limit: int | None) -> list[_Candidate]:
         candidates = sorted(candidates, key=lambda k: (-k.score, k.image, k.row, k.col))
@@ -466,19 +406,18 @@ def mine_patches(
     train = select(train_candidates, None)
     background = select(background_candidates, n_background)
 
-    n_empty = sum(k.value == 0 for k in background)
-    threshold = max((k.value for k in background), default=0.0)
     report = {
         "requested": n_background,
         "found": len(background),
-        "empty": n_empty,
-        "max_foreground_fraction": threshold,
+        "empty": len(background),
+        "max_foreground_fraction": 0.0,
     }
-    if n_empty < n_background:
+    if len(background) < n_background:
         log.warning(
-            "background patches: %d of %d requested are free of foreground; %d taken in all, the emptiest with "
-            "foreground fraction up to %.4f",
-            n_empty, n_background, len(background), threshold,
+            "background patches: only %d of the %d requested %d px windows are free of particles (and of scale "
+            "bars and text) once near-duplicates are dropped; taking those %d. A background patch must hold no "
+            "particle: lower data.background_stride for more candidate windows, or add images with empty areas",
+            len(background), n_background, size, len(background),
         )  # fmt: skip
 
     def stack(chosen: list[_Candidate]) -> np.ndarray:
@@ -496,7 +435,8 @@ def mine_patches(
         "n_background": n_background,
         "max_overlap": max_overlap,
         "min_corr_distance": min_corr_distance,
-        "segment": asdict(segment),
+        "segment": segment.as_dict(),
+        "scale_estimate": estimate.as_dict() if estimate else None,
         "polarity": polarity,
         "background_report": report,
     }

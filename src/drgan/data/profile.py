@@ -3,9 +3,8 @@
 Every estimator works on grey images in [0, 1] (drgan.data.images.read_grey) and the particles' polarity
 (drgan.data.polarity). The pieces, in the order `python -m drgan.profile` runs them:
 
-- `segment_image`: drgan.data.patches.segment_particles with SegmentParams chosen by `tune_segment_params`
-  from a first-pass size estimate (the classical watershed over-splits SEM particles with bright rims and
-  under-splits touching ones; see experiments/profile/README.md for the calibration on the train images);
+- `segment_image`: drgan.data.particles (the particle scale measured first, every length set from it), keeping the
+  segments of plausible area;
 - `particle_table`: equivalent diameter, centroid, axis ratio, border contact, contact with another segment;
 - `background_noise`: background grey (median of background pixels), noise sigma (robust MAD of the
   high-pass residual on background pixels, corrected for what the high-pass removes) and grain (the stddev
@@ -27,7 +26,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from drgan.data.patches import SegmentParams, segment_particles
+from drgan.data.particles import SegmentParams, segment_with_report
 from drgan.errors import DataError
 
 # The high-pass that isolates noise from the background's slow shading: image minus its Gaussian blur.
@@ -37,45 +36,16 @@ BACKGROUND_MARGIN = 6  # px
 
 # --- segmentation -----------------------------------------------------------------------------------------
 
-# Calibrated on the 32 train images of tio2_sem and tio2_tsem (experiments/profile/README.md): sigma 1.5 and
-# seeds >= 6 px apart met both the median diameter and the particle count of the masks for particles of
-# ~25-30 px. Other sizes scale both with the first-pass median diameter.
-CALIBRATED_DIAMETER = 26.0  # px
-CALIBRATED_SIGMA = 1.5  # px
-CALIBRATED_MIN_DISTANCE = 6  # px
 
-
-def tune_segment_params(first_pass_median: float) -> SegmentParams:
-    """SegmentParams for particles whose first-pass (default SegmentParams) median diameter is given, px.
-
-    Within a factor 1.5 of the calibrated size the calibrated values hold (the first pass itself is biased by
-    over- and under-splitting, so small differences carry no information); beyond it, sigma, the seed distance
-    and the plausible areas scale with the size.
-    """
-    if not first_pass_median > 0:
-        raise DataError(f"profile: first-pass median diameter {first_pass_median}: no particles were segmented")
-    scale = first_pass_median / CALIBRATED_DIAMETER
-    if 1 / 1.5 <= scale <= 1.5:
-        scale = 1.0
-    diameter = CALIBRATED_DIAMETER * scale
-    min_area = max(4, int(round(math.pi / 4 * (0.27 * diameter) ** 2)))  # 40 px^2 at 26 px: SegmentParams' default
-    max_area = int(round(math.pi / 4 * (4.0 * diameter) ** 2))  # 4 diameters across: an unsplit agglomerate
-    return SegmentParams(
-        sigma=round(CALIBRATED_SIGMA * min(scale, 2.0), 2),
-        min_distance=max(1, int(round(CALIBRATED_MIN_DISTANCE * scale))),
-        min_area=min_area,
-        max_area=max(max_area, min_area),
-    )
-
-
-def segment_image(image: np.ndarray, params: SegmentParams, polarity: str) -> tuple[np.ndarray, np.ndarray]:
-    """(labels, foreground) from drgan.data.patches.segment_particles, keeping only segments of plausible area."""
-    labels, foreground = segment_particles(image, params, polarity)
+def segment_image(image: np.ndarray, params: SegmentParams, polarity: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """(labels, foreground, Otsu separability) of drgan.data.particles with resolved ``params``, keeping only
+    segments of plausible area."""
+    labels, foreground, separability = segment_with_report(image, params, polarity)
     areas = np.bincount(labels.ravel())
     keep = (areas >= params.min_area) & (areas <= params.max_area)
     keep[0] = False
     labels = np.where(keep[labels], labels, 0).astype(np.int32)
-    return labels, foreground
+    return labels, foreground, separability
 
 
 PARTICLE_COLUMNS = ("area_px", "diameter_px", "row", "col", "axis_ratio", "touches_border", "touches_other")
@@ -160,9 +130,9 @@ def highpass(image: np.ndarray) -> np.ndarray:
     return image - ndi.gaussian_filter(image, HIGHPASS_SIGMA, mode="reflect")
 
 
-def background_mask(foreground: np.ndarray) -> np.ndarray:
-    """Pixels farther than BACKGROUND_MARGIN px from any foreground pixel, and from the image border."""
-    far = ndi.distance_transform_edt(~np.asarray(foreground, bool)) > BACKGROUND_MARGIN
+def background_mask(foreground: np.ndarray, margin: int = BACKGROUND_MARGIN) -> np.ndarray:
+    """Pixels farther than ``margin`` px from any foreground pixel, and from the image border."""
+    far = ndi.distance_transform_edt(~np.asarray(foreground, bool)) > margin
     border = np.zeros_like(far)
     m = int(2 * HIGHPASS_SIGMA)
     border[m:-m, m:-m] = True
@@ -221,12 +191,14 @@ class NoiseEstimate:
         return {k: round(float(v), 6) for k, v in self.__dict__.items()}
 
 
-def background_noise(images: list[np.ndarray], foregrounds: list[np.ndarray]) -> NoiseEstimate:
+def background_noise(
+    images: list[np.ndarray], foregrounds: list[np.ndarray], margin: int = BACKGROUND_MARGIN
+) -> NoiseEstimate:
     """Background grey level, noise sigma and grain from the background pixels of all images (see module doc)."""
     grey, residual, used, total = [], [], 0, 0
     rhos, weights = [], []
     for image, foreground in zip(images, foregrounds):
-        mask = background_mask(foreground)
+        mask = background_mask(foreground, margin)
         total += mask.size
         if mask.sum() < 100:
             continue
@@ -236,6 +208,8 @@ def background_noise(images: list[np.ndarray], foregrounds: list[np.ndarray]) ->
         residual.append(r[mask] - np.median(r[mask]))
         rhos.append(lag1_autocorrelation(r, mask))
         weights.append(float(mask.sum()))
+    if not grey and margin > 1:  # particles cover nearly everything: take the background closer to them
+        return background_noise(images, foregrounds, margin=1)
     if not grey:
         raise DataError(
             "profile: no image has background pixels (at least 100 farther than "
@@ -293,25 +267,32 @@ def _normal_pdf(x, mean, std):
     return np.exp(-0.5 * ((x - mean) / std) ** 2) / (std * math.sqrt(2 * math.pi))
 
 
+MIN_SPREAD = 0.05  # least relative spread of a fit (std / mean, sigma of log d)
+MIN_MIXTURE = 20  # fewer diameters than this: no two-component fit
+
+
 def fit_sizes(diameters: np.ndarray, seed: int = 0) -> tuple[list[SizeFit], SizeFit]:
-    """Fit normal, lognormal and a two-lognormal mixture to the diameters (px) by maximum likelihood; pick the
-    lowest BIC = k ln(n) - 2 ln(L), all likelihoods in diameter space (so they compare)."""
+    """Fit normal, lognormal and (from MIN_MIXTURE diameters) a two-lognormal mixture to the diameters (px) by
+    maximum likelihood; pick the lowest BIC = k ln(n) - 2 ln(L), all likelihoods in diameter space (so they
+    compare)."""
     d = np.asarray(diameters, np.float64)
     d = d[np.isfinite(d) & (d > 0)]
-    if d.size < 10:
-        raise DataError(f"profile: only {d.size} particle diameters measured (need >= 10 to fit a distribution)")
+    if d.size == 0:
+        raise DataError("profile: no particle diameter measured: nothing to fit a size distribution to")
     n, logd = d.size, np.log(d)
 
     def make(kind, params, loglik, k):
         return SizeFit(kind, params, float(loglik), k, float(k * math.log(n) - 2 * loglik))
 
-    mean, std = float(d.mean()), float(d.std())
+    # A few particles (one image of a user's) may all measure alike: spreads below MIN_SPREAD are kept at it.
+    mean = float(d.mean())
+    std = max(float(d.std()), MIN_SPREAD * mean)
     normal = make("normal", {"mean": mean, "std": std}, np.log(_normal_pdf(d, mean, std)).sum(), 2)
-    mu, sigma = float(logd.mean()), float(logd.std())
+    mu, sigma = float(logd.mean()), max(float(logd.std()), MIN_SPREAD)
     lognormal = make(
         "lognormal", {"median": math.exp(mu), "sigma": sigma}, (np.log(_normal_pdf(logd, mu, sigma)) - logd).sum(), 2
     )
-    fits = [normal, lognormal, _fit_mixture(logd, seed, make)]
+    fits = [normal, lognormal] + ([_fit_mixture(logd, seed, make)] if n >= MIN_MIXTURE else [])
     return fits, min(fits, key=lambda f: f.bic)
 
 

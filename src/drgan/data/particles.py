@@ -1,0 +1,583 @@
+"""Finding particles in an unannotated image, whatever their size: drgan's one classical segmentation.
+
+Profiling, patch mining, background selection and the FID brightness guards all ask the same question (which pixels
+are particles, and which particle is which), so they all call this module. Nothing here is tuned to one data set:
+every length follows from the particles' own scale, measured first.
+
+1. **Grey**: 8/16-bit, float and RGB(A) arrays become one grey channel in [0, 1]; dark particles are turned bright
+   (``1 - grey``), so everything below looks for bright particles.
+2. **Annotations** (`annotation_mask`): scale bars, their text, panel letters and label boxes are drawn in pure black
+   or white; they are found by shape (long thin solid bars, solid boxes, character-sized thin strokes near an edge)
+   and filled from their surroundings, so that they are neither particles nor background.
+3. **Scale** (`estimate_scale`): the scale-normalised Laplacian of Gaussian, ``-s^2 LoG_s``, peaks at
+   ``s = d / (2 sqrt 2)`` on a disc of diameter ``d`` whatever its contrast (Lindeberg's scale selection). Its
+   maxima over position and scale, from 3 px to half the image, are the image's blobs; the strong ones (well above
+   the response's noise at their scale) vote, weighted by their response, for the particle diameter. Grain and noise
+   respond at small scales only weakly and are outvoted; an agglomerate still shows its particles' seams.
+4. **Settings from the scale** (`SegmentParams.resolved`): smoothing, seed distance and plausible areas are fixed
+   fractions of the diameter (calibrated where the TiO2 sets meet their masks: sigma 1.5 px and seeds 6 px apart
+   at 26 px); the uneven illumination is removed at 3 diameters (a grey opening: larger than any particle, so none
+   is flattened away); a value set by the user is kept exactly.
+5. **Foreground and watershed**: Otsu's threshold of the smoothed, flattened image, refused when the image is not
+   bimodal (separability below ``min_separability``); the distance transform's maxima, at least ``min_distance``
+   apart, seed a watershed that splits touching particles.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.feature import peak_local_max
+from skimage.filters import threshold_otsu
+from skimage.segmentation import watershed
+
+from drgan.data.polarity import to_bright
+from drgan.errors import ConfigError, DataError
+
+# --- settings ---------------------------------------------------------------------------------------------
+
+# Fractions of the particle diameter d (px). sigma and min_distance reproduce the calibration on the TiO2 train
+# images (sigma 1.5, seeds 6 px apart for particles of ~26 px: experiments/profile/README.md).
+SIGMA_PER_DIAMETER = 1.5 / 26
+MIN_DISTANCE_PER_DIAMETER = 6 / 26
+MIN_AREA_DIAMETER = 0.27  # a segment narrower than 0.27 d is a speck or a watershed sliver
+MAX_AREA_DIAMETER = 4.0  # one wider than 4 d is an agglomerate the watershed could not split
+BACKGROUND_PER_DIAMETER = 3.0  # the illumination is flattened at this many diameters
+
+
+@dataclass(frozen=True)
+class SegmentParams:
+    """Classical particle segmentation; lengths in pixels, areas in square pixels.
+
+    Every length left None follows from the particle diameter ``scale`` (itself estimated from the image when
+    None): see `resolved`. A value given is used exactly as given.
+    """
+
+    scale: float | None = None  # particle diameter, px; None: estimated (`estimate_scale`)
+    sigma: float | None = None  # Gaussian smoothing before thresholding, px; None: 0.058 scale
+    min_distance: int | None = None  # least distance between watershed seeds, px; None: 0.23 scale
+    min_area: int | None = None  # smaller segments are noise, specks or slivers, px^2; None: disc of 0.27 scale
+    max_area: int | None = None  # larger segments are unsplit agglomerates, px^2; None: disc of 4 scale
+    background: float | None = None  # illumination flattened at this size, px (0: not); None: 3 scale
+    annotations: bool = True  # find scale bars, text and panel letters, and leave them out
+    # Otsu's between-class / total variance around the blobs of the particles' size. Smoothed noise scores
+    # 0.635-0.64 (2/pi for Gaussian noise) at any scale; particles at their own scale 0.66-0.91 (EMPS, most > 0.7).
+    min_separability: float = 0.66
+
+    def __post_init__(self) -> None:
+        for key in ("scale", "sigma", "background"):
+            value = getattr(self, key)
+            if value is not None and not (isinstance(value, (int, float)) and value >= 0 and math.isfinite(value)):
+                raise ConfigError(f"data.segment.{key}={value!r}: expected a number >= 0 (px) or null (from the scale)")
+        if self.scale is not None and self.scale <= 0:
+            raise ConfigError(f"data.segment.scale={self.scale}: expected a particle diameter > 0 px or null")
+        if self.min_distance is not None and self.min_distance < 1:
+            raise ConfigError(f"data.segment.min_distance={self.min_distance}: expected >= 1 px or null")
+        low, high = self.min_area, self.max_area
+        if (low is not None and low <= 0) or (low is not None and high is not None and low > high):
+            raise ConfigError(
+                f"data.segment min_area={low}, max_area={high}: expected 0 < min_area <= max_area (px^2) or null"
+            )
+        if not 0 <= self.min_separability < 1:
+            raise ConfigError(f"data.segment.min_separability={self.min_separability}: expected in [0, 1)")
+
+    @classmethod
+    def from_config(cls, segment) -> SegmentParams:
+        """From a ``data.segment`` mapping (None or {} = everything from the image); unknown keys are named."""
+        if isinstance(segment, SegmentParams):
+            return segment
+        values = dict(segment or {})
+        unknown = sorted(set(values) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ConfigError(
+                f"data.segment: unknown key(s) {unknown}; expected some of {', '.join(cls.__dataclass_fields__)}"
+            )
+        return cls(**values)
+
+    @property
+    def is_resolved(self) -> bool:
+        return None not in (self.scale, self.sigma, self.min_distance, self.min_area, self.max_area, self.background)
+
+    def resolved(self, scale: float | None = None) -> SegmentParams:
+        """Every length set: those given kept, the others from ``scale`` (or self.scale), the particle diameter."""
+        d = float(self.scale if self.scale is not None else scale) if (self.scale or scale) else None
+        if d is None:
+            raise ConfigError("SegmentParams.resolved: no particle scale (give data.segment.scale or an image)")
+        min_area = self.min_area or max(4, int(round(math.pi / 4 * (MIN_AREA_DIAMETER * d) ** 2)))
+        max_area = self.max_area or max(min_area, int(round(math.pi / 4 * (MAX_AREA_DIAMETER * d) ** 2)))
+        return replace(
+            self,
+            scale=round(d, 2),
+            sigma=self.sigma if self.sigma is not None else round(SIGMA_PER_DIAMETER * d, 2),
+            min_distance=self.min_distance or max(1, int(round(MIN_DISTANCE_PER_DIAMETER * d))),
+            min_area=min_area,
+            max_area=max_area,
+            background=self.background if self.background is not None else round(BACKGROUND_PER_DIAMETER * d, 1),
+        )
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+# --- grey and annotations ---------------------------------------------------------------------------------
+
+
+def as_grey(image: np.ndarray) -> np.ndarray:
+    """float32 (H, W) grey in [0, 1] from a grey or RGB(A) array: 8/16-bit integers by their type's range, floats as
+    they are when within [0, 1], else by their own min and max."""
+    array = np.asarray(image)
+    if array.ndim == 3 and array.shape[-1] in (3, 4):
+        weights = np.array([0.299, 0.587, 0.114])  # ITU-R BT.601, as drgan.data.images.read_grey
+        array = (
+            array[..., :3].astype(np.float64) @ weights if array.dtype.kind == "f" else _unit(array[..., :3]) @ weights
+        )
+    elif array.ndim == 3 and array.shape[-1] == 1:
+        array = array[..., 0]
+    if array.ndim != 2:
+        raise DataError(f"particle image of shape {np.shape(image)}: expected one grey (H, W) or RGB (H, W, 3) image")
+    return _unit(array).astype(np.float32)
+
+
+def _unit(array: np.ndarray) -> np.ndarray:
+    if array.dtype.kind in "ui":
+        return array.astype(np.float64) / float(np.iinfo(array.dtype).max if array.dtype.kind == "u" else 1)
+    array = array.astype(np.float64)
+    low, high = float(np.nanmin(array)), float(np.nanmax(array))
+    if low >= 0 and high <= 1:
+        return array
+    return (array - low) / (high - low) if high > low else np.zeros_like(array)
+
+
+# Annotations are drawn in (nearly) pure black or white: pixels within this of 0 or 1 are candidates.
+ANNOTATION_LEVEL = 0.06
+EDGE_BAND = 0.2  # text and panel letters lie within this share of the image size from an edge
+
+
+def annotation_mask(grey: np.ndarray) -> np.ndarray:
+    """Scale bars, their text, panel letters and label boxes: bool (H, W).
+
+    A candidate is an 8-connected group of pixels within ANNOTATION_LEVEL of pure black or pure white. It is an
+    annotation when it is a solid bar (long, thin, filling its box; anywhere), a solid box (a rectangle that fills
+    its box and lies within EDGE_BAND of an edge) or a character: small, drawn with strokes much thinner than its
+    height, within EDGE_BAND of an edge or beside another annotation. Particles are blobs (their thickness is their
+    size) and are not drawn in exactly one grey, so they stay. The mask is grown by 2 px (anti-aliased edges)."""
+    grey = np.asarray(grey, np.float32)
+    h, w = grey.shape
+    short = min(h, w)
+    band = EDGE_BAND * short
+    mask = np.zeros((h, w), bool)
+    for candidates in (grey <= ANNOTATION_LEVEL, grey >= 1 - ANNOTATION_LEVEL):
+        if candidates.mean() > 0.5:  # a saturated background, not a drawing on the image
+            continue
+        labels, n = ndi.label(candidates, structure=np.ones((3, 3)))
+        if n == 0:
+            continue
+        boxes = ndi.find_objects(labels)
+        thickness = ndi.distance_transform_edt(candidates)
+        chars = np.zeros(n + 1, bool)
+        for index, box in enumerate(boxes, start=1):
+            rows, cols = box
+            bh, bw = rows.stop - rows.start, cols.stop - cols.start
+            own = labels[box] == index
+            area = int(own.sum())
+            if area < 3:
+                continue
+            fill = area / (bh * bw)
+            thick = 2.0 * float(thickness[box][own].max())  # stroke width: the widest inscribed disc
+            near_edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop) <= band
+            long_, narrow = max(bh, bw), min(bh, bw)
+            bar = long_ >= 4 * narrow and long_ >= 0.04 * short and fill >= 0.75 and narrow <= 0.06 * short
+            filled = ndi.binary_fill_holes(own).mean()
+            box_ = near_edge and filled >= 0.92 and narrow >= 0.03 * short and long_ <= 0.5 * short
+            char = long_ <= 0.15 * short and thick <= max(2.5, 0.45 * long_) and long_ >= 3
+            if bar or box_:
+                mask[box] |= own
+            elif char:
+                chars[index] = near_edge
+        # Characters count when near an edge (panel letters, scale-bar text); the rest stay particles or grain.
+        mask |= chars[labels]
+    if mask.any():
+        mask = ndi.binary_dilation(mask, iterations=2)
+    return mask
+
+
+def fill_masked(image: np.ndarray, mask: np.ndarray, size: float = 8.0) -> np.ndarray:
+    """``image`` with the ``mask`` pixels replaced by a smooth continuation of their surroundings (normalised
+    convolution with a Gaussian of ``size`` px, grown until every masked pixel has a value)."""
+    if not mask.any():
+        return image
+    keep = (~mask).astype(np.float64)
+    if not keep.any():
+        return image
+    values = np.asarray(image, np.float64) * keep
+    out = np.asarray(image, np.float64).copy()
+    todo = mask.copy()
+    while todo.any() and size < 4 * max(image.shape):
+        num, den = ndi.gaussian_filter(values, size), ndi.gaussian_filter(keep, size)
+        ok = todo & (den > 1e-3)
+        out[ok] = num[ok] / den[ok]
+        todo &= ~ok
+        size *= 2
+    out[todo] = float(np.median(image[~mask]))
+    return out.astype(np.float32)
+
+
+# --- the particle scale -----------------------------------------------------------------------------------
+
+SCALE_STEP = 2**0.25  # between LoG scales
+MIN_DIAMETER = 3.0  # px: smaller blobs are pixels, not particles
+MAX_DIAMETER_SHARE = 0.5  # of the image's shorter side
+WORKING_PIXELS = 1024 * 1024  # larger images are averaged down for the scale estimate (lengths scaled back)
+SIGNIFICANCE = 4.0  # a blob votes when its response exceeds this many robust stds of the response at its scale
+
+
+@dataclass(frozen=True)
+class ScaleEstimate:
+    """The particle diameter one or more images show, and how it was found."""
+
+    diameter_px: float | None  # None: no blob stood out
+    blobs: int  # scale-space maxima that voted
+    response: float  # median response of the voting blobs (grey levels: ~ the particles' contrast)
+    diameters_tried_px: tuple[float, float]  # the range of the LoG scales, as disc diameters
+    refined_px: float | None = None  # the diameter chosen by `search_scale`
+    candidates: tuple = ()  # (start, fixed point, separability) of each search
+
+    def as_dict(self) -> dict:
+        return {
+            "diameter_px": None if self.diameter_px is None else round(self.diameter_px, 2),
+            "blobs": self.blobs,
+            "response": round(self.response, 4),
+            "diameters_tried_px": [round(v, 1) for v in self.diameters_tried_px],
+            "refined_px": None if self.refined_px is None else round(self.refined_px, 2),
+            "candidates": [[round(float(v), 3) for v in c] for c in self.candidates],
+        }
+
+
+def _diameters(shape: tuple[int, int]) -> np.ndarray:
+    top = MAX_DIAMETER_SHARE * min(shape)
+    n = max(1, int(math.floor(math.log(top / MIN_DIAMETER) / math.log(SCALE_STEP))) + 1)
+    return MIN_DIAMETER * SCALE_STEP ** np.arange(n)
+
+
+def _log_stack(bright: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """-s^2 LoG_s of ``bright`` per scale s (len(sigmas), H, W); large scales on an averaged-down copy (effective
+    sigma 2-4 px), interpolated back."""
+    from skimage.transform import resize
+
+    h, w = bright.shape
+    out = np.empty((len(sigmas), h, w), np.float32)
+    image = np.asarray(bright, np.float64)
+    for k, s in enumerate(sigmas):
+        f = 1
+        while s / (2 * f) >= 2 and min(h, w) // (2 * f) >= 16:
+            f *= 2
+        small = image if f == 1 else resize(image, (h // f, w // f), order=1, anti_aliasing=True)
+        r = -((s / f) ** 2) * ndi.gaussian_laplace(small, s / f, mode="reflect")
+        out[k] = r if f == 1 else resize(r, (h, w), order=1)
+    return out
+
+
+def blob_responses(bright: np.ndarray, exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Scale-space maxima of the bright blobs: (diameters px, responses) of those standing out of their scale's
+    noise (SIGNIFICANCE robust stds). ``exclude``: pixels whose blobs do not count (annotations)."""
+    bright = np.asarray(bright, np.float32)
+    factor = max(1, int(math.ceil(math.sqrt(bright.size / WORKING_PIXELS))))
+    if factor > 1:
+        from skimage.transform import resize
+
+        shape = (bright.shape[0] // factor, bright.shape[1] // factor)
+        bright = resize(bright, shape, order=1, anti_aliasing=True).astype(np.float32)
+        exclude = None if exclude is None else resize(exclude.astype(float), shape, order=0) > 0.5
+    diameters = _diameters(bright.shape)
+    sigmas = diameters / (2 * math.sqrt(2))
+    stack = _log_stack(bright, sigmas)
+    found_d, found_r = [], []
+    h, w = bright.shape
+    for k, s in enumerate(sigmas):
+        r = stack[k]
+        centre = np.median(r)
+        noise = 1.4826 * np.median(np.abs(r - centre)) + 1e-6
+        window = 2 * int(math.ceil(s)) + 1
+        peak = (r == ndi.maximum_filter(r, size=window, mode="nearest")) & (r > centre + SIGNIFICANCE * noise)
+        if k > 0:
+            peak &= r >= stack[k - 1]
+        if k + 1 < len(sigmas):
+            peak &= r >= stack[k + 1]
+        margin = int(math.ceil(s))  # blobs centred within one sigma of the edge are mostly outside it
+        peak[:margin], peak[h - margin :], peak[:, :margin], peak[:, w - margin :] = False, False, False, False
+        if exclude is not None:
+            peak &= ~exclude
+        values = r[peak]
+        found_d.append(np.full(values.size, diameters[k] * factor))
+        found_r.append(values)
+    return np.concatenate(found_d), np.concatenate(found_r)
+
+
+def estimate_scale(bright_images: Sequence[np.ndarray], excludes: Sequence[np.ndarray | None] | None = None):
+    """The particle diameter (px) of bright-particle images: the response-weighted median diameter of the blobs
+    whose response is at least a third of the strongest ones' (the 90th percentile), so faint texture and grain
+    do not vote."""
+    excludes = excludes or [None] * len(bright_images)
+    ds, rs = [], []
+    shape = min((np.shape(b) for b in bright_images), key=min)
+    for bright, exclude in zip(bright_images, excludes):
+        d, r = blob_responses(bright, exclude)
+        ds.append(d)
+        rs.append(r)
+    d, r = np.concatenate(ds), np.concatenate(rs)
+    tried = _diameters(shape)
+    tried = (float(tried[0]), float(tried[-1]))
+    if d.size == 0:
+        return ScaleEstimate(None, 0, 0.0, tried)
+    strong = r >= np.quantile(r, 0.9) / 3
+    d, r = d[strong], r[strong]
+    order = np.argsort(d)
+    cumulative = np.cumsum((r * d**2)[order])
+    median = float(d[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+    return ScaleEstimate(median, int(d.size), float(np.median(r)), tried)
+
+
+# --- foreground and particles -----------------------------------------------------------------------------
+
+
+@dataclass
+class Prepared:
+    """An image ready to threshold: particle-bright, annotations filled, illumination flattened."""
+
+    bright: np.ndarray  # float32, particles bright, annotations filled
+    annotations: np.ndarray  # bool: pixels drawn on the image (scale bar, text), never particles
+
+
+def prepare(image: np.ndarray, polarity: str, annotations: bool = True) -> Prepared:
+    grey = as_grey(image)
+    mask = annotation_mask(grey) if annotations else np.zeros(grey.shape, bool)
+    bright = to_bright(grey, polarity)
+    return Prepared(fill_masked(bright, mask) if mask.any() else bright, mask)
+
+
+def flatten(bright: np.ndarray, size: float) -> np.ndarray:
+    """``bright`` less its slowly varying illumination: a grey opening with a square of ``size`` px (it removes
+    every bright structure narrower than that: the particles) smoothed by a Gaussian of size / 2, computed on an
+    averaged-down copy. No change when size is 0 or above half the image."""
+    h, w = bright.shape
+    if not size or size >= 0.5 * min(h, w):
+        return bright
+    from skimage.transform import resize
+
+    f = max(1, int(size // 16))
+    small = resize(bright, (max(1, h // f), max(1, w // f)), order=1, anti_aliasing=f > 1) if f > 1 else bright
+    k = max(3, int(round(size / f)) | 1)
+    background = ndi.grey_opening(small, size=(k, k), mode="reflect")
+    background = ndi.gaussian_filter(background, k / 2, mode="reflect")
+    if f > 1:
+        background = resize(background, (h, w), order=1)
+    return (bright - background + float(np.median(background))).astype(np.float32)
+
+
+def resolve_params(
+    images: Sequence[np.ndarray], params: SegmentParams | None = None, polarity: str = "bright"
+) -> tuple[SegmentParams, ScaleEstimate | None]:
+    """``params`` with every length set: the scale estimated from ``images`` when not given (None when given)."""
+    params = SegmentParams.from_config(params)
+    if params.is_resolved:
+        return params, None
+    if params.scale is not None:
+        return params.resolved(), None
+    prepared = [prepare(image, polarity, params.annotations) for image in images]
+    estimate = estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
+    if estimate.diameter_px is None:
+        raise NoParticles(
+            f"no blob stood out of the noise at any scale (LoG diameters {estimate.diameters_tried_px[0]:.0f}-"
+            f"{estimate.diameters_tried_px[1]:.0f} px, {polarity} particles)",
+            params,
+        )
+    scale, tried = search_scale(prepared, params, estimate.diameter_px)
+    if scale is None:
+        raise NoParticles(
+            f"the LoG scale {estimate.diameter_px:.1f} px and the diameters "
+            f"{', '.join(f'{t[0]:.0f}' for t in tried)} px tried as starting points gave no consistent particle size "
+            f"(Otsu separability at most {max((t[2] for t in tried), default=0):.2f}, needed "
+            f"{params.min_separability}; {polarity} particles)",
+            params,
+        )
+    return params.resolved(scale), replace(estimate, refined_px=scale, candidates=tuple(tried))
+
+
+REFINE_ROUNDS = 4
+START_DIAMETERS = (8.0, 16.0, 32.0, 64.0, 128.0, 256.0)  # px, besides the LoG's: starting points of the search
+CONSISTENT = 0.15  # |log(segments' median / scale)| below this: the segmentation agrees with its scale
+MIN_SCALE = 6.0  # px: smaller fixed points are grain, texture or JPEG blocks (EMPS' smallest particles: 7 px)
+# Per doubling of the scale: texture inside large particles separates nearly as well as the particles themselves
+# (EMPS: 0.88 at 3.7 px against 0.86 at 35 px), so of two fixed points the larger wins unless clearly worse.
+LARGER_BONUS = 0.05
+
+
+def search_scale(
+    prepared: Sequence[Prepared], params: SegmentParams, log_diameter: float
+) -> tuple[float | None, list[tuple[float, float, float]]]:
+    """The particle diameter: of the scales that segment into particles of their own size (fixed points of
+    `refine_scale`, started from the LoG's diameter and from 8, 16, .. px up to half the image), the one whose
+    foreground separates best from the background (Otsu separability, plus LARGER_BONUS per doubling). Grain and
+    noise make fixed points at small scales too, but there the threshold cuts noise (separability ~2/pi); at the
+    particles' scale it cuts particles from background. Without a fixed point, the best scale reached. Returns
+    (diameter or None, [(start, scale reached, separability)])."""
+    limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
+    starts = sorted({round(log_diameter, 1), *(d for d in START_DIAMETERS if d <= limit)})
+    tried, found = [], []
+    for start in starts:
+        scale, consistent, separability = refine_scale(prepared, params, start)
+        tried.append((start, scale, separability))
+        if separability >= params.min_separability and scale >= MIN_SCALE:
+            found.append((consistent, separability + LARGER_BONUS * math.log2(scale), scale))
+    return (max(found)[2] if found else None), tried
+
+
+def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: float) -> tuple[float, bool, float]:
+    """Segment with the settings of ``scale``, take the median equivalent diameter of the segments not touching the
+    border as the next scale, until it moves less than 10 % (a few rounds). Returns (scale, whether it settled with
+    the segments' median within CONSISTENT of it, mean separability). The LoG sees a particle's core (faceted,
+    textured or rimmed particles respond below their size; rods by their width); the segments see its area."""
+    separability = 0.0
+    for _ in range(REFINE_ROUNDS):
+        resolved = replace(params, min_separability=0.0).resolved(scale)
+        diameters, separabilities = [], []
+        for p in prepared:
+            foreground, sep = _foreground(p, resolved)
+            separabilities.append(sep)
+            diameters.append(segment_diameters(split_touching(foreground, resolved), resolved))
+        d = np.concatenate(diameters)
+        separability = float(np.mean(separabilities))
+        if d.size == 0:
+            return scale, False, separability
+        new = float(np.median(d))
+        settled = abs(math.log(new / scale)) < CONSISTENT
+        if abs(math.log(new / scale)) < 0.1:
+            return new, True, separability
+        scale = new
+    return scale, settled, separability
+
+
+def segment_diameters(labels: np.ndarray, params: SegmentParams) -> np.ndarray:
+    """Equivalent diameters (px) of the segments of plausible area (min_area..max_area) that touch no border."""
+    areas = np.bincount(labels.ravel())
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    keep = (areas >= params.min_area) & (areas <= params.max_area)
+    keep[0] = False
+    keep[border] = False
+    return 2.0 * np.sqrt(areas[keep] / np.pi)
+
+
+class NoParticles(DataError):
+    """No particle found; the message says what was tried and which keys to set."""
+
+    def __init__(self, what: str, params: SegmentParams):
+        self.what, self.params = what, params
+        super().__init__(
+            f"no particles found: {what}. Set the particle size by hand with data.segment.scale=DIAMETER_PX (and, "
+            "if needed, data.segment.sigma, min_distance, min_area, max_area, min_separability), or data.polarity="
+            "bright|dark when the particles' side of the grey scale was misread"
+        )
+
+
+def blob_centres(bright: np.ndarray, diameter: float) -> np.ndarray:
+    """bool (H, W): centres of the bright blobs of about ``diameter`` px: maxima of -s^2 LoG_s at s = d / (2 sqrt 2),
+    at least d / 2 apart, of at least a quarter of the strong ones' response (their 90th percentile)."""
+    s = diameter / (2 * math.sqrt(2))
+    r = _log_stack(bright, np.array([s]))[0]
+    window = max(3, int(diameter / 2) | 1)
+    peak = (r == ndi.maximum_filter(r, size=window, mode="nearest")) & (r > 0)
+    if not peak.any():
+        return peak
+    return peak & (r >= 0.25 * np.quantile(r[peak], 0.9))
+
+
+def _foreground(prepared: Prepared, params: SegmentParams) -> tuple[np.ndarray, float]:
+    """(foreground, separability) of prepared, with resolved params.
+
+    Otsu's threshold is taken over the pixels within one diameter of a blob of the particles' size (not the whole
+    image): a few particles on a wide background give a lopsided histogram where Otsu cuts into the background's
+    noise, while around the particles both classes are well represented."""
+    flat = _threshold(flatten(prepared.bright, params.background), prepared.annotations, params)
+    if params.background:  # the illumination flattened only where it separates particles better
+        plain = _threshold(prepared.bright, prepared.annotations, params)
+        flat = max(flat, plain, key=lambda t: t[1])
+    foreground, separability = flat
+    if separability < params.min_separability:
+        return np.zeros(foreground.shape, bool), separability
+    components, _ = ndi.label(foreground)
+    foreground &= (np.bincount(components.ravel()) >= params.min_area)[components]
+    return foreground, separability
+
+
+def _threshold(image: np.ndarray, annotations: np.ndarray, params: SegmentParams) -> tuple[np.ndarray, float]:
+    smooth = ndi.gaussian_filter(image, params.sigma, mode="reflect") if params.sigma > 0 else image
+    empty = np.zeros(smooth.shape, bool)
+    if smooth.max() - smooth.min() < 1e-6:
+        return empty, 0.0
+    centres = blob_centres(image, params.scale) & ~annotations
+    if not centres.any():
+        return empty, 0.0
+    region = (ndi.distance_transform_edt(~centres) <= params.scale) & ~annotations
+    values = smooth[region]
+    threshold = threshold_otsu(values)
+    above = values > threshold
+    w1 = above.mean()
+    if w1 in (0.0, 1.0):
+        return empty, 0.0
+    between = w1 * (1 - w1) * (values[above].mean() - values[~above].mean()) ** 2
+    return (smooth > threshold) & ~annotations, float(between / values.var())
+
+
+def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
+    """The bool foreground of `segment_particles` without splitting it into particles (cheaper): pixels past
+    the Otsu threshold of the smoothed, flattened image in the particles' direction, less annotations and
+    connected specks below ``min_area``. All False when no particle stands out."""
+    try:
+        params, _ = resolve_params([image], params, polarity)
+    except NoParticles:
+        return np.zeros(np.shape(image)[:2], bool)
+    return _foreground(prepare(image, polarity, params.annotations), params)[0]
+
+
+def segment_particles(
+    image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright"
+) -> tuple[np.ndarray, np.ndarray]:
+    """Segment particles: brighter than the background (polarity "bright") or darker ("dark").
+
+    Returns (labels, foreground): int32 labels (0 = none) of the watershed segments, and the bool
+    foreground mask: everything above the threshold except annotations and connected specks smaller than
+    min_area (it keeps agglomerates too large to count as particles). ``params`` not resolved (the default):
+    the lengths follow from this image's particle scale. Empty when no particle stands out.
+    """
+    try:
+        params, _ = resolve_params([image], params, polarity)
+    except NoParticles:
+        shape = np.shape(image)[:2]
+        return np.zeros(shape, np.int32), np.zeros(shape, bool)
+    foreground, _ = _foreground(prepare(image, polarity, params.annotations), params)
+    return split_touching(foreground, params), foreground
+
+
+def split_touching(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
+    """Watershed of the distance transform: seeds at its maxima at least min_distance apart (one per particle core)."""
+    if not foreground.any():
+        return np.zeros(foreground.shape, np.int32)
+    components, _ = ndi.label(foreground)
+    distance = ndi.distance_transform_edt(foreground)
+    peaks = peak_local_max(distance, min_distance=params.min_distance, labels=components, exclude_border=False)
+    seed_mask = np.zeros(foreground.shape, bool)
+    seed_mask[tuple(peaks.T)] = True
+    seeds, _ = ndi.label(seed_mask)  # a flat top (plateau) yields adjacent peaks: one seed, not several
+    return watershed(-distance, seeds, mask=foreground).astype(np.int32)
+
+
+def segment_with_report(
+    image: np.ndarray, params: SegmentParams, polarity: str
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """(labels, foreground, Otsu separability) with resolved ``params``: the profile reports the separability."""
+    foreground, separability = _foreground(prepare(image, polarity, params.annotations), params)
+    return split_touching(foreground, params), foreground, separability

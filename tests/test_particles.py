@@ -1,0 +1,118 @@
+"""drgan.data.particles: the scale-adaptive segmentation on small generated images (grain, scale bars and text,
+touching particles, an empty field, 16-bit and RGB input)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image, ImageDraw, ImageFont
+from scipy import ndimage as ndi
+
+from drgan.data import particles as P
+from drgan.errors import DataError
+
+
+def discs(size=192, diameter=24.0, n=12, polarity="bright", noise=0.02, grain=0.0, seed=0, gap=3.0):
+    """(image in [0, 1], true diameters, centres): discs of one size on a flat background, Gaussian noise blurred
+    by ``grain`` px; ``gap`` < 0 lets neighbours overlap (touching particles)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    image = np.full((size, size), 0.3 if polarity == "bright" else 0.7)
+    r, centres = diameter / 2, []
+    for _ in range(2000):
+        if len(centres) == n:
+            break
+        c = rng.uniform(r + 2, size - r - 2, 2)
+        if all(np.hypot(*(c - c2)) > 2 * r + gap for c2 in centres):
+            centres.append(c)
+            image[(yy - c[0]) ** 2 + (xx - c[1]) ** 2 <= r * r] += 0.35 if polarity == "bright" else -0.35
+    field = rng.standard_normal((size, size))
+    field = ndi.gaussian_filter(field, grain) if grain else field
+    image += noise * field / field.std()
+    return np.clip(image, 0, 1).astype(np.float32), np.full(len(centres), 2 * np.sqrt(np.pi * r * r / np.pi)), centres
+
+
+def measured(image, polarity):
+    params, _ = P.resolve_params([image], None, polarity)
+    labels, _ = P.segment_particles(image, params, polarity)
+    return params, labels, P.segment_diameters(labels, params)
+
+
+def test_grainy_dark_particles_are_found_at_their_size():
+    image, truth, _ = discs(diameter=30, n=10, polarity="dark", noise=0.08, grain=2.0, seed=1)
+    params, labels, d = measured(image, "dark")
+    assert abs(np.median(d) / 30 - 1) < 0.1
+    assert abs(params.scale / 30 - 1) < 0.15 and params.sigma > 1  # smoothing follows the size, not 1 px
+    assert 8 <= len(np.unique(labels)) - 1 <= 12
+
+
+def test_scale_bar_and_text_are_not_particles():
+    image, _, _ = discs(size=256, diameter=20, n=14, seed=2)
+    canvas = Image.fromarray((image * 255).astype(np.uint8))
+    pen = ImageDraw.Draw(canvas)
+    pen.rectangle((150, 236, 240, 241), fill=255)  # a scale bar, bottom right
+    pen.text((160, 214), "200 nm", fill=255, font=ImageFont.load_default(size=14))
+    pen.text((4, 4), "(a)", fill=255, font=ImageFont.load_default(size=18))
+    image = np.asarray(canvas, np.float32) / 255
+    mask = P.annotation_mask(image)
+    assert mask[236:242, 150:241].all() and mask[:24, :30].any() and mask[210:232, 158:215].any()
+    params, labels, d = measured(image, "bright")
+    assert not (labels > 0)[mask].any()  # nothing segmented on the bar, its text or the panel letter
+    assert abs(np.median(d) / 20 - 1) < 0.1 and abs(params.scale / 20 - 1) < 0.15
+
+
+def test_touching_particles_are_split():
+    image, _, centres = discs(size=160, diameter=26, n=14, seed=3, gap=-3.0)  # neighbours overlap by up to 3 px
+    _, labels, _ = measured(image, "bright")
+    assert abs((len(np.unique(labels)) - 1) - len(centres)) <= 2
+
+
+def test_an_empty_field_fails_clearly():
+    rng = np.random.default_rng(4)
+    image = np.clip(0.4 + 0.05 * ndi.gaussian_filter(rng.standard_normal((160, 160)), 1.5) * 3, 0, 1)
+    with pytest.raises(P.NoParticles, match=r"data\.segment\.scale"):
+        P.resolve_params([image.astype(np.float32)], None, "bright")
+    labels, foreground = P.segment_particles(image, None, "bright")  # callers that only ask get nothing, no error
+    assert not labels.any() and not foreground.any()
+
+
+def test_empty_folder_profile_says_what_was_tried_and_writes_the_figure(tmp_path, monkeypatch):
+    from conftest import compose
+
+    from drgan.profile import profile
+
+    rng = np.random.default_rng(5)
+    folder = tmp_path / "images"
+    folder.mkdir()
+    flat = np.clip(0.4 + 0.05 * rng.standard_normal((160, 160)), 0, 1)
+    Image.fromarray((flat * 255).astype(np.uint8)).save(folder / "empty.png")
+    monkeypatch.chdir(tmp_path)
+    cfg = compose([f"data.dir={folder}", "name=empty", f"out={tmp_path / 'out'}", "patch_size=64"], "profile")
+    with pytest.raises(DataError) as error:
+        profile(cfg)
+    message = str(error.value)
+    assert "no particles found" in message and "data.segment.scale" in message and "data.polarity" in message
+    assert "nan" not in message
+    assert (tmp_path / "out" / "particles.png").stat().st_size > 0
+
+
+def test_user_settings_are_kept_exactly():
+    image, _, _ = discs(seed=6)
+    given = P.SegmentParams(sigma=2.0, min_distance=9, min_area=50, max_area=900)
+    params, estimate = P.resolve_params([image], given, "bright")
+    assert (params.sigma, params.min_distance, params.min_area, params.max_area) == (2.0, 9, 50, 900)
+    assert estimate is not None  # the scale (for the illumination and blobs) was still measured
+    fixed = P.SegmentParams(scale=24.0).resolved()
+    assert fixed.scale == 24.0 and fixed.min_distance == round(P.MIN_DISTANCE_PER_DIAMETER * 24)
+    with pytest.raises(Exception, match="unknown key"):
+        P.SegmentParams.from_config({"sigmaa": 1.0})
+
+
+def test_16_bit_and_rgb_input_give_the_same_particles():
+    image, _, _ = discs(seed=7, diameter=22)
+    as16 = (image * 65535).astype(np.uint16)
+    rgb = np.repeat((image * 255).astype(np.uint8)[..., None], 3, axis=2)
+    scales = [P.resolve_params([x], None, "bright")[0].scale for x in (image, as16, rgb)]
+    assert max(scales) / min(scales) < 1.05 and abs(scales[0] / 22 - 1) < 0.15
+    counts = [len(np.unique(P.segment_particles(x, None, "bright")[0])) - 1 for x in (image, as16, rgb)]
+    assert max(counts) - min(counts) <= 1
