@@ -272,21 +272,6 @@ def regressor_state(weights: dict[str, torch.Tensor], view_width: float) -> dict
     return state
 
 
-def official_values(weights: dict[str, torch.Tensor], phi: torch.Tensor, limits: list[tuple[float, float]]):
-    """The official network's scene values for constellations phi (B, n, 4), from its state dict with plain torch
-    operations (w = g v / ||v||, ReLU, sigmoid, rescaled into each output's limits): the reference of the tests."""
-    x = phi.reshape(phi.shape[0], -1).to(torch.float64)
-    for layer in LAYERS:
-        g = weights[f"params_model.{layer}.weight_g"].double()
-        v = weights[f"params_model.{layer}.weight_v"].double()
-        w = g * v / v.norm(dim=1, keepdim=True)
-        x = x @ w.T + weights[f"params_model.{layer}.bias"].double()
-        x = torch.sigmoid(x) if layer == LAYERS[-1] else torch.relu(x)
-    low = x.new_tensor([lo for lo, _ in limits])
-    high = x.new_tensor([hi for _, hi in limits])
-    return low + (high - low).abs() * x
-
-
 def output_limits(settings: dict) -> list[tuple[float, float]]:
     """The official network's outputs in order (stage's learned keys, particles', noise sigma): their limits."""
     scene = settings["scene_param_dict"]
