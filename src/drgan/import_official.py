@@ -64,6 +64,7 @@ SIZE_PARAMS = {
     "bimodal": ("bimodal_params", ("mean1", "stddev1", "p", "mean2", "stddev2")),
     "gaussian": ("gaussian_params", ("mean", "stddev")),
 }
+SIZE_GROUPS = {f"drgan.scene.layout.{cls}Size": group for cls, group in (("Lognormal", "lognormal"), ("Normal", "normal"), ("Bimodal", "bimodal"))}  # fmt: skip
 LAYERS = ("fc1", "fc2", "fc3", "fc4", "output_layer.0")
 SCENE_FILES = {"stage_mesh": "stage.ply", "ring_light_mesh": "light_source.ply", "top_light_mesh": "light_source2.ply"}
 # The paper's cases by official tag: drgan's material names.
@@ -440,6 +441,7 @@ def write_material_file(out: Path, cfg: dict) -> Path:
         "defaults:\n"
         "  - /drgan_schema/material@material\n"
         "  - /drgan_schema/imaging/official@material.imaging\n"
+        f"  - override /size: {SIZE_GROUPS[cfg['size']['_target_']]}\n"
         "  - override /placement: official\n\n"
     )
     path = out / "material" / f"{name}.yaml"
