@@ -12,7 +12,7 @@ against the odd half (FID at the floor's sample size). Masks: the official masks
 particle (class 2), cut touching particles apart with a skeletonised boundary and drop parts under 50 px; drgan's
 (contour_px 1) mark the rim *inside*. So drgan's masks are compared in the official convention, made here from its
 exact instance labels (`official_mask`); its own masks are reported beside them. Writes results.json, results.md and
-figure.png (three images per case, drgan left, official right).
+figure.jpg (three images per case, drgan left, official right).
 """
 
 from __future__ import annotations
@@ -161,7 +161,7 @@ def figure(panels: dict, path: Path, size: int = 128) -> None:
         ]
         gap = np.full((size, 6), 255, np.uint8)
         rows.append(np.hstack([*tiles[:3], gap, *tiles[3:]]))
-    Image.fromarray(np.vstack(rows)).save(path, optimize=True)
+    Image.fromarray(np.vstack(rows)).save(path, quality=85, optimize=True)
 
 
 def table(results: dict) -> str:
@@ -231,7 +231,7 @@ def main() -> None:
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
     if extractor is not None:
         (args.out / "results.md").write_text(table(results))
-    figure(panels, args.out / "figure.png")
+    figure(panels, args.out / "figure.jpg")
 
 
 if __name__ == "__main__":
