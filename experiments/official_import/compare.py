@@ -196,6 +196,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--tags", nargs="*", default=list(TAGS))
     parser.add_argument("--no-inception", action="store_true", help="skip FID/KID")
+    parser.add_argument("--fid-images", type=int, default=100, help="drgan images (the first) in FID/KID: CPU time")
     args = parser.parse_args()
     extractor = None
     if not args.no_inception:
@@ -224,7 +225,10 @@ def main() -> None:
             "generation": json.loads(manifest.read_text()).get("stats") if manifest.is_file() else None,
         }
         if extractor is not None:
-            results[tag]["inception"] = inception_scores(images, ref_images, extractor)
+            results[tag]["inception"] = {
+                "n_drgan": min(len(images), args.fid_images),
+                **inception_scores(images[: args.fid_images], ref_images, extractor),
+            }
         panels[tag] = (images, ref_images)
         print(tag, json.dumps(results[tag]["official_masks"], indent=None, default=float)[:400])
     args.out.mkdir(parents=True, exist_ok=True)
