@@ -124,7 +124,11 @@ def read_reference(folder: Path) -> tuple[list[np.ndarray], list[np.ndarray]]:
 
 def read_drgan(folder: Path) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
     """Images, drgan's masks and instance labels of every finished item (meta/ID.json written last)."""
-    items = sorted(p.stem for p in (folder / "meta").glob("syn_*.json"))
+    manifest = folder / "manifest.json"
+    if manifest.is_file():  # the dataset: its first n kept items (shards may have kept a few more)
+        items = [e["id"] for e in json.loads(manifest.read_text())["entries"] if e["kind"] == "synthetic"]
+    else:  # a dataset still being generated: every finished item
+        items = sorted(p.stem for p in (folder / "meta").glob("syn_*.json"))
     images = [np.asarray(Image.open(folder / "images" / f"{i}.png"), dtype=np.float64) for i in items]
     masks = [np.asarray(Image.open(folder / "masks" / f"{i}.png")) for i in items]
     labels = [np.asarray(Image.open(folder / "labels" / f"{i}.png")).astype(np.int32) for i in items]
@@ -222,7 +226,7 @@ def main() -> None:
             "drgan_masks": compare(own, theirs, rounds=200),
             # drgan's images that the official filter would also keep (its masks are wider than drgan's labels)
             "official_filter": {"n": len(kept), **compare(kept, theirs, rounds=500)},
-            "generation": json.loads(manifest.read_text()).get("stats") if manifest.is_file() else None,
+            "generation": json.loads(manifest.read_text()).get("counts") if manifest.is_file() else None,
         }
         if extractor is not None:
             results[tag]["inception"] = {
