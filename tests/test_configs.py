@@ -24,6 +24,7 @@ REQUIRED = {
     "profile": [],
     "realism": [],
     "export_nnunet": ["data=x", "out=x"],
+    "import_official": ["official=x", "out=x"],
 }
 
 

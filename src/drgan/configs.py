@@ -113,6 +113,7 @@ def schemas() -> dict[str, type]:
         "material": config.Material,
         "imaging/secondary": config.SecondaryImaging,
         "imaging/transmission": config.TransmissionImaging,
+        "imaging/official": config.OfficialImaging,
     }
 
 

@@ -17,7 +17,7 @@ import importlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Dict, Optional  # noqa: UP035  (OmegaConf reads these annotations at run time)
+from typing import Any, ClassVar, Dict, List, Optional  # noqa: UP035  (OmegaConf reads these annotations at run time)
 
 from omegaconf import MISSING
 
@@ -158,18 +158,61 @@ class SecondaryImaging(ImagingConfig):
 
     def scene_parameters(self) -> tuple[Parameter, ...]:
         """The stage's, then the particles' BSDF parameters (the reference implementation's order)."""
-        params = []
-        for surface, table in (("stage", self.stage_bsdf), ("particle", self.particle_bsdf)):
-            for name, spec in (table or {}).items():
-                if name not in PRINCIPLED_PARAMETERS:
-                    raise ConfigError(
-                        f"material.imaging.{surface}_bsdf.{name}: unknown Principled-BSDF parameter; expected one of "
-                        f"{', '.join(PRINCIPLED_PARAMETERS)}"
-                    )
-                params.append(parse_parameter(surface, name, spec, f"material.imaging.{surface}_bsdf.{name}"))
         if not self.stage and self.stage_bsdf:
             raise ConfigError("material.imaging.stage_bsdf is set but material.imaging.stage is false; remove one")
-        return tuple(params)
+        return principled_parameters(self.stage_bsdf, self.particle_bsdf)
+
+
+def principled_parameters(stage_bsdf: Mapping, particle_bsdf: Mapping) -> tuple[Parameter, ...]:
+    """The stage's, then the particles' Principled-BSDF parameters, each table in its own order."""
+    params = []
+    for surface, table in (("stage", stage_bsdf), ("particle", particle_bsdf)):
+        for name, spec in (table or {}).items():
+            if name not in PRINCIPLED_PARAMETERS:
+                raise ConfigError(
+                    f"material.imaging.{surface}_bsdf.{name}: unknown Principled-BSDF parameter; expected one of "
+                    f"{', '.join(PRINCIPLED_PARAMETERS)}"
+                )
+            params.append(parse_parameter(surface, name, spec, f"material.imaging.{surface}_bsdf.{name}"))
+    return tuple(params)
+
+
+@dataclass
+class OfficialImaging(ImagingConfig):
+    """``material.imaging`` of the official DiffRenderGAN scene (`drgan.scene.official.OfficialScene`), as
+    `drgan.import_official` writes it from an official experiment: the official stage and light meshes, its camera
+    (perspective, 40 degrees, 6 units above the particles' plane) and its units. A constellation row is
+    (x, y, z, r) in layout units (`drgan.scene.layout.OfficialPlacement`): the particle's file mesh, scaled by
+    r x ``mesh_scale`` about the file's origin, sits at (x, y, z) x ``mesh_unit`` (z up, towards the camera)."""
+
+    _target_: str = "drgan.scene.official.OfficialScene"
+    mesh_unit: float = MISSING  # scene length of one layout unit (official mesh_unit)
+    mesh_scale: float = MISSING  # a mesh file's scale at r = 1 (official mesh_scale)
+    # Per mesh of material.meshes.dir (sorted by file name): the centre of its file's bounding box (x, y, z) and its
+    # largest extent, in file units (`drgan.scene.meshes.mesh_frame`): the loader normalises meshes, this undoes it.
+    mesh_frames: List[List[float]] = MISSING  # noqa: UP006
+    stage_mesh: str = MISSING  # the official stage.ply (its placement is the official scene's)
+    ring_light_mesh: str = MISSING  # light_source.ply: the ring light around the scene
+    top_light_mesh: str = MISSING  # light_source2.ply: the light above the camera
+    ring_radiance: float = 1.0  # official emission1
+    top_radiance: float = 0.1  # official emission2
+    particle_bsdf: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006  (as SecondaryImaging's)
+    stage_bsdf: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
+
+    def __post_init__(self):
+        for name in ("mesh_unit", "mesh_scale"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"material.imaging.{name}={value!r}: expected a finite number > 0")
+        for frame in self.mesh_frames:
+            if len(frame) != 4 or not frame[3] > 0:
+                raise ConfigError(
+                    f"material.imaging.mesh_frames: {list(frame)}: expected [centre x, y, z, largest extent > 0]"
+                )
+
+    def scene_parameters(self) -> tuple[Parameter, ...]:
+        """The stage's, then the particles' BSDF parameters: the official network's output order."""
+        return principled_parameters(self.stage_bsdf, self.particle_bsdf)
 
 
 @dataclass
@@ -258,6 +301,7 @@ ENTRY_POINT_GROUP = "drgan.scenes"
 BUILTIN_SCENES = {
     SecondaryImaging._target_: ("drgan.scene.scene", SecondaryImaging),
     TransmissionImaging._target_: ("drgan.scene.transmission", TransmissionImaging),
+    OfficialImaging._target_: ("drgan.scene.official", OfficialImaging),
 }
 _REGISTERED: dict[str, type] = {}
 

@@ -34,6 +34,7 @@ __all__ = [
     "Random2D",
     "Random3D",
     "PoissonAgglomerates",
+    "OfficialPlacement",
     "Placement",
     "sample_layouts",
     "particle_counts",
@@ -511,7 +512,117 @@ class PoissonAgglomerates:
         return positions
 
 
-Placement = Random2D | Random3D | PoissonAgglomerates
+# The official code's neighbour candidates: a 16 x 16 grid over the sphere (or circle) of radius r_parent + r_new.
+_OFFICIAL_GRID = 16
+# Parents tried by the official Poisson placement before it gives up (the official code loops for ever).
+_OFFICIAL_PARENT_TRIES = 10_000
+_OFFICIAL_ALGORITHMS = ("random", "poisson")
+
+
+@dataclass(frozen=True)
+class OfficialPlacement:
+    """The official DiffRenderGAN code's placement (`drgan.import_official`): positions in its layout units.
+
+    Unlike drgan's placements, sizes and positions are not in px: a row is (x, y, z, r) with x, y, z uniform in
+    [-limit, limit] (z = 0 unless ``position3d``) and r the size factor the size distribution draws; the scene
+    (`drgan.scene.official.OfficialScene`) turns units into geometry (x mesh_unit, r x mesh_scale). The n particles
+    are split into ``max_agglomerates`` runs of random lengths (n must be divisible by it). ``algorithm``:
+    "random" places each uniformly (overlaps allowed); "poisson" seeds each agglomerate at a uniform point clear of
+    the earlier ones and grows it: around a random placed particle, the next size takes the first free point of a
+    16 x 16 grid on the sphere (circle in 2-D) at distance r_parent + r_new, visited in random order; two particles
+    are clear when their centres are >= r_i + r_j apart. Rows come in the order placed: the FCN reads that order.
+
+    limit: half side of the box of seeds, layout units (> 0); the official mesh_base_sample_limit / mesh_unit.
+    """
+
+    algorithm: str = "poisson"
+    limit: float = 1.0
+    position3d: bool = False
+    max_agglomerates: int = 1
+
+    def __post_init__(self) -> None:
+        if self.algorithm not in _OFFICIAL_ALGORITHMS:
+            raise ConfigError(
+                f"OfficialPlacement.algorithm must be one of {_OFFICIAL_ALGORITHMS}, got {self.algorithm!r}"
+            )
+        _check_positive("OfficialPlacement", "limit", self.limit)
+        if not isinstance(self.position3d, bool):
+            raise ConfigError(f"OfficialPlacement.position3d must be true or false, got {self.position3d!r}")
+        _check_int_at_least("OfficialPlacement", "max_agglomerates", self.max_agglomerates, 1)
+
+    def sample(self, rng: np.random.Generator, sizes: np.ndarray, view_width: float) -> np.ndarray:
+        """Centres (n, 3) in layout units for sizes (n,); ``view_width`` is not used (the box is ``limit``)."""
+        sizes = _check_sizes("OfficialPlacement", sizes, view_width)
+        n, k = sizes.size, int(self.max_agglomerates)
+        if n % k:
+            raise ConfigError(f"OfficialPlacement: n = {n} particles cannot be split into max_agglomerates = {k}")
+        lengths = rng.integers(1, n // k + 1, size=k)
+        lengths[-1] = n - lengths[:-1].sum()
+        placed = np.zeros((0, 4))
+        start = 0
+        for length in lengths:
+            radii = sizes[start : start + length]
+            start += length
+            if self.algorithm == "random":
+                rows = np.column_stack([self._uniform(rng, len(radii)), radii])
+            else:
+                rows = self._grow(rng, radii, placed)
+            placed = np.concatenate([placed, rows])
+        return placed[:, :3]
+
+    def _uniform(self, rng: np.random.Generator, count: int) -> np.ndarray:
+        xyz = rng.uniform(-self.limit, self.limit, (count, 3))
+        if not self.position3d:
+            xyz[:, 2] = 0.0
+        return xyz
+
+    def _grow(self, rng: np.random.Generator, radii: np.ndarray, earlier: np.ndarray) -> np.ndarray:
+        """Rows (x, y, z, r) of one agglomerate, in the order of ``radii``. The official code takes the sizes from
+        the end of its list and so writes each agglomerate's rows in reverse; the sizes being independent draws,
+        taking them from the front gives the same distribution of Phi, rows aligned with ``sizes``."""
+        for _ in range(_OFFICIAL_PARENT_TRIES):
+            seed = self._uniform(rng, 1)[0]
+            if not _overlaps(seed[None], radii[0], earlier).any():
+                break
+        else:
+            raise ConfigError(f"OfficialPlacement: no room for another agglomerate within limit {self.limit}")
+        rows = [np.array([*seed, radii[0]])]
+        for _ in range(_OFFICIAL_PARENT_TRIES):
+            parent = rows[int(rng.integers(len(rows)))]
+            while len(rows) < len(radii):
+                radius = radii[len(rows)]
+                candidates = _neighbour_grid(parent, radius, self.position3d)
+                free = ~_overlaps(candidates, radius, np.concatenate([np.array(rows), earlier]))
+                visit = rng.permutation(len(candidates))
+                first = visit[free[visit]]
+                if not len(first):
+                    break
+                rows.append(np.array([*candidates[first[0]], radius]))
+            if len(rows) == len(radii):
+                return np.array(rows)
+        raise ConfigError(f"OfficialPlacement: placed only {len(rows)} of the {len(radii)} particles of an agglomerate")
+
+
+def _neighbour_grid(parent: np.ndarray, radius: float, position3d: bool) -> np.ndarray:
+    """The official candidates around ``parent`` (x, y, z, r): (256, 3) points at distance r + ``radius``."""
+    distance = parent[3] + radius
+    theta, phi = np.meshgrid(np.linspace(0, 2 * np.pi, _OFFICIAL_GRID), np.linspace(0, np.pi, _OFFICIAL_GRID))
+    if position3d:
+        offsets = (np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), np.cos(phi))
+        return np.column_stack([distance * o.ravel() + c for o, c in zip(offsets, parent[:3])])
+    x, y = distance * np.cos(theta) + parent[0], distance * np.sin(theta) + parent[1]
+    return np.column_stack([x.ravel(), y.ravel(), np.zeros(theta.size)])
+
+
+def _overlaps(points: np.ndarray, radius: float, rows: np.ndarray) -> np.ndarray:
+    """(k,) whether each point, a particle of ``radius``, overlaps any of ``rows`` (x, y, z, r): centres < r + r'."""
+    if not len(rows):
+        return np.zeros(len(points), dtype=bool)
+    gaps = np.linalg.norm(points[:, None, :] - rows[None, :, :3], axis=-1)
+    return (gaps < radius + rows[None, :, 3]).any(axis=1)
+
+
+Placement = Random2D | Random3D | PoissonAgglomerates | OfficialPlacement
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -544,9 +655,10 @@ def sample_layouts(
             raise ConfigError(f"sample_layouts: n_min = {n_min} must be <= n = {n} (the most particles a scene holds)")
     if not isinstance(size, (NormalSize, LognormalSize, BimodalSize)):
         raise ConfigError(f"sample_layouts: size must be NormalSize, LognormalSize or BimodalSize, got {size!r}")
-    if not isinstance(placement, (Random2D, Random3D, PoissonAgglomerates)):
+    if not isinstance(placement, (Random2D, Random3D, PoissonAgglomerates, OfficialPlacement)):
         raise ConfigError(
-            f"sample_layouts: placement must be Random2D, Random3D or PoissonAgglomerates, got {placement!r}"
+            f"sample_layouts: placement must be Random2D, Random3D, PoissonAgglomerates or OfficialPlacement, "
+            f"got {placement!r}"
         )
     rng = np.random.default_rng(seed)
     sizes = size.sample(rng, (m, n))
@@ -571,6 +683,7 @@ _PLACEMENT_KINDS: dict[str, type] = {
     "random_2d": Random2D,
     "random_3d": Random3D,
     "poisson": PoissonAgglomerates,
+    "official": OfficialPlacement,
 }
 
 
@@ -587,6 +700,6 @@ def size_from_config(cfg: Mapping) -> SizeDistribution:
 
 
 def placement_from_config(cfg: Mapping) -> Placement:
-    """Placement from a mapping: _target_ (Random2D | Random3D | PoissonAgglomerates here) plus the dataclass
+    """Placement from a mapping: _target_ (Random2D | Random3D | PoissonAgglomerates | OfficialPlacement) plus the
     fields."""
     return _from_config("placement", _PLACEMENT_KINDS, cfg)  # type: ignore[return-value]

@@ -364,6 +364,19 @@ def generate_meshes(kind: str, count: int, seed: int, **params) -> list[trimesh.
 def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     """Read a PLY, OBJ or STL file as one triangle mesh (several parts are concatenated), validated and
     normalised to the unit convention. Problems raise MeshError naming the file."""
+    return validate_mesh(normalize_mesh(read_mesh(path)), str(path))
+
+
+def mesh_frame(path: str | os.PathLike) -> tuple[np.ndarray, float]:
+    """Where `load_mesh` moved the file's mesh from: (centre of its bounding box, its largest extent), in the file's
+    own units. ``centre + extent * unit_vertices`` gives back the file's vertices."""
+    vertices = np.asarray(read_mesh(path).vertices, dtype=np.float64)
+    lower, upper = vertices.min(axis=0), vertices.max(axis=0)
+    return 0.5 * (lower + upper), float((upper - lower).max())
+
+
+def read_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
+    """A mesh file as it is (the file's own units and origin), validated; duplicate vertices merged."""
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file {str(path)!r} does not exist or is not a file")
@@ -391,7 +404,7 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     validate_mesh(mesh, str(path))
     mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     mesh.merge_vertices()  # STL and some OBJ files store each triangle's corners separately
-    return validate_mesh(normalize_mesh(mesh), str(path))
+    return mesh
 
 
 def load_mesh_set(path: str | os.PathLike) -> list[trimesh.Trimesh]:
