@@ -317,7 +317,9 @@ def test_mine_real_tio2_sem(tmp_path, request):
     summary = ps.summary()
     print(json.dumps({k: v for k, v in summary.items() if k != "train_per_image"}), f"{seconds:.1f} s")
     assert 100 <= summary["n_train"] <= 150  # the paper hand-picked 124
-    assert summary["n_background"] == 200
+    # Only windows free of particles are backgrounds: fewer than the 200 asked for on these dense fields, none with
+    # a particle pixel (the segmentation's foreground)
+    assert 100 <= summary["n_background"] <= 200 and summary["background_max_fraction"] == 0.0
     assert set(ps.train_ids) <= set(ids)
 
 
