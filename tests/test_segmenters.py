@@ -25,6 +25,7 @@ from test_segment import disc_image, disc_labels, eval_cfg, make_real
 from drgan.errors import ConfigError, DataError
 from drgan.segmentation import registry
 from drgan.segmentation.module import SegmenterModule
+from drgan.targets import target_path
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -68,7 +69,7 @@ def test_segment_config_builds_its_model_with_instantiate():
     from hydra.utils import instantiate
 
     cfg = compose([*TINY, "model.normalize=zscore"], config_name="segment")
-    assert cfg.model._target_ == TARGET == registry.target_name(SegmenterModule)
+    assert cfg.model._target_ == TARGET == target_path(SegmenterModule)
     assert type(instantiate(cfg.model)) is SegmenterModule  # a plain Hydra _target_ node
     model = registry.build_segmenter(cfg.model)
     assert type(model) is SegmenterModule and model.input_normalization == "zscore"
@@ -163,7 +164,7 @@ def test_registered_and_entry_point_segmenters_load(own_registry, tmp_path, monk
     entry point a checkpoint asks for is loaded)."""
     model = tiny_model()
     weights = model.state_dict()
-    mine = {**model.hparams, "_target_": registry.target_name(TinySegmenter)}
+    mine = {**model.hparams, "_target_": target_path(TinySegmenter)}
     with pytest.raises(ConfigError, match="test_segmenters.TinySegmenter' is not an allowed segmenter"):
         registry.load_segmenter(save_checkpoint(tmp_path / "mine.ckpt", mine, weights))
     own_registry.register_segmenter(TinySegmenter)

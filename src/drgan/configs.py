@@ -137,14 +137,6 @@ def setup() -> None:
         store.store(group=path.parent.name, name=path.stem, node=OmegaConf.load(path))
 
 
-def register_imaging_schema(name: str, schema: type) -> None:
-    """Make ``- /drgan_schema/imaging/NAME@material.imaging`` available to material files: the compose-time check of
-    a scene class's imaging keys (`drgan.scene.config.register_scene` registers the class itself)."""
-    from hydra.core.config_store import ConfigStore
-
-    ConfigStore.instance().store(group="drgan_schema/imaging", name=name, node=schema)
-
-
 ROOTS = ("gan", "segmentation")
 
 

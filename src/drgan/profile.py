@@ -10,6 +10,7 @@ a material inheriting the closest paper material, ready for `python -m drgan.tra
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -373,23 +374,30 @@ def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict,
     return parent, why, material, size, notes
 
 
+@functools.cache
+def parent_material(parent: str) -> dict:
+    """The paper material ``parent`` as plain values (composed once per process; callers do not modify it)."""
+    from drgan.configs import compose
+
+    return OmegaConf.to_container(compose([f"material={parent}"], config_name="render").material, resolve=True)
+
+
 def parent_renders_without_sampling_noise(parent: str) -> bool:
     """Whether the parent material's scene renders without Monte Carlo grain (its imaging config says so)."""
-    from drgan.configs import compose
     from drgan.scene.config import typed_material
 
-    return typed_material(compose([f"material={parent}"], config_name="render").material).imaging.noiseless
+    return typed_material(parent_material(parent)).imaging.noiseless
 
 
 def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
     """(parent name, the text of drgan_conf/material/NAME.yaml): the measured keys, checked against the typed
     material (`drgan.scene.config.typed_material`, merged over the parent) and dumped, with why each was set."""
-    from drgan.configs import compose
     from drgan.scene.config import typed_material
 
     parent, why, material, size, notes = material_settings(result, fits, chosen)
-    inherited = OmegaConf.to_container(compose([f"material={parent}"], config_name="render").material, resolve=True)
-    typed_material(OmegaConf.merge(inherited, material))  # a value the schema refuses fails here, not in training
+    typed_material(
+        OmegaConf.merge(parent_material(parent), material)
+    )  # a value the schema refuses fails here, not in training
     agg, data = result["agglomeration"], result["data"]
     notes["size group"] = f"{chosen.kind}: lowest BIC of normal / lognormal / bimodal"
     notes["placement group"] = (

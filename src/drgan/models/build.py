@@ -94,17 +94,12 @@ def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: i
     )
 
 
-DISCRIMINATORS = (
-    "PatchDiscriminator",
-)  # the classes model.discriminator._target_ may name (drgan.models.discriminator)
-
-
 def build_discriminator(model: Mapping):
-    """The discriminator of the ``model`` group: ``model.discriminator``, a ``_target_`` config (the PatchGAN)."""
-    from drgan.models import discriminator
+    """The discriminator of the ``model`` group: ``model.discriminator``, a ``_target_`` config naming one of the
+    allowed classes (the PatchGAN)."""
+    from drgan.models.discriminator import PatchDiscriminator
 
-    allowed = [getattr(discriminator, name) for name in DISCRIMINATORS]
-    return targets.build(_plain(model["discriminator"]), allowed, "model.discriminator")
+    return targets.build(_plain(model["discriminator"]), [PatchDiscriminator], "model.discriminator")
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from omegaconf import MISSING
 
 from drgan.errors import ConfigError
 from drgan.scene.parameters import MaterialParameters, Parameter, noise_parameter, parse_parameter
+from drgan.targets import target_path
 
 POLARITIES = ("bright", "dark")
 LIGHT_SHAPES = ("band", "torus")
@@ -306,15 +307,10 @@ BUILTIN_SCENES = {
 _REGISTERED: dict[str, type] = {}
 
 
-def target_of(cls: type) -> str:
-    """The import path a config's ``_target_`` uses for ``cls``."""
-    return f"{cls.__module__}.{cls.__qualname__}"
-
-
 def register_scene(cls: type) -> type:
     """Allow configs to name scene class ``cls`` (use as a class decorator). It needs a ``Config`` dataclass whose
     ``_target_`` defaults to the class's import path, a ``from_config`` classmethod, and the `Scene` members."""
-    target = target_of(cls)
+    target = target_path(cls)
     config = getattr(cls, "Config", None)
     if not (isinstance(config, type) and dataclasses.is_dataclass(config)):
         raise ConfigError(f"register_scene({target}): expected a Config dataclass on the class (its imaging keys)")

@@ -28,7 +28,7 @@ import trimesh
 from drgan import backend
 from drgan.errors import ConfigError
 from drgan.scene.config import Material, OfficialImaging, register_scene
-from drgan.scene.parameters import MaterialParameters, noise_parameter
+from drgan.scene.parameters import MaterialParameters
 from drgan.scene.scene import ParticleScene, RenderSettings
 
 mi = backend.mi
@@ -68,7 +68,7 @@ class OfficialScene(ParticleScene):
     def spec_from_config(cls, material: Material, render: RenderSettings) -> OfficialSpec:
         imaging: OfficialImaging = material.imaging
         return OfficialSpec(
-            parameters=MaterialParameters(imaging.scene_parameters(), noise_parameter(material.noise_sigma)),
+            parameters=imaging.material_parameters(material.noise_sigma),
             imaging=imaging,
             render=render,
             view_width=float(material.view_width),

@@ -32,7 +32,7 @@ from drgan.errors import ConfigError, check_spp
 from drgan.scene import direct
 from drgan.scene.config import Material, SecondaryImaging, TopLight, TorusLight, register_scene
 from drgan.scene.mitsuba_shapes import mitsuba_mesh, rectangle_mesh
-from drgan.scene.parameters import MaterialParameters, Parameter, noise_parameter
+from drgan.scene.parameters import MaterialParameters, Parameter
 
 dr = backend.dr
 mi = backend.mi
@@ -385,7 +385,7 @@ class ParticleScene(MeshParticles):
     def spec_from_config(cls, material: Material, render: RenderSettings) -> SceneSpec:
         imaging: SecondaryImaging = material.imaging
         return SceneSpec(
-            parameters=MaterialParameters(imaging.scene_parameters(), noise_parameter(material.noise_sigma)),
+            parameters=imaging.material_parameters(material.noise_sigma),
             render=render,
             view_width=float(material.view_width),
             stage=imaging.stage,

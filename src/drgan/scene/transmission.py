@@ -26,7 +26,7 @@ import trimesh
 
 from drgan.errors import ConfigError, MeshError, check_spp
 from drgan.scene.config import Material, TransmissionImaging, register_scene
-from drgan.scene.parameters import MaterialParameters, Parameter, noise_parameter
+from drgan.scene.parameters import MaterialParameters, Parameter
 from drgan.scene.scene import MeshParticles, RenderSettings, dr, mi, reconstruction_blur
 
 PARAMETERS = ("background", "absorption", "floor")  # the scene's values, in the FCN's output order
@@ -84,7 +84,7 @@ class TransmissionScene(MeshParticles):
     @classmethod
     def spec_from_config(cls, material: Material, render: RenderSettings) -> TransmissionSpec:
         imaging: TransmissionImaging = material.imaging
-        parameters = MaterialParameters(imaging.scene_parameters(), noise_parameter(material.noise_sigma))
+        parameters = imaging.material_parameters(material.noise_sigma)
         return TransmissionSpec(parameters=parameters, render=render, view_width=float(material.view_width))
 
     def __init__(

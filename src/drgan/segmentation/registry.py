@@ -32,6 +32,7 @@ from pathlib import Path
 
 from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import ConfigError, DataError
+from drgan.targets import target_path
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -40,7 +41,6 @@ __all__ = [
     "register_segmenter",
     "registered_segmenters",
     "segmenter_class",
-    "target_name",
 ]
 
 ENTRY_POINT_GROUP = "drgan.segmenters"
@@ -51,16 +51,11 @@ EXPECTED = "a segmenter checkpoint written by `python -m drgan.segment`"
 _REGISTRY: dict[str, type] = {}
 
 
-def target_name(cls: type) -> str:
-    """The dotted name a ``_target_`` and a checkpoint use for ``cls``: where the class is defined."""
-    return f"{cls.__module__}.{cls.__qualname__}"
-
-
 def register_segmenter(cls: type) -> type:
-    """Class decorator: allow checkpoints to name ``cls`` (under ``target_name(cls)``)."""
+    """Class decorator: allow checkpoints to name ``cls`` (under ``target_path(cls)``)."""
     if not isinstance(cls, type):
         raise TypeError(f"register_segmenter: expected a class, got {cls!r}")
-    _REGISTRY[target_name(cls)] = cls
+    _REGISTRY[target_path(cls)] = cls
     return cls
 
 
@@ -143,7 +138,7 @@ def build_segmenter(node, where: str = "model"):
         cls = get_class(target)
     except Exception as error:
         raise ConfigError(f"{where}._target_={target}: no such class ({str(error).splitlines()[0]})") from None
-    name = target_name(cls)
+    name = target_path(cls)
     if segmenter_class(name, where, "" if name == target else f" (given as {target})") is not cls:
         raise ConfigError(f"{where}._target_={target}: a different class is registered under {name!r}")
     try:
