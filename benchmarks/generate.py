@@ -43,12 +43,13 @@ def time_setting(
     module = GANModule.from_config(cfg, m=1, base_dir=str(Path(__file__).resolve().parents[1])).eval()
     generator = module.generator
     contour_px = int(cfg.material.contour_px)
+    layouts = build.layout_sampler(cfg)  # built once, as drgan.generate does
     times = {"phi": [], "render": [], "labels": [], "write": []}
     with tempfile.TemporaryDirectory() as out, torch.no_grad():
         for i in range(images + 1):
             seeds = index_seeds(seed, i)
             start = time.perf_counter()
-            phi = torch.as_tensor(build.sample_phi(cfg, 1, seed=seeds["phi"])[0], dtype=torch.float32)
+            phi = torch.as_tensor(layouts(1, seed=seeds["phi"])[0], dtype=torch.float32)
             t_phi = time.perf_counter()
             values = generator.learned_values(phi.unsqueeze(0))[0]
             with torch.no_grad():
