@@ -111,3 +111,37 @@ def test_evaluate_writes_particle_statistics_and_the_classical_baseline_finds_th
     assert "| masks | " in text and "| classical | " in text and "bootstrap" in text
     assert (tmp_path / "out" / "sizes.png").stat().st_size > 1000
     assert "median_error" in (tmp_path / "out" / "statistics.csv").read_text()
+    # where particles are lost: the masks themselves lose none
+    sources = exact["sources"]
+    from skimage.measure import label
+
+    n_true = sum(particles(label(labels[i] > 0, connectivity=1)).count for i in ids)  # touching discs are one
+    assert sources["matched"] == sources["n_true"] == n_true
+    assert sources["false"] == 0 and sources["diameter_offset"] == 0
+    assert (
+        "## Where particles are lost" in text and "sources/merged" in (tmp_path / "out" / "statistics.csv").read_text()
+    )
+
+
+def test_error_sources_name_what_became_of_each_true_particle():
+    from drgan.metrics.segmentation import error_sources
+
+    true = squares(40, [(2, 2, 6, 6), (2, 9, 6, 6), (12, 2, 6, 6), (12, 20, 6, 6), (2, 30, 8, 8), (25, 25, 10, 10)])
+    pred = squares(40, [(2, 2, 6, 13), (12, 2, 6, 3), (12, 5, 6, 3), (12, 20, 6, 6), (15, 30, 4, 3), (24, 24, 12, 12)])
+    # 1 + 2 merged into one prediction; 3 split in two halves; 4 exact; 5 missed (a false particle beside it);
+    # 6 outlined 1 px too wide all round (IoU 100 / 144 > 0.5: matched, diameter offset +)
+    found = error_sources(pred, true)
+    assert (found["n_true"], found["n_pred"]) == (6, 6)
+    assert {k: found[k] for k in ("matched", "merged", "split", "missed", "outline", "false")} == {
+        "matched": 2,
+        "merged": 2,
+        "split": 1,
+        "missed": 1,
+        "outline": 0,
+        "false": 1,
+    }
+    expected = [0.0, 2 * np.sqrt(144 / np.pi) - 2 * np.sqrt(100 / np.pi)]
+    np.testing.assert_allclose(np.sort(found["diameter_offset"]), expected)
+    # a prediction 3 x the particle's area holds all of it, IoU 1/3: badly outlined, not merged or missed
+    wide = error_sources(squares(20, [(2, 2, 9, 9)]), squares(20, [(5, 5, 3, 9)]))
+    assert (wide["outline"], wide["matched"], wide["false"]) == (1, 0, 0)

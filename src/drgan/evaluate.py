@@ -28,7 +28,9 @@ mean equivalent diameter against the masks' (relative errors), the total count's
 errors, the Kolmogorov-Smirnov and first Wasserstein distances between the two diameter distributions, each with a
 bootstrap interval over images (``bootstrap`` resamples); particles cut by the image border count but are left out
 of sizes, on both sides. statistics.md, statistics.csv and sizes.png (histograms and cumulative curves of the
-diameters, masks and every run overlaid).
+diameters, masks and every run overlaid). statistics.md also says where each run loses particles: the share of true
+particles matched, merged with a neighbour, split, missed or badly outlined, the false particles, and the median
+boundary offset of matched particles (drgan.metrics.segmentation.error_sources), which is what to fix first.
 All inputs (checkpoints, predicted mask folders, images, masks, split) are read and checked before any prediction.
 """
 
@@ -46,7 +48,13 @@ from omegaconf import DictConfig
 
 from drgan.errors import ConfigError
 from drgan.io import write_bytes, write_with
-from drgan.metrics.segmentation import binarize_and_label, match_instances, segmentation_scores
+from drgan.metrics.segmentation import (
+    ERROR_SOURCES,
+    binarize_and_label,
+    error_sources,
+    match_instances,
+    segmentation_scores,
+)
 from drgan.metrics.statistics import compare_sizes, count_errors, particles, pooled
 
 log = logging.getLogger(__name__)
@@ -193,6 +201,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     rows = []
     truth = [particles(true_labels) for _, true_labels in samples]
     found: dict[str, list] = {run: [] for run in predictors}
+    sources: dict[str, list] = {run: [] for run in predictors}
     for k, (run, predictor) in enumerate(predictors.items()):
         for item, true_labels in samples:
             image_id, image = item.id, item.image
@@ -203,6 +212,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
                 )
             scores, pred_labels = score_image(class_map, true_labels)
             found[run].append(particles(pred_labels))
+            sources[run].append(error_sources(pred_labels, true_labels))
             rows.append({"run": run, "model": predictor.source, "image": image_id, **scores})
             log.info("%s %s: %s", run, image_id, {s: round(scores[s], 3) for s in SCORES})
             if k == 0 and cfg.get("overlays", True):
@@ -226,19 +236,33 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
         "std": {s: v[1] for s, v in stats.items()},
     }
     if cfg.get("statistics", True):
-        result["statistics"] = particle_statistics(cfg, out, found, truth, ids)
+        result["statistics"] = particle_statistics(cfg, out, found, truth, ids, sources)
     return result
 
 
-def particle_statistics(cfg: DictConfig, out: Path, found: dict, truth: list, ids: list[str]) -> dict:
+def summed_sources(per_image: list[dict]) -> dict:
+    """One run's error_sources over its images: counts summed, and the median boundary offset (px) of all matched
+    particles pooled."""
+    total = {key: sum(int(s[key]) for s in per_image) for key in ("n_true", "n_pred", *ERROR_SOURCES, "false")}
+    offsets = np.concatenate([s["diameter_offset"] for s in per_image] or [np.zeros(0)])
+    total["diameter_offset"] = float(np.median(offsets)) if len(offsets) else float("nan")
+    return total
+
+
+def particle_statistics(
+    cfg: DictConfig, out: Path, found: dict, truth: list, ids: list[str], sources: dict | None = None
+) -> dict:
     """Each run's particle statistics against the masks' (drgan.metrics.statistics); writes statistics.md,
-    statistics.csv and sizes.png. Returns {run: {statistic: {value, low, high}}, plus "count_errors": [...]}."""
+    statistics.csv and sizes.png. Returns {run: {statistic: {value, low, high}}, plus "count_errors": [...] and,
+    with ``sources`` (per run, error_sources of each image), "sources": summed_sources}."""
     n_boot, seed = int(cfg.get("bootstrap", 1000)), int(cfg.get("seed", 0))
     nm = cfg.get("nm_per_px")
     result = {}
     for run, mine in found.items():
         result[run] = compare_sizes(mine, truth, n_boot=n_boot, seed=seed)
         result[run]["count_errors"] = count_errors(mine, truth).tolist()
+        if sources:
+            result[run]["sources"] = summed_sources(sources[run])
     write_bytes(out / "statistics.csv", statistics_csv(result).encode())
     write_bytes(out / "statistics.md", statistics_markdown(result, truth, ids, nm, n_boot).encode())
     write_bytes(out / "sizes.png", size_figure(found, truth, nm))
@@ -260,8 +284,10 @@ def statistics_csv(result: dict) -> str:
     writer.writerow(["run", "statistic", "value", "low", "high"])
     for run, values in result.items():
         for key, cell in values.items():
-            if isinstance(cell, dict):
+            if isinstance(cell, dict) and "value" in cell:
                 writer.writerow([run, key, *(f"{cell[k]:.6g}" for k in ("value", "low", "high"))])
+        for key, count in values.get("sources", {}).items():  # where particles are lost: counts, offset in px
+            writer.writerow([run, f"sources/{key}", f"{count:.6g}", "", ""])
     return buf.getvalue()
 
 
@@ -303,6 +329,26 @@ def statistics_markdown(result: dict, truth: list, ids: list[str], nm: float | N
             "",
             "Over runs (mean +- sample std): " + ", ".join(f"{k} {m:.3f} +- {s:.3f}" for k, (m, s) in spread.items()),
         ]
+    if all("sources" in v for v in result.values()):
+        md += [
+            "",
+            "## Where particles are lost",
+            "",
+            "Each true particle is matched (IoU > 0.5), merged (more than half of it in a prediction that also holds "
+            "more than half of another), split (mostly predicted, but in pieces), missed (at most half predicted) or "
+            "badly outlined (the rest); false: predictions mostly off the true particles. Boundary offset: median "
+            f"predicted minus true equivalent diameter of the matched particles ({unit}).",
+            "",
+            f"| run | true particles | {' | '.join(ERROR_SOURCES)} | false | boundary offset ({unit}) |",
+            "|---|---|" + "---|" * len(ERROR_SOURCES) + "---|---|",
+        ]
+        for run, v in result.items():
+            src = v["sources"]
+            share = " | ".join(f"{100 * src[k] / max(src['n_true'], 1):.1f} %" for k in ERROR_SOURCES)
+            md.append(
+                f"| {run} | {src['n_true']} | {share} | {src['false']} ({100 * src['false'] / max(src['n_pred'], 1):.1f} % "
+                f"of {src['n_pred']} predicted) | {scale * src['diameter_offset']:+.2f} |"
+            )
     md.append("")
     return "\n".join(md)
 
