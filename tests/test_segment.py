@@ -606,3 +606,24 @@ def test_a_validation_score_has_settled_only_when_the_last_epochs_stopped_raisin
     rising, why = settled([0.2, 0.3, 0.32, 0.34, 0.36])
     assert not rising and "0.300 to 0.360" in why
     assert not settled([0.9, 0.9, 0.9])[0]  # too few epochs to tell
+
+
+def test_split_core_opens_a_wide_neck_the_network_is_unsure_of():
+    from drgan.metrics.segmentation import binarize_and_label, match_instances
+    from drgan.segmentation.inference import split_touching
+
+    truth = _two_touching_discs(r=10.0, gap=7.0)  # a neck almost as wide as the discs
+    probs = _probs_of(truth > 0)
+    neck = (truth > 0) & (np.abs(np.arange(48) - 24 + 0.5) <= 1.5)[None, :]  # the 4 columns around the contact line
+    probs[0][neck], probs[1][neck], probs[2][neck] = 0.3, 0.6, 0.1  # still particle by the argmax, but unsure
+    argmax_core = binarize_and_label(split_touching(probs).astype(np.int64))
+    assert argmax_core.max() == 1  # the distance transform alone sees one blob
+    strict = binarize_and_label(split_touching(probs, split_core=0.7).astype(np.int64))
+    m = match_instances(strict, truth, 0.5)
+    assert m.tp == 2 and m.fp == 0 and m.fn == 0
+    # the foreground (particle + contour > 0.5) is kept whole: the neck is cut by a line, not removed
+    assert ((strict > 0) | (split_touching(probs, split_core=0.7) == 2)).sum() == (truth > 0).sum()
+    from drgan.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="inference.split_core"):
+        split_touching(probs, split_core=1.0)

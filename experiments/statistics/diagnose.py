@@ -90,7 +90,7 @@ def main() -> None:
 
 
 def _keywords(variant: dict) -> dict:
-    names = {"depth": "split_depth", "smooth": "split_smooth"}
+    names = {"depth": "split_depth", "smooth": "split_smooth", "core": "split_core"}
     return {names.get(k, k): v for k, v in variant.items()}
 
 

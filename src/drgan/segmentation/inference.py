@@ -85,9 +85,13 @@ def predict_probs(
     return (acc / norm)[:, :h, :w].numpy()
 
 
-def check_split(split: str, split_depth: float, split_smooth: float) -> None:
+def check_split(split: str, split_depth: float, split_smooth: float, split_core: float | None = None) -> None:
     if split not in SPLITS:
         raise ConfigError(f"inference.split={split!r}: expected one of {SPLITS}")
+    if split_core is not None and not 0.0 < split_core < 1.0:
+        raise ConfigError(
+            f"inference.split_core={split_core}: expected a particle probability in (0, 1), or null (the argmax)"
+        )
     if not split_depth > 0:
         raise ConfigError(f"inference.split_depth={split_depth}: expected > 0 (px)")
     if not split_smooth >= 0:
@@ -114,19 +118,23 @@ def separate_regions(labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def split_touching(probs: np.ndarray, split_depth: float = 2.0, split_smooth: float = 1.0) -> np.ndarray:
+def split_touching(
+    probs: np.ndarray, split_depth: float = 2.0, split_smooth: float = 1.0, split_core: float | None = None
+) -> np.ndarray:
     """(C, H, W) class probabilities -> (H, W) uint8 class map whose particle class separates touching
-    particles (module docstring)."""
+    particles (module docstring). ``split_core``: the particle core whose distance transform seeds the split is
+    where the particle probability exceeds it (a stricter core opens the necks between touching particles);
+    None: where the particle class wins the argmax."""
     from scipy import ndimage as ndi
     from skimage.morphology import h_maxima
     from skimage.segmentation import watershed
 
-    check_split("watershed", split_depth, split_smooth)
+    check_split("watershed", split_depth, split_smooth, split_core)
     probs = np.asarray(probs)
     if probs.ndim != 3 or probs.shape[0] < 3:
         raise DataError(f"split_touching: expected (3, H, W) class probabilities, got shape {probs.shape}")
     foreground = probs[1] + probs[2] > 0.5
-    core = probs.argmax(axis=0) == 1
+    core = probs.argmax(axis=0) == 1 if split_core is None else probs[1] > split_core
     if not core.any():
         return np.zeros(core.shape, np.uint8)
     distance = ndi.distance_transform_edt(core)
@@ -145,16 +153,17 @@ def predict(
     split: str = "watershed",
     split_depth: float = 2.0,
     split_smooth: float = 1.0,
+    split_core: float | None = None,
     **kw,
 ) -> np.ndarray:
     """(H, W) image -> (H, W) uint8 class map (0 background, 1 particle, 2 contour).
 
     split="watershed": touching particles cut apart (``split_touching``); "none": the network's argmax."""
-    check_split(split, split_depth, split_smooth)
+    check_split(split, split_depth, split_smooth, split_core)
     probs = predict_probs(model, image, **kw)
     if split == "none":
         return probs.argmax(axis=0).astype(np.uint8)
-    return split_touching(probs, split_depth, split_smooth)
+    return split_touching(probs, split_depth, split_smooth, split_core)
 
 
 def make_predictor(model: torch.nn.Module, inference: dict):
@@ -169,5 +178,5 @@ def make_predictor(model: torch.nn.Module, inference: dict):
     }
     check_keys("inference", inference, defaults, "setting")
     settings = {**defaults, **inference}
-    check_split(settings["split"], settings["split_depth"], settings["split_smooth"])
+    check_split(settings["split"], settings["split_depth"], settings["split_smooth"], settings["split_core"])
     return lambda image: predict(model, image, **inference)
