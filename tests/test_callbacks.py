@@ -147,12 +147,168 @@ def test_select_best_skips_epochs_far_darker_or_brighter_than_real():
     assert not within_brightness({**entry(4, 1.0, 0.1, 1.0), "particle_brightness": 0.3}, (0.5, 2.0))
 
 
-@pytest.mark.parametrize("bad", [[2.0, 0.5], [0.0, 1.0], [1.0]])
+def _tem_entry(epoch, fid, fid_std, spread, background):
+    tones = {"particle_brightness": 1.0, "background_brightness": background, "contrast": 3.0}
+    return {"epoch": epoch, "fid": fid, "fid_std": fid_std, "spread": spread, "brightness": background, **tones}
+
+
+def test_the_tem_example_a_lower_fid_beyond_its_spread_and_a_real_grey_wins():
+    """The issue's TEM run: epoch 1 (FID 132.6, background 0.62 x real) was chosen over epoch 4 (123.1, 1.05 x)
+    by its broader parameters, since 132.6 is within 10 % of 123.1 and 0.62 within 0.5-2x."""
+    history = [
+        _tem_entry(0, 171.0, 2.5, 0.05, 0.50),
+        _tem_entry(1, 132.6, 2.0, 0.30, 0.62),
+        _tem_entry(2, 141.5, 2.1, 0.12, 0.90),
+        _tem_entry(3, 129.9, 1.9, 0.15, 0.95),
+        _tem_entry(4, 123.1, 2.0, 0.10, 1.05),
+    ]
+    # the old rule reproduces the failure
+    assert select_best(history, 5, brightness_range=(0.5, 2.0), fid_margin=0.1)[0]["epoch"] == 1
+    # the FID's spread alone: 132.6 - 123.1 = 9.5 > 2 x sqrt(2^2 + 2^2) = 5.7, and 129.9 is 6.8 above (> 5.5)
+    assert select_best(history, 5, brightness_range=(0.5, 2.0))[0]["epoch"] == 4
+    # the derived brightness range alone (TSEM-like: the real backgrounds span 0.70-1.60 x): epoch 1 is out
+    derived = {"particle": (0.91, 1.10), "background": (0.70, 1.60)}
+    assert not within_brightness(history[1], derived) and within_brightness(history[4], derived)
+    assert select_best(history, 5, brightness_range=derived, fid_margin=0.1)[0]["epoch"] == 3
+    assert select_best(history, 5, brightness_range=derived)[0]["epoch"] == 4
+    # a history without fid_std (written before it existed) keeps the fixed 10 % margin
+    old = [{k: v for k, v in h.items() if k != "fid_std"} for h in history]
+    assert select_best(old, 5, brightness_range=(0.5, 2.0))[0]["epoch"] == 1
+
+
+def test_fids_within_their_spread_go_to_the_broader_epoch():
+    narrow, broad = {"epoch": 0, "fid": 120.0, "spread": 0.10}, {"epoch": 1, "fid": 124.0, "spread": 0.20}
+    # 4 points apart with stds of 3: 4 < 2 x 4.24, indistinguishable, the broader wins
+    assert select_best([{**narrow, "fid_std": 3.0}, {**broad, "fid_std": 3.0}], 5)[0]["epoch"] == 1
+    # with stds of 1: 4 > 2 x 1.41, the lower FID wins outright
+    assert select_best([{**narrow, "fid_std": 1.0}, {**broad, "fid_std": 1.0}], 5)[0]["epoch"] == 0
+    # a pair with one std unknown: the fixed 10 % (124 <= 132), the broader wins; an explicit margin ignores stds
+    assert select_best([{**narrow, "fid_std": 1.0}, broad], 5)[0]["epoch"] == 1
+    assert select_best([{**narrow, "fid_std": 1.0}, {**broad, "fid_std": 1.0}], 5, fid_margin=0.1)[0]["epoch"] == 1
+    # an epoch within the lowest's (wide) spread that another epoch beats clearly does not compete either
+    history = [
+        {"epoch": 0, "fid": 100.0, "fid_std": 10.0, "spread": 0.10},
+        {"epoch": 1, "fid": 101.0, "fid_std": 0.5, "spread": 0.20},
+        {"epoch": 2, "fid": 110.0, "fid_std": 0.5, "spread": 0.30},  # within 2 x 10.0 of 100, but 9 above 101
+    ]
+    assert select_best(history, 5)[0]["epoch"] == 1
+    assert select_best(history, 5, fid_margin=None)[0]["epoch"] == 2
+
+
+def test_the_derived_brightness_range_is_the_real_patches_percentiles():
+    """21 hand-made patches of 10 pixels, the first 4 particle: particle greys 0.40 .. 0.60 (pooled 0.50), background
+    greys 0.10 .. 0.30 (pooled 0.20). numpy's linear percentiles of 21 values: the 5th is the 2nd smallest, the 95th
+    the 2nd largest."""
+    from drgan.callbacks.fid import brightness_tolerance, level_sums
+
+    particle, background = 0.40 + 0.01 * np.arange(21), 0.10 + 0.01 * np.arange(21)
+    mask = np.arange(10) < 4
+    images = np.where(mask, particle[:, None], background[:, None])[:, None, :]  # (21, 1, 10)
+    masks = np.broadcast_to(mask, images.shape)
+    sums = level_sums(images, masks)
+    ranges = brightness_tolerance(sums, "bright")
+    assert ranges["particle"] == pytest.approx([0.41 / 0.50, 0.59 / 0.50])  # 0.82 - 1.18
+    assert ranges["background"] == pytest.approx([0.11 / 0.20, 0.29 / 0.20])  # 0.55 - 1.45
+    # dark particles: ratios of the negatives, (1 - 0.59) / 0.5 and (1 - 0.41) / 0.5
+    assert brightness_tolerance(sums, "dark")["particle"] == pytest.approx([0.82, 1.18])
+    assert brightness_tolerance(sums, "dark")["background"] == pytest.approx([0.71 / 0.80, 0.89 / 0.80])
+    # a patch without particle pixels counts for the background only (still 21 particle greys)
+    empty = np.full((1, 1, 10), 0.2)
+    more = np.concatenate([sums, level_sums(empty, np.zeros(empty.shape, bool))])
+    assert brightness_tolerance(more, "bright")["particle"] == pytest.approx(ranges["particle"])
+    # a uniform set: the floor, 1/1.1 - 1.1
+    uniform = level_sums(np.full((5, 1, 10), 0.5), np.broadcast_to(mask, (5, 1, 10)))
+    assert brightness_tolerance(uniform, "bright") == {
+        "particle": pytest.approx([1 / 1.1, 1.1]),
+        "background": pytest.approx([1 / 1.1, 1.1]),
+    }
+
+
+def test_the_fid_callback_derives_the_range_from_its_real_patches():
+    """Disc patches at exposures 0.8 .. 1.2: the classical segmentation's particle and background greys follow."""
+    from types import SimpleNamespace
+
+    from drgan.callbacks.fid import FIDCallback
+
+    yy, xx = np.mgrid[:48, :48]
+    disc = np.where(np.hypot(yy - 24, xx - 24) < 10, 0.6, 0.2)
+    exposure = np.linspace(0.8, 1.2, 21)
+    images = (disc[None] * exposure[:, None, None]).astype(np.float32)
+    trainer = SimpleNamespace(datamodule=SimpleNamespace(polarity="bright", segment=None, real_patches=images))
+    ranges = FIDCallback().brightness_tolerance(trainer)
+    expected = [exposure[1] / exposure.mean(), exposure[19] / exposure.mean()]  # 0.82, 1.18
+    assert ranges["particle"] == pytest.approx(expected, rel=1e-3)
+    assert ranges["background"] == pytest.approx(expected, rel=1e-3)
+
+
+def _projected(n, seed, power=1.0):
+    rng = np.random.default_rng(seed)
+    return RandomProjectionFeatures(dim=16).features(rng.random((n, 8, 8)) ** power)
+
+
+def test_resampled_fid_is_the_fid_on_both_routes():
+    from drgan.metrics.fid import FeatureStats, ResampledFID
+
+    real = FeatureStats.from_features(_projected(300, 0))
+    for n in (12, 60):  # fewer rows than the 16 features (the N x N route), more (the r x r route)
+        feats = _projected(n, 1, power=2.0)
+        idx = np.random.default_rng(2).integers(0, n, n)
+        resampled = ResampledFID(feats, real)
+        assert resampled(np.arange(n)) == pytest.approx(FeatureStats.from_features(feats).fid(real), rel=1e-9)
+        assert resampled(idx) == pytest.approx(FeatureStats.from_features(feats[idx]).fid(real), rel=1e-9)
+
+
+def test_the_bootstrap_fid_std_is_the_fids_spread_and_shrinks_with_more_images():
+    from drgan.metrics.fid import FeatureStats, fid_bootstrap_std
+
+    real = FeatureStats.from_features(_projected(400, 0))
+    small, large = (fid_bootstrap_std(_projected(n, 1, power=2.0), real) for n in (40, 640))
+    assert small > 0 and large > 0
+    assert large < 0.5 * small  # ~1 / sqrt(N): 4x fewer expected at 16x the images
+    assert fid_bootstrap_std(_projected(40, 1, power=2.0), real, seed=3) == pytest.approx(
+        fid_bootstrap_std(_projected(40, 1, power=2.0), real, seed=3)
+    )
+    # on average it is the std of the FID over independent samples of the generated images
+    fids = [FeatureStats.from_features(_projected(40, s, power=2.0)).fid(real) for s in range(100, 300)]
+    bootstrap = np.mean([fid_bootstrap_std(_projected(40, s, power=2.0), real) for s in range(100, 120)])
+    assert bootstrap == pytest.approx(np.std(fids, ddof=1), rel=0.3)
+    with pytest.raises(ConfigError, match="resamples"):
+        fid_bootstrap_std(_projected(40, 1), real, resamples=1)
+
+
+@pytest.mark.parametrize("bad", [[2.0, 0.5], [0.0, 1.0], [1.0], "bright", [0.5, "x"], {"low": 0.5}, 1.5, True])
 def test_best_epoch_refuses_bad_brightness_range(bad):
     from drgan.callbacks import BestEpochCallback
 
-    with pytest.raises(ConfigError, match="brightness_range"):
+    with pytest.raises(ConfigError, match=r"callbacks\.best_epoch\.brightness_range"):
         BestEpochCallback(brightness_range=bad)
+
+
+@pytest.mark.parametrize("bad", [-0.1, "tight", True, float("inf"), [0.1]])
+def test_best_epoch_refuses_bad_fid_margin(bad):
+    from drgan.callbacks import BestEpochCallback
+
+    with pytest.raises(ConfigError, match=r"callbacks\.best_epoch\.fid_margin"):
+        BestEpochCallback(fid_margin=bad)
+
+
+@pytest.mark.parametrize("bad", [1, -1, 2.5, True, "10"])
+def test_fid_callback_refuses_bad_fid_resamples(bad):
+    from drgan.callbacks import FIDCallback
+
+    with pytest.raises(ConfigError, match=r"callbacks\.fid\.fid_resamples"):
+        FIDCallback(fid_resamples=bad)
+
+
+def test_best_epoch_accepts_auto_null_and_a_config_list():
+    from omegaconf import OmegaConf
+
+    from drgan.callbacks import BestEpochCallback
+
+    assert BestEpochCallback().brightness_setting == "auto" and BestEpochCallback().fid_margin == "auto"
+    fixed = BestEpochCallback(brightness_range=OmegaConf.create([0.6, 1.5]), fid_margin=0)
+    assert fixed.brightness_range == (0.6, 1.5) and fixed.fid_margin == 0.0
+    assert BestEpochCallback(brightness_range=None, fid_margin=None).brightness_range is None
 
 
 def test_parameter_spread_hand_computed():
@@ -180,7 +336,12 @@ def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(ima
     assert [h["epoch"] for h in summary["history"]] == [0, 1]
     assert summary["epoch"] in (0, 1) and (ckpts / "best.ckpt").is_file()
     assert all(0.0 <= h["spread"] <= 0.5 for h in summary["history"])
-    assert all(h["brightness"] > 0 for h in summary["history"]) and summary["brightness_range"] == [0.5, 2.0]
+    assert all(h["brightness"] > 0 for h in summary["history"])
+    # brightness_range auto: the range the real patches span, at least 1/1.1 - 1.1, for particles and background
+    assert summary["brightness_range_setting"] == "auto" and summary["fid_margin"] == "auto"
+    for low, high in (summary["brightness_range"][k] for k in ("particle", "background")):
+        assert 0 < low <= 1 / 1.1 and high >= 1.1
+    assert all(h["fid_std"] > 0 for h in summary["history"])  # the FID's bootstrap std, for the rule
     # the guard sees particles and background apart, and the contrast's direction (bright particles here)
     assert all(
         h["particle_brightness"] > 0 and h["background_brightness"] > 0 and h["contrast"] > 0

@@ -36,9 +36,9 @@ def main(run: Path, out: Path) -> None:
         twin = ax.twinx()
         twin.plot(epochs, bright, color="tab:grey", marker=".", ls=":", label="brightness (synthetic / real)")
         twin.set_ylabel("mean grey, synthetic / real", color="tab:grey")
-        low, high = best.get("brightness_range") or (None, None)
-        if low is not None:
-            twin.axhspan(low, high, color="tab:grey", alpha=0.08)
+        band = best.get("brightness_range")
+        if isinstance(band, list):  # a fixed range; the derived one (a dict) is for particles and background apart
+            twin.axhspan(*band, color="tab:grey", alpha=0.08)
     ax.legend(loc="upper left")
     fig.tight_layout()
     fig.savefig(out / "fid_curve.png", dpi=120)

@@ -19,8 +19,29 @@ leaves its shaded rim and interior to the background, so exact labels against th
 TiO2 SEM epoch with darker particle interiors as 0.53x real where the like-for-like ratio is 0.67x
 (experiments/early_stop/README.md).
 
-Logged: ``val/fid``, ``val/kid`` (mean over subsets), the brightness values and ``time/fid_s``, through ``pl_module.log`` so that a
-``ModelCheckpoint(monitor="val/fid")`` sees them. The per-epoch history travels in the checkpoint.
+**How far off is too far** (``brightness_tolerance``, for ``callbacks.best_epoch.brightness_range: auto``, the
+default): as far as the real training patches themselves spread. Each real patch's own particle grey and background
+grey (the same classical segmentation) is divided by the real grey the synthetic one is compared with
+(``real_levels``, pooled over the patches; for dark particles the negatives, as in ``level_ratio``); the allowed
+range is the 5th-95th percentile of these ratios, widened to at least 1/1.1-1.1x. Why these numbers: an epoch's
+grey is a mean over as many images as there are real patches, far steadier than one patch, so a mean grey that
+fewer than 5 % of the real patches reach is off in its images as a whole, not by chance; relative to the pooled
+real grey (not the median patch) the range is literally the band of grey the real patches span; the floor (a
+set choice, not a measurement) keeps a very uniform real set, all patches within a few % of each other, from
+leaving a band no generator hits. On the TiO2 patches as ``drgan.train`` mines them (``patches/patches.npz``,
+train) the range is particles 0.75-1.26x and background 0.57-1.35x for SEM (134 patches, bright particles; its
+near-black background varies most), particles 0.91-1.10x (the floor; the real ones span 0.95-1.03x) and
+background 0.70-1.60x for TSEM (126 patches, dark particles, negatives: the bare film's grey varies from image to
+image). The old fixed 0.5-2x let through a background 0.62x real.
+
+**The FID's own spread** (``fid_resamples``, default 10): each full evaluation also records ``fid_std``, the std
+of the FID over bootstrap resamples of the generated features (``drgan.metrics.fid.fid_bootstrap_std``, seeded
+by the epoch; 0.2-0.4 s at 2048 Inception features and ~130 images), which the best-epoch rule weighs FID
+differences against.
+
+Logged: ``val/fid``, ``val/fid_std``, ``val/kid`` (mean over subsets), the brightness values and ``time/fid_s``,
+through ``pl_module.log`` so that a ``ModelCheckpoint(monitor="val/fid")`` sees them. The per-epoch history
+travels in the checkpoint.
 
 **The screen** (``screen_images``, e.g. 48): an evaluation first renders only the first ``screen_images`` of its
 images and scores them with KID (unbiased at any sample size, unlike FID); only an epoch whose screen KID is at
@@ -51,6 +72,7 @@ from drgan.metrics.fid import (
     FeatureStats,
     InceptionFeatures,
     cached_reference_stats,
+    fid_bootstrap_std,
     kid,
 )
 
@@ -59,6 +81,11 @@ log = logging.getLogger(__name__)
 # FID renders use seeds of their own, far from the training seeds, so they do not touch the generator's
 # render counter (saved in checkpoints) and an epoch's FID images are reproducible.
 FID_SEED_BASE = 0x5EED0000
+
+# The derived brightness tolerance (``brightness_tolerance``): the 5th-95th percentile of the real patches' own
+# particle and background greys / the real grey, widened to at least 1/1.1-1.1.
+BRIGHTNESS_PERCENTILES = (5.0, 95.0)
+BRIGHTNESS_FLOOR = 1.1
 
 
 # --- helpers shared by the drgan callbacks --------------------------------------------------------------------
@@ -181,6 +208,30 @@ def level_ratio(synthetic: float, real: float, polarity: str) -> float:
     return float(synthetic / real) if real > 0 else math.nan
 
 
+def brightness_tolerance(
+    sums: np.ndarray,
+    polarity: str,
+    percentiles: tuple[float, float] = BRIGHTNESS_PERCENTILES,
+    floor: float = BRIGHTNESS_FLOOR,
+) -> dict[str, list[float]]:
+    """The brightness range the real patches themselves span: ``level_sums`` rows of the real patches (their
+    classical segmentation) -> {"particle": [low, high], "background": [low, high]}, each the ``percentiles``
+    (numpy's linear interpolation) of the per-patch grey / the pooled real grey (``levels`` of all rows, the
+    reference of ``val/particle_brightness`` and ``val/background_brightness``; ``level_ratio``: for dark
+    particles of the negatives), widened to at least [1 / floor, floor]. Patches without particle (or
+    background) pixels do not count for that range; with none at all it is [1 / floor, floor]."""
+    sums = np.asarray(sums, dtype=np.float64).reshape(-1, 4)
+    reference = levels(sums)
+    ranges = {}
+    for name, (total, count), real in zip(("particle", "background"), ((0, 1), (2, 3)), reference):
+        have = sums[:, count] > 0
+        ratios = np.array([level_ratio(g, real, polarity) for g in sums[have, total] / sums[have, count]])
+        ratios = ratios[np.isfinite(ratios)]
+        low, high = np.percentile(ratios, percentiles) if ratios.size else (1.0, 1.0)
+        ranges[name] = [float(min(low, 1.0 / floor)), float(max(high, floor))]
+    return ranges
+
+
 def contrast(particle: float, background: float, polarity: str) -> float:
     """How far particles stand out in the data's direction: particle / background for bright particles,
     background / particle for dark ones; above 1 when they lie on the right side of the background."""
@@ -231,7 +282,9 @@ class FIDCallback(Callback):
     (None: the TF-Inception network); kid_subsets/kid_subset_size: KID's random subsets (size None: half the smaller
     of the synthetic and real samples, see ``drgan.metrics.fid.kid``); spp: samples per
     pixel of the FID renders (None: the training spp; fix it to compare runs trained at different spp);
-    screen_images / screen_margin: the KID screen of the module docstring (None: every evaluation is a full FID)."""
+    screen_images / screen_margin: the KID screen of the module docstring (None: every evaluation is a full FID);
+    fid_resamples: bootstrap resamples for ``fid_std`` (0: none, and the best-epoch rule falls back to a fixed
+    margin)."""
 
     def __init__(
         self,
@@ -246,6 +299,7 @@ class FIDCallback(Callback):
         spp: int | None = None,
         screen_images: int | None = None,
         screen_margin: float = 0.2,
+        fid_resamples: int = 10,
     ):
         if int(every_n_epochs) < 1:
             raise ConfigError(f"FIDCallback.every_n_epochs={every_n_epochs}: expected >= 1")
@@ -272,10 +326,21 @@ class FIDCallback(Callback):
             )
         self.screen_images = None if screen_images is None else int(screen_images)
         self.screen_margin = float(screen_margin)
-        self.history: list[dict] = []  # per evaluated epoch: epoch, fid, kid, kid_std, brightness, n_images, seconds
+        if (
+            isinstance(fid_resamples, bool)
+            or not isinstance(fid_resamples, int)
+            or fid_resamples == 1
+            or fid_resamples < 0
+        ):
+            raise ConfigError(
+                f"callbacks.fid.fid_resamples={fid_resamples!r}: expected an integer >= 2 (bootstrap resamples for "
+                "the FID's std, val/fid_std) or 0 (none)"
+            )
+        self.fid_resamples = int(fid_resamples)
+        self.history: list[dict] = []  # per evaluated epoch: epoch, fid, fid_std, kid, kid_std, brightness, ...
         self._real: FeatureStats | None = None
         self._real_mean: float | None = None
-        self._real_levels: tuple[float, float] | None = None
+        self._real_sums: np.ndarray | None = None
 
     @property
     def state_key(self) -> str:
@@ -302,12 +367,21 @@ class FIDCallback(Callback):
             self._real_mean = float(real_patches(trainer).mean(dtype=np.float64))
         return self._real_mean
 
+    def real_level_sums(self, trainer: Trainer) -> np.ndarray:
+        """``level_sums`` (len, 4) of each real training patch, segmented as they were mined (computed once)."""
+        if self._real_sums is None:
+            patches = real_patches(trainer)
+            self._real_sums = level_sums(patches, classical_masks(trainer, patches))
+        return self._real_sums
+
     def real_levels(self, trainer: Trainer) -> tuple[float, float]:
         """(particle, background) mean grey of the real training patches, segmented as they were mined."""
-        if self._real_levels is None:
-            patches = real_patches(trainer)
-            self._real_levels = levels(level_sums(patches, classical_masks(trainer, patches)))
-        return self._real_levels
+        return levels(self.real_level_sums(trainer))
+
+    def brightness_tolerance(self, trainer: Trainer) -> dict[str, list[float]]:
+        """The particle and background brightness ranges the real patches span (`brightness_tolerance`)."""
+        polarity = getattr(getattr(trainer, "datamodule", None), "polarity", None) or "bright"
+        return brightness_tolerance(self.real_level_sums(trainer), polarity)
 
     def check_ready(self) -> None:
         """Everything this callback can check before data are mined: the feature network (its file and hash
@@ -357,15 +431,14 @@ class FIDCallback(Callback):
             screen_kid = kid(feats, real.features, self.kid_subsets, None, seed=epoch)[0]
             lowest = min((h["screen_kid"] for h in self.history if h.get("screen_kid") is not None), default=math.inf)
             if screen_kid > lowest + abs(lowest) * self.screen_margin:
-                self._record(
-                    trainer, pl_module, epoch, start, math.nan, math.nan, math.nan, grey, sums, screen, screen_kid
-                )
+                self._record(trainer, pl_module, epoch, start, (math.nan,) * 4, grey, sums, screen, screen_kid)
                 return
             more = self._render_part(trainer, pl_module, screen, n, seed_base, progress)
             feats, sums, grey = (np.concatenate([a, b]) for a, b in zip((feats, sums, grey), more))
         fid = FeatureStats.from_features(feats).fid(real)
+        fid_std = fid_bootstrap_std(feats, real, self.fid_resamples, seed=epoch) if self.fid_resamples else math.nan
         kid_mean, kid_std = kid(feats, real.features, self.kid_subsets, self.kid_subset_size, seed=epoch)
-        self._record(trainer, pl_module, epoch, start, fid, kid_mean, kid_std, grey, sums, n, screen_kid)
+        self._record(trainer, pl_module, epoch, start, (fid, fid_std, kid_mean, kid_std), grey, sums, n, screen_kid)
 
     def _render_part(
         self, trainer: Trainer, pl_module: LightningModule, first: int, stop: int, seed_base: int, progress: bool
@@ -389,15 +462,15 @@ class FIDCallback(Callback):
         pl_module: LightningModule,
         epoch: int,
         start: float,
-        fid: float,
-        kid_mean: float,
-        kid_std: float,
+        scores: tuple[float, float, float, float],
         grey: np.ndarray,
         sums: np.ndarray,
         n: int,
         screen_kid: float | None,
     ) -> None:
-        """History entry, log line and logged metrics of one evaluation (FID NaN: screened out)."""
+        """History entry, log line and logged metrics of one evaluation; scores: FID, its bootstrap std, KID, its
+        std (FID NaN: screened out)."""
+        fid, fid_std, kid_mean, kid_std = scores
         brightness = float(grey.mean()) / max(self.real_mean(trainer), 1e-6)
         particle, background = levels(sums[:, :4])
         seen_particle, seen_background = levels(sums[:, 4:])
@@ -415,6 +488,7 @@ class FIDCallback(Callback):
             "epoch": epoch,
             "step": training_steps(trainer),
             "fid": fid,
+            "fid_std": fid_std,
             "kid": kid_mean,
             "kid_std": kid_std,
             "brightness": brightness,
@@ -428,10 +502,11 @@ class FIDCallback(Callback):
         if trainer.is_global_zero:
             if math.isfinite(fid):
                 log.info(
-                    "epoch %d: FID %.4g, KID %.4g, brightness %.2f x real (particles %.2f x, background %.2f x, "
-                    "contrast %.2f for %s particles; %d images, %.1f s)",
+                    "epoch %d: FID %.4g (bootstrap std %.2g), KID %.4g, brightness %.2f x real (particles %.2f x, "
+                    "background %.2f x, contrast %.2f for %s particles; %d images, %.1f s)",
                     epoch,
                     fid,
+                    fid_std,
                     kid_mean,
                     brightness,
                     tones["particle_brightness"],
@@ -453,6 +528,7 @@ class FIDCallback(Callback):
                 )
         metrics = [
             ("val/fid", fid),
+            ("val/fid_std", fid_std),
             ("val/kid", kid_mean),
             ("val/brightness", brightness),
             *((f"val/{k}", v) for k, v in tones.items()),

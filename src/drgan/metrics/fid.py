@@ -27,6 +27,15 @@ KID's spread: ``kid`` draws its subsets at half the smaller sample by default, s
 over subsets says how much the estimate moves with the sample (a subset as large as the sample is the whole set
 each time, and its std is 0 whatever the data).
 
+The FID's own spread: ``fid_bootstrap_std`` resamples the generated features' rows with replacement and recomputes
+the FID against the same real statistics (``ResampledFID``: what depends only on the real features and the full
+generated set is computed once, each resample costs one symmetric eigendecomposition of min(N, D)), 10 resamples
+by default. It is the spread that comes from drawing the generated sample; the real sample is the same for every
+epoch of a run. The best-epoch rule (drgan.callbacks.best_epoch) compares two epochs' FIDs against it. Measured on
+the mined TiO2 patches split in halves (67 against 67 SEM, 63 against 63 TSEM): FID 52.7 +- 2.1 and 78.9 +- 2.9
+(100 resamples; 10 give 2.4 and 2.7), 0.2 s for 10 resamples at 2048 features; on random-projection features the
+mean of 10-resample estimates is the std over independent samples within 4 % (tests/test_callbacks.py).
+
 Data flow: images (N, H, W) in [0, 1] -> ``clean_resize`` -> (N, 299, 299) in [0, 255] -> grey copied to 3
 channels, normalised as (x - 128) / 128 -> Inception pool features (N, 2048) -> ``FeatureStats`` (mean,
 covariance) -> ``frechet_distance`` / ``kid``.
@@ -43,6 +52,7 @@ import re
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +73,8 @@ __all__ = [
     "InceptionFeatures",
     "FeatureStats",
     "frechet_distance",
+    "ResampledFID",
+    "fid_bootstrap_std",
     "kid",
     "cached_reference_stats",
     "fid_from_images",
@@ -428,6 +440,11 @@ class FeatureStats:
     def n(self) -> int:
         return int(self.features.shape[0])
 
+    @cached_property
+    def factor(self) -> np.ndarray:
+        """C (D, r) with C C^T = sigma (`_psd_factor`: one D x D eigendecomposition, computed once per object)."""
+        return _psd_factor(0.5 * (self.sigma + self.sigma.T), "sigma")
+
     def fid(self, other: FeatureStats) -> float:
         """Frechet distance between these statistics and ``other``'s.
 
@@ -471,6 +488,68 @@ class FeatureStats:
                 f"sigma {sigma.shape}, features {features.shape}"
             )
         return cls(mu=mu, sigma=sigma, features=features)
+
+
+class ResampledFID:
+    """FID against fixed real statistics of row selections (e.g. bootstrap resamples) of one generated feature set.
+
+    ``ResampledFID(features, real)(np.arange(N))`` is ``FeatureStats.from_features(features).fid(real)``. The trace
+    term tr(sqrtm(sigma_r sigma_g)) is the sum of square roots of the eigenvalues of a symmetric matrix
+    (see ``frechet_distance``); what depends only on the real statistics and the full generated set is computed
+    once, so each selection ``idx`` costs one symmetric eigendecomposition of min(N, D):
+
+    - N <= D (the usual case: ~130 generated images, 2048 features): with G = centred(X[idx])^T / sqrt(N - 1),
+      sigma_g = G G^T and the nonzero eigenvalues of sigma_r^1/2 sigma_g sigma_r^1/2 are those of the N x N
+      G^T sigma_r G = H K[idx, idx] H / (N - 1), K = X sigma_r X^T computed once (N D^2), H the centring matrix;
+    - N > D: with sigma_r = C C^T (``FeatureStats.factor``, one D x D eigendecomposition, kept on ``real``) they
+      are those of the r x r C^T sigma_g C = cov(X[idx] C), X C computed once.
+    """
+
+    def __init__(self, features: np.ndarray, real: FeatureStats):
+        x = _check_features(features, "ResampledFID features")
+        if x.shape[1] != real.mu.shape[0]:
+            raise DataError(f"ResampledFID: feature lengths differ, {x.shape[1]} vs {real.mu.shape[0]}")
+        self.real = real
+        self.x = x - x.mean(axis=0)  # centring by a constant changes no covariance; keeps the Gram matrix exact
+        self.offset = x.mean(axis=0) - real.mu  # mean(X[idx]) - mu_r = mean(self.x[idx]) + offset
+        self.trace_real = float(np.trace(real.sigma))
+        n, d = x.shape
+        if n <= d:
+            self.gram, self.projected = self.x @ real.sigma @ self.x.T, None
+        else:
+            self.gram, self.projected = None, self.x @ real.factor
+
+    def __call__(self, idx: np.ndarray) -> float:
+        idx = np.asarray(idx, dtype=np.intp)
+        m = idx.shape[0]
+        if idx.ndim != 1 or m < 2:
+            raise DataError(f"ResampledFID: expected a 1-d selection of at least 2 rows, got shape {idx.shape}")
+        rows = self.x[idx]
+        mean = rows.mean(axis=0)
+        diff = mean + self.offset
+        trace_fake = float(((rows - mean) ** 2).sum()) / (m - 1)
+        if self.gram is not None:
+            k = self.gram[np.ix_(idx, idx)]
+            inner = (k - k.mean(axis=0, keepdims=True) - k.mean(axis=1, keepdims=True) + k.mean()) / (m - 1)
+        else:
+            inner = np.atleast_2d(np.cov(self.projected[idx], rowvar=False))
+        eig = np.linalg.eigvalsh(0.5 * (inner + inner.T))
+        tr_covmean = float(np.sqrt(np.where(eig > _rank_floor(eig), eig, 0.0)).sum())
+        return float(diff @ diff + trace_fake + self.trace_real - 2.0 * tr_covmean)
+
+
+def fid_bootstrap_std(features: np.ndarray, real: FeatureStats, resamples: int = 10, seed: int | None = 0) -> float:
+    """Standard error of the FID of ``features`` against ``real`` from the generated side: the std (ddof=1) of
+    the FIDs of ``resamples`` bootstrap resamples of the generated rows (N drawn with replacement, seeded).
+    Resampled FIDs sit above the FID (a resample holds ~63 % distinct rows, and FID's bias grows as the sample
+    shrinks); their spread is what is used. It shrinks about as 1 / sqrt(N)."""
+    if int(resamples) < 2:
+        raise ConfigError(f"fid_bootstrap_std: resamples={resamples}; expected >= 2 (a std needs two values)")
+    fid = ResampledFID(features, real)
+    n = fid.x.shape[0]
+    rng = np.random.default_rng(seed)
+    values = [fid(rng.integers(0, n, n)) for _ in range(int(resamples))]
+    return float(np.std(values, ddof=1))
 
 
 _KEY_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
