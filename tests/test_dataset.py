@@ -90,6 +90,7 @@ def test_write_read_roundtrip(tmp_path):
     assert manifest["counts"] == {
         "synthetic": 3,
         "background": 1,
+        "partial_background": 0,
         "kept": 3,
         "dropped": 1,
         "drop_reasons": {"contrast": 1},
@@ -223,3 +224,175 @@ def test_hand_made_pairs_without_manifest_are_paired_by_name(tmp_path):
     (root / "masks" / "b.png").unlink()
     with pytest.raises(DataError, match=rf"data={root}: no mask for 1 image\(s\) in masks/, e.g. 'b'"):
         mf.image_mask_pairs(root)
+
+
+# --- partial backgrounds and the ignore value ----------------------------------------------------------------
+
+PATCH = 32
+# Training patches (seeded discs of radius 4.5 px): 0, 1 and 3 are usable; 2 is so full that particles and their
+# margin cover most of it (skipped: ignored fraction > 0.6); 4 shows no particle at all (skipped: nothing found).
+TRAIN_DISCS = [
+    [(8, 8)],
+    [(8, 8), (20, 22)],
+    [(6, 6), (6, 18), (6, 28), (16, 12), (18, 26), (27, 6), (27, 18), (28, 28)],
+    [(16, 15)],
+    [],
+]
+
+
+def disc_patch(centres, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(bright discs on a dark noisy background, float32; the discs' pixels, bool)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:PATCH, :PATCH]
+    disc = np.zeros((PATCH, PATCH), bool)
+    for cy, cx in centres:
+        disc |= (yy - cy) ** 2 + (xx - cx) ** 2 <= 4.5**2
+    image = 0.15 + 0.02 * rng.standard_normal((PATCH, PATCH))
+    image[disc] = 0.8
+    return image.astype(np.float32), disc
+
+
+def partial_patchset(root: Path) -> tuple[Path, list[np.ndarray]]:
+    """A PatchSet folder of 32 px patches with one background patch and the TRAIN_DISCS training patches, mined
+    (as its params say) with the resolved segmentation of these discs; returns it and the discs of each patch."""
+    from drgan.data.particles import SegmentParams
+    from drgan.data.patches import PatchSet
+
+    patches, discs = zip(*(disc_patch(c, seed) for seed, c in enumerate(TRAIN_DISCS)))
+    background = disc_patch([], 99)[0][None]
+    segment = SegmentParams(scale=9, sigma=1.0, min_distance=7, min_area=40, max_area=4000).resolved()
+    PatchSet(
+        train=np.stack(patches),
+        train_ids=[f"img{k}" for k in range(len(patches))],
+        train_positions=np.array([(k, 2 * k) for k in range(len(patches))]),
+        train_counts=np.array([len(c) for c in TRAIN_DISCS]),
+        background=background,
+        background_ids=["img9"],
+        background_positions=np.array([(0, 0)]),
+        background_fractions=np.zeros(1),
+        params={"size": PATCH, "segment": segment.as_dict(), "polarity": "bright"},
+    ).save(root)
+    return root, list(discs)
+
+
+def test_partial_backgrounds_fill_up_n_background_with_their_particles_ignored(tmp_path, caplog):
+    from scipy import ndimage
+
+    from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
+    from drgan.dataset.layout import IGNORE, pbg_id
+    from drgan.segmentation.data import load_generated_pairs
+
+    path, discs = partial_patchset(tmp_path / "patches")
+    s = {**settings(1, n_background=5), "backgrounds": str(path)}
+    folder = DatasetFolder(tmp_path / "data")
+    write_synthetic(folder, 0)
+    with caplog.at_level("INFO", logger="drgan.dataset.backgrounds"):
+        counts = write_backgrounds(folder, str(path), 5, PATCH, PartialSettings(), "bright")
+    assert counts == {"background": 1, "partial": 3}
+    assert "skipped 1 of 5 windows with particles whose ignored fraction exceeds partial_max_ignored=0.6" in caplog.text
+    assert "found no particle again (img4 at (4, 8))" in caplog.text
+    assert "only 3 of 5 windows with particles are usable" in caplog.text
+    assert folder.done(bg_id(0)) and not folder.done(bg_id(1)) and not folder.done(pbg_id(3))
+
+    fractions, sources = [], []
+    for j in range(3):
+        files = {k: folder.root / v for k, v in folder.files(pbg_id(j)).items()}
+        meta = json.loads(files["meta"].read_text())
+        mask, labels = read_png(files["mask"]), read_png(files["label"])
+        k = meta["source"]["train_index"]
+        assert meta["kind"] == "partial_background" and meta["source"]["image_id"] == f"img{k}"
+        assert set(np.unique(mask).tolist()) <= {0, IGNORE} and not labels.any()
+        assert (mask[discs[k]] == IGNORE).all()  # every particle pixel ignored ...
+        far = ndimage.distance_transform_edt(~discs[k]) > meta["margin_px"] + 1.5
+        assert (mask[far] == 0).all()  # ... and what lies beyond its margin is background
+        assert meta["margin_px"] == 3 and meta["ignored_fraction"] == pytest.approx((mask == IGNORE).mean())
+        np.testing.assert_array_equal(read_png(files["image"]), np.round(disc_patch(TRAIN_DISCS[k], k)[0] * 255))
+        fractions.append(meta["ignored_fraction"])
+        sources.append(k)
+    assert sorted(sources) == [0, 1, 3] and fractions == sorted(fractions) and max(fractions) <= 0.6
+
+    manifest = mf.write_manifest(folder, s, stats=None, required=True)  # complete: the PatchSet has no more
+    assert manifest["counts"]["background"] == 1 and manifest["counts"]["partial_background"] == 3
+    assert [e["kind"] for e in manifest["entries"]] == ["synthetic", "background"] + ["partial_background"] * 3
+    summary = manifest["partial_backgrounds"]
+    assert summary["skipped"] == {"ignored_fraction": 1, "no_particle_found": 1} and summary["usable"] == 3
+    assert summary["ignored_fraction"]["max"] == pytest.approx(max(fractions), abs=1e-4)
+    pairs = {p.id: p for p in load_generated_pairs(folder.root)}
+    assert IGNORE in pairs[pbg_id(0)].mask and set(np.unique(pairs[bg_id(0)].mask)) == {0}
+
+    # Resumable: an unfinished partial background is written again, the same; a larger n_background asks for more.
+    reference = (folder.root / "masks" / f"{pbg_id(1)}.png").read_bytes()
+    (folder.root / "meta" / f"{pbg_id(1)}.json").unlink()
+    folder.remove_partial(lambda item: owned_by(item, Shard(0, 1)))
+    assert mf.write_manifest(folder, s, stats=None, required=False) is None  # pbg_0001 is missing now
+    write_backgrounds(folder, str(path), 5, PATCH, PartialSettings(), "bright")
+    assert (folder.root / "masks" / f"{pbg_id(1)}.png").read_bytes() == reference
+    assert [e["id"] for e in mf.write_manifest(folder, s, stats=None, required=True)["entries"]][-1] == pbg_id(2)
+
+
+def test_partial_backgrounds_at_a_lower_resolution_and_without_them(tmp_path):
+    from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
+    from drgan.dataset.layout import IGNORE, pbg_id
+
+    path, discs = partial_patchset(tmp_path / "patches")
+    folder = DatasetFolder(tmp_path / "half")
+    write_backgrounds(folder, str(path), 2, PATCH // 2, PartialSettings(margin_px=0), "bright")
+    meta = json.loads((folder.root / "meta" / f"{pbg_id(0)}.json").read_text())
+    mask = read_png(folder.root / "masks" / f"{pbg_id(0)}.png")
+    assert mask.shape == (PATCH // 2, PATCH // 2) and meta["margin_px"] == 0
+    # Resized, a pixel is ignored whenever a particle pixel falls in it: no particle becomes background.
+    covered = discs[meta["source"]["train_index"]].reshape(PATCH // 2, 2, PATCH // 2, 2).any(axis=(1, 3))
+    assert (mask[covered] == IGNORE).all()
+
+    # partial_background=false: fewer background items, as before partial backgrounds existed.
+    s = {**settings(1, n_background=3), "backgrounds": str(path), "partial_background": False}
+    folder = DatasetFolder(tmp_path / "without")
+    write_synthetic(folder, 0)
+    assert write_backgrounds(folder, str(path), 3, PATCH, PartialSettings(enabled=False)) == {"background": 1}
+    manifest = mf.write_manifest(folder, s, stats=None, required=True)
+    assert [e["id"] for e in manifest["entries"]] == ["syn_000000", "bg_0000"]
+    assert manifest["counts"]["partial_background"] == 0 and not (folder.root / "partial_backgrounds.json").exists()
+
+
+def test_partial_settings_are_fixed_only_when_not_the_defaults_and_shard_0_writes_them(tmp_path):
+    from drgan.dataset.backgrounds import patchset_segmentation
+    from drgan.dataset.layout import pbg_id
+
+    folder = DatasetFolder(tmp_path / "data")
+    folder.check_settings(fixed_settings(settings(3)))  # a folder made before partial backgrounds existed ...
+    defaults = {"partial_background": True, "partial_max_ignored": 0.6, "partial_margin_px": None}
+    folder.check_settings(fixed_settings({**settings(3), **defaults}))  # ... resumes with the defaults
+    with pytest.raises(ConfigError, match=r"partial_background: None there, False now"):
+        folder.check_settings(fixed_settings({**settings(3), **defaults, "partial_background": False}))
+    with pytest.raises(ConfigError, match=r"partial_max_ignored: None there, 0.3 now"):
+        folder.check_settings(fixed_settings({**settings(3), **defaults, "partial_max_ignored": 0.3}))
+    assert pbg_id(2) == "pbg_0002" and syn_index("pbg_0002") is None
+    assert owned_by("pbg_0002", Shard(0, 2)) and not owned_by("pbg_0002", Shard(1, 2))
+    assert owned_by("partial_backgrounds", Shard(0, 2)) and not owned_by("partial_backgrounds", Shard(1, 2))
+
+    # A PatchSet resampled from 64 px windows to 32 px patches: its segmentation lengths are halved.
+    class Resampled:
+        params = {"segment": {"scale": 18.0, "sigma": 2.0, "min_distance": 8, "min_area": 160, "max_area": 16000,
+                              "background": 54.0}, "polarity": "dark", "window": 64, "size": 32}  # fmt: skip
+        patch_size = 32
+
+    params, polarity = patchset_segmentation(Resampled, "bright")
+    assert polarity == "dark" and (params.scale, params.sigma, params.min_distance) == (9.0, 1.0, 4)
+    assert (params.min_area, params.max_area, params.background) == (40, 4000, 27.0)
+
+
+def test_generated_masks_may_hold_the_ignore_value_but_no_other(tmp_path):
+    from drgan.segmentation.data import load_generated_pairs
+
+    root = tmp_path / "pairs"
+    image, mask, _ = item_arrays(1)
+    mask = mask.copy()
+    mask[-2:, -2:] = 255
+    io.write_png(root / "images" / "a.png", image)
+    io.write_png(root / "masks" / "a.png", mask)
+    (pair,) = load_generated_pairs(root)
+    np.testing.assert_array_equal(pair.mask, mask)
+    mask[0, 0] = 7
+    io.write_png(root / "masks" / "a.png", mask)
+    with pytest.raises(DataError, match=r"mask .*masks/a.png: unexpected values \[7\] .*or 255 ignore"):
+        load_generated_pairs(root)

@@ -43,11 +43,14 @@ def tiny_run(tmp_path_factory) -> Path:
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def run_generate(ckpt, out, *extra, n=N):
+def run_generate(ckpt, out, *extra, n=N, n_background=N_BG):
     cfg = compose(
-        [f"ckpt={ckpt}", f"out={out}", f"n={n}", f"n_background={N_BG}", "min_contrast=0", "progress=false", *extra],
+        [
+            f"ckpt={ckpt}", f"out={out}", f"n={n}", f"n_background={n_background}", "min_contrast=0",
+            "progress=false", *extra,
+        ],
         config_name="generate",
-    )
+    )  # fmt: skip
     return gen.generate(cfg)
 
 
@@ -227,6 +230,57 @@ def test_bad_inputs_fail_before_rendering(case, extra, message, tiny_run, datase
         gen.generate(compose(args, config_name="generate"))
 
 
+# --- partial backgrounds: real windows with particles, which their masks ignore ---------------------------------
+
+N_PARTIAL = 2  # n_background=N_BG + N_PARTIAL: the tiny run's PatchSet holds only N_BG windows free of particles
+
+
+@pytest.fixture(scope="session")
+def partial_dataset(tiny_run, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("partial") / "data"
+    run_generate(tiny_run, out, n=1, n_background=N_BG + N_PARTIAL)
+    return out
+
+
+def test_partial_backgrounds_fill_up_and_ignore_the_real_particles(tiny_run, partial_dataset):
+    from drgan.data.patches import PatchSet
+
+    patches = PatchSet.load(tiny_run / "patches")
+    assert len(patches.background) == N_BG and len(patches.train) > N_PARTIAL
+    manifest = json.loads((partial_dataset / "manifest.json").read_text())
+    assert manifest["counts"]["background"] == N_BG and manifest["counts"]["partial_background"] == N_PARTIAL
+    assert manifest["config"]["partial_background"] is True and manifest["partial_backgrounds"]["count"] == N_PARTIAL
+    partial = [e for e in manifest["entries"] if e["kind"] == "partial_background"]
+    assert [e["id"] for e in partial] == ["pbg_0000", "pbg_0001"]
+    real = tiny_run.parent / "real" / "images"  # make_images: discs of grey 0.8 on a background of 0.15
+    for entry in partial:
+        files = {k: partial_dataset / v for k, v in entry["files"].items()}
+        meta = json.loads(files["meta"].read_text())
+        mask = read(files["mask"])
+        assert mask.shape == (24, 24) and set(np.unique(mask).tolist()) == {0, 255}
+        r, c = meta["source"]["position"]
+        source = read(real / f"{meta['source']['image_id']}.png")[r : r + 24, c : c + 24]
+        np.testing.assert_array_equal(read(files["image"]), source)  # the real window, as it is
+        assert (mask[source > 127] == 255).all()  # every seeded disc pixel is ignored, none called background
+        assert 0 < meta["ignored_fraction"] <= 0.6 and meta["margin_px"] == 3 and not read(files["label"]).any()
+
+
+def test_partial_backgrounds_resume_and_refuse_other_settings(tiny_run, partial_dataset, tmp_path, count_renders):
+    out = tmp_path / "data"
+    shutil.copytree(partial_dataset, out)
+    reference = (out / "masks" / "pbg_0001.png").read_bytes()
+    (out / "meta" / "pbg_0001.json").unlink()  # cut off while writing it
+    (out / "manifest.json").unlink()
+    run_generate(tiny_run, out, n=1, n_background=N_BG + N_PARTIAL)
+    assert count_renders == [] and (out / "masks" / "pbg_0001.png").read_bytes() == reference
+    assert ids(out) == ids(partial_dataset)
+    for extra in ("partial_background=false", "partial_max_ignored=0.3", "partial_margin_px=1"):
+        with pytest.raises(ConfigError, match=rf"generated with other settings \({extra.split('=')[0]}: None there"):
+            run_generate(tiny_run, out, extra, n=1, n_background=N_BG + N_PARTIAL)
+    with pytest.raises(ConfigError, match=r"partial_max_ignored=1.5: expected a fraction in \[0, 1\]"):
+        run_generate(tiny_run, tmp_path / "other", "partial_max_ignored=1.5")
+
+
 # --- nnU-Net export -----------------------------------------------------------------------------------------
 
 
@@ -274,6 +328,38 @@ def test_export_nnunet_passes_nnunet_integrity_check(dataset, tmp_path):
     Image.fromarray(mask).save(label)
     with pytest.raises(RuntimeError, match="unexpected labels"):
         verify_dataset_integrity(str(target), num_processes=1)
+
+
+def test_export_nnunet_declares_the_ignore_label_for_partial_backgrounds(partial_dataset, tmp_path):
+    from nnunetv2.experiment_planning.verify_dataset_integrity import verify_dataset_integrity
+
+    from drgan.errors import DataError
+
+    target = export(partial_dataset, tmp_path / "raw")
+    description = json.loads((target / "dataset.json").read_text())
+    # nnU-Net v2: the ignore label is the highest label value, named "ignore".
+    assert description["labels"] == {"background": 0, "particle": 1, "contour": 2, "ignore": 3}
+    assert f"+ {N_PARTIAL} real partial backgrounds" in description["description"]
+    for case in ids(partial_dataset):
+        label, mask = read(target / "labelsTr" / f"{case}.png"), read(partial_dataset / "masks" / f"{case}.png")
+        np.testing.assert_array_equal(label, np.where(mask == 255, 3, mask))
+        if not case.startswith("pbg_"):  # masks without the ignore value are copied byte for byte
+            assert (target / "labelsTr" / f"{case}.png").read_bytes() == (
+                partial_dataset / "masks" / f"{case}.png"
+            ).read_bytes()
+    verify_dataset_integrity(str(target), num_processes=1)
+    export(partial_dataset, tmp_path / "raw")  # the same export again is fine
+
+    with pytest.raises(ConfigError, match="ignore label must be the highest value"):
+        export(partial_dataset, tmp_path / "raw2", "+labels.ignore=1", "labels.particle=2", "labels.contour=3")
+    data = tmp_path / "data"
+    shutil.copytree(partial_dataset, data)
+    mask = read(data / "masks" / "pbg_0000.png").copy()
+    mask[0, 0] = 7
+    Image.fromarray(mask).save(data / "masks" / "pbg_0000.png")
+    with pytest.raises(DataError, match=r"mask .*masks/pbg_0000.png: values \[7\] are none of labels"):
+        export(data, tmp_path / "raw3")
+    assert not (tmp_path / "raw3").exists()  # refused before anything is written
 
 
 def test_export_and_segment_read_the_dataset_through_its_manifest(dataset, tmp_path):

@@ -94,6 +94,101 @@ def test_training_steps_reduce_loss():
     assert losses[-1] < 0.7 * losses[0], losses
 
 
+# --- the ignore value (255) in masks -------------------------------------------------------------------------
+
+
+def hand_losses(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0) -> tuple[float, float]:
+    """Cross-entropy and soft Dice loss by hand, pixel by pixel, over the pixels whose target is not 255."""
+    probs = logits.double().softmax(1).numpy()
+    target = target.numpy()
+    n_classes = probs.shape[1]
+    ce, count = 0.0, 0
+    inter, total = np.zeros(n_classes), np.zeros(n_classes)
+    for b, y, x in np.ndindex(target.shape):
+        t = target[b, y, x]
+        if t == 255:
+            continue
+        ce -= np.log(probs[b, t, y, x])
+        count += 1
+        for c in range(n_classes):
+            inter[c] += probs[b, c, y, x] * (t == c)
+            total[c] += probs[b, c, y, x] + (t == c)
+    return ce / max(count, 1), 1.0 - float(np.mean((2 * inter + eps) / (total + eps)))
+
+
+def test_losses_and_val_dsc_leave_ignored_pixels_out():
+    import torch.nn.functional as F
+
+    from drgan.scene.labels import IGNORE
+    from drgan.segmentation.module import cross_entropy, particle_dsc, soft_dice_loss
+
+    gen = torch.Generator().manual_seed(0)
+    target = torch.randint(0, 3, (2, 6, 5), generator=gen)
+    ignored = torch.rand(2, 6, 5, generator=gen) < 0.3
+    masked = target.masked_fill(ignored, IGNORE)
+    logits = torch.randn(2, 3, 6, 5, generator=gen)
+    ce, dice = hand_losses(logits, masked)
+    assert cross_entropy(logits, masked).item() == pytest.approx(ce, rel=1e-5)
+    assert soft_dice_loss(logits, masked).item() == pytest.approx(dice, rel=1e-5)
+
+    # A prediction wrong only on ignored pixels scores like a perfect one ...
+    def confident(classes):
+        return 8.0 * F.one_hot(classes, 3).permute(0, 3, 1, 2).float()
+
+    perfect = confident(target)
+    wrong = torch.where(ignored[:, None], confident((target + 1) % 3), perfect)
+    for loss in (cross_entropy, soft_dice_loss):
+        assert loss(wrong, masked).item() == pytest.approx(loss(perfect, masked).item(), abs=1e-7)
+        assert loss(wrong, target).item() > loss(perfect, target).item() + 0.1  # ... which it is not, unignored
+    assert particle_dsc(wrong, masked).item() == 1.0 and particle_dsc(wrong, target).item() < 1.0
+
+
+def test_an_all_ignored_crop_gives_a_finite_loss_and_gradients():
+    from drgan.scene.labels import IGNORE
+    from drgan.segmentation.module import SegmenterModule, cross_entropy, particle_dsc, soft_dice_loss
+
+    torch.manual_seed(0)
+    model = SegmenterModule(depth=2, base=4)
+    image = torch.rand(2, 1, 16, 16)
+    mask = torch.full((2, 16, 16), IGNORE, dtype=torch.int64)
+    logits, ce, dice, loss = model._losses((image, mask))
+    loss.backward()
+    assert ce.item() == 0.0 and dice.item() == 0.0 and loss.item() == 0.0
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() and not g.any() for g in grads)
+    assert particle_dsc(logits, mask).item() == 1.0
+    # Beside a labelled crop, an all-ignored one changes nothing: the losses are those of the labelled crop alone.
+    labels = torch.from_numpy(class_mask(disc_labels(16, n=1, seed=1), 1).astype(np.int64))
+    batch = torch.stack([labels, mask[0]])
+    logits = torch.randn(2, 3, 16, 16)
+    for loss in (cross_entropy, soft_dice_loss):
+        assert loss(logits, batch).item() == pytest.approx(loss(logits[:1], batch[:1]).item(), rel=1e-6)
+
+
+def test_crops_carry_the_ignore_value_unchanged():
+    from drgan.scene.labels import IGNORE
+    from drgan.segmentation.data import CropDataset, Pair
+
+    rng = np.random.default_rng(0)
+    mask = rng.choice(np.array([0, 1, 2, IGNORE], np.uint8), size=(20, 20))
+    grey = {0: 0.1, 1: 0.4, 2: 0.6, IGNORE: 0.9}  # each class its own grey: image and mask must stay aligned
+    image = np.vectorize(grey.get)(mask).astype(np.float32)
+    for crop in (20, 24, 12):  # the whole image rotated and flipped, reflect-padded, cut
+        data = CropDataset(
+            [Pair("a", image, mask)], crop=crop, augment=True, samples_per_pair=12, brightness=0, contrast=0
+        )
+        for k in range(len(data)):
+            x, y = data[k]
+            x, y = x[0].numpy(), y.numpy()
+            assert set(np.unique(y).tolist()) <= {0, 1, 2, IGNORE}
+            for value, level in grey.items():
+                np.testing.assert_allclose(x[y == value], level, atol=1e-6)
+            if crop == 20:
+                assert (
+                    np.bincount(y.ravel(), minlength=256).tolist() == np.bincount(mask.ravel(), minlength=256).tolist()
+                )
+
+
 def test_sliding_window_matches_direct_inference():
     from drgan.segmentation.inference import predict, predict_probs
     from drgan.segmentation.unet import UNet

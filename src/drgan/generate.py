@@ -4,24 +4,30 @@ For each index i = 0, 1, 2, ... a new constellation phi_i is drawn from the mate
 distributions, rendered by the trained generator (no gradients) and annotated exactly: instance labels from
 the renderer, and the 3-class mask (0 background, 1 particle, 2 contour of ``contour_px``). Images whose
 particles are not clearly distinguishable are dropped (``contrast_check``); indices go on until n are kept.
-Then ``n_background`` real background patches are added with all-zero masks.
+Then ``n_background`` real background patches are added with all-zero masks. When the PatchSet holds fewer
+windows free of particles (dense images), ``partial_background`` (default true) fills up with real windows that
+hold particles: their masks are 0 on the background and IGNORE (255) on the particles found by the classical
+segmentation, grown by a margin, which a segmenter's loss leaves out (drgan.dataset.backgrounds: the margin, and
+the windows skipped because they ignore more than ``partial_max_ignored`` of their pixels).
 
 The folder DIR, its items and manifest.json are drgan.dataset's (layout, manifest, shards); this module is the
-render loop and its command line. IDs: ``syn_000123`` (123 = the index; dropped indices leave gaps), ``bg_0000``.
+render loop and its command line. IDs: ``syn_000123`` (123 = the index; dropped indices leave gaps), ``bg_0000``,
+``pbg_0000`` (partial backgrounds).
 
 Reproducible and resumable: index i uses seeds from ``SeedSequence([seed, i])`` only, so its image does not
 depend on which process renders it or when. ``meta/ID.json`` (kept) or ``dropped/ID.json`` is written last
 and marks an index done; a re-run with the same settings skips done indices and completes a partial
 dataset; it first removes what a killed run left of its own indices (temporary files, PNGs of an index
 without its record), so no image is ever left without its mask. A re-run with different settings
-(checkpoint, seed, filter, renderer, ...) into the same folder is refused; n and n_background may grow.
+(checkpoint, seed, filter, renderer, partial-background settings, ...) into the same folder is refused; n and
+n_background may grow.
 
 Sharding: ``shard=i/k`` renders only indices with index % k == i; all shards write into one DIR (a shared
 file system). The dataset is the first n kept indices (as in a single process), so a shard stops at index j
 once the indices below j known to be kept, its own and those the other shards have finished, number n.
 Shards run at the same time share the work evenly; run one after the other, the first does most of it.
 Each shard writes ``manifest_shard_i.json``; whichever finds the dataset complete (all indices up to the
-n-th kept and all backgrounds done; shard 0 adds the backgrounds) writes ``manifest.json``. If none could
+n-th kept and all backgrounds done; shard 0 adds the backgrounds and partial backgrounds) writes ``manifest.json``. If none could
 (e.g. a shard failed), run the same command with ``merge=true``: it renders nothing and writes the
 manifest, or says which indices are missing. Kept indices beyond the n-th (rendered by a shard that could
 not yet know) stay on disk but are not in the manifest.
@@ -42,7 +48,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from drgan.data.polarity import check_polarity
-from drgan.dataset.backgrounds import write_backgrounds
+from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
 from drgan.dataset.layout import DatasetFolder, syn_id
 from drgan.dataset.manifest import write_manifest, write_shard_manifest
 from drgan.dataset.settings import fixed_settings, settings_from
@@ -201,7 +207,14 @@ def generate(cfg: DictConfig) -> dict:
 
     n, stats = settings["n"], Stats()
     if shard.index == 0:
-        write_backgrounds(folder, settings["backgrounds"], settings["n_background"], resolution)
+        write_backgrounds(
+            folder,
+            settings["backgrounds"],
+            settings["n_background"],
+            resolution,
+            PartialSettings.from_settings(settings),
+            settings["polarity"],
+        )
     outcomes = folder.outcomes()
     bar = _progress(cfg, total=math.ceil(n / shard.count))
     index = shard.index
@@ -260,7 +273,12 @@ def generate(cfg: DictConfig) -> dict:
           + (f"{rate:.2f} images/minute ({summary['rendered_per_minute']:.2f} rendered/minute)" if rate is not None else "nothing rendered"))  # fmt: skip
     if shard.count > 1:
         write_shard_manifest(folder, settings, shard, summary)
-    return write_manifest(folder, settings, stats=summary, required=shard.count == 1)
+    manifest = write_manifest(folder, settings, stats=summary, required=shard.count == 1)
+    if manifest is not None:
+        counts = manifest["counts"]
+        print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "
+              f"{counts['partial_background']} partial background items (n_background={settings['n_background']})")  # fmt: skip
+    return manifest
 
 
 def _progress(cfg: DictConfig, total: int):

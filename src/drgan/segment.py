@@ -1,6 +1,7 @@
 """`python -m drgan.segment data=DIR name=NAME`: train the U-Net segmenter (3 classes, Dice + CE, Adam).
 
-`data=DIR`: pairs written by `python -m drgan.generate` (images/ID.png, masks/ID.png classes 0/1/2).
+`data=DIR`: pairs written by `python -m drgan.generate` (images/ID.png, masks/ID.png classes 0/1/2, and 255 on
+the particles of partial backgrounds, which the loss and val/dsc leave out: drgan.segmentation.module).
 `real=DATASET`: the real-data baseline, trained on the `train` ids of DATASET/split.json only; targets are
 class_mask(4-connected components of the binary mask, contour_px). A seeded `val_fraction` of the pairs is
 held out for validation. Run folder `out`: checkpoints/last.ckpt (and the latest epoch), segment.log,

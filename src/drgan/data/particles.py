@@ -119,6 +119,30 @@ class SegmentParams:
             background=self.background if self.background is not None else round(BACKGROUND_PER_DIAMETER * d, 1),
         )
 
+    def scaled(self, factor: float) -> SegmentParams:
+        """The same settings for the image resized by ``factor`` (e.g. patches area-averaged from a window of W px
+        to S px: factor S / W): lengths times factor, areas times factor squared; None stays None."""
+        if not (factor > 0 and math.isfinite(factor)):
+            raise ConfigError(f"SegmentParams.scaled: factor={factor!r}, expected a number > 0")
+        if factor == 1:
+            return self
+
+        def length(value):
+            return None if value is None else round(float(value) * factor, 2)
+
+        def area(value):
+            return None if value is None else max(1, int(round(value * factor * factor)))
+
+        return replace(
+            self,
+            scale=length(self.scale),
+            sigma=length(self.sigma),
+            min_distance=None if self.min_distance is None else max(1, int(round(self.min_distance * factor))),
+            min_area=area(self.min_area),
+            max_area=area(self.max_area),
+            background=length(self.background),
+        )
+
     def as_dict(self) -> dict:
         return asdict(self)
 

@@ -7,10 +7,22 @@ drgan.segment. The one place that knows the folder layout.
   complete; ``read_manifest`` checks a folder and names it when it is not a drgan dataset;
 - ``shards``: which shard writes which item, and when the first n kept indices are all done;
 - ``settings``: a generation run's settings, checked against the checkpoint; ``source``: that checkpoint;
-- ``backgrounds``: the real background patches added with all-zero masks.
+- ``backgrounds``: the real background patches added with all-zero masks, and the partial backgrounds (real
+  windows with particles, masked ``IGNORE`` = 255) that fill up when there are too few.
 """
 
-from drgan.dataset.layout import BACKGROUND, SYNTHETIC, DatasetFolder, Entry, bg_id, item_files, syn_id
+from drgan.dataset.layout import (
+    BACKGROUND,
+    IGNORE,
+    PARTIAL_BACKGROUND,
+    SYNTHETIC,
+    DatasetFolder,
+    Entry,
+    bg_id,
+    item_files,
+    pbg_id,
+    syn_id,
+)
 from drgan.dataset.manifest import (
     GENERATED_DATASET,
     check_files,
@@ -24,7 +36,7 @@ from drgan.dataset.manifest import (
 from drgan.dataset.shards import Shard, dataset_cutoff, kept_below, owned_by
 
 __all__ = [
-    "BACKGROUND", "GENERATED_DATASET", "SYNTHETIC", "DatasetFolder", "Entry", "Shard", "bg_id", "check_files",
-    "dataset_cutoff", "is_generated", "item_files", "kept_below", "manifest_entries", "owned_by", "read_manifest",
-    "syn_id", "unlisted_items", "write_manifest", "write_shard_manifest",
+    "BACKGROUND", "GENERATED_DATASET", "IGNORE", "PARTIAL_BACKGROUND", "SYNTHETIC", "DatasetFolder", "Entry", "Shard",
+    "bg_id", "check_files", "dataset_cutoff", "is_generated", "item_files", "kept_below", "manifest_entries",
+    "owned_by", "pbg_id", "read_manifest", "syn_id", "unlisted_items", "write_manifest", "write_shard_manifest",
 ]  # fmt: skip

@@ -1,9 +1,15 @@
 """The folder of one synthetic dataset: item ids, their files, and the records that mark an item done.
 
-    images/ID.png   8-bit grey           masks/ID.png   uint8 {0 background, 1 particle, 2 contour}
+    images/ID.png   8-bit grey           masks/ID.png   uint8 {0 background, 1 particle, 2 contour, 255 ignore}
     labels/ID.png   instance ids (16-bit when > 255)    meta/ID.json   what made the item (written last)
     dropped/ID.json why a synthetic index was dropped    config.json    the settings that fix every index
     manifest.json   the dataset (drgan.dataset.manifest)    manifest_shard_I.json   one shard's part
+    partial_backgrounds.json   how the partial backgrounds were chosen (drgan.dataset.backgrounds)
+
+Items: ``syn_000123`` synthetic (a render; masks 0/1/2), ``bg_0004`` background (a real window free of particles;
+mask all 0), ``pbg_0002`` partial background (a real window with particles: mask 0 on its background and
+``IGNORE`` = 255 on its particles and a margin around them, which a segmenter's loss leaves out; its labels/ are
+all 0, as its particles are not annotated).
 
 Every file is written atomically (drgan.io). An item is done when its meta/ID.json (kept) or dropped/ID.json
 record exists: the record is written after the item's PNGs, so a PNG without a record is what an interrupted
@@ -23,14 +29,17 @@ import numpy as np
 
 from drgan import io
 from drgan.errors import ConfigError
+from drgan.scene.labels import IGNORE  # noqa: F401  (the mask value of no class: imported from here too)
 
 log = logging.getLogger(__name__)
 
-SYN, BG = "syn", "bg"
-SYNTHETIC, BACKGROUND = "synthetic", "background"  # the kinds of an item
+SYN, BG, PBG = "syn", "bg", "pbg"
+SYNTHETIC, BACKGROUND, PARTIAL_BACKGROUND = "synthetic", "background", "partial_background"  # the kinds of an item
+KINDS = (SYNTHETIC, BACKGROUND, PARTIAL_BACKGROUND)
 FILE_KINDS = ("images", "masks", "labels")  # PNG folders; meta/ID.json comes last
 MANIFEST = "manifest.json"
 CONFIG = "config.json"
+PARTIAL_RECORD = "partial_backgrounds.json"
 # drgan.io.atomic_path's temporary name for a file NAME: ".NAME.<random>.tmp<suffix of NAME>".
 _TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[A-Za-z0-9_]+\.tmp(\.[A-Za-z0-9]+)?$")
 
@@ -43,6 +52,11 @@ def syn_id(index: int) -> str:
 def bg_id(index: int) -> str:
     """``bg_0004``: the fifth real background patch."""
     return f"{BG}_{index:04d}"
+
+
+def pbg_id(index: int) -> str:
+    """``pbg_0002``: the third partial background (a real window with particles, which its mask ignores)."""
+    return f"{PBG}_{index:04d}"
 
 
 def syn_index(item: str) -> int | None:
@@ -63,7 +77,7 @@ class Entry:
     """One item of a dataset as its manifest lists it."""
 
     id: str
-    kind: str  # SYNTHETIC or BACKGROUND
+    kind: str  # SYNTHETIC, BACKGROUND or PARTIAL_BACKGROUND
     files: dict  # role -> path relative to the dataset folder (item_files)
     index: int | None = None  # the synthetic index; None for a background
 
@@ -74,6 +88,10 @@ class Entry:
     @classmethod
     def background(cls, item: str) -> Entry:
         return cls(item, BACKGROUND, item_files(item))
+
+    @classmethod
+    def partial_background(cls, item: str) -> Entry:
+        return cls(item, PARTIAL_BACKGROUND, item_files(item))
 
     def to_json(self) -> dict:
         record = {"id": self.id, "kind": self.kind}

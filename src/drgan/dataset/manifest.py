@@ -2,9 +2,12 @@
 
     {"config": the generation settings (shard: null), "counts": {...}, "throughput": {...},
      "entries": [{"id": "syn_000000", "kind": "synthetic", "index": 0, "files": {"image": ..., "mask": ...,
-                  "label": ..., "meta": ...}}, ..., {"id": "bg_0000", "kind": "background", "files": {...}}]}
+                  "label": ..., "meta": ...}}, ..., {"id": "bg_0000", "kind": "background", "files": {...}}, ...,
+                 {"id": "pbg_0000", "kind": "partial_background", "files": {...}}]}
 
-Synthetic entries come first, by index, then the backgrounds. A shard writes its own part to
+Synthetic entries come first, by index, then the backgrounds, then the partial backgrounds (real windows with
+particles whose masks ignore them: drgan.dataset.backgrounds); counts has each number, and "partial_backgrounds"
+how they were chosen (their mean ignored fraction, windows skipped). A shard writes its own part to
 manifest_shard_I.json; whichever process finds the dataset complete writes manifest.json (atomically).
 ``read_manifest`` checks a folder before anything is done with it and names the folder when it is not a
 dataset written by drgan.generate.
@@ -18,16 +21,17 @@ from collections import Counter
 from pathlib import Path
 
 from drgan import io
-from drgan.dataset.backgrounds import backgrounds_exhausted
+from drgan.dataset.backgrounds import PartialSettings, backgrounds_exhausted, partial_exhausted
 from drgan.dataset.layout import (
-    BACKGROUND,
     CONFIG,
     FILE_KINDS,
+    KINDS,
     MANIFEST,
-    SYNTHETIC,
+    PARTIAL_RECORD,
     DatasetFolder,
     Entry,
     bg_id,
+    pbg_id,
     syn_id,
 )
 from drgan.dataset.shards import Shard, dataset_cutoff, kept_below, shard_manifest_name
@@ -67,6 +71,9 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
     n, n_background = settings["n"], settings["n_background"]
     cutoff, missing = dataset_cutoff(outcomes, n)
     backgrounds = [bg_id(k) for k in range(n_background) if folder.done(bg_id(k))]
+    # Partial backgrounds fill up what the PatchSet's backgrounds leave of n_background (once those are all done).
+    wanted = n_background - len(backgrounds) if PartialSettings.from_settings(settings).enabled else 0
+    partials = [pbg_id(j) for j in range(wanted) if folder.done(pbg_id(j))]
     problem = None
     if cutoff is None:
         problem = (
@@ -75,6 +82,11 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
         )
     elif len(backgrounds) < n_background and not backgrounds_exhausted(settings["backgrounds"], len(backgrounds)):
         problem = f"{len(backgrounds)} of n_background={n_background} background patches are done (shard 0 writes them)"
+    elif len(partials) < wanted and not partial_exhausted(folder, len(partials)):
+        problem = (
+            f"{len(partials)} of the {wanted} partial backgrounds that fill up n_background={n_background} are "
+            "done (shard 0 writes them)"
+        )
     if problem:
         if required:
             raise ConfigError(
@@ -85,7 +97,11 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
     kept = [i for i in range(cutoff + 1) if outcomes[i]]
     dropped = [i for i in range(cutoff + 1) if not outcomes[i]]
     reasons = Counter(folder.dropped_reason(i) for i in dropped)
-    entries = [Entry.synthetic(i).to_json() for i in kept] + [Entry.background(b).to_json() for b in backgrounds]
+    entries = (
+        [Entry.synthetic(i).to_json() for i in kept]
+        + [Entry.background(b).to_json() for b in backgrounds]
+        + [Entry.partial_background(p).to_json() for p in partials]
+    )
     shards = []
     for path in sorted(folder.root.glob("manifest_shard_*.json")):
         record = json.loads(path.read_text())
@@ -97,6 +113,7 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
         "counts": {
             "synthetic": len(kept),
             "background": len(backgrounds),
+            "partial_background": len(partials),
             "kept": len(kept),
             "dropped": len(dropped),
             "drop_reasons": dict(reasons),
@@ -106,9 +123,41 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
         "throughput": {"this_run": stats, "shards": shards},
         "entries": entries,
     }
+    if partials:
+        manifest["partial_backgrounds"] = partial_summary(folder, partials)
     io.write_json(folder.root / MANIFEST, manifest)
-    log.info("manifest.json: %d synthetic (%d dropped) + %d background", len(kept), len(dropped), len(backgrounds))
+    log.info(
+        "manifest.json: %d synthetic (%d dropped) + %d background + %d partial background",
+        len(kept), len(dropped), len(backgrounds), len(partials),
+    )  # fmt: skip
     return manifest
+
+
+def partial_summary(folder: DatasetFolder, partials: list[str]) -> dict:
+    """How the partial backgrounds ``partials`` ignore their pixels (from their meta), and how they were chosen
+    (partial_backgrounds.json, when there)."""
+    fractions = []
+    for item in partials:
+        try:
+            fractions.append(float(json.loads((folder.root / "meta" / f"{item}.json").read_text())["ignored_fraction"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    summary: dict = {"count": len(partials)}
+    if fractions:
+        summary["ignored_fraction"] = {
+            "mean": round(sum(fractions) / len(fractions), 4),
+            "min": round(min(fractions), 4),
+            "max": round(max(fractions), 4),
+        }
+    try:
+        record = json.loads((folder.root / PARTIAL_RECORD).read_text())
+    except (OSError, ValueError):
+        record = None
+    if isinstance(record, dict):
+        summary.update(
+            {k: record[k] for k in ("candidates", "usable", "skipped", "max_ignored", "margin_px") if k in record}
+        )
+    return summary
 
 
 # --- reading ------------------------------------------------------------------------------------------------
@@ -161,10 +210,10 @@ def read_manifest(root: str | Path, setting: str = "data") -> dict:
                 f"{setting}={root}: manifest.json entry {entry['id']} names {outside[0]!r} "
                 "(expected a path inside the dataset folder, e.g. images/ID.png)"
             )
-        if entry.get("kind") not in (SYNTHETIC, BACKGROUND):
+        if entry.get("kind") not in KINDS:
             raise DataError(
                 f"{setting}={root}: manifest.json entry {entry['id']} has kind {entry.get('kind')!r} "
-                f"(expected {SYNTHETIC!r} or {BACKGROUND!r})"
+                f"(expected one of {', '.join(map(repr, KINDS))})"
             )
     return manifest
 

@@ -2,7 +2,9 @@
 
 ``FIXED_SETTINGS`` decide what each index holds: config.json records them at a folder's first use, and a folder
 is only ever completed with the same ones (n and n_background may grow). The rest (n, max_attempts, shard)
-only decide how much is made and by whom.
+only decide how much is made and by whom. The partial-background settings (``PARTIAL_SETTINGS``) decide what the
+pbg_ items hold; like ``parameters`` they are recorded only when not the defaults, so that folders made before
+they existed still resume (and then fill up with the default partial backgrounds, as a new folder would).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from drgan.data.polarity import check_polarity
+from drgan.dataset.backgrounds import PARTIAL_MAX_IGNORED
 from drgan.dataset.shards import Shard
 from drgan.dataset.source import checkpoint_config, effective_renderer, generator_checkpoint
 from drgan.errors import ConfigError
@@ -30,20 +33,43 @@ FIXED_SETTINGS = (
 )
 
 
+# The partial-background settings and their defaults (conf/gan/generate.yaml).
+PARTIAL_SETTINGS = {"partial_background": True, "partial_max_ignored": PARTIAL_MAX_IGNORED, "partial_margin_px": None}
+
+
 def fixed_settings(settings: dict) -> dict:
-    """The part of ``settings`` that config.json records and every later run must repeat (``parameters`` only
-    when not the trained generator's, so that folders made before the setting existed still resume)."""
+    """The part of ``settings`` that config.json records and every later run must repeat (``parameters`` and the
+    partial-background settings only when not the defaults, so that folders made before them still resume)."""
     fixed = {k: settings[k] for k in FIXED_SETTINGS}
     if settings.get("parameters", "trained") != "trained":
         fixed["parameters"] = settings["parameters"]
+    for key, default in PARTIAL_SETTINGS.items():
+        if settings.get(key, default) != default:
+            fixed[key] = settings[key]
     return fixed
+
+
+def partial_settings(cfg: DictConfig) -> dict:
+    """partial_background (bool), partial_max_ignored (a fraction in [0, 1]), partial_margin_px (an integer >= 0
+    or null), checked."""
+    enabled = cfg.get("partial_background", True)
+    if not isinstance(enabled, bool):
+        raise ConfigError(f"partial_background={enabled!r}: expected true or false")
+    max_ignored = cfg.get("partial_max_ignored", PARTIAL_MAX_IGNORED)
+    if isinstance(max_ignored, bool) or not isinstance(max_ignored, (int, float)) or not 0 <= max_ignored <= 1:
+        raise ConfigError(f"partial_max_ignored={max_ignored!r}: expected a fraction in [0, 1]")
+    margin = cfg.get("partial_margin_px")
+    if margin is not None and (isinstance(margin, bool) or not isinstance(margin, int) or margin < 0):
+        raise ConfigError(f"partial_margin_px={margin!r}: expected an integer >= 0 (px) or null (from the particles)")
+    return {"partial_background": enabled, "partial_max_ignored": float(max_ignored), "partial_margin_px": margin}
 
 
 def settings_from(cfg: DictConfig) -> dict:
     """Checked, resolved settings of a run (conf/gan/generate.yaml); raises before any model is built or image rendered.
 
-    Keys (in the order manifests record them): ckpt, material, n, n_background, seed, contour_px, min_contrast,
-    min_background, polarity, max_attempts, renderer, backgrounds, shard, and model_cfg (the checkpoint's config
+    Keys (in the order manifests record them): ckpt, material, n, n_background, partial_background,
+    partial_max_ignored, partial_margin_px, seed, contour_px, min_contrast, min_background, polarity, max_attempts,
+    renderer, backgrounds, shard, parameters, and model_cfg (the checkpoint's config
     with the effective renderer, which is not recorded)."""
     n = cfg.n
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
@@ -51,6 +77,7 @@ def settings_from(cfg: DictConfig) -> dict:
     n_background = cfg.n_background
     if isinstance(n_background, bool) or not isinstance(n_background, int) or n_background < 0:
         raise ConfigError(f"n_background={n_background!r}: expected an integer >= 0")
+    partial = partial_settings(cfg)
     shard = Shard.parse(cfg.get("shard"))
     for key in ("min_contrast", "min_background"):
         if not isinstance(cfg[key], (int, float)) or isinstance(cfg[key], bool) or cfg[key] < 0:
@@ -94,6 +121,7 @@ def settings_from(cfg: DictConfig) -> dict:
         "material": material,
         "n": n,
         "n_background": n_background,
+        **partial,
         "seed": int(cfg.seed),
         "contour_px": int(contour_px),
         "min_contrast": float(cfg.min_contrast),

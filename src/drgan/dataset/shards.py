@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drgan.dataset.layout import BG, syn_index
+from drgan.dataset.layout import BG, PARTIAL_RECORD, PBG, syn_index
 from drgan.errors import ConfigError
 
 
@@ -45,12 +45,13 @@ def shard_manifest_name(shard: Shard) -> str:
 
 
 def owned_by(item: str, shard: Shard) -> bool:
-    """Whether ``shard`` is the only writer of ``item`` (a file stem): its synthetic indices, the backgrounds for
-    shard 0, manifest_shard_i for shard i; manifest.json and config.json only when there is one process."""
+    """Whether ``shard`` is the only writer of ``item`` (a file stem): its synthetic indices, the backgrounds and
+    partial backgrounds (and their record) for shard 0, manifest_shard_i for shard i; manifest.json and config.json
+    only when there is one process."""
     index = syn_index(item)
     if index is not None:
         return shard.owns_index(index)
-    if item.startswith(BG + "_"):
+    if item.startswith((BG + "_", PBG + "_")) or item == PARTIAL_RECORD.removesuffix(".json"):
         return shard.index == 0
     if item.startswith("manifest_shard_"):
         return item == f"manifest_shard_{shard.index}"

@@ -1,9 +1,15 @@
-"""Masks from instance labels: background 0, particle 1, contour 2.
+"""Masks from instance labels: background 0, particle 1, contour 2; and the ignore value 255 (``IGNORE``).
 
 The contour class marks the inner rim of each particle, ``contour_px`` pixels wide: a particle pixel is
 contour when another label (background or another particle) lies within ``contour_px`` pixels
 (Euclidean disk). The rim is taken inside each particle, so a contour never overwrites a neighbour.
 The image border does not count as a boundary: a particle cut by the border has no contour there.
+
+``IGNORE`` (255) marks mask pixels that are no class at all: nothing is known about them, so a segmenter's loss
+and scores leave them out (cross-entropy's ``ignore_index``, the soft Dice and val/dsc over the other pixels;
+drgan.segmentation.module). drgan.generate writes it in the masks of partial backgrounds (real windows with
+particles: their particles and a margin around them, drgan.dataset.backgrounds); a renderer's own masks never
+hold it. nnU-Net's exports declare it as the label "ignore" (drgan.export_nnunet).
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ from scipy import ndimage
 from drgan.errors import ConfigError
 
 BACKGROUND, PARTICLE, CONTOUR = 0, 1, 2
+IGNORE = 255  # a mask pixel of no class: left out of the loss and the scores
 
 
 def disk(radius: int) -> np.ndarray:

@@ -1,10 +1,11 @@
 """Image/mask pairs for the segmenter, and the random-crop training dataset.
 
 Two sources, both giving float32 grey images in [0, 1] and uint8 class masks {0 background, 1 particle,
-2 contour}:
+2 contour}, and in generated masks also ``IGNORE`` = 255 (no class: the loss and val/dsc leave those pixels out,
+drgan.segmentation.module):
 - generated data (`python -m drgan.generate`): the items DIR/manifest.json lists, images/ID.png + masks/ID.png
-  (classes), read through drgan.dataset; a folder of such pairs without a manifest (made by hand) is paired by
-  file name, and a folder that is neither is refused, naming it;
+  (classes; 255 on the particles of partial backgrounds), read through drgan.dataset; a folder of such pairs
+  without a manifest (made by hand) is paired by file name, and a folder that is neither is refused, naming it;
 - real annotated data: DATASET/images/ID.<ext> and binary masks (0/255, or 0/1) DATASET/masks/ID<suffix>.<ext>
   (suffix "_m" as in the TiO2 SEM set, or none as in TSEM; `mask_suffix`); a mask has its image's size, or
   the size left after the image's info bar is cropped (TSEM publishes its masks so). Instances are the
@@ -25,7 +26,7 @@ from torch.utils.data import Dataset
 from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split, resolve_crop_rows
 from drgan.dataset.manifest import image_mask_pairs
 from drgan.errors import ConfigError, DataError
-from drgan.scene.labels import class_mask
+from drgan.scene.labels import BACKGROUND, CONTOUR, IGNORE, PARTICLE, class_mask
 
 _FOUR_CONNECTED = ndimage.generate_binary_structure(2, 1)
 
@@ -53,7 +54,7 @@ def normalization(image: np.ndarray, mode: str) -> tuple[float, float]:
 class Pair:
     id: str
     image: np.ndarray  # float32 (H, W) in [0, 1]
-    mask: np.ndarray  # uint8 (H, W) classes {0, 1, 2}
+    mask: np.ndarray  # uint8 (H, W) classes {0, 1, 2}, and IGNORE (255) where no class is known
 
 
 def read_raw_mask(path: Path, crop_rows=None) -> np.ndarray:
@@ -229,19 +230,23 @@ def load_real_pairs(
     ]
 
 
+GENERATED_MASK_VALUES = (BACKGROUND, PARTICLE, CONTOUR, IGNORE)  # what a generated dataset's masks may hold
+
+
 def load_generated_pairs(data_dir, setting: str = "data") -> list[Pair]:
     """The items of a generated dataset (drgan.dataset: those its manifest.json lists; a folder of hand-made
     images/ID.png + masks/ID.png pairs without manifest: paired by file name), sorted by id; masks are uint8
-    classes 0/1/2. Every pair is read and checked before returning."""
+    classes 0/1/2 and IGNORE (255). Every pair is read and checked before returning."""
     pairs = []
     for item, image_path, mask_path in image_mask_pairs(data_dir, setting):
         image = read_grey(image_path)
         mask = read_raw_mask(mask_path)
         _check_same_size(image.shape, mask.shape, image_path, mask_path)
-        bad = sorted(set(np.unique(mask).tolist()) - {0, 1, 2})
+        bad = sorted(set(np.unique(mask).tolist()) - set(GENERATED_MASK_VALUES))
         if bad:
             raise DataError(
-                f"mask {mask_path}: unexpected values {bad[:5]} (expected classes 0 background, 1 particle, 2 contour)"
+                f"mask {mask_path}: unexpected values {bad[:5]} (expected classes 0 background, 1 particle, "
+                f"2 contour, or {IGNORE} ignore)"
             )
         pairs.append(Pair(item, image, mask.astype(np.uint8)))
     return pairs
@@ -272,7 +277,8 @@ class CropDataset(Dataset):
     augment: a random dihedral transform (8 flips/rotations) and a small brightness/contrast jitter,
     x -> clip((x - mean) * c + mean + b) with c in [1 - contrast, 1 + contrast], b in [-brightness, brightness].
     Without augment (validation) every sample is the pair's centre crop, unchanged, so val scores are repeatable.
-    Images smaller than the crop are reflect-padded, their masks likewise.
+    Images smaller than the crop are reflect-padded, their masks likewise. Masks are only cut, padded by copying,
+    rotated and flipped, never interpolated: an IGNORE (255) pixel stays 255 and no other class is made from it.
     normalize: per-image input normalisation (NORMALIZATIONS), with the statistics of the *whole* image (as at
     inference, `predict_probs`), applied to each crop after the jitter.
     """

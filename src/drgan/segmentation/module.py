@@ -1,7 +1,9 @@
 """SegmenterModule: U-Net, loss = soft Dice (mean over classes) + cross-entropy, Adam.
 
 Logged keys: train/loss, train/ce, train/dice_loss, val/loss, val/dsc (particle-class Dice of the argmax
-map, over the whole validation batch). Registered as a segmenter (drgan.segmentation.registry), so its checkpoints
+map, over the whole validation batch). Mask pixels of value ``IGNORE`` (255, drgan.scene.labels: the particles of
+a partial background) count nowhere: cross-entropy averages over the other pixels (``ignore_index``), the soft
+Dice and val/dsc sum over them only; a batch of ignored pixels only has loss 0 and zero gradients, never NaN. Registered as a segmenter (drgan.segmentation.registry), so its checkpoints
 load by the ``_target_`` among their hyperparameters; ``load_segmenter`` is the registry's loader.
 """
 
@@ -11,20 +13,43 @@ import lightning.pytorch as L
 import torch
 import torch.nn.functional as F
 
+from drgan.scene.labels import IGNORE
 from drgan.segmentation.data import check_normalize
 from drgan.segmentation.registry import load_segmenter, register_segmenter
 from drgan.segmentation.unet import UNet
 
-__all__ = ["SegmenterModule", "load_segmenter", "soft_dice_loss"]
+__all__ = ["SegmenterModule", "cross_entropy", "load_segmenter", "particle_dsc", "soft_dice_loss"]
 
 
-def soft_dice_loss(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0) -> torch.Tensor:
-    """1 - mean over classes of 2|P.T| / (|P| + |T|), P softmax probabilities, sums over batch and pixels."""
+def soft_dice_loss(
+    logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0, ignore_index: int = IGNORE
+) -> torch.Tensor:
+    """1 - mean over classes of 2|P.T| / (|P| + |T|), P softmax probabilities, sums over batch and the pixels whose
+    target is not ``ignore_index`` (all ignored: 0)."""
     probs = logits.softmax(dim=1)
-    onehot = F.one_hot(target, logits.shape[1]).permute(0, 3, 1, 2).to(probs.dtype)
+    valid = (target != ignore_index).unsqueeze(1).to(probs.dtype)  # (B, 1, H, W)
+    onehot = F.one_hot(torch.where(target == ignore_index, 0, target), logits.shape[1]).permute(0, 3, 1, 2)
+    onehot = onehot.to(probs.dtype) * valid
+    probs = probs * valid
     inter = (probs * onehot).sum(dim=(0, 2, 3))
     total = probs.sum(dim=(0, 2, 3)) + onehot.sum(dim=(0, 2, 3))
     return 1.0 - ((2 * inter + eps) / (total + eps)).mean()
+
+
+def cross_entropy(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE) -> torch.Tensor:
+    """Mean cross-entropy over the pixels whose target is not ``ignore_index``; 0 (with zero gradients) when all are
+    ignored, where torch's mean would divide 0 by 0."""
+    total = F.cross_entropy(logits, target, ignore_index=ignore_index, reduction="sum")
+    return total / (target != ignore_index).sum().clamp(min=1)
+
+
+def particle_dsc(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE) -> torch.Tensor:
+    """Dice of the particle class (1) between the argmax map and ``target``, over the whole batch and the pixels
+    whose target is not ``ignore_index`` (they are neither particle nor not); 1 when neither has a particle pixel."""
+    valid = target != ignore_index
+    pred, true = (logits.argmax(1) == 1) & valid, target == 1
+    denom = pred.sum() + true.sum()
+    return (2 * (pred & true).sum() / denom).float() if denom > 0 else torch.tensor(1.0)
 
 
 @register_segmenter
@@ -56,7 +81,7 @@ class SegmenterModule(L.LightningModule):
     def _losses(self, batch):
         image, mask = batch
         logits = self(image)
-        ce = F.cross_entropy(logits, mask)
+        ce = cross_entropy(logits, mask)
         dl = soft_dice_loss(logits, mask)
         return logits, ce, dl, self.hparams.ce_weight * ce + self.hparams.dice_weight * dl
 
@@ -69,10 +94,8 @@ class SegmenterModule(L.LightningModule):
 
     def validation_step(self, batch, batch_idx):
         logits, _, _, loss = self._losses(batch)
-        pred, true = logits.argmax(1) == 1, batch[1] == 1
-        denom = pred.sum() + true.sum()
-        dsc = (2 * (pred & true).sum() / denom) if denom > 0 else torch.tensor(1.0)
-        self.log_dict({"val/loss": loss, "val/dsc": dsc.float()}, prog_bar=True, batch_size=len(batch[0]))
+        dsc = particle_dsc(logits, batch[1])
+        self.log_dict({"val/loss": loss, "val/dsc": dsc}, prog_bar=True, batch_size=len(batch[0]))
 
     def configure_optimizers(self):
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
