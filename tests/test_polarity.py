@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage as ndi
 from test_data import SHAPE, SIZE, STRIDE, disc_image, lattice_centres
 
 from drgan.data import mine_patches
 from drgan.data.datamodule import RealPatchDataModule
-from drgan.data.polarity import detect_polarity, image_vote, resolve_polarity, to_bright
+from drgan.data.polarity import detect_polarity, image_vote, isophote_convexity, resolve_polarity, to_bright
 from drgan.errors import ConfigError, DataError
 
 
@@ -44,10 +45,73 @@ def test_polarity_follows_the_background_even_when_particles_cover_much_of_the_i
     assert detect_polarity([dark_twin(image)]).polarity == "dark"
 
 
+def disc_field(coverage, seed, radius=10, shape=(192, 224), noise=0.03, grain=0.0, disc=0.7, back=0.2):
+    """Discs of radius 10 px (+-15 %) dropped at random until they cover ``coverage`` of the image, each
+    overlapping the ones before by at most 10 % of its area (dense fields: touching discs and clusters); grey
+    ``disc`` on ``back``, plus noise of std ``noise`` (smoothed over ``grain`` px when given)."""
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[: shape[0], : shape[1]]
+    mask = np.zeros(shape, bool)
+    while mask.mean() < coverage:
+        cy, cx, r = rng.uniform(0, shape[0]), rng.uniform(0, shape[1]), radius * rng.uniform(0.85, 1.15)
+        new = (rr - cy) ** 2 + (cc - cx) ** 2 <= r**2
+        if (new & mask).sum() <= 0.1 * new.sum():
+            mask |= new
+    grainy = rng.normal(0, 1, shape)
+    if grain:
+        grainy = ndi.gaussian_filter(grainy, grain)
+        grainy /= grainy.std()
+    return np.clip(np.where(mask, disc, back) + noise * grainy, 0, 1).astype(np.float32), mask
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_dense_field_of_touching_particles_is_read_the_right_way_round(seed):
+    """Discs on ~60 % of the image: the most frequent grey is the particles', so the histogram-mode vote alone
+    reads the field backwards; the particles' convex outlines give it away, in either polarity."""
+    image, mask = disc_field(0.6, seed)
+    assert 0.58 < mask.mean() < 0.65
+    image[170:176, 12:72] = 1.0  # a scale bar: an annotation, not a particle
+    vote = image_vote(image)
+    assert vote.mode_vote == "dark"  # the vote before: backwards
+    assert vote.polarity == "bright" and vote.convexity > 0.2
+    # the background's grey (0.2, smoothed into the narrow gaps), not the mode's (the discs')
+    assert vote.background < 0.3 < 0.6 < vote.mode
+    assert detect_polarity([image]).polarity == "bright"
+    negative = dark_twin(image)
+    assert image_vote(negative).mode_vote == "bright"
+    assert detect_polarity([negative]).polarity == "dark"
+    assert detect_polarity([negative, negative[::-1]]).as_dict()["mode_vote_disagrees"] == 2
+
+
+def test_a_sparse_field_keeps_its_polarity_and_both_cues_agree():
+    image, mask = disc_field(0.15, seed=2)
+    vote = image_vote(image)
+    assert (vote.polarity, vote.mode_vote) == ("bright", "bright") and vote.convexity > 0.4
+    assert image_vote(dark_twin(image)).polarity == "dark"
+
+
+def test_grainy_noisy_dark_particles_read_dark():
+    """TEM-like: dark discs (0.35) on a bright film (0.75), noise of std 0.12 with a grain of 1.5 px."""
+    image, mask = disc_field(0.3, seed=3, noise=0.12, grain=1.5, disc=0.35, back=0.75)
+    vote = image_vote(image)
+    assert vote.polarity == "dark" and vote.convexity < -0.2
+    assert detect_polarity([image, image.T.copy()]).polarity == "dark"
+
+
+def test_the_convexity_is_odd_in_the_grey_and_unbiased_on_noise():
+    """Negating an image negates its convexity exactly; pure noise has no convex side on average."""
+    noises = [np.random.default_rng(seed).normal(0.5, 0.1, (256, 256)) for seed in range(4)]
+    values = [isophote_convexity(noise) for noise in noises]
+    assert isophote_convexity(1 - noises[0]) == pytest.approx(-values[0], abs=1e-9)
+    assert abs(np.mean(values)) < 0.05 and max(map(abs, values)) < 0.15
+
+
 def test_a_flat_image_or_a_tie_asks_for_the_setting(field):
     image, _ = field
     with pytest.raises(DataError, match="data.polarity"):
         detect_polarity([np.full((32, 32), 0.4, np.float32)])
+    flat = image_vote(np.full((64, 64), 0.4, np.float32))
+    assert flat.polarity is None and flat.margin == 0
     with pytest.raises(DataError, match="data.polarity=bright or data.polarity=dark"):
         detect_polarity([image, dark_twin(image)])
     with pytest.raises(ConfigError, match="data.polarity='grey'"):
