@@ -10,7 +10,7 @@
 #    (real-trained, area-based epochs), at most 12 epochs with early stopping on the validation loss;
 # 4. drgan.evaluate of each group on the 8 test ids (DSC, AP50, PQ and the particle statistics).
 # Outputs under OUT (default runs/statistics/SET); nothing of it is committed (the real images are licensed
-# no-derivatives). SEEDS="0" for a single seed; STEPS="gan generate segment evaluate" to run a part.
+# no-derivatives). SEEDS="0" for a single seed; MINUTES=12 for a shorter GAN; STEPS="gan generate segment evaluate" to run a part.
 set -euo pipefail
 SET=${1:?usage: run.sh tio2_sem|tio2_tsem [OUT]}
 OUT=${2:-runs/statistics/$SET}
@@ -18,11 +18,12 @@ DATA=${DRGAN_DATA:-../shared/datasets}/$SET
 SEEDS=${SEEDS:-0 1 2}
 STEPS=${STEPS:-gan generate segment evaluate}
 EPOCHS=${EPOCHS:-12}
+MINUTES=${MINUTES:-27}   # the GAN's wall-clock budget
 GAN=$OUT/gan
 case $SET in
-  tio2_sem) CONTOUR=1; GAN_ARGS=() ;;
+  tio2_sem) CONTOUR=1; GAN_ARGS=(callbacks.early_stopping.max_minutes=$MINUTES) ;;
   # tio2_tsem's experiment has no budget of its own: the same 27 minutes and ~half the patches per epoch as tio2_sem
-  tio2_tsem) CONTOUR=1; GAN_ARGS=(trainer.limit_train_batches=63 callbacks.early_stopping.max_minutes=27) ;;
+  tio2_tsem) CONTOUR=1; GAN_ARGS=(trainer.limit_train_batches=63 callbacks.early_stopping.max_minutes=$MINUTES) ;;
   *) echo "run.sh: unknown data set $SET (expected tio2_sem or tio2_tsem)" >&2; exit 2 ;;
 esac
 mkdir -p "$OUT"
