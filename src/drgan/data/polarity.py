@@ -10,7 +10,7 @@ of the images decides; the share of agreeing images is reported as the confidenc
 1. **Convexity** (`isophote_convexity`, the main cue): particles are convex blobs, so along their outlines the
    bright side (bright particles) or the dark side (dark particles) bulges out. At smoothings of 1, 2, 4 and 8 px
    (on a copy of about 512 x 512 pixels), the curvature of the isophotes is measured at the strongest edges (top
-   10 % of the gradient, scale bars and text left out: `drgan.data.particles.annotation_mask`); each resolved
+   10 % of the gradient, scale bars and text left out: `drgan.data.annotations.annotation_mask`); each resolved
    edge pixel (radius of curvature above 2 sigma) votes its sign, weighted by its gradient. It holds in densely
    packed fields: the outlines of touching particles stay convex arcs, and the background's gaps between them
    are concave with sharp cusps, which take few pixels.
@@ -118,8 +118,8 @@ def _working_copy(image: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def _annotations(image: np.ndarray) -> np.ndarray:
-    """Scale bars, their text and panel letters (`drgan.data.particles.annotation_mask`), on a [0, 1] copy."""
-    from drgan.data.particles import annotation_mask  # particles imports this module
+    """Scale bars, their text and panel letters (`drgan.data.annotations.annotation_mask`), on a [0, 1] copy."""
+    from drgan.data.annotations import annotation_mask
 
     low, high = float(image.min()), float(image.max())
     if low < 0 or high > 1:

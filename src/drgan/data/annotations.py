@@ -1,0 +1,91 @@
+"""Grey images and figure annotations: any micrograph as float grey in [0, 1], and the scale bars, their text, panel
+letters and label boxes burnt into it (``annotation_mask``), which are not particles.
+
+A leaf of drgan.data: drgan.data.polarity and drgan.data.particles both read images through it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from drgan.errors import DataError
+
+
+def as_grey(image: np.ndarray) -> np.ndarray:
+    """float32 (H, W) grey in [0, 1] from a grey or RGB(A) array: 8/16-bit integers by their type's range, floats as
+    they are when within [0, 1], else by their own min and max."""
+    array = np.asarray(image)
+    if array.ndim == 3 and array.shape[-1] in (3, 4):
+        weights = np.array([0.299, 0.587, 0.114])  # ITU-R BT.601, as drgan.data.images.read_grey
+        array = (
+            array[..., :3].astype(np.float64) @ weights if array.dtype.kind == "f" else _unit(array[..., :3]) @ weights
+        )
+    elif array.ndim == 3 and array.shape[-1] == 1:
+        array = array[..., 0]
+    if array.ndim != 2:
+        raise DataError(f"particle image of shape {np.shape(image)}: expected one grey (H, W) or RGB (H, W, 3) image")
+    return _unit(array).astype(np.float32)
+
+
+def _unit(array: np.ndarray) -> np.ndarray:
+    if array.dtype.kind in "ui":
+        return array.astype(np.float64) / float(np.iinfo(array.dtype).max if array.dtype.kind == "u" else 1)
+    array = array.astype(np.float64)
+    low, high = float(np.nanmin(array)), float(np.nanmax(array))
+    if low >= 0 and high <= 1:
+        return array
+    return (array - low) / (high - low) if high > low else np.zeros_like(array)
+
+
+# Annotations are drawn in (nearly) pure black or white: pixels within this of 0 or 1 are candidates.
+ANNOTATION_LEVEL = 0.06
+EDGE_BAND = 0.2  # text and panel letters lie within this share of the image size from an edge
+
+
+def annotation_mask(grey: np.ndarray) -> np.ndarray:
+    """Scale bars, their text, panel letters and label boxes: bool (H, W).
+
+    A candidate is an 8-connected group of pixels within ANNOTATION_LEVEL of pure black or pure white. It is an
+    annotation when it is a solid bar (long, thin, filling its box; anywhere), a solid box (a rectangle that fills
+    its box and lies within EDGE_BAND of an edge) or a character: small, drawn with strokes much thinner than its
+    height, within EDGE_BAND of an edge or beside another annotation. Particles are blobs (their thickness is their
+    size) and are not drawn in exactly one grey, so they stay. The mask is grown by 2 px (anti-aliased edges)."""
+    grey = np.asarray(grey, np.float32)
+    h, w = grey.shape
+    short = min(h, w)
+    band = EDGE_BAND * short
+    mask = np.zeros((h, w), bool)
+    for candidates in (grey <= ANNOTATION_LEVEL, grey >= 1 - ANNOTATION_LEVEL):
+        if candidates.mean() > 0.5:  # a saturated background, not a drawing on the image
+            continue
+        labels, n = ndi.label(candidates, structure=np.ones((3, 3)))
+        if n == 0:
+            continue
+        boxes = ndi.find_objects(labels)
+        thickness = ndi.distance_transform_edt(candidates)
+        chars = np.zeros(n + 1, bool)
+        for index, box in enumerate(boxes, start=1):
+            rows, cols = box
+            bh, bw = rows.stop - rows.start, cols.stop - cols.start
+            own = labels[box] == index
+            area = int(own.sum())
+            if area < 3:
+                continue
+            fill = area / (bh * bw)
+            thick = 2.0 * float(thickness[box][own].max())  # stroke width: the widest inscribed disc
+            near_edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop) <= band
+            long_, narrow = max(bh, bw), min(bh, bw)
+            bar = long_ >= 4 * narrow and long_ >= 0.04 * short and fill >= 0.75 and narrow <= 0.06 * short
+            filled = ndi.binary_fill_holes(own).mean()
+            box_ = near_edge and filled >= 0.92 and narrow >= 0.03 * short and long_ <= 0.5 * short
+            char = long_ <= 0.15 * short and thick <= max(2.5, 0.45 * long_) and long_ >= 3
+            if bar or box_:
+                mask[box] |= own
+            elif char:
+                chars[index] = near_edge
+        # Characters count when near an edge (panel letters, scale-bar text); the rest stay particles or grain.
+        mask |= chars[labels]
+    if mask.any():
+        mask = ndi.binary_dilation(mask, iterations=2)
+    return mask
