@@ -134,9 +134,11 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     overrides = [f"data.dir={folder}", "data.crop_rows=[320,336]", "name=my_discs", f"out={tmp_path / 'out'}"]
     result = profile(compose(overrides, config_name="profile"))
     assert result["polarity"]["value"] == "bright" and result["data"]["split"] is None
-    for name in ("profile.json", "report.md", "sizes.png", "particles.png", "background_noise.png"):
+    for name in ("profile.json", "report.md", "sizes.png", "particles.png", "background_noise.png", "edge_profile.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
     saved = json.loads((tmp_path / "out" / "profile.json").read_text())
+    # Discs without a ring: the edge profile shows none, and a secondary-electron parent takes no fringe anyway.
+    assert saved["edge"]["ring"]["kind"] == "none" and saved["material"]["fringe"] is None
     assert abs(saved["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
     assert saved["shape"]["mesh_kind"] == "sphere" and saved["material"]["parent"] == "sio2_him"
 
@@ -172,6 +174,9 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     assert "  - tio2_tsem\n" in text and "noise_grain_px:" in text
     cfg = compose(["material=dark_discs"], config_name="train")
     assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark" and cfg.data.crop_rows == "auto"
+    # No ring at the discs' edges: the transmission material renders no fringe, and says why.
+    assert result["edge"]["ring"]["kind"] == "none" and result["material"]["fringe"] is None
+    assert cfg.material.imaging.fringe is None and "#   edge fringe: none" in text
     assert cfg.material.noise_grain_px == pytest.approx(result["background"]["grain_px"], abs=0.01)
     from drgan.profile import NOISE_LIMIT_FACTOR  # the background shows the detector noise: it bounds the learned one
 

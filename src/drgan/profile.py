@@ -1,11 +1,12 @@
 """`python -m drgan.profile data.dir=DIR name=NAME`: profile unannotated particle images, write a material config.
 
 Reads every (train) image, detects the polarity, segments the particles classically (drgan.data.profile), and
-measures background grey, noise sigma and grain, the diameter distribution (normal / lognormal / two-lognormal
-mixture, chosen by BIC), particles per patch, agglomeration, elongation and the pixel size. Writes, in `out`
-(default runs/profile/NAME): profile.json (every number), report.md, sizes.png, particles.png (real images with
-the detected outlines: keep them out of the repository), background_noise.png; and ./drgan_conf/material/NAME.yaml,
-a material inheriting the closest paper material, ready for `python -m drgan.train material=NAME`.
+measures background grey, noise sigma and grain, the mean particle edge (and a defocus fringe on it), the diameter
+distribution (normal / lognormal / two-lognormal mixture, chosen by BIC), particles per patch, agglomeration,
+elongation and the pixel size. Writes, in `out` (default runs/profile/NAME): profile.json (every number),
+report.md, sizes.png, particles.png (real images with the detected outlines: keep them out of the repository),
+background_noise.png, edge_profile.png; and ./drgan_conf/material/NAME.yaml, a material inheriting the closest
+paper material, ready for `python -m drgan.train material=NAME`.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from tqdm import tqdm
 
 from drgan.data import profile as est
 from drgan.data.images import list_images, read_grey, read_split
-from drgan.data.particles import NoParticles, SegmentParams, resolve_params
+from drgan.data.particles import NoParticles, SegmentParams, annotation_mask, as_grey, resolve_params
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.io import figure_png, write_bytes, write_json
@@ -128,7 +129,7 @@ def profile(cfg: DictConfig) -> dict:
         _write_failure_figure(out, images, polarity, None)
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
 
-    tables, foregrounds, labels_kept, counts, ce, separabilities = [], [], [], [], [], []
+    tables, foregrounds, labels_kept, counts, ce, separabilities, edges = [], [], [], [], [], [], []
     for image in tqdm(images, desc="segmenting", unit="image"):
         labels, foreground, separability = est.segment_image(image, params, polarity)
         table = est.particle_table(labels)
@@ -136,6 +137,9 @@ def profile(cfg: DictConfig) -> dict:
         foregrounds.append(foreground)
         separabilities.append(separability)
         labels_kept.append(labels if len(labels_kept) < 4 else None)
+        # The edge profile leaves out particles beside annotations (a scale bar may hide a neighbour).
+        exclude = annotation_mask(as_grey(image)) if params.annotations else None
+        edges.append(est.edge_samples(image, labels, foreground, exclude))
         counts.append(est.patch_counts(table["row"], table["col"], labels.shape, patch))
         ce.append(est.clark_evans(table["row"], table["col"], labels.size))
     if not sum(len(t["diameter_px"]) for t in tables):
@@ -147,6 +151,7 @@ def profile(cfg: DictConfig) -> dict:
         )
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, what, out))
     noise = est.background_noise(images, foregrounds)
+    edge = est.edge_profile(edges)
 
     inner = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
     if inner.size == 0:  # every particle touches the border: their sizes are cut, but they are all there is
@@ -208,6 +213,7 @@ def profile(cfg: DictConfig) -> dict:
             "placement": est.placement_kind(touching, ce_median),
         },
         "shape": {"axis_ratio_median": round(axis_ratio, 4), "mesh_kind": est.mesh_kind(axis_ratio)},
+        "edge": edge.as_dict() if edge is not None else None,
         "pixel_size": {
             "nm_per_px": round(float(np.median(known)), 5) if known else None,
             "source": pixel_sizes[0][1] if known else "unknown",
@@ -216,8 +222,15 @@ def profile(cfg: DictConfig) -> dict:
     }
     result["out"] = str(out.resolve())
     _write_figures(out, images, labels_kept, inner, fits, chosen, noise, foregrounds, counts, polarity)
+    _edge_figure(out, edge)
     parent, yaml_text = material_yaml(result, fits, chosen)
-    result["material"] = {"parent": parent, "config": str(conf_path.resolve()), "data": data_settings(result)[0]}
+    fringe = fringe_settings(result["edge"])[0] if parent_renders_fringe(parent) else None
+    result["material"] = {
+        "parent": parent,
+        "config": str(conf_path.resolve()),
+        "data": data_settings(result)[0],
+        "fringe": fringe,  # material.imaging.fringe as written (None: the material renders no fringe)
+    }
     write_json(out / "profile.json", result)
     write_bytes(out / "report.md", report_markdown(result).encode())
     write_bytes(conf_path, yaml_text.encode())
@@ -361,6 +374,11 @@ def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict,
             f"lag-1 autocorrelation {background['lag1_autocorrelation']:.3f} of the background's high-pass residual"
         )
         notes["noise_sigma.max"] = f"{NOISE_LIMIT_FACTOR} x the background's noise sigma"
+    if parent_renders_fringe(parent):
+        fringe, why_fringe = fringe_settings(result.get("edge"))
+        if fringe is not None:  # only a measured fringe: without one the material renders none
+            material["imaging"] = {"fringe": fringe}
+            notes["imaging.fringe"] = why_fringe
     size = {}
     if chosen.kind == "bimodal":
         p = chosen.params
@@ -380,6 +398,46 @@ def parent_material(parent: str) -> dict:
     from drgan.configs import compose
 
     return OmegaConf.to_container(compose([f"material={parent}"], config_name="render").material, resolve=True)
+
+
+def parent_renders_fringe(parent: str) -> bool:
+    """Whether the parent material's imaging takes an edge fringe (``material.imaging.fringe``: transmission)."""
+    from drgan.scene.config import typed_material
+
+    return typed_material(parent_material(parent)).imaging.renders_fringe
+
+
+FRINGE_LIMIT_FACTOR = 2.0  # a measured fringe's amplitude is learned within 0..2 x the fitted amplitude
+
+
+def fringe_settings(edge: dict | None) -> tuple[dict | None, str]:
+    """(``material.imaging.fringe`` or None, why): set only when the edge profile shows a ring (the rule of
+    `drgan.data.profile.find_ring`); its amplitude learned between 0 (no fringe) and FRINGE_LIMIT_FACTOR x the
+    scene's fringe fitted to the profile (so training starts near the fit), its width the fit's. A ring the fit
+    could not follow (too many bins saturated) is reported, not written."""
+    if edge is None:
+        return None, "no edge profile (too few isolated particles)"
+    ring, fit = edge["ring"], edge["fringe"]
+    if ring["kind"] == "none":
+        return None, (
+            f"none: the profile's extreme outside the edge, {-ring['height']:+.3f} of the particle contrast "
+            f"(standard error {ring['height_se']:.3f}), is no ring by the rule"
+        )
+    kind = "opposite to" if ring["kind"] == "opposite" else "like"
+    seen = (
+        f"a ring {kind} the particles' grey {ring['distance_px']:.1f} px outside their edge, height "
+        f"{ring['height']:+.3f} of the particle contrast (standard error {ring['height_se']:.3f})"
+    )
+    if fit is None:
+        saturated = sum(share is not None and share > est.MAX_SATURATED for share in edge["saturated_share"])
+        return None, f"{seen}, but the fringe could not be fitted ({saturated} of the bins saturated)"
+    amplitude, width = fit["amplitude"], fit["width_px"]
+    limit = round(FRINGE_LIMIT_FACTOR * amplitude, 4)
+    fringe = {"amplitude": {"min": min(0.0, limit), "max": max(0.0, limit)}, "width_px": round(float(width), 2)}
+    return fringe, (
+        f"{seen}; fitted amplitude {amplitude:+.3f}, width {width:.2f} px (edge blur {fit['edge_blur_px']:.2f} "
+        f"px); amplitude learned within 0..{FRINGE_LIMIT_FACTOR:g} x the fit"
+    )
 
 
 def parent_renders_without_sampling_noise(parent: str) -> bool:
@@ -424,6 +482,11 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
         *(f"#   {key}: {note}" for key, note in notes.items()),
         f"#   for reference: background grey {result['background']['background_grey']:.3f}, noise sigma "
         f"{result['background']['noise_sigma']:.4f}",
+        *(
+            [f"#   edge fringe: {fringe_settings(result.get('edge'))[1]}; the material renders none"]
+            if parent_renders_fringe(parent) and "imaging" not in material
+            else []
+        ),
         "defaults:",
         f"  - {parent}",
         f"  - override /size: {chosen.kind}",
@@ -452,6 +515,63 @@ def report_markdown(r: dict) -> str:
         if k in SEGMENT_KEYS
     )
     seg_table += "\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in data_notes.items())
+    return (
+        _report_head(r, b, s, c, a, seg, px, seg_table, fits)
+        + edge_markdown(r.get("edge"), r["material"])
+        + "\nFigures: `sizes.png`, `particles.png` (real images: keep them out of repositories), "
+        "`background_noise.png`, `edge_profile.png`.\n"
+    )
+
+
+def edge_markdown(edge: dict | None, material: dict) -> str:
+    """The report's section on the mean particle edge: the ring the rule found, the fit, what the material got."""
+    written = material.get("fringe")
+    parent_takes = parent_renders_fringe(material["parent"])
+    if written is not None:
+        verdict = f"written: `material.imaging.fringe: {written}`"
+    elif parent_takes:
+        verdict = "none written: the material renders no fringe"
+    else:
+        verdict = f"not written: the parent material `{material['parent']}` renders no fringe (transmission only)"
+    head = "\n## Mean particle edge (edge_profile.png)\n\n"
+    if edge is None:
+        return head + f"Too few isolated particles for an edge profile. Fringe: {verdict}.\n"
+    ring, fit = edge["ring"], edge["fringe"]
+    kinds = {"opposite": "opposite to the particles' grey (overshoot)", "like": "like the particles (bump)"}
+    rows = [
+        ("isolated particles used (not touching the border or another segment)", edge["particles"]),
+        ("particle contrast (interior minus background grey)", f"{edge['contrast']:+.4f}"),
+        ("ring outside the edge", kinds.get(ring["kind"], "none")),
+        (
+            "its height (particle contrast; > 0 opposite grey) / standard error / distance (px)",
+            f"{ring['height']:+.4f} / {ring['height_se']:.4f} / {ring['distance_px']:.2f}",
+        ),
+    ]
+    if fit is not None:
+        rows += [
+            (
+                "fitted fringe amplitude / width w (px) / edge blur (px)",
+                f"{fit['amplitude']:+.4f} / {fit['width_px']:.2f} / {fit['edge_blur_px']:.2f}",
+            ),
+            ("fit: reduced chi^2", f"{fit['reduced_chi2']:.2f}"),
+        ]
+    table = "| quantity | value |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
+    bins = "| distance (px) | profile | standard error | particles |\n|---|---|---|---|\n" + "\n".join(
+        f"| {d:.2f} | {p:.4f} | {e:.4f} | {n} |"
+        for d, p, e, n in zip(edge["distance_px"], edge["profile"], edge["standard_error"], edge["particles_per_bin"])
+        if d is not None and p is not None and e is not None
+    )
+    return f"""{head}Grey against signed distance to the segmented edge (< 0 inside), 0 = each particle's background \
+({est.EDGE_OUTSIDE_PX}-{est.EDGE_BACKGROUND_PX} px outside), 1 = its interior ({est.EDGE_INTERIOR_PX}-\
+{est.EDGE_INSIDE_PX} px inside). Rule: {edge["rule"]}. Fringe: {verdict}.
+
+{table}
+
+{bins}
+"""
+
+
+def _report_head(r, b, s, c, a, seg, px, seg_table, fits) -> str:
     return f"""# Profile: {r["name"]}
 
 {r["data"]["images"]} image(s) of `{r["data"]["dir"]}` (crop_rows {r["data"]["crop_rows"]}, split {r["data"]["split"]}).
@@ -483,8 +603,6 @@ Particles per patch: {c["definition"]}.
 | fit | parameters (px; sigma of log d) | log L | BIC |
 |---|---|---|---|
 {fits}
-
-Figures: `sizes.png`, `particles.png` (real images: keep them out of repositories), `background_noise.png`.
 """
 
 
@@ -527,6 +645,42 @@ def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrou
     write_bytes(out / "sizes.png", figure_png(sizes))
     _outline_figure(out, images, labels, polarity)
     write_bytes(out / "background_noise.png", figure_png(background))
+
+
+def _edge_figure(out: Path, edge) -> None:
+    """edge_profile.png: the mean edge profile with its errors, the fitted edge and fringe, and the ring found."""
+
+    def plot(plt):
+        fig, ax = plt.subplots(figsize=(7, 4))
+        if edge is None:
+            ax.text(0.5, 0.5, "too few isolated particles for an edge profile", ha="center", transform=ax.transAxes)
+            return fig
+        d, p, e, used = edge.distance_px, edge.profile, edge.standard_error, edge.usable
+        ax.errorbar(d[used], p[used], yerr=2 * e[used], fmt="o", color="k", ms=4, label="mean edge (2 standard errors)")
+        skipped = ~used & np.isfinite(p)
+        if skipped.any():
+            ax.plot(d[skipped], p[skipped], "o", mfc="none", color="0.5", label="not used (saturated or few particles)")
+        if edge.fringe is not None:
+            f = edge.fringe
+            x = np.linspace(d[np.isfinite(d)].min(), d[np.isfinite(d)].max(), 300)
+            args = (f.contrast_scale, f.interior_slope, f.edge_offset_px, f.edge_blur_px)
+            ax.plot(x, est.edge_model(x, *args, f.amplitude, f.width_px, edge.radius_px), "r",
+                    label=f"fit: fringe amplitude {f.amplitude:+.3f}, width {f.width_px:.2f} px")  # fmt: skip
+            ax.plot(x, est.edge_model(x, *args, 0.0, f.width_px, edge.radius_px), "r:", lw=1, label="fit, no fringe")
+        if edge.ring.kind != "none":
+            ax.plot([edge.ring.distance_px], [-edge.ring.height], "v", color="tab:blue", ms=10,
+                    label=f"ring ({edge.ring.kind}): {edge.ring.height:+.3f}")  # fmt: skip
+        ax.axhline(0, color="0.6", lw=0.8)
+        ax.axhline(1, color="0.6", lw=0.8, ls="--")
+        ax.axvline(0, color="0.6", lw=0.8)
+        ax.set_xlabel("signed distance to the segmented edge (px; < 0 inside)")
+        ax.set_ylabel("grey, particle contrast (0 background, 1 interior)")
+        ring = {"opposite": "a ring of the opposite grey", "like": "a ring like the particles"}.get(edge.ring.kind)
+        ax.set_title(f"mean edge of {edge.particles} isolated particles: {ring or 'no ring'}")
+        ax.legend(fontsize=8)
+        return fig
+
+    write_bytes(out / "edge_profile.png", figure_png(plot))
 
 
 def _outline_figure(out: Path, images, labels, polarity: str) -> None:

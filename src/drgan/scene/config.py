@@ -130,9 +130,12 @@ class TopLight:
 class ImagingConfig:
     """What every ``material.imaging`` dataclass gives: its scene's parameters, in the FCN's output order, and
     whether its renders are free of Monte Carlo grain (``noiseless``: then all of an image's noise is the
-    detector's, which a real image's background shows, and `drgan.profile` bounds the learned noise by it)."""
+    detector's, which a real image's background shows, and `drgan.profile` bounds the learned noise by it), and
+    whether it renders an edge fringe (``renders_fringe``: it has a ``fringe`` key, `EdgeFringe`, which
+    `drgan.profile` sets when it measures a fringe at the particles' edges)."""
 
     noiseless: ClassVar[bool] = False
+    renders_fringe: ClassVar[bool] = False
 
     def scene_parameters(self) -> tuple[Parameter, ...]:
         raise NotImplementedError
@@ -217,25 +220,87 @@ class OfficialImaging(ImagingConfig):
 
 
 @dataclass
+class EdgeFringe:
+    """``material.imaging.fringe`` of a transmission material: the bright or dark ring that defocus puts at the
+    particles' edges in TEM bright field (a Fresnel fringe), `drgan.scene.transmission.edge_fringe`. In the
+    weak-phase picture defocus adds a term proportional to the Laplacian of the projected sample; the scene adds
+    ``amplitude`` x w^2 / phi(1) x Laplacian(G_w * contrast) to the grey, where contrast is the rendered darkening
+    (background minus grey) and phi(1) = 0.242 scales the ring outside a straight edge to a peak of ``amplitude``
+    (in units of the particle's contrast at its edge) at w px from it, with the opposite ring w px inside.
+
+    ``amplitude`` (a `ParameterRange`, signed): > 0 a ring of the opposite grey to the particles just outside them
+    (bright around dark particles: underfocus), < 0 a ring like the particles (overfocus). ``width_px``: w, the
+    Gaussian's stddev in px of the real image (> 0). Written by `drgan.profile` only when it measured a fringe."""
+
+    amplitude: Any = MISSING
+    width_px: float = MISSING
+
+    def __post_init__(self):
+        if not (isinstance(self.width_px, (int, float)) and math.isfinite(self.width_px) and self.width_px > 0):
+            raise ConfigError(
+                f"material.imaging.fringe.width_px={self.width_px!r}: expected a finite number > 0 (px of the real "
+                "image: the Gaussian stddev of the fringe)"
+            )
+
+    def parameter(self) -> Parameter:
+        """The amplitude, learned or fixed (signed: a negative amplitude is a ring like the particles)."""
+        return parse_parameter(
+            "transmission", "fringe_amplitude", self.amplitude, "material.imaging.fringe.amplitude", minimum=None
+        )
+
+
+def fringe_setting(value) -> EdgeFringe | None:
+    """``material.imaging.fringe`` as an `EdgeFringe` (None: no fringe); unknown or missing keys are ConfigErrors
+    naming them."""
+    if value is None or isinstance(value, EdgeFringe):
+        return value
+    if not isinstance(value, Mapping):
+        raise ConfigError(
+            f"material.imaging.fringe={value!r}: expected null or {{amplitude: {{min, max}} or {{value}}, width_px}}"
+        )
+    keys = [f.name for f in dataclasses.fields(EdgeFringe)]
+    for key in value:
+        if key not in keys:
+            raise ConfigError(f"material.imaging.fringe.{key}: unknown key; expected {', '.join(keys)}")
+    for key in keys:
+        if value.get(key) is None or value.get(key) == MISSING:
+            raise ConfigError(f"material.imaging.fringe.{key}: missing (the fringe needs {', '.join(keys)})")
+    width = value["width_px"]
+    if isinstance(width, bool) or not isinstance(width, (int, float)):
+        raise ConfigError(f"material.imaging.fringe.width_px={width!r}: expected a number of px > 0")
+    return EdgeFringe(amplitude=value["amplitude"], width_px=float(width))
+
+
+@dataclass
 class TransmissionImaging(ImagingConfig):
     """``material.imaging`` of transmission contrast (TEM, STEM bright field, transmission SEM): dark particles on
     a bright film, no lights or BSDFs (`drgan.scene.transmission.TransmissionScene`). ``background``: grey of the
     bare film; ``absorption``: attenuation per px of path length inside a particle; ``floor``: grey behind an
-    opaque particle (a detector offset; fixed at 0 unless set)."""
+    opaque particle (a detector offset; fixed at 0 unless set); ``fringe``: the defocus fringe at the edges
+    (`EdgeFringe`; null: none, the default)."""
 
     _target_: str = "drgan.scene.transmission.TransmissionScene"
     noiseless: ClassVar[bool] = True  # path lengths through the particles: no sampling
+    renders_fringe: ClassVar[bool] = True
     background: Any = MISSING  # each a `ParameterRange`: {min, max}, {value} or a number
     absorption: Any = MISSING
     floor: Any = None  # null: fixed at 0, a detector without offset
+    # null: no fringe term and no parameter; else {amplitude, width_px} (`EdgeFringe`). Typed Any, as the
+    # parameter ranges are: OmegaConf refuses a mapping given on the command line to a structured value that is
+    # null (``material.imaging.fringe={amplitude: {min: 0, max: 0.3}, width_px: 1.5}``); checked below instead.
+    fringe: Any = None
+
+    def __post_init__(self):
+        self.fringe = fringe_setting(self.fringe)
 
     def scene_parameters(self) -> tuple[Parameter, ...]:
-        """background, absorption, floor: also the FCN's output order."""
+        """background, absorption, floor, then the fringe's amplitude when there is a fringe: the FCN's order."""
         floor = self.floor if self.floor is not None else 0.0
-        return tuple(
+        params = tuple(
             parse_parameter("transmission", name, spec, f"material.imaging.{name}")
             for name, spec in (("background", self.background), ("absorption", self.absorption), ("floor", floor))
         )
+        return params + ((self.fringe.parameter(),) if self.fringe is not None else ())
 
 
 @dataclass

@@ -39,9 +39,10 @@ class Parameter:
         return self.low + (self.high - self.low) * unit
 
 
-def parse_parameter(surface: str, name: str, spec, where: str) -> Parameter:
+def parse_parameter(surface: str, name: str, spec, where: str, minimum: float | None = 0.0) -> Parameter:
     """A Parameter from ``spec``: a number (fixed), or a mapping or object with ``min``, ``max``, ``value``
-    (`drgan.scene.config.ParameterRange`), unset ones None. ``where`` names the setting in errors."""
+    (`drgan.scene.config.ParameterRange`), unset ones None. ``where`` names the setting in errors; values below
+    ``minimum`` are refused (None: signed values allowed, e.g. a fringe's amplitude)."""
     if isinstance(spec, (int, float)) and not isinstance(spec, bool):
         spec = {"value": spec}
     if not isinstance(spec, Mapping):
@@ -53,10 +54,10 @@ def parse_parameter(surface: str, name: str, spec, where: str) -> Parameter:
     if "value" in keys and keys <= {"value", "min", "max"}:
         # A material that inherits another and fixes one of its learned parameters ({value: v} over the parent's
         # {min, max}): Hydra merges the two mappings into {min, max, value}; the value, written last, wins.
-        return Parameter(surface, name, value=setting_float(f"{where}.value", spec["value"], 0.0))
+        return Parameter(surface, name, value=setting_float(f"{where}.value", spec["value"], minimum))
     if keys != {"min", "max"}:
         raise ConfigError(f"{where}: expected keys {{min, max}} or {{value}}, got {sorted(keys)}")
-    low, high = setting_float(f"{where}.min", spec["min"], 0.0), setting_float(f"{where}.max", spec["max"], 0.0)
+    low, high = setting_float(f"{where}.min", spec["min"], minimum), setting_float(f"{where}.max", spec["max"], minimum)
     if low > high:
         raise ConfigError(f"{where}: min={low} > max={high}; expected min <= max")
     return Parameter(surface, name, low=low, high=high)

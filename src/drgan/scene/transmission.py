@@ -9,9 +9,12 @@ over every entry/exit pair along it (overlapping particles add). The image is
 
 then the Gaussian reconstruction blur of the SEM scene (`reconstruction_blur`). ``background`` is the grey
 of the bare film, ``absorption`` the attenuation per px of path length, ``floor`` the grey behind an opaque
-particle (detector offset). t depends on the layout alone, so it is traced once per layout (Dr.Jit, all rays
-at once) and cached; the image is then a plain torch function of the three values, and autograd gives its
-exact gradient (no adjoint pass, no Monte Carlo noise: ``spp`` only antialiases the edges).
+particle (detector offset). A material with a ``fringe`` (measured by `drgan.profile`) adds, before the blur,
+the defocus fringe at the particles' edges: ``fringe_amplitude`` x `edge_fringe` of the darkening (background
+minus grey), a Laplacian-of-Gaussian ring; without one nothing is added and no parameter exists. t depends on
+the layout alone, so it is traced once per layout (Dr.Jit, all rays at once) and cached; the image is then a
+plain torch function of the three (four) values, and autograd gives its exact gradient (no adjoint pass, no
+Monte Carlo noise: ``spp`` only antialiases the edges).
 """
 
 from __future__ import annotations
@@ -27,30 +30,75 @@ import trimesh
 from drgan.errors import ConfigError, MeshError, check_spp
 from drgan.scene.config import Material, TransmissionImaging, register_scene
 from drgan.scene.parameters import MaterialParameters, Parameter
-from drgan.scene.scene import MeshParticles, RenderSettings, dr, mi, reconstruction_blur
+from drgan.scene.scene import MeshParticles, RenderSettings, dr, gaussian_kernel, mi, reconstruction_blur
 
 PARAMETERS = ("background", "absorption", "floor")  # the scene's values, in the FCN's output order
+FRINGE_PARAMETER = "fringe_amplitude"  # after them, only in a material with a fringe
+PHI_1 = math.exp(-0.5) / math.sqrt(2.0 * math.pi)  # the standard normal density at 1: a ring's peak scale
 
 
 @dataclass(frozen=True)
 class TransmissionSpec:
     """What a transmission scene needs: its parameters, the render settings (resolution, spp,
-    filter_stddev and camera_distance are used) and the width of the view in px of the real image."""
+    filter_stddev and camera_distance are used), the width of the view in px of the real image, and the edge
+    fringe's width (px of the real image; None: no fringe, and no fringe amplitude among the parameters)."""
 
     parameters: MaterialParameters
     render: RenderSettings = field(default_factory=RenderSettings)
     view_width: float = 256.0
+    fringe_width_px: float | None = None
 
     def __post_init__(self):
         if not self.view_width > 0:
             raise ConfigError(f"view_width={self.view_width}: expected > 0 (pixels of the real image)")
+        expected = PARAMETERS + ((FRINGE_PARAMETER,) if self.fringe_width_px is not None else ())
         names = tuple(p.name for p in self.parameters.bsdf)
         others = sorted(p.key for p in self.parameters.bsdf if p.surface != "transmission")
-        if others or names != PARAMETERS:
+        if others or names != expected:
             raise ConfigError(
-                f"transmission scene: expected the parameters {', '.join(PARAMETERS)} "
+                f"transmission scene: expected the parameters {', '.join(expected)} "
                 f"(material.imaging), got {', '.join(p.key for p in self.parameters.bsdf) or 'none'}"
             )
+        if self.fringe_width_px is not None and not (math.isfinite(self.fringe_width_px) and self.fringe_width_px > 0):
+            raise ConfigError(f"material.imaging.fringe.width_px={self.fringe_width_px}: expected a finite number > 0")
+
+    @property
+    def fringe_width_render_px(self) -> float | None:
+        """The fringe's width in render px (the material gives it in px of the real image)."""
+        if self.fringe_width_px is None:
+            return None
+        return self.fringe_width_px * self.render.resolution / self.view_width
+
+
+def log_kernels(width: float, dtype=torch.float32, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(g, g2): the sampled 1-D Gaussian of stddev ``width`` px and its second derivative, g2 corrected to sum 0
+    (a constant map gets no fringe) and to second moment sum x^2 g2 = 2 (the continuous one's: a quadratic map
+    gets its exact second derivative), so that g2 (x) g + g (x) g2 is the Laplacian of the Gaussian blur also when
+    ``width`` is near a pixel."""
+    g = gaussian_kernel(width, dtype, device)
+    radius = (len(g) - 1) // 2
+    x = torch.arange(-radius, radius + 1, dtype=dtype, device=device)
+    g2 = g * (x * x - width * width) / width**4
+    g2 = g2 - g * g2.sum()
+    return g, g2 * (2.0 / (x * x * g2).sum())
+
+
+def edge_fringe(contrast: torch.Tensor, width: float) -> torch.Tensor:
+    """w^2 / phi(1) x Laplacian(G_w * contrast) of an (H, W) map, ``width`` = w in its px: the defocus term of the
+    weak-phase picture (proportional to the Laplacian of the projected sample), seen through a Gaussian of
+    stddev w. Outside a straight step of height 1 (contrast 1 inside, 0 outside) it is s phi(s / w) / (w phi(1))
+    at distance s: a ring of peak +1 at s = w, with a ring of -1 at w inside; it sums to 0 over any constant
+    region. Borders replicate the edge pixels. Linear in ``contrast`` and differentiable."""
+    g, g2 = log_kernels(width, contrast.dtype, contrast.device)
+    radius = (len(g) - 1) // 2
+    padded = torch.nn.functional.pad(contrast[None, None], (radius,) * 4, mode="replicate")
+    # Two separable passes: d2/dx2 of the y-blurred map, plus d2/dy2 of the x-blurred map.
+    blur_y = torch.nn.functional.conv2d(padded, g.view(1, 1, -1, 1))
+    blur_x = torch.nn.functional.conv2d(padded, g.view(1, 1, 1, -1))
+    laplacian = torch.nn.functional.conv2d(blur_y, g2.view(1, 1, 1, -1)) + torch.nn.functional.conv2d(
+        blur_x, g2.view(1, 1, -1, 1)
+    )
+    return laplacian[0, 0] * (width * width / PHI_1)
 
 
 def stratified_offsets(spp: int) -> np.ndarray:
@@ -77,7 +125,7 @@ def outward(mesh: trimesh.Trimesh, index: int) -> trimesh.Trimesh:
 @register_scene
 class TransmissionScene(MeshParticles):
     """n particle meshes seen in transmission (`drgan.scene.protocol.Scene`; ``learned``: the learned ones of
-    background, absorption, floor, in that order)."""
+    background, absorption, floor and, with a fringe, its amplitude, in that order)."""
 
     Config = TransmissionImaging
 
@@ -85,7 +133,12 @@ class TransmissionScene(MeshParticles):
     def spec_from_config(cls, material: Material, render: RenderSettings) -> TransmissionSpec:
         imaging: TransmissionImaging = material.imaging
         parameters = imaging.material_parameters(material.noise_sigma)
-        return TransmissionSpec(parameters=parameters, render=render, view_width=float(material.view_width))
+        return TransmissionSpec(
+            parameters=parameters,
+            render=render,
+            view_width=float(material.view_width),
+            fringe_width_px=float(imaging.fringe.width_px) if imaging.fringe is not None else None,
+        )
 
     def __init__(
         self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: TransmissionSpec, variant: str = "auto"
@@ -173,13 +226,14 @@ class TransmissionScene(MeshParticles):
 
     # -- rendering ------------------------------------------------------------------------------
     def transmission_values(self, values: torch.Tensor) -> dict[str, torch.Tensor]:
-        """background, absorption, floor as 0-d tensors: learned ones from ``values``, fixed ones as constants."""
+        """background, absorption, floor (and fringe_amplitude) as 0-d tensors: learned ones from ``values``, fixed
+        ones as constants."""
         learned = iter(values)
         return {p.name: next(learned) if p.learned else values.new_tensor(p.value) for p in self.spec.parameters.bsdf}
 
     def render(self, values: torch.Tensor, seed: int, spp: int | None = None) -> torch.Tensor:
         """The image of the current layout: (H, W), float32 (float64 when ``values`` is), differentiable w.r.t.
-        ``values`` (the learned ones of background, absorption, floor, in ``learned`` order).
+        ``values`` (the learned ones of background, absorption, floor, fringe_amplitude, in ``learned`` order).
 
         No Monte Carlo sampling: the sub-pixel rays are the strata centres and autograd gives the exact gradient,
         so ``seed`` (`drgan.scene.protocol.Scene`) changes nothing.
@@ -198,5 +252,10 @@ class TransmissionScene(MeshParticles):
         v = self.transmission_values(values)
         covered = torch.exp(-v["absorption"] * t.to(dtype)).mean(dim=1)
         transmitted = torch.ones(size * size, dtype=dtype, device=values.device).index_put((index,), covered)
-        image = v["floor"] + (v["background"] - v["floor"]) * transmitted.reshape(size, size)
+        transmitted = transmitted.reshape(size, size)
+        image = v["floor"] + (v["background"] - v["floor"]) * transmitted
+        width = self.spec.fringe_width_render_px
+        if width is not None:  # the defocus fringe of the darkening (exactly 0 on bare film); blurred as the rest
+            darkening = (v["background"] - v["floor"]) * (1.0 - transmitted)
+            image = image + v[FRINGE_PARAMETER] * edge_fringe(darkening, width)
         return reconstruction_blur(image, self.spec.render.filter_stddev)
