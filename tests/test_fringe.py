@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import TINY_PHI, compose
+from test_transmission import _finite_difference
 
 from drgan.errors import ConfigError
 
@@ -72,15 +73,6 @@ def test_fringe_amplitude_is_a_learned_parameter_in_the_fcn_order():
     fixed = make_scene({"amplitude": {"value": 0.1}, "width_px": 4.0})
     assert [p.name for p in fixed.learned] == ["background", "absorption", "floor"]
     assert [p.key for p in make_scene().learned] == [p.key for p in fixed.learned]
-
-
-def _finite_difference(loss, values: torch.Tensor, h: float = 1e-6) -> torch.Tensor:
-    grads = []
-    for i in range(len(values)):
-        step = torch.zeros_like(values)
-        step[i] = h
-        grads.append((loss(values + step) - loss(values - step)) / (2 * h))
-    return torch.stack(grads)
 
 
 @pytest.mark.parametrize("amplitude", [0.25, -0.15])
