@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
+
+# The Mitsuba variant of the render and gradient tests: llvm_ad_rgb (CPU) unless DRGAN_TEST_VARIANT names another,
+# e.g. `DRGAN_TEST_VARIANT=cuda_ad_rgb pytest tests/test_scene.py` on a GPU machine (one variant per process).
+TEST_VARIANT = os.environ.get("DRGAN_TEST_VARIANT", "llvm_ad_rgb")
 
 PAPER_PARTICLE = {
     name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")
@@ -37,7 +43,7 @@ def make_scene(
         stage=stage is not None,
         **spec_kw,
     )
-    return ParticleScene([meshes.sphere(2)], n, spec, variant="llvm_ad_rgb")
+    return ParticleScene([meshes.sphere(2)], n, spec, variant=TEST_VARIANT)
 
 
 @pytest.fixture
@@ -58,7 +64,7 @@ def one_render_thread():
     identical renders' gradients differ in the last float32 bits (up to ~1e-4 relative on a 32 px render)."""
     from drgan import backend
 
-    backend.use_variant("auto")
+    backend.use_variant(TEST_VARIANT)
     threads = backend.dr.thread_count()
     backend.dr.set_thread_count(1)
     yield

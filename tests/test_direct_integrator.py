@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import PAPER_PARTICLE, PAPER_SIGMA, PAPER_STAGE, TINY_PHI, make_scene
+from conftest import PAPER_PARTICLE, PAPER_SIGMA, PAPER_STAGE, TEST_VARIANT, TINY_PHI, make_scene
 
 from drgan.errors import ConfigError
 
@@ -23,7 +23,7 @@ def scene_with(integrator, resolution=16, spp=4, grad_seed="independent", stage=
 
     params = SecondaryImaging(particle_bsdf=PAPER_PARTICLE, stage_bsdf=stage).material_parameters(PAPER_SIGMA)
     render = RenderSettings(resolution=resolution, spp=spp, integrator=integrator, grad_seed=grad_seed)
-    scene = ParticleScene([meshes.sphere(2)], 4, SceneSpec(params, render, view_width=64.0), variant="llvm_ad_rgb")
+    scene = ParticleScene([meshes.sphere(2)], 4, SceneSpec(params, render, view_width=64.0), variant=TEST_VARIANT)
     scene.set_layout(TINY_PHI)
     return scene
 

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import TINY_PHI, compose
+from conftest import TEST_VARIANT, TINY_PHI, compose
 from test_transmission import _finite_difference
 
 from drgan.errors import ConfigError
@@ -37,7 +37,7 @@ def make_scene(fringe=None, n=4, resolution=16, spp=4, meshes=None, transmission
         VIEW,
         fringe_width_px=None if fringe is None else fringe["width_px"],
     )
-    return TransmissionScene(meshes or [procedural.sphere(2)], n, spec, variant="llvm_ad_rgb")
+    return TransmissionScene(meshes or [procedural.sphere(2)], n, spec, variant=TEST_VARIANT)
 
 
 # -- the term -------------------------------------------------------------------------------------
@@ -203,7 +203,7 @@ def test_a_fringe_from_the_command_line_trains_through_the_generator(one_torch_t
             "material.view_width=64",
             "material.particle_size_px=12",
             "renderer.spp=4",
-            "renderer.variant=llvm_ad_rgb",
+            f"renderer.variant={TEST_VARIANT}",
             "material.n_particles=4",
             "material.n_particles_min=2",
             "material.meshes.count=2",

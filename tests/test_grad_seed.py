@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import PAPER_SIGMA, PAPER_STAGE, TINY_PHI
+from conftest import PAPER_SIGMA, PAPER_STAGE, TEST_VARIANT, TINY_PHI
 
 H = 0.02  # finite-difference step, in base-colour units (values 0.2 and 0.5)
 THETA = torch.tensor([0.2, 0.5])  # stage.base_color, particle.base_color
@@ -31,7 +31,7 @@ def grad_scene(grad_seed: str, integrator: str = "prb"):
     spec = SceneSpec(
         params, RenderSettings(resolution=16, spp=4, integrator=integrator, grad_seed=grad_seed), view_width=64.0
     )
-    scene = ParticleScene([meshes.sphere(2)], len(TINY_PHI), spec, variant="llvm_ad_rgb")
+    scene = ParticleScene([meshes.sphere(2)], len(TINY_PHI), spec, variant=TEST_VARIANT)
     scene.set_layout(TINY_PHI)
     assert [p.key for p in scene.learned] == ["stage.base_color", "particle.base_color"]
     return scene

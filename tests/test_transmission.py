@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from conftest import compose
+from conftest import TEST_VARIANT, compose
 
 from drgan.errors import ConfigError
 
@@ -35,7 +35,7 @@ def make_scene(meshes=None, n=4, resolution=16, spp=4, transmission=None, filter
 
     params = transmission_parameters(LIMITS if transmission is None else transmission)
     spec = TransmissionSpec(params, RenderSettings(resolution=resolution, spp=spp, filter_stddev=filter_stddev), VIEW)
-    return TransmissionScene(meshes or [procedural.sphere(2)], n, spec, variant="llvm_ad_rgb")
+    return TransmissionScene(meshes or [procedural.sphere(2)], n, spec, variant=TEST_VARIANT)
 
 
 def pixel_centres(resolution: int) -> tuple[np.ndarray, np.ndarray]:
@@ -224,7 +224,7 @@ def test_labels_exact_for_particles_at_known_positions():
         [unit_cube()],
         4,
         SceneSpec(params, RenderSettings(resolution=size, spp=1), VIEW, stage=False),
-        variant="llvm_ad_rgb",
+        variant=TEST_VARIANT,
     )
     sem.set_layout(phi)
     np.testing.assert_array_equal(sem.instance_labels(), labels)
@@ -343,7 +343,7 @@ def test_tio2_tsem_generator_renders_with_gradients(one_torch_thread):
             "material.view_width=64",
             "material.particle_size_px=12",
             "renderer.spp=4",
-            "renderer.variant=llvm_ad_rgb",
+            f"renderer.variant={TEST_VARIANT}",
             "material.n_particles=6",
             "material.n_particles_min=2",
             "material.meshes.count=3",
