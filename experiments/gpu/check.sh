@@ -34,17 +34,17 @@ FID_EXTRACTOR='callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectio
 for step in $steps; do
   case $step in
   variant)
-    run variant 90 python3 -c "
+    run variant 60 python3 -c "
 import time; t = time.time()
 import mitsuba as mi; mi.set_variant('cuda_ad_rgb'); print('mitsuba', mi.__version__, mi.variant(), f'{time.time() - t:.1f} s')
 from drgan import backend; print('drgan auto ->', backend.resolve_variant('auto'), 'use_variant ->', backend.use_variant('auto'))
 " ;;
   tests)  # the render and gradient tests (finite differences included) on cuda_ad_rgb
-    DRGAN_TEST_VARIANT=cuda_ad_rgb run tests 200 python3 -m pytest -q -p no:cacheprovider --durations=15 \
+    DRGAN_TEST_VARIANT=cuda_ad_rgb run tests 150 python3 -m pytest -v -p no:cacheprovider --durations=15 \
       tests/test_scene.py tests/test_direct_integrator.py tests/test_grad_seed.py tests/test_transmission.py \
       tests/test_fringe.py tests/test_stability.py ;;
   bench)
-    run bench 120 python3 benchmarks/train_step.py --spp 16 121 --fid-images 0 --steps 5 --warmup 2 ;;
+    run bench 90 python3 benchmarks/train_step.py --spp 16 121 --fid-images 0 --steps 5 --warmup 2 ;;
   train)  # two short epochs on 6 train images: iterations per second under Lightning, FID by random projections
     run train 150 python3 -m drgan.train experiment=tio2_sem logger=none data.split=null \
       trainer.max_epochs=2 trainer.limit_train_batches=20 "$FID_EXTRACTOR" \
@@ -52,7 +52,7 @@ from drgan import backend; print('drgan auto ->', backend.resolve_variant('auto'
     ckpt=$(ls /tmp/runs/tio2_sem/gpu/checkpoints/best.ckpt 2>/dev/null)
     [ -n "$ckpt" ] && cp "$ckpt" "$OUT/best.ckpt" && log "best.ckpt $(du -k "$ckpt" | cut -f1) kB" ;;
   generate)  # 1000 pairs from that checkpoint (seed 0): images per second; the first 8 come back for a CPU comparison
-    run generate 120 python3 -m drgan.generate ckpt=/tmp/runs/tio2_sem/gpu n=1000 out=/tmp/gen n_background=0 \
+    run generate 60 python3 -m drgan.generate ckpt=/tmp/runs/tio2_sem/gpu n=1000 out=/tmp/gen n_background=0 \
       progress=false
     log "generated $(ls /tmp/gen/images 2>/dev/null | wc -l) images"
     mkdir -p "$OUT/gen" && for f in $(ls /tmp/gen/images 2>/dev/null | sort | head -8); do cp "/tmp/gen/images/$f" "$OUT/gen/"; done
