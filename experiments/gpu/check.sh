@@ -40,14 +40,14 @@ import mitsuba as mi; mi.set_variant('cuda_ad_rgb'); print('mitsuba', mi.__versi
 from drgan import backend; print('drgan auto ->', backend.resolve_variant('auto'), 'use_variant ->', backend.use_variant('auto'))
 " ;;
   tests)  # the render and gradient tests (finite differences included) on cuda_ad_rgb
-    DRGAN_TEST_VARIANT=cuda_ad_rgb run tests 150 python3 -m pytest -v -p no:cacheprovider --durations=15 \
+    DRGAN_TEST_VARIANT=cuda_ad_rgb run tests ${TESTS_LIMIT:-150} python3 -m pytest -v -p no:cacheprovider --durations=15 \
       tests/test_scene.py tests/test_direct_integrator.py tests/test_grad_seed.py tests/test_transmission.py \
       tests/test_fringe.py tests/test_stability.py ;;
   bench)
     run bench 90 python3 benchmarks/train_step.py --spp 16 121 --fid-images 0 --steps 5 --warmup 2 ;;
   train)  # two short epochs on 6 train images: iterations per second under Lightning, FID by random projections
-    run train 150 python3 -m drgan.train experiment=tio2_sem logger=none data.split=null \
-      trainer.max_epochs=2 trainer.limit_train_batches=20 "$FID_EXTRACTOR" \
+    run train ${TRAIN_LIMIT:-150} python3 -m drgan.train experiment=tio2_sem logger=none data.split=null \
+      trainer.max_epochs=${TRAIN_EPOCHS:-2} trainer.limit_train_batches=20 "$FID_EXTRACTOR" ${TRAIN_ARGS:-} \
       callbacks.early_stopping.max_minutes=2 paths.log_dir=/tmp/runs run_name=gpu
     ckpt=$(ls /tmp/runs/tio2_sem/gpu/checkpoints/best.ckpt 2>/dev/null)
     [ -n "$ckpt" ] && cp "$ckpt" "$OUT/best.ckpt" && log "best.ckpt $(du -k "$ckpt" | cut -f1) kB" ;;
@@ -57,9 +57,26 @@ from drgan import backend; print('drgan auto ->', backend.resolve_variant('auto'
     log "generated $(ls /tmp/gen/images 2>/dev/null | wc -l) images"
     mkdir -p "$OUT/gen" && for f in $(ls /tmp/gen/images 2>/dev/null | sort | head -8); do cp "/tmp/gen/images/$f" "$OUT/gen/"; done
     cp /tmp/gen/manifest.json "$OUT/gen/" 2>/dev/null ;;
+  probe)  # where cuda and llvm disagree in test_scene's rectangle test: rays that hit one surface and miss the other
+    run probe 60 python3 -c "
+import numpy as np
+from drgan import backend; backend.use_variant('auto')
+from drgan.backend import dr, mi
+from drgan.scene.scene import rectangle_mesh
+to_world = mi.ScalarTransform4f().translate([1, -2, 5]).rotate([1, 0.3, 0], 160).scale([3, 2, 1])
+tri = mi.load_dict({'type': 'scene', 'shape': rectangle_mesh('lamp', to_world)})
+rect = mi.load_dict({'type': 'scene', 'shape': {'type': 'rectangle', 'to_world': to_world}})
+xy = np.random.default_rng(0).uniform(-5, 5, (2, 4000)).astype(np.float32)
+rays = mi.Ray3f(mi.Point3f(mi.Float(xy[0]), mi.Float(xy[1]), 0.0), mi.Vector3f(0.05, -0.1, 1.0))
+a, b = tri.ray_intersect(rays), rect.ray_intersect(rays)
+va, vb = np.array(a.is_valid()), np.array(b.is_valid())
+print('triangles hit', va.sum(), 'rectangle hit', vb.sum(), 'disagree', (va != vb).sum())
+both = va & vb
+print('t max diff', np.abs(np.array(a.t) - np.array(b.t))[both].max() if both.any() else None)
+" ;;
   ddp)
-    run ddp 120 python3 -m drgan.train experiment=tio2_sem logger=none data.split=null trainer=ddp trainer.devices=1 \
-      trainer.max_epochs=1 trainer.limit_train_batches=5 "$FID_EXTRACTOR" paths.log_dir=/tmp/runs run_name=gpu_ddp ;;
+    run ddp ${DDP_LIMIT:-120} python3 -m drgan.train experiment=tio2_sem logger=none data.split=null trainer=ddp trainer.devices=1 \
+      trainer.max_epochs=1 trainer.limit_train_batches=5 "$FID_EXTRACTOR" ${TRAIN_ARGS:-} paths.log_dir=/tmp/runs run_name=gpu_ddp ;;
   esac
 done
 log "done"

@@ -200,8 +200,9 @@ class Generator(nn.Module):
         seed = self.next_seed() if seed is None else int(seed)
         radiance = self.scene.render(bsdf_values, seed=seed, spp=spp)
         if self.background is not None:  # stage pixels only: labels and gradients stay those of the render
-            stage = torch.from_numpy(self.scene.instance_labels() == 0).to(radiance.dtype)
-            radiance = radiance + self.background.for_seed(seed).to(radiance.dtype) * stage
+            like = {"dtype": radiance.dtype, "device": radiance.device}  # the texture is kept on the CPU
+            stage = torch.from_numpy(self.scene.instance_labels() == 0).to(**like)
+            radiance = radiance + self.background.for_seed(seed).to(**like) * stage
         return add_noise(radiance, sigma, seed=seed, grain_px=self.noise_grain_px).unsqueeze(
             0
         )  # one seed fixes the image: paths, texture, noise
@@ -229,7 +230,7 @@ class Generator(nn.Module):
         """Render one constellation without gradients and return image, labels, phi and parameters.
 
         ``spp`` overrides the training spp (e.g. generate a dataset at a higher spp than was trained at)."""
-        phi_i = torch.as_tensor(np.asarray(phi_i), dtype=torch.float32)
+        phi_i = torch.as_tensor(np.asarray(phi_i), dtype=torch.float32, device=self.view_width.device)
         was_training = self.training
         self.eval()
         try:
@@ -239,4 +240,4 @@ class Generator(nn.Module):
             labels = self.scene.instance_labels()
         finally:
             self.train(was_training)
-        return Sample(image.numpy(), labels, phi_i.numpy(), self.parameter_table(values), seed)
+        return Sample(image.cpu().numpy(), labels, phi_i.cpu().numpy(), self.parameter_table(values), seed)
