@@ -436,6 +436,10 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     from drgan.segmentation.module import load_segmenter
 
     assert load_segmenter(last).input_normalization == "zscore"  # travels with the checkpoint to inference
+    # the split chosen on the validation pairs is stored in the checkpoint and read back by evaluate's auto
+    calibration = json.loads((out / "metrics.json").read_text())["split_calibration"]
+    assert calibration["n_pairs"] >= 1 and len(calibration["table"]) == 14
+    assert load_segmenter(last).split_calibration == calibration
     saved = torch.load(last, map_location="cpu", weights_only=True)["hyper_parameters"]
     assert saved["_target_"] == "drgan.segmentation.module.SegmenterModule"  # the class, for the registry's loader
     again = segment(compose([*common, "trainer.max_epochs=2", "ckpt_path=last"], config_name="segment"))
@@ -456,6 +460,7 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     )
     result = evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{last},{last}]", "inference.tile=32"]))
     assert set(result["runs"]) == {"run0", "run1"} and result["std"]["dsc"] == pytest.approx(0.0)
+    assert "split calibrated on" in (tmp_path / "eval" / "results.md").read_text()
     assert (tmp_path / "eval" / "overlays" / "x.png").is_file()
 
 

@@ -31,7 +31,7 @@ import torch
 
 from drgan.errors import ConfigError, DrganError
 
-__all__ = ["load_checkpoint", "refusing_unsafe"]
+__all__ = ["add_entry", "load_checkpoint", "refusing_unsafe"]
 
 # torch's refusal names what it refused after this prefix (e.g. "Unsupported global: GLOBAL getattr").
 _REFUSED = re.compile(r"WeightsUnpickler error: (?P<what>[^\n]*?)(?: was not an allowed global by default.*)?$", re.M)
@@ -84,3 +84,14 @@ def load_checkpoint(
             f"{what}={path}: a PyTorch file but not a Lightning checkpoint (no state_dict); expected {expected}"
         )
     return checkpoint
+
+
+def add_entry(path, key: str, value, what: str = "ckpt") -> None:
+    """Store ``value`` (plain values only, as everything drgan saves) under ``key`` in the checkpoint at ``path``,
+    written whole to a temporary file and renamed into place: a kill leaves the old checkpoint or the new one."""
+    path = Path(path)
+    checkpoint = load_checkpoint(path, what)
+    checkpoint[key] = value
+    tmp = path.with_name(f".{path.name}.partial")
+    torch.save(checkpoint, tmp)
+    tmp.replace(path)

@@ -139,6 +139,7 @@ def segment(cfg: DictConfig) -> dict:
 
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
+    from drgan.segmentation.calibrate import check_grid
     from drgan.segmentation.module import ScoreHistory, settled
     from drgan.segmentation.registry import build_segmenter
 
@@ -151,6 +152,7 @@ def segment(cfg: DictConfig) -> dict:
     # Settings first (early stopping; the model: an allow-listed class, or a ConfigError naming model._target_),
     # then data: bad folders, sizes or mask values fail here, before the run folder gets anything.
     stopper = early_stopping(cfg.get("early_stopping"))
+    calibration_grid = check_grid(cfg.get("split_calibration"))
     model = build_segmenter(cfg.model, "model")
     pairs = load_training_pairs(cfg)
     train_loader, val_loader, n_train, n_val = dataloaders(
@@ -206,6 +208,11 @@ def segment(cfg: DictConfig) -> dict:
             why,
         )
     last = out / "checkpoints" / "last.ckpt"
+    calibration = calibrate(
+        model, val_loader, calibration_grid, last, bool(cfg.trainer.get("enable_progress_bar", True))
+    )
+    if calibration is not None:
+        metrics["split/ap50"] = calibration["ap50"]
     for logger in loggers:
         logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
         if hasattr(logger, "experiment") and getattr(logger, "run_id", None) and last.is_file():
@@ -219,11 +226,41 @@ def segment(cfg: DictConfig) -> dict:
             "settled": is_settled,
             "settled_why": why,
             "val_dsc_history": scores.history,
+            "split_calibration": calibration,
             **metrics,
         },
     )
     log.info("done in %.1f s: %s", metrics["time/wall_s"], {k: round(v, 4) for k, v in sorted(metrics.items())})
     return metrics
+
+
+def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) -> dict | None:
+    """Choose the touching-particle split on the validation pairs (drgan.segmentation.calibrate) and store it in
+    ``last`` for evaluate/analyze's ``split_core: auto``; None when calibration is off or impossible."""
+    from drgan.checkpoint_io import add_entry
+    from drgan.segmentation.calibrate import CHECKPOINT_KEY, as_array_free, calibrate_split, markdown_table
+
+    if grid is None:
+        return None
+    if val_loader is None or not last.is_file():
+        log.warning("split calibration skipped: %s", "no validation pairs" if val_loader is None else f"no {last}")
+        return None
+    try:
+        calibration = as_array_free(calibrate_split(model.eval(), val_loader.dataset.pairs, grid, progress=progress))
+    except ValueError as error:
+        log.warning("split calibration skipped: %s", error)
+        return None
+    add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
+    log.info(
+        "split chosen on %d validation pairs: split_depth %s, split_core %s (AP50 %.3f); stored in %s\n%s",
+        calibration["n_pairs"],
+        calibration["split_depth"],
+        calibration["split_core"],
+        calibration["ap50"],
+        last,
+        markdown_table(calibration),
+    )
+    return calibration
 
 
 @hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="segment")

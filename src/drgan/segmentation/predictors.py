@@ -80,10 +80,12 @@ class SegmenterPredictor(FunctionPredictor):
     """A loaded segmenter with its inference settings (``make_predictor``: checked when made)."""
 
     def __init__(self, source: str, model, inference: Mapping):
+        from drgan.segmentation.calibrate import resolve_auto
         from drgan.segmentation.inference import make_predictor
 
-        inference = dict(inference)
-        super().__init__(source, make_predictor(model, inference), ", ".join(f"{k} {v}" for k, v in inference.items()))
+        inference, note = resolve_auto(inference, getattr(model, "split_calibration", None), source)
+        how = ", ".join(f"{k} {v}" for k, v in inference.items()) + (f" (split {note})" if note else "")
+        super().__init__(source, make_predictor(model, inference), how)
         self.model = model
 
 

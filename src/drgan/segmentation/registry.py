@@ -32,6 +32,7 @@ from pathlib import Path
 
 from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import ConfigError, DataError
+from drgan.segmentation.calibrate import stored_split
 from drgan.targets import target_path
 
 __all__ = [
@@ -185,4 +186,6 @@ def load_segmenter(path: str | Path, setting: str = "model"):
             f"{setting}={path}: its {target} cannot be rebuilt from the saved keywords and weights "
             f"({type(error).__name__}: {str(error).splitlines()[0] if str(error) else 'no detail'})"
         ) from None
+    # the touching-particle split drgan.segment chose on the validation pairs (inference split_* = auto reads it)
+    model.split_calibration = stored_split(checkpoint, f"{setting}={path}")
     return model.eval()

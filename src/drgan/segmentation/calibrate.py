@@ -1,0 +1,187 @@
+"""The touching-particle split chosen per segmenter, on its own validation pairs.
+
+``split_touching`` seeds one particle per h-maximum of the distance transform of a particle *core*: where the
+particle probability exceeds ``split_core``. How strict that core should be depends on how confident the network
+is: 0.95 opened the necks between touching TiO2 particles for one U-Net (merged particles 41 % -> 26 %) and broke
+a less confident one's particles into pieces (AP50 0.60 -> 0.30; experiments/statistics/README.md). So after
+training, ``drgan.segment`` scores a small grid of (split_depth, split_core) on the held-out validation pairs (never
+test images), keeps the setting with the highest pooled AP50 and stores it in the checkpoint under
+``CHECKPOINT_KEY``; ``inference.split_core: auto`` / ``split_depth: auto`` of evaluate and analyze read it back.
+
+Validation instances are the 4-connected components of each pair's particle class (the contour class separates
+touching particles in the targets), compared with the particle-class components of the split's class map, the way
+``drgan.evaluate`` scores a class map.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from drgan.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_KEY = "drgan_split"
+# the defaults of evaluate/analyze for a checkpoint that has no calibration (chosen on TiO2 SEM train images)
+UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95}
+GRID_DEFAULTS = {"cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98], "depths": [1.0, 2.0], "max_pairs": 100}
+TIE = 0.002  # AP50 differences below this are ties: the earlier (more lenient) grid setting wins
+
+
+def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | None:
+    """The `split_calibration` block as numbers (None: calibration off); a ConfigError names a bad entry."""
+    if grid is None:
+        return None
+    unknown = set(grid) - set(GRID_DEFAULTS)
+    if unknown:
+        raise ConfigError(f"{name}: unknown key(s) {sorted(unknown)}; expected {sorted(GRID_DEFAULTS)}")
+    settings = {**GRID_DEFAULTS, **dict(grid)}
+    cores, depths = list(settings["cores"] or []), list(settings["depths"] or [])
+    if not cores or not depths:
+        raise ConfigError(f"{name}: cores and depths need at least one value each (got {cores}, {depths})")
+    for core in cores:
+        if core is not None and not (isinstance(core, (int, float)) and 0.0 < core < 1.0):
+            raise ConfigError(f"{name}.cores: {core!r} is not a particle probability in (0, 1) or null (the argmax)")
+    for depth in depths:
+        if not (isinstance(depth, (int, float)) and depth > 0):
+            raise ConfigError(f"{name}.depths: {depth!r} is not a positive depth in px")
+    max_pairs = settings["max_pairs"]
+    if not (isinstance(max_pairs, int) and max_pairs >= 1):
+        raise ConfigError(f"{name}.max_pairs: {max_pairs!r} is not a positive integer")
+    return {
+        "cores": [None if c is None else float(c) for c in cores],
+        "depths": [float(d) for d in depths],
+        "max_pairs": max_pairs,
+    }
+
+
+def _instances(mask: np.ndarray) -> np.ndarray:
+    from scipy import ndimage as ndi
+
+    labels, _ = ndi.label(mask == 1)  # 4-connected: scipy's default structure
+    return labels
+
+
+def calibrate_split(
+    model, pairs: Sequence, grid: Mapping | None = None, split_smooth: float = 1.0, progress: bool = False, **predict_kw
+) -> dict:
+    """Score every (depth, core) of ``grid`` on ``pairs`` (images with their class masks); return the best setting
+    with its pooled AP50 and the whole table. The network runs once per pair; only the split is repeated."""
+    from drgan.metrics.segmentation import binarize_and_label, match_instances
+    from drgan.segmentation.inference import predict_probs, split_touching
+
+    settings = check_grid(grid if grid is not None else {})
+    if not pairs:
+        raise ValueError("calibrate_split: no validation pairs")
+    chosen = list(pairs)[: settings["max_pairs"]]
+    iterator = chosen
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(chosen, desc="split calibration", unit="pair")
+    probs, truths = [], []
+    for pair in iterator:
+        probs.append(predict_probs(model, pair.image, **predict_kw))
+        truths.append(_instances(pair.mask))
+    table = []
+    for depth in settings["depths"]:
+        for core in settings["cores"]:
+            tp = fp = fn = 0
+            for p, truth in zip(probs, truths):
+                match = match_instances(binarize_and_label(split_touching(p, depth, split_smooth, core)), truth)
+                tp, fp, fn = tp + match.tp, fp + match.fp, fn + match.fn
+            ap50 = tp / (tp + fp + fn) if tp + fp + fn else math.nan
+            table.append({"split_depth": depth, "split_core": core, "ap50": ap50, "tp": tp, "fp": fp, "fn": fn})
+    scored = [row for row in table if not math.isnan(row["ap50"])]
+    if not scored:
+        raise ValueError("calibrate_split: the validation pairs hold no particles and no prediction found any")
+    top = max(row["ap50"] for row in scored)
+    best = next(row for row in scored if row["ap50"] >= top - TIE)
+    return {
+        "split_depth": best["split_depth"],
+        "split_core": best["split_core"],
+        "split_smooth": float(split_smooth),
+        "ap50": best["ap50"],
+        "n_pairs": len(chosen),
+        "table": table,
+    }
+
+
+def stored_split(checkpoint: Mapping, source: str = "checkpoint") -> dict | None:
+    """The calibration a checkpoint holds (``CHECKPOINT_KEY``), or None; a malformed entry is ignored with a
+    warning (the checkpoint still loads)."""
+    entry = checkpoint.get(CHECKPOINT_KEY)
+    if entry is None:
+        return None
+    ok = (
+        isinstance(entry, Mapping)
+        and isinstance(entry.get("split_depth"), (int, float))
+        and entry["split_depth"] > 0
+        and (
+            entry.get("split_core") is None or (isinstance(entry["split_core"], float) and 0 < entry["split_core"] < 1)
+        )
+    )
+    if not ok:
+        log.warning("%s: its %s entry is not a split calibration; ignored", source, CHECKPOINT_KEY)
+        return None
+    return dict(entry)
+
+
+def resolve_auto(inference: Mapping, calibration: Mapping | None, source: str = "model") -> tuple[dict, str]:
+    """``inference`` with every ``auto`` split setting replaced: the checkpoint's calibration, else ``UNCALIBRATED``
+    (with a warning). Returns the settings and a note for reports ("" when nothing was auto)."""
+    settings = dict(inference)
+    auto = [key for key in UNCALIBRATED if settings.get(key) == "auto"]
+    if not auto:
+        return settings, ""
+    if calibration is not None:
+        for key in auto:
+            settings[key] = calibration[key]
+        return settings, f"calibrated on {calibration.get('n_pairs', '?')} validation pairs"
+    log.warning(
+        "%s: inference %s=auto but the checkpoint holds no split calibration (trained before drgan.segment chose "
+        "one, or without validation pairs); using %s. Resume its training (`python -m drgan.segment ... "
+        "ckpt_path=last`) to calibrate it",
+        source,
+        "/".join(auto),
+        ", ".join(f"{key} {UNCALIBRATED[key]}" for key in auto),
+    )
+    for key in auto:
+        settings[key] = UNCALIBRATED[key]
+    return settings, "uncalibrated defaults"
+
+
+def markdown_table(calibration: Mapping) -> str:
+    """The calibration grid as a markdown table (depth rows, core columns, AP50)."""
+    rows = calibration["table"]
+    cores = list(dict.fromkeys(row["split_core"] for row in rows))
+    depths = list(dict.fromkeys(row["split_depth"] for row in rows))
+    head = "| depth \\ core | " + " | ".join("argmax" if c is None else f"{c:g}" for c in cores) + " |"
+    lines = [head, "|" + "---|" * (len(cores) + 1)]
+    for depth in depths:
+        cells = []
+        for core in cores:
+            row = next(r for r in rows if r["split_depth"] == depth and r["split_core"] == core)
+            chosen = depth == calibration["split_depth"] and core == calibration["split_core"]
+            cells.append(f"**{row['ap50']:.3f}**" if chosen else f"{row['ap50']:.3f}")
+        lines.append(f"| {depth:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def as_array_free(calibration: Mapping) -> dict:
+    """Plain Python numbers only (a checkpoint read with weights_only=True accepts these)."""
+
+    def plain(value):
+        if isinstance(value, (np.floating, np.integer)):
+            return value.item()
+        if isinstance(value, Mapping):
+            return {str(k): plain(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        return value
+
+    return plain(calibration)

@@ -1,0 +1,110 @@
+"""The touching-particle split chosen per segmenter on its validation pairs (drgan.segmentation.calibrate)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from drgan.errors import ConfigError
+from drgan.scene.labels import class_mask
+from drgan.segmentation.data import Pair
+
+
+class ProbabilityImage(torch.nn.Module):
+    """A stand-in network whose input *is* its particle probability p: classes (background, particle, contour) =
+    ((1 - p) 0.8, p, (1 - p) 0.2), so a test sets the probabilities the split sees exactly."""
+
+    def forward(self, x):
+        p = x.clamp(1e-4, 1 - 1e-4)
+        return torch.log(torch.cat([(1 - p) * 0.8, p, (1 - p) * 0.2], dim=1))
+
+
+def _two_touching_discs(size=48, r=10.0, gap=7.0):
+    """Labels of two discs whose centres are ``gap`` px apart, their overlap split at the midline (each pixel to
+    the nearer centre), so that the true contact line is where a symmetric split cuts."""
+    yy, xx = np.mgrid[:size, :size]
+    c = size / 2
+    centres = (c - gap / 2 - 0.5, c + gap / 2 - 0.5)
+    inside = [(yy - c + 0.5) ** 2 + (xx - cx) ** 2 <= r * r for cx in centres]
+    nearer_first = np.abs(xx - centres[0]) < np.abs(xx - centres[1])
+    labels = np.zeros((size, size), np.int32)
+    labels[(inside[0] | inside[1]) & nearer_first] = 1
+    labels[(inside[0] | inside[1]) & ~nearer_first] = 2
+    return labels
+
+
+def _pair(labels: np.ndarray, neck_probability: float | None = None) -> Pair:
+    """Two discs (labels) as a validation pair: the image is the particle probability (0.97 inside), lowered to
+    ``neck_probability`` on the 4 columns around their contact line."""
+    image = np.where(labels > 0, 0.97, 0.0).astype(np.float32)
+    if neck_probability is not None:
+        neck = (labels > 0) & (np.abs(np.arange(labels.shape[1]) - labels.shape[1] / 2 + 0.5) <= 1.5)[None, :]
+        image[neck] = neck_probability
+    return Pair("p", image, class_mask(labels, 1))
+
+
+def test_the_core_that_opens_an_unsure_neck_is_chosen_and_the_table_is_exact():
+    from drgan.segmentation.calibrate import calibrate_split
+
+    pair = _pair(_two_touching_discs(r=10.0, gap=7.0), neck_probability=0.6)
+    result = calibrate_split(ProbabilityImage(), [pair, pair], {"cores": [None, 0.7], "depths": [2.0]}, tile=48)
+    argmax, strict = result["table"]
+    # the argmax core sees one blob per image, matching neither disc (IoU < 0.5 with each half)
+    assert (argmax["tp"], argmax["fp"], argmax["fn"]) == (0, 2, 4) and argmax["ap50"] == 0.0
+    assert (strict["tp"], strict["fp"], strict["fn"]) == (4, 0, 0) and strict["ap50"] == 1.0
+    assert (result["split_core"], result["split_depth"], result["ap50"], result["n_pairs"]) == (0.7, 2.0, 1.0, 2)
+
+
+def test_ties_keep_the_more_lenient_setting_and_max_pairs_caps_the_work():
+    from drgan.segmentation.calibrate import calibrate_split
+
+    apart = _pair(_two_touching_discs(r=7.0, gap=20.0))  # well apart: every setting finds both
+    result = calibrate_split(
+        ProbabilityImage(), [apart] * 5, {"cores": [None, 0.9], "depths": [1.0, 2.0], "max_pairs": 3}, tile=48
+    )
+    assert all(row["ap50"] == 1.0 for row in result["table"]) and len(result["table"]) == 4
+    assert (result["split_depth"], result["split_core"], result["n_pairs"]) == (1.0, None, 3)
+
+
+@pytest.mark.parametrize(
+    "grid, message",
+    [
+        ({"cores": [1.0]}, "cores: 1.0 is not a particle probability"),
+        ({"depths": [0]}, "depths: 0 is not a positive depth"),
+        ({"cores": []}, "at least one value"),
+        ({"max_pairs": 0}, "max_pairs: 0"),
+        ({"core": [0.5]}, "unknown key"),
+    ],
+)
+def test_bad_grids_are_config_errors_naming_the_entry(grid, message):
+    from drgan.segmentation.calibrate import check_grid
+
+    with pytest.raises(ConfigError, match=message):
+        check_grid(grid)
+    assert check_grid(None) is None
+
+
+def test_auto_settings_come_from_the_checkpoint_or_the_uncalibrated_defaults(tmp_path, caplog):
+    from drgan.checkpoint_io import add_entry
+    from drgan.segmentation.calibrate import CHECKPOINT_KEY, UNCALIBRATED, resolve_auto, stored_split
+
+    path = tmp_path / "x.ckpt"
+    torch.save({"state_dict": {"w": torch.zeros(2)}}, path)
+    calibration = {"split_depth": 2.0, "split_core": 0.8, "n_pairs": 7}
+    add_entry(path, CHECKPOINT_KEY, calibration)
+    loaded = torch.load(path, weights_only=True)
+    assert torch.equal(loaded["state_dict"]["w"], torch.zeros(2)) and stored_split(loaded) == calibration
+    assert not list(tmp_path.glob(".*partial"))  # written whole, renamed into place
+
+    inference = {"tile": 32, "split_depth": "auto", "split_core": "auto"}
+    assert resolve_auto(inference, calibration) == (
+        {"tile": 32, "split_depth": 2.0, "split_core": 0.8},
+        "calibrated on 7 validation pairs",
+    )
+    settings, note = resolve_auto(inference, None, "model=old.ckpt")
+    assert settings == {"tile": 32, **UNCALIBRATED} and note == "uncalibrated defaults"
+    assert "model=old.ckpt" in caplog.text and "no split calibration" in caplog.text
+    fixed = {"split_depth": 3.0, "split_core": None}
+    assert resolve_auto(fixed, calibration) == (fixed, "")  # numbers given are kept
+    assert stored_split({CHECKPOINT_KEY: {"split_depth": -1}}) is None  # malformed: ignored, with a warning
