@@ -499,3 +499,46 @@ def test_bad_parameters_are_refused_naming_what_is_expected(tiny_run, tmp_path):
     with pytest.raises(ConfigError, match="not in"):
         use_parameters(module, too_high, cfg)
     assert not (tmp_path / "a").exists()
+
+
+# --- grey_spread --------------------------------------------------------------------------------------------
+
+
+def test_match_grey_moves_both_means_exactly_and_keeps_labels_meaning():
+    from drgan.dataset.grey_spread import draw, match_grey
+
+    labels = np.zeros((8, 8), np.int32)
+    labels[2:5, 2:5] = 1
+    image = np.where(labels > 0, 0.8, 0.5).astype(np.float32)
+    image[0, 0], image[7, 7] = 0.45, 0.55  # background noise: mean still 0.5
+    moved = match_grey(image, labels, (0.3, 0.9))
+    assert moved[labels == 0].mean() == pytest.approx(0.3, abs=1e-6)
+    assert moved[labels > 0].mean() == pytest.approx(0.9, abs=1e-6)
+    assert moved[0, 0] == pytest.approx(0.3 - 0.05 * 2, abs=1e-6)  # deviations scaled by the contrast gain (2x)
+    dark = match_grey(image, labels, (0.8, 0.1))  # the direction may flip: the caller draws from its own polarity
+    assert dark[labels > 0].mean() == pytest.approx(0.1, abs=1e-6)
+    assert np.array_equal(match_grey(image, np.zeros_like(labels), (0.3, 0.9)), image)  # no particle: unchanged
+    levels = np.array([[0.1, 0.2], [0.3, 0.4], [0.5, 0.6]])
+    assert draw(levels, 7) == draw(levels, 7) and {draw(levels, s) for s in range(40)} == {tuple(r) for r in levels}
+
+
+def test_grey_spread_gives_each_image_a_real_patchs_grey_levels(tiny_run, tmp_path):
+    from drgan.data.patches import PatchSet
+    from drgan.dataset.grey_spread import patch_grey_levels
+
+    patches = PatchSet.load(tiny_run / "patches")
+    levels = patch_grey_levels(patches.train, patches.params["segment"], patches.params["polarity"])
+    out = tmp_path / "spread"
+    run_generate(tiny_run, out, "grey_spread=true", n_background=0)
+    backgrounds = []
+    for item in ids(out):
+        image = read(out / "images" / f"{item}.png").astype(np.float64) / 255
+        labels = read(out / "labels" / f"{item}.png")
+        backgrounds.append(image[labels == 0].mean())
+        # one real patch's background mean (to 8-bit rounding); the particle mean is exact before clipping to [0, 1]
+        # (test_match_grey_...), which moves it on these tiny, noisy 24 px renders
+        assert np.abs(levels[:, 0] - backgrounds[-1]).min() < 0.01
+    assert np.ptp(backgrounds) > 0 or len(levels) == 1
+    assert json.loads((out / "config.json").read_text())["fixed"]["grey_spread"] is True
+    with pytest.raises(ConfigError, match="grey_spread"):  # a folder keeps its settings: resuming without it is refused
+        run_generate(tiny_run, out, n_background=0)

@@ -116,3 +116,38 @@ def test_16_bit_and_rgb_input_give_the_same_particles():
     assert max(scales) / min(scales) < 1.05 and abs(scales[0] / 22 - 1) < 0.15
     counts = [len(np.unique(P.segment_particles(x, None, "bright")[0])) - 1 for x in (image, as16, rgb)]
     assert max(counts) - min(counts) <= 1
+
+
+def _few_particles_among_specks(seed: int) -> np.ndarray:
+    """4 bright discs of 48 px and 40 bright specks of 12 px (a quarter of their size) on the background: the
+    specks outnumber the particles 10:1 but cover less area."""
+    image, _, centres = discs(size=256, diameter=48, n=4, noise=0.02, seed=seed, gap=20)
+    rng = np.random.default_rng(seed + 1)
+    yy, xx = np.mgrid[:256, :256]
+    taken = np.zeros(image.shape, bool)
+    for c in centres:
+        taken |= (yy - c[0]) ** 2 + (xx - c[1]) ** 2 <= 30**2
+    placed = 0
+    while placed < 40:
+        c = rng.uniform(8, 248, 2)
+        if taken[int(c[0]), int(c[1])]:
+            continue
+        speck = (yy - c[0]) ** 2 + (xx - c[1]) ** 2 <= 6**2
+        image[speck] = np.clip(image[speck] + 0.3, 0, 1)
+        taken |= speck
+        placed += 1
+    return image
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_few_particles_among_many_specks_set_the_scale(seed):
+    """The scale search follows the segments' area-weighted median: the plain median of 40 specks and 4 particles
+    is a speck (the search then settled at 12 px for seeds 0 and 1)."""
+    params, _ = P.resolve_params([_few_particles_among_specks(seed)], None, "bright")
+    assert abs(params.scale / 48 - 1) < 0.1
+
+
+def test_area_weighted_median_by_hand():
+    assert P.area_weighted_median(np.array([1.0, 1.0, 1.0, 10.0])) == 10.0  # areas 1, 1, 1, 100
+    assert P.area_weighted_median(np.array([3.0, 4.0])) == 4.0  # 9 of 25 below 4
+    assert P.area_weighted_median(np.array([5.0, 5.0, 5.0])) == 5.0

@@ -396,12 +396,20 @@ def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: flo
         separability = float(np.mean(separabilities))
         if d.size == 0:
             return scale, False, separability
-        new = float(np.median(d))
+        new = area_weighted_median(d)
         settled = abs(math.log(new / scale)) < CONSISTENT
         if abs(math.log(new / scale)) < 0.1:
             return new, True, separability
         scale = new
     return scale, settled, separability
+
+
+def area_weighted_median(diameters: np.ndarray) -> float:
+    """The diameter below which half the segments' *area* lies: specks of grain, noise or texture are many but
+    small, so they move it far less than they move the plain median (a few particles among hundreds of specks)."""
+    d = np.sort(np.asarray(diameters, dtype=np.float64))
+    cumulative = np.cumsum(d * d)
+    return float(d[np.searchsorted(cumulative, 0.5 * cumulative[-1])])
 
 
 def segment_diameters(labels: np.ndarray, params: SegmentParams) -> np.ndarray:

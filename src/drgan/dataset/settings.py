@@ -35,6 +35,8 @@ FIXED_SETTINGS = (
 
 # The partial-background settings and their defaults (conf/gan/generate.yaml).
 PARTIAL_SETTINGS = {"partial_background": True, "partial_max_ignored": PARTIAL_MAX_IGNORED, "partial_margin_px": None}
+# Settings recorded only when not at their default, so that folders made before them still resume.
+OPTIONAL_SETTINGS = {**PARTIAL_SETTINGS, "grey_spread": False}
 
 
 def fixed_settings(settings: dict) -> dict:
@@ -43,7 +45,7 @@ def fixed_settings(settings: dict) -> dict:
     fixed = {k: settings[k] for k in FIXED_SETTINGS}
     if settings.get("parameters", "trained") != "trained":
         fixed["parameters"] = settings["parameters"]
-    for key, default in PARTIAL_SETTINGS.items():
+    for key, default in OPTIONAL_SETTINGS.items():
         if settings.get(key, default) != default:
             fixed[key] = settings[key]
     return fixed
@@ -116,8 +118,17 @@ def settings_from(cfg: DictConfig) -> dict:
             f"checkpoint {ckpt_file} was trained with material.background_texture, which takes its texture from real "
             "background patches, and it has no run folder with patches/; give backgrounds=PATCHSET_FOLDER"
         )
+    grey_spread = cfg.get("grey_spread", False)
+    if not isinstance(grey_spread, bool):
+        raise ConfigError(f"grey_spread={grey_spread!r}: expected true or false")
+    if grey_spread and backgrounds is None:
+        raise ConfigError(
+            "grey_spread=true draws each image's grey levels from the real train patches, and the checkpoint has no "
+            "run folder with patches/; give backgrounds=PATCHSET_FOLDER or grey_spread=false"
+        )
     return {
         "ckpt": str(ckpt_file),
+        "grey_spread": grey_spread,
         "material": material,
         "n": n,
         "n_background": n_background,
