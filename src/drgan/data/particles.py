@@ -340,6 +340,13 @@ def resolve_params(
         )
     scale, tried = search_scale(prepared, params, estimate.diameter_px)
     if scale is None:
+        # Every start collapsed to grain: specks that outnumber a few particles pull the plain median of the
+        # segments, round after round, below MIN_SCALE. Their share of the segments' *area* is small, so the search
+        # follows the area-weighted median instead (only here: where the plain search settles, it measures
+        # polydisperse particles better, e.g. TiO2's, whose area-weighted median lies 10-15 % above the median).
+        scale, weighted_tried = search_scale(prepared, params, estimate.diameter_px, weighted=True)
+        tried = tried + weighted_tried
+    if scale is None:
         raise NoParticles(
             f"the LoG scale {estimate.diameter_px:.1f} px and the diameters "
             f"{', '.join(f'{t[0]:.0f}' for t in tried)} px tried as starting points gave no consistent particle size "
@@ -360,26 +367,29 @@ LARGER_BONUS = 0.05
 
 
 def search_scale(
-    prepared: Sequence[Prepared], params: SegmentParams, log_diameter: float
+    prepared: Sequence[Prepared], params: SegmentParams, log_diameter: float, weighted: bool = False
 ) -> tuple[float | None, list[tuple[float, float, float]]]:
     """The particle diameter: of the scales that segment into particles of their own size (fixed points of
     `refine_scale`, started from the LoG's diameter and from 8, 16, .. px up to half the image), the one whose
     foreground separates best from the background (Otsu separability, plus LARGER_BONUS per doubling). Grain and
     noise make fixed points at small scales too, but there the threshold cuts noise (separability ~2/pi); at the
-    particles' scale it cuts particles from background. Without a fixed point, the best scale reached. Returns
+    particles' scale it cuts particles from background. Without a fixed point, the best scale reached. ``weighted``:
+    each round moves to the segments' area-weighted median instead of their median (`refine_scale`). Returns
     (diameter or None, [(start, scale reached, separability)])."""
     limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
     starts = sorted({round(log_diameter, 1), *(d for d in START_DIAMETERS if d <= limit)})
     tried, found = [], []
     for start in starts:
-        scale, consistent, separability = refine_scale(prepared, params, start)
+        scale, consistent, separability = refine_scale(prepared, params, start, weighted)
         tried.append((start, scale, separability))
         if separability >= params.min_separability and scale >= MIN_SCALE:
             found.append((consistent, separability + LARGER_BONUS * math.log2(scale), scale))
     return (max(found)[2] if found else None), tried
 
 
-def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: float) -> tuple[float, bool, float]:
+def refine_scale(
+    prepared: Sequence[Prepared], params: SegmentParams, scale: float, weighted: bool = False
+) -> tuple[float, bool, float]:
     """Segment with the settings of ``scale``, take the median equivalent diameter of the segments not touching the
     border as the next scale, until it moves less than 10 % (a few rounds). Returns (scale, whether it settled with
     the segments' median within CONSISTENT of it, mean separability). The LoG sees a particle's core (faceted,
@@ -396,7 +406,7 @@ def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: flo
         separability = float(np.mean(separabilities))
         if d.size == 0:
             return scale, False, separability
-        new = area_weighted_median(d)
+        new = area_weighted_median(d) if weighted else float(np.median(d))
         settled = abs(math.log(new / scale)) < CONSISTENT
         if abs(math.log(new / scale)) < 0.1:
             return new, True, separability
