@@ -59,13 +59,6 @@ def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | 
     }
 
 
-def _instances(mask: np.ndarray) -> np.ndarray:
-    from scipy import ndimage as ndi
-
-    labels, _ = ndi.label(mask == 1)  # 4-connected: scipy's default structure
-    return labels
-
-
 def calibrate_split(
     model, pairs: Sequence, grid: Mapping | None = None, split_smooth: float = 1.0, progress: bool = False, **predict_kw
 ) -> dict:
@@ -86,7 +79,7 @@ def calibrate_split(
     probs, truths = [], []
     for pair in iterator:
         probs.append(predict_probs(model, pair.image, **predict_kw))
-        truths.append(_instances(pair.mask))
+        truths.append(binarize_and_label(pair.mask))  # the particle class's 4-connected components
     table = []
     for depth in settings["depths"]:
         for core in settings["cores"]:
