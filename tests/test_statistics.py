@@ -56,6 +56,20 @@ def test_sizes_and_counts_of_a_hand_made_prediction_are_exact():
     assert len(pooled(true)) == 3 and np.isnan(stats["median_error"]["low"])  # no bootstrap asked
 
 
+def test_specks_below_the_minimum_area_are_neither_counted_nor_sized():
+    # a 1-px speck, a 2 x 2 and a 2 x 4 blob (4 and 8 px^2), a 10 x 10 particle, a 1-px speck on the border
+    found = particles(squares(40, [(3, 3, 1, 1), (10, 3, 2, 2), (20, 3, 2, 4), (20, 20, 10, 10), (0, 39, 1, 1)]))
+    kept = found.at_least(8)
+    assert kept.count == 2 and list(kept.area) == [8, 100] and not kept.border.any()
+    assert found.at_least(0).count == 5 and found.at_least(101).count == 0
+    # Both sides alike: a prediction without the truth's specks is exact once they are left out on both.
+    true = [found]
+    pred = [particles(squares(40, [(20, 3, 2, 4), (20, 20, 10, 10)]))]
+    assert compare_sizes(pred, true, n_boot=0)["count_error"]["value"] == pytest.approx(2 / 5 - 1)
+    exact = compare_sizes([p.at_least(8) for p in pred], [t.at_least(8) for t in true], n_boot=0)
+    assert exact["count_error"]["value"] == 0 and exact["median_error"]["value"] == 0
+
+
 def test_distances_equal_scipys():
     rng = np.random.default_rng(0)
     for n, m in ((5, 7), (40, 40), (100, 13)):
@@ -121,6 +135,42 @@ def test_evaluate_writes_particle_statistics_and_the_classical_baseline_finds_th
     assert (
         "## Where particles are lost" in text and "sources/merged" in (tmp_path / "out" / "statistics.csv").read_text()
     )
+
+
+def test_evaluate_leaves_specks_out_of_the_statistics_on_both_sides(tmp_path):
+    from drgan.errors import ConfigError
+    from drgan.evaluate import evaluate
+
+    ids = ["a", "b"]
+    labels = {i: disc_labels(48, n=3, radius=6.0, seed=k) for k, i in enumerate(ids)}
+    masks = {i: (labels[i] > 0) * 255 for i in ids}
+    masks["a"][2, 40] = masks["a"][45, 2] = masks["a"][44, 44] = 255  # three 1-px specks in one annotation
+    data = make_real(
+        tmp_path / "real", {i: disc_image(labels[i], seed=k) for k, i in enumerate(ids)}, masks, {"train": [], "test": ids}
+    )
+
+    class Clean:  # finds every particle and no speck
+        source, how = "clean", ""
+
+        def check(self, items):
+            pass
+
+        def __call__(self, item):
+            return (labels[item.id] > 0).astype(np.uint8)
+
+    def count_error(min_area):
+        cfg = eval_cfg(data, tmp_path / f"out{min_area}", ["bootstrap=0", f"min_area_px={min_area}"])
+        return evaluate(cfg, predictors={"clean": Clean()})["statistics"]["clean"]["count_error"]["value"]
+
+    assert count_error(8) == 0
+    assert count_error(0) < 0  # the specks count as particles the prediction missed
+
+    class Never(Clean):
+        def __call__(self, item):
+            raise AssertionError("predicted before the settings were checked")
+
+    with pytest.raises(ConfigError, match="min_area_px"):
+        evaluate(eval_cfg(data, tmp_path / "bad", ["min_area_px=-1"]), predictors={"never": Never()})
 
 
 def test_error_sources_name_what_became_of_each_true_particle():

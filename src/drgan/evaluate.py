@@ -185,6 +185,7 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     if not cfg.get("data"):
         raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")
     data_dir = check_dataset_folder(cfg.data, "data", REAL_DATASET)  # before any checkpoint is read
+    statistics_min_area(cfg)
     if predictors is None:
         inference = dict(cfg.inference)
         predictors = {f"run{k}": load_predictor(m, inference) for k, m in enumerate(model_sources(cfg))}
@@ -249,6 +250,18 @@ def summed_sources(per_image: list[dict]) -> dict:
     return total
 
 
+def statistics_min_area(cfg: DictConfig) -> float:
+    """``min_area_px`` (px^2, >= 0): components below it are specks in the statistics, on both sides."""
+    value = cfg.get("min_area_px", 0)
+    try:
+        area = float(0 if value is None else value)
+    except (TypeError, ValueError):
+        area = -1.0
+    if not area >= 0:
+        raise ConfigError(f"evaluate: min_area_px={value!r}: expected an area in px^2 >= 0 (0: keep every component)")
+    return area
+
+
 def particle_statistics(
     cfg: DictConfig, out: Path, found: dict, truth: list, ids: list[str], sources: dict | None = None
 ) -> dict:
@@ -257,6 +270,9 @@ def particle_statistics(
     with ``sources`` (per run, error_sources of each image), "sources": summed_sources}."""
     n_boot, seed = int(cfg.get("bootstrap", 1000)), int(cfg.get("seed", 0))
     nm = cfg.get("nm_per_px")
+    min_area = statistics_min_area(cfg)
+    truth = [t.at_least(min_area) for t in truth]
+    found = {run: [p.at_least(min_area) for p in mine] for run, mine in found.items()}
     result = {}
     for run, mine in found.items():
         result[run] = compare_sizes(mine, truth, n_boot=n_boot, seed=seed)
