@@ -146,7 +146,10 @@ def test_evaluate_leaves_specks_out_of_the_statistics_on_both_sides(tmp_path):
     masks = {i: (labels[i] > 0) * 255 for i in ids}
     masks["a"][2, 40] = masks["a"][45, 2] = masks["a"][44, 44] = 255  # three 1-px specks in one annotation
     data = make_real(
-        tmp_path / "real", {i: disc_image(labels[i], seed=k) for k, i in enumerate(ids)}, masks, {"train": [], "test": ids}
+        tmp_path / "real",
+        {i: disc_image(labels[i], seed=k) for k, i in enumerate(ids)},
+        masks,
+        {"train": [], "test": ids},
     )
 
     class Clean:  # finds every particle and no speck
