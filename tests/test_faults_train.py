@@ -2,7 +2,9 @@
 
 Each killed-and-resumed run must end where an uninterrupted run with the same seed ends: the same epoch and
 step counts, the same generator weights, one FID per epoch, and one MLflow run whose every metric has strictly
-increasing steps. Tiny sizes (24 px, spp 1, 3 particles, 3 steps per epoch, random-projection "FID").
+increasing steps. Tiny sizes (24 px, spp 1, 3 particles, 3 steps per epoch, random-projection "FID"). Each case runs two to three
+training processes (~80 s for the mid-epoch kill on a 2-core machine): the whole module is `slow` (`make test-slow`,
+CI); the default run resumes in-process (test_train.py, test_callbacks.py).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import pytest
 import torch
 from test_train import make_images, tiny_overrides
 
+pytestmark = pytest.mark.slow
 TESTS = Path(__file__).resolve().parent
 EPOCHS, BATCHES = 3, 3
 
@@ -91,10 +94,7 @@ KILLS = {
 }
 
 
-# mid_epoch runs by default; the other kill points are the same machinery at other hooks (`make test-slow`, CI).
-@pytest.mark.parametrize(
-    "kill", [pytest.param(k, marks=[] if k == "mid_epoch" else pytest.mark.slow) for k in sorted(KILLS)]
-)
+@pytest.mark.parametrize("kill", sorted(KILLS))
 def test_killed_run_resumes_to_the_uninterrupted_result(kill, images, reference, tmp_path):
     out = tmp_path / "run"
     marker = tmp_path / "killed"
@@ -134,7 +134,6 @@ def test_killed_run_resumes_to_the_uninterrupted_result(kill, images, reference,
     assert len(fids) == EPOCHS
 
 
-@pytest.mark.slow
 def test_kill_before_first_checkpoint_marks_the_mlflow_run_killed(images, tmp_path):
     out = tmp_path / "run"
     marker = tmp_path / "killed"

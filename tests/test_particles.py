@@ -61,6 +61,38 @@ def test_scale_bar_and_text_are_not_particles():
     assert abs(np.median(d) / 20 - 1) < 0.1 and abs(params.scale / 20 - 1) < 0.15
 
 
+def figure_crop(polarity: str) -> tuple[np.ndarray, float]:
+    """A figure as users crop it from a paper: particles, a label box "d" with a grey frame top left, and the
+    microscope's data bar along the bottom (near-white, framed, with text), saved as JPEG (grey ringing at every
+    edge, no pixel exactly white)."""
+    import io
+
+    image, _, _ = discs(size=320, diameter=28, n=14, polarity=polarity, seed=4)
+    canvas = Image.fromarray((image * 255).astype(np.uint8))
+    pen = ImageDraw.Draw(canvas)
+    pen.rectangle((6, 6, 52, 52), fill=170)  # the label box's frame
+    pen.rectangle((12, 12, 46, 46), fill=250)
+    pen.text((20, 14), "d", fill=0, font=ImageFont.load_default(size=26))
+    pen.rectangle((0, 282, 319, 319), fill=165)  # the data bar's frame
+    pen.rectangle((4, 286, 315, 315), fill=248)
+    pen.text((10, 290), "EHT = 3.00 kV   WD = 4.0 mm   Mag = 8.02 K X", fill=0, font=ImageFont.load_default(size=11))
+    pen.rectangle((10, 308, 60, 310), fill=0)  # its scale bar
+    buffer = io.BytesIO()
+    canvas.save(buffer, format="JPEG", quality=75)
+    return np.asarray(Image.open(buffer), np.float32) / 255, 28.0
+
+
+@pytest.mark.parametrize("polarity", ["bright", "dark"])
+def test_a_data_bar_and_a_label_box_with_frames_are_not_particles(polarity):
+    image, diameter = figure_crop(polarity)
+    mask = P.annotation_mask(image)
+    assert mask[282:, :].mean() > 0.95 and mask[6:53, 6:53].mean() > 0.95  # bar and box with their frames
+    assert mask[60:270, 60:310].mean() < 0.01  # the field itself is left alone
+    params, labels, d = measured(image, polarity)
+    assert not (labels > 0)[282:].any() and not (labels > 0)[6:53, 6:53].any()
+    assert abs(np.median(d) / diameter - 1) < 0.1 and abs(params.scale / diameter - 1) < 0.15
+
+
 def test_touching_particles_are_split():
     image, _, centres = discs(size=160, diameter=26, n=14, seed=3, gap=-3.0)  # neighbours overlap by up to 3 px
     _, labels, _ = measured(image, "bright")

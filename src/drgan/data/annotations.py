@@ -41,16 +41,18 @@ def _unit(array: np.ndarray) -> np.ndarray:
 # Annotations are drawn in (nearly) pure black or white: pixels within this of 0 or 1 are candidates.
 ANNOTATION_LEVEL = 0.06
 EDGE_BAND = 0.2  # text and panel letters lie within this share of the image size from an edge
+FRAME_SHARE = 0.15  # a label box or data bar is masked with a margin of this share of its narrow side (its frame)
 
 
 def annotation_mask(grey: np.ndarray) -> np.ndarray:
     """Scale bars, their text, panel letters and label boxes: bool (H, W).
 
-    A candidate is an 8-connected group of pixels within ANNOTATION_LEVEL of pure black or pure white. It is an
-    annotation when it is a solid bar (long, thin, filling its box; anywhere), a solid box (a rectangle that fills
-    its box and lies within EDGE_BAND of an edge) or a character: small, drawn with strokes much thinner than its
-    height, within EDGE_BAND of an edge or beside another annotation. Particles are blobs (their thickness is their
-    size) and are not drawn in exactly one grey, so they stay. The mask is grown by 2 px (anti-aliased edges)."""
+        A candidate is an 8-connected group of pixels within ANNOTATION_LEVEL of pure black or pure white. It is an
+        annotation when it is a solid bar (long, thin, filling its box; anywhere), a solid box (a rectangle that fills
+        its box and lies within EDGE_BAND of an edge) or a character: small, drawn with strokes much thinner than its
+        height, within EDGE_BAND of an edge or beside another annotation; or an info band (most of the width, along the
+    top or bottom, holes filled: a data bar with its text); boxes and bands are masked whole with their frame. Particles are blobs (their thickness is their
+        size) and are not drawn in exactly one grey, so they stay. The mask is grown by 2 px (anti-aliased edges)."""
     grey = np.asarray(grey, np.float32)
     h, w = grey.shape
     short = min(h, w)
@@ -80,7 +82,15 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
             filled = ndi.binary_fill_holes(own).mean()
             box_ = near_edge and filled >= 0.92 and narrow >= 0.03 * short and long_ <= 0.5 * short
             char = long_ <= 0.15 * short and thick <= max(2.5, 0.45 * long_) and long_ >= 3
-            if bar or box_:
+            # an info band: a microscope's data bar kept in a figure (JPEG grey, so not found by read_grey's exact
+            # black/white rows): across most of the width, along the top or bottom, its text inside
+            band_ = bw >= 0.6 * w and bh <= 0.3 * h and (rows.start <= band or h - rows.stop <= band) and filled >= 0.8
+            if band_ or box_:
+                # a solid box with its frame: figures draw label boxes and data bars with a grey or anti-aliased
+                # border (JPEG rings besides), a bright or dark ring around the box that is not a particle
+                m = int(min(max(2.0, FRAME_SHARE * narrow), 0.03 * short))
+                mask[max(rows.start - m, 0) : rows.stop + m, max(cols.start - m, 0) : cols.stop + m] = True
+            elif bar:
                 mask[box] |= own
             elif char:
                 chars[index] = near_edge
