@@ -33,6 +33,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.feature import peak_local_max
 from skimage.filters import threshold_otsu
+from skimage.morphology import h_maxima
 from skimage.segmentation import watershed
 
 from drgan.data.annotations import ANNOTATION_LEVEL, EDGE_BAND, annotation_mask, as_grey  # noqa: F401 (re-exported)
@@ -65,6 +66,10 @@ class SegmentParams:
     max_area: int | None = None  # larger segments are unsplit agglomerates, px^2; None: disc of 4 scale
     background: float | None = None  # illumination flattened at this size, px (0: not); None: 3 scale
     annotations: bool = True  # find scale bars, text and panel letters, and leave them out
+    # A watershed seed is a maximum of the foreground's distance transform that stands this many px above the
+    # saddle to its neighbour (h-maxima): a pixel-jagged outline (noise, JPEG) puts several maxima < 1 px deep into
+    # one round particle, which split it into fragments; 0: every local maximum min_distance apart seeds.
+    seed_depth: float = 1.0
     # Otsu's between-class / total variance around the blobs of the particles' size. Smoothed noise scores
     # 0.635-0.64 (2/pi for Gaussian noise) at any scale; particles at their own scale 0.66-0.91 (EMPS, most > 0.7).
     min_separability: float = 0.66
@@ -83,6 +88,8 @@ class SegmentParams:
             raise ConfigError(
                 f"data.segment min_area={low}, max_area={high}: expected 0 < min_area <= max_area (px^2) or null"
             )
+        if not (isinstance(self.seed_depth, (int, float)) and 0 <= self.seed_depth < math.inf):
+            raise ConfigError(f"data.segment.seed_depth={self.seed_depth!r}: expected a depth >= 0 px")
         if not 0 <= self.min_separability < 1:
             raise ConfigError(f"data.segment.min_separability={self.min_separability}: expected in [0, 1)")
 
@@ -532,6 +539,8 @@ def split_touching(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
     peaks = peak_local_max(distance, min_distance=params.min_distance, labels=components, exclude_border=False)
     seed_mask = np.zeros(foreground.shape, bool)
     seed_mask[tuple(peaks.T)] = True
+    if params.seed_depth > 0:
+        seed_mask &= h_maxima(distance, params.seed_depth).astype(bool)
     seeds, _ = ndi.label(seed_mask)  # a flat top (plateau) yields adjacent peaks: one seed, not several
     return watershed(-distance, seeds, mask=foreground).astype(np.int32)
 
