@@ -3,6 +3,8 @@ touching particles, an empty field, 16-bit and RGB input)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from PIL import Image, ImageDraw, ImageFont
@@ -91,6 +93,26 @@ def test_a_data_bar_and_a_label_box_with_frames_are_not_particles(polarity):
     params, labels, d = measured(image, polarity)
     assert not (labels > 0)[282:].any() and not (labels > 0)[6:53, 6:53].any()
     assert abs(np.median(d) / diameter - 1) < 0.1 and abs(params.scale / diameter - 1) < 0.15
+
+
+def test_thin_strands_are_not_cut_into_particle_sized_fragments():
+    """A film wrinkle (a wavy strand 3-7 px wide): every local maximum of its distance transform along its length
+    would seed a segment; only 1-px-deep maxima (seed_depth, h-maxima) do, so it stays a few pieces."""
+    params = P.SegmentParams(scale=15).resolved()
+    rows = np.arange(96)[:, None]
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        x = np.arange(140)
+        middle = 48 + 10 * np.sin(x / 12.0) + np.cumsum(rng.normal(0, 0.4, x.size))
+        half_width = 1.5 + np.abs(np.cumsum(rng.normal(0, 0.3, x.size))).clip(0, 2)
+        strand = np.zeros((96, 160), bool)
+        strand[:, 10:150] = np.abs(rows - middle) <= half_width
+        every_maximum = len(P.segment_diameters(P.split_touching(strand, replace(params, seed_depth=0.0)), params))
+        deep_maxima = len(P.segment_diameters(P.split_touching(strand, params), params))
+        assert every_maximum >= 20 and deep_maxima <= every_maximum / 2.5, (seed, every_maximum, deep_maxima)
+    yy, xx = np.mgrid[:64, :64]
+    pair = (np.hypot(yy - 32, xx - 24) <= 8) | (np.hypot(yy - 32, xx - 40) <= 8)  # two touching discs stay two
+    assert len(np.unique(P.split_touching(pair, params))) - 1 == 2
 
 
 def test_touching_particles_are_split():
