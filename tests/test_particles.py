@@ -11,7 +11,7 @@ from PIL import Image, ImageDraw, ImageFont
 from scipy import ndimage as ndi
 
 from drgan.data import particles as P
-from drgan.errors import DataError
+from drgan.errors import ConfigError, DataError
 
 
 def discs(size=192, diameter=24.0, n=12, polarity="bright", noise=0.02, grain=0.0, seed=0, gap=3.0):
@@ -97,8 +97,8 @@ def test_a_data_bar_and_a_label_box_with_frames_are_not_particles(polarity):
 
 def test_thin_strands_are_not_cut_into_particle_sized_fragments():
     """A film wrinkle (a wavy strand 3-7 px wide): every local maximum of its distance transform along its length
-    would seed a segment; only 1-px-deep maxima (seed_depth, h-maxima) do, so it stays a few pieces."""
-    params = P.SegmentParams(scale=15).resolved()
+    seeds a segment (the default); with seed_depth=1 only 1-px-deep maxima (h-maxima) do, so it stays a few pieces."""
+    params = P.SegmentParams(scale=15, seed_depth=1.0).resolved()
     rows = np.arange(96)[:, None]
     for seed in range(4):
         rng = np.random.default_rng(seed)
@@ -113,6 +113,9 @@ def test_thin_strands_are_not_cut_into_particle_sized_fragments():
     yy, xx = np.mgrid[:64, :64]
     pair = (np.hypot(yy - 32, xx - 24) <= 8) | (np.hypot(yy - 32, xx - 40) <= 8)  # two touching discs stay two
     assert len(np.unique(P.split_touching(pair, params))) - 1 == 2
+    assert P.SegmentParams().seed_depth == 0  # off by default (it merges touching TiO2 particles)
+    with pytest.raises(ConfigError, match="seed_depth"):
+        P.SegmentParams(seed_depth=-1)
 
 
 def test_touching_particles_are_split():

@@ -66,12 +66,13 @@ class SegmentParams:
     max_area: int | None = None  # larger segments are unsplit agglomerates, px^2; None: disc of 4 scale
     background: float | None = None  # illumination flattened at this size, px (0: not); None: 3 scale
     annotations: bool = True  # find scale bars, text and panel letters, and leave them out
-    # A watershed seed is a maximum of the foreground's distance transform that stands this many px above the
-    # saddle to its neighbour (h-maxima). Thin foreground (film wrinkles and lines, grain strands, rims) has a
-    # maximum every min_distance along its length, each < 1 px deep: without this it breaks into many
-    # particle-sized "segments" that pull the measured scale down (EMPS 2c6c108b4d: 6.9 -> 13.7 px, instances 15.1
-    # px). Touching particles' necks are deeper. 0: every local maximum min_distance apart seeds.
-    seed_depth: float = 1.0
+    # A watershed seed must stand this many px above the saddle to its neighbour in the foreground's distance
+    # transform (h-maxima). Thin foreground (film wrinkles and lines, grain strands, rims) has a maximum every
+    # min_distance along its length, each < 1 px deep, and breaks into particle-sized "segments" that pull the
+    # measured scale down; 1 px fixes that (EMPS 2c6c108b4d: 6.9 -> 13.7 px, instances 15.1 px) but also merges
+    # touching TiO2 particles, whose necks are as shallow (tio2_sem patch count -17 % -> -34 %), so it is off by
+    # default: a key to set for images with strands (experiments/profile/README.md). 0: every maximum seeds.
+    seed_depth: float = 0.0
     # Otsu's between-class / total variance around the blobs of the particles' size. Smoothed noise scores
     # 0.635-0.64 (2/pi for Gaussian noise) at any scale; particles at their own scale 0.66-0.91 (EMPS, most > 0.7).
     min_separability: float = 0.66
