@@ -116,6 +116,7 @@ def reference(tiny_run, tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow  # a generation process killed and rerun against a reference run (~10-18 s each)
 def test_generate_killed_by_sigkill_resumes_to_the_same_dataset(tiny_run, reference, tmp_path):
     """An outside SIGKILL at a random moment, once at least 2 items are done."""
     out = tmp_path / "data"
@@ -170,6 +171,7 @@ runpy.run_module("drgan.generate", run_name="__main__")
 """
 
 
+@pytest.mark.slow  # a generation process killed and rerun against a reference run (~10-18 s each)
 def test_generate_killed_between_an_items_files_leaves_no_unpaired_item(tiny_run, reference, tmp_path):
     out = tmp_path / "data"
     result = subprocess.run(
