@@ -2,9 +2,9 @@
 
 Each killed-and-resumed run must end where an uninterrupted run with the same seed ends: the same epoch and
 step counts, the same generator weights, one FID per epoch, and one MLflow run whose every metric has strictly
-increasing steps. Tiny sizes (24 px, spp 1, 3 particles, 3 steps per epoch, random-projection "FID"). Each case runs two to three
-training processes (~80 s for the mid-epoch kill on a 2-core machine): the whole module is `slow` (`make test-slow`,
-CI); the default run resumes in-process (test_train.py, test_callbacks.py).
+increasing steps. Tiny sizes (24 px, spp 1, 3 particles, 3 steps per epoch, random-projection "FID"). Each case
+runs two to three training processes (~80 s for the mid-epoch kill on a 2-core machine): the whole module is `slow`
+(`make test-slow`, CI); the default run resumes in-process (test_train.py, test_callbacks.py).
 """
 
 from __future__ import annotations

@@ -13,13 +13,19 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
+from omegaconf import OmegaConf
+
+import drgan
 from drgan.checkpoint_io import add_entry
 from drgan.segmentation.calibrate import CHECKPOINT_KEY, as_array_free, calibrate_split, markdown_table
 from drgan.segmentation.data import load_generated_pairs
 from drgan.segmentation.registry import load_segmenter
 
-GRID = {"cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98], "depths": [1.0, 2.0], "max_pairs": 100}  # segment.yaml's
+# drgan.segment's own grid (segment.yaml's split_calibration), so both choose among the same splits
+SEGMENT_YAML = Path(drgan.__file__).parent / "conf" / "segmentation" / "segment.yaml"
+GRID = OmegaConf.to_container(OmegaConf.load(SEGMENT_YAML).split_calibration)
 
 
 def main() -> None:

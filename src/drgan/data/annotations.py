@@ -47,12 +47,13 @@ FRAME_SHARE = 0.15  # a label box or data bar is masked with a margin of this sh
 def annotation_mask(grey: np.ndarray) -> np.ndarray:
     """Scale bars, their text, panel letters and label boxes: bool (H, W).
 
-        A candidate is an 8-connected group of pixels within ANNOTATION_LEVEL of pure black or pure white. It is an
-        annotation when it is a solid bar (long, thin, filling its box; anywhere), a solid box (a rectangle that fills
-        its box and lies within EDGE_BAND of an edge) or a character: small, drawn with strokes much thinner than its
-        height, within EDGE_BAND of an edge or beside another annotation; or an info band (most of the width, along the
-    top or bottom, holes filled: a data bar with its text); boxes and bands are masked whole with their frame. Particles are blobs (their thickness is their
-        size) and are not drawn in exactly one grey, so they stay. The mask is grown by 2 px (anti-aliased edges)."""
+    A candidate is an 8-connected group of pixels within ANNOTATION_LEVEL of pure black or pure white. It is an
+    annotation when it is a solid bar (long, thin, filling its box; anywhere), a solid box (a rectangle that fills
+    its box and lies within EDGE_BAND of an edge), an info band (across most of the width along the top or bottom,
+    holes filled: a microscope's data bar with its text) or a character: small, drawn with strokes much thinner
+    than its height, within EDGE_BAND of an edge or beside another annotation. Boxes and bands are masked whole,
+    with their frame (FRAME_SHARE). Particles are blobs (their thickness is their size) and are not drawn in
+    exactly one grey, so they stay. The mask is grown by 2 px (anti-aliased edges)."""
     grey = np.asarray(grey, np.float32)
     h, w = grey.shape
     short = min(h, w)
