@@ -165,6 +165,84 @@ def test_an_all_ignored_crop_gives_a_finite_loss_and_gradients():
         assert loss(logits, batch).item() == pytest.approx(loss(logits[:1], batch[:1]).item(), rel=1e-6)
 
 
+def test_contact_pixels_are_the_line_between_touching_particles_and_narrow_gaps():
+    from drgan.scene.labels import IGNORE
+    from drgan.segmentation.module import contact_pixels
+
+    # class_mask draws a 1-px contour inside each instance: two touching 6 x 6 squares have a 2-px contour line
+    # between their interiors; a pair with 3 background columns between them has 5 non-particle columns between
+    # their interiors (contour, 3 background, contour); a lone square has particle on one side of its outline only.
+    labels = np.zeros((24, 40), np.int32)
+    labels[3:9, 3:9], labels[3:9, 9:15] = 1, 2  # touching
+    labels[15:21, 3:9] = 3  # alone (6 rows below the pair)
+    labels[3:9, 22:28], labels[3:9, 31:37] = 4, 5  # 3 columns of background between them
+    target = torch.from_numpy(class_mask(labels, 1).astype(np.int64))[None]
+    assert (target[0, 4:8, 8:10] == 2).all() and (target[0, 4:8, 28:31] == 0).all()
+    expected = np.zeros((24, 40), bool)
+    expected[4:8, 8:10] = True  # the contact line, beside the interiors (rows 4-7)
+    expected[4:8, 29] = True  # the gap's middle column: interiors 3 px away on either side
+    contact = contact_pixels(target, reach=3)[0].numpy()
+    np.testing.assert_array_equal(contact, expected)
+    # reach 2: the contact line still, the gap no more
+    expected[4:8, 29] = False
+    np.testing.assert_array_equal(contact_pixels(target, reach=2)[0].numpy(), expected)
+    # Ignored pixels are never contact pixels.
+    ignored = target.clone()
+    ignored[0, 4:8, 8] = IGNORE
+    assert not contact_pixels(ignored, reach=3)[0, 4:8, 8].any() and contact_pixels(ignored, reach=3)[0, 4:8, 9].all()
+    with pytest.raises(ValueError, match="reach=0"):
+        contact_pixels(target, reach=0)
+
+
+def test_contact_weighted_cross_entropy_matches_a_hand_computation_and_trains_the_contact_harder():
+    import torch.nn.functional as F
+
+    from drgan.scene.labels import IGNORE
+    from drgan.segmentation.module import SegmenterModule, contact_pixels, cross_entropy
+
+    gen = torch.Generator().manual_seed(3)
+    labels = np.zeros((16, 16), np.int32)
+    labels[2:14, 2:8], labels[2:14, 8:14] = 1, 2
+    target = torch.from_numpy(class_mask(labels, 1).astype(np.int64))[None].repeat(2, 1, 1)
+    target[1, :3] = IGNORE
+    logits = torch.randn(2, 3, 16, 16, generator=gen)
+    weight = 1.0 + 4.0 * contact_pixels(target).float()
+    per_pixel = F.cross_entropy(logits, torch.where(target == IGNORE, 0, target), reduction="none").double()
+    valid = (target != IGNORE).double()
+    hand = float((weight.double() * valid * per_pixel).sum() / (weight.double() * valid).sum())
+    assert cross_entropy(logits, target, weight=weight).item() == pytest.approx(hand, rel=1e-6)
+    assert cross_entropy(logits, target, weight=torch.ones(2, 16, 16)).item() == pytest.approx(
+        cross_entropy(logits, target).item(), rel=1e-6
+    )
+    # A prediction that misses only the contact line costs more with the weight than without it.
+    perfect = 8.0 * F.one_hot(torch.where(target == IGNORE, 0, target), 3).permute(0, 3, 1, 2).float()
+    contact = contact_pixels(target)
+    merged = torch.where(contact[:, None], 8.0 * F.one_hot(torch.ones_like(target), 3).permute(0, 3, 1, 2), perfect)
+    plain = SegmenterModule(depth=2, base=4)
+    weighted = SegmenterModule(depth=2, base=4, contact_weight=9.0)
+    assert weighted.hparams.contact_weight == 9.0 and plain.hparams.contact_weight == 0.0
+    ratio = cross_entropy(merged, target, weight=1.0 + 9.0 * contact.float()) / cross_entropy(merged, target)
+    share = contact.sum() / (target != IGNORE).sum()
+    # (the right pixels' cross-entropy, ~1e-3 each at logit 8, makes it approximate)
+    assert ratio.item() == pytest.approx(10.0 / (1 + 9.0 * share.item()), rel=0.01) and ratio.item() > 4
+    # The module's loss uses it: the same logits give a higher loss on the merged prediction.
+    image = torch.rand(2, 1, 16, 16, generator=gen)
+    torch.manual_seed(0)
+    a = SegmenterModule(depth=2, base=4)
+    torch.manual_seed(0)
+    b = SegmenterModule(depth=2, base=4, contact_weight=9.0)
+    _, ce_a, _, _ = a._losses((image, target))
+    _, ce_b, _, _ = b._losses((image, target))
+    logits = a(image).detach()
+    assert ce_a.item() == pytest.approx(cross_entropy(logits, target).item(), rel=1e-5)
+    assert ce_b.item() == pytest.approx(cross_entropy(logits, target, weight=1.0 + 9.0 * contact.float()).item(), rel=1e-5)
+    for bad, match in ((-1.0, "contact_weight=-1.0"), (float("nan"), "contact_weight=nan")):
+        with pytest.raises(ConfigError, match=match):
+            SegmenterModule(depth=2, base=4, contact_weight=bad)
+    with pytest.raises(ConfigError, match="contact_reach=0"):
+        SegmenterModule(depth=2, base=4, contact_reach=0)
+
+
 def test_crops_carry_the_ignore_value_unchanged():
     from drgan.scene.labels import IGNORE
     from drgan.segmentation.data import CropDataset, Pair

@@ -1,5 +1,10 @@
 """SegmenterModule: U-Net, loss = soft Dice (mean over classes) + cross-entropy, Adam.
 
+Touching particles: the cross-entropy can weigh the pixels between two particles (the contact line of the contour
+class, and narrow background gaps) ``1 + contact_weight`` times (`contact_pixels`): the weight map of Ronneberger et
+al. (U-Net, 2015), who weighed the borders between touching cells so the network learns to separate them, here as a
+binary map found from the class mask alone (no instance labels needed, so real masks and generated ones alike).
+
 Logged keys: train/loss, train/ce, train/dice_loss, val/loss, val/dsc (particle-class Dice of the argmax
 map, over the whole validation batch). Mask pixels of value ``IGNORE`` (255, drgan.scene.labels: the particles of
 a partial background) count nowhere: cross-entropy averages over the other pixels (``ignore_index``), the soft
@@ -9,16 +14,26 @@ load by the ``_target_`` among their hyperparameters; ``load_segmenter`` is the 
 
 from __future__ import annotations
 
+import math
+
 import lightning.pytorch as L
 import torch
 import torch.nn.functional as F
 
+from drgan.errors import ConfigError
 from drgan.scene.labels import IGNORE
 from drgan.segmentation.data import check_normalize
 from drgan.segmentation.registry import load_segmenter, register_segmenter
 from drgan.segmentation.unet import UNet
 
-__all__ = ["SegmenterModule", "cross_entropy", "load_segmenter", "particle_dsc", "soft_dice_loss"]
+__all__ = [
+    "SegmenterModule",
+    "contact_pixels",
+    "cross_entropy",
+    "load_segmenter",
+    "particle_dsc",
+    "soft_dice_loss",
+]
 
 
 def soft_dice_loss(
@@ -36,11 +51,53 @@ def soft_dice_loss(
     return 1.0 - ((2 * inter + eps) / (total + eps)).mean()
 
 
-def cross_entropy(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE) -> torch.Tensor:
-    """Mean cross-entropy over the pixels whose target is not ``ignore_index``; 0 (with zero gradients) when all are
-    ignored, where torch's mean would divide 0 by 0."""
-    total = F.cross_entropy(logits, target, ignore_index=ignore_index, reduction="sum")
-    return total / (target != ignore_index).sum().clamp(min=1)
+def cross_entropy(
+    logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE, weight: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Mean cross-entropy over the pixels whose target is not ``ignore_index``, each weighted by ``weight`` (B, H, W)
+    when given (a weighted mean: sum w ce / sum w); 0 (with zero gradients) when all are ignored, where torch's mean
+    would divide 0 by 0."""
+    valid = target != ignore_index
+    if weight is None:
+        total = F.cross_entropy(logits, target, ignore_index=ignore_index, reduction="sum")
+        return total / valid.sum().clamp(min=1)
+    per_pixel = F.cross_entropy(logits, target, ignore_index=ignore_index, reduction="none")
+    weight = weight.to(per_pixel.dtype) * valid
+    return (weight * per_pixel).sum() / weight.sum().clamp(min=1e-12)
+
+
+# Row, column and both diagonals: a pixel lies between two particles when it has particle pixels on both sides along one.
+_DIRECTIONS = ((0, 1), (1, 0), (1, 1), (1, -1))
+
+
+def _shifted(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
+    """x (B, H, W) moved so that out[y, x] = x[y + dy, x + dx], zero where that falls outside."""
+    h, w = x.shape[-2:]
+    out = torch.zeros_like(x)
+    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+    out[..., yd, xd] = x[..., ys, xs]
+    return out
+
+
+def contact_pixels(target: torch.Tensor, reach: int = 3, ignore_index: int = IGNORE) -> torch.Tensor:
+    """bool (B, H, W): the pixels of ``target`` (B, H, W; 0 background, 1 particle, 2 contour) that are not particle
+    (nor ignored) and have particle pixels on two opposite sides within ``reach`` px, along a row, a column or a
+    diagonal: the contact line between touching particles (contour class) and narrow gaps between close ones, where a
+    segmenter merges neighbours. A lone particle's outline has particle on one side only; a concave outline
+    (a bean's waist) within ``reach`` counts too."""
+    if reach < 1:
+        raise ValueError(f"contact_pixels: reach={reach}, expected >= 1 px")
+    particle = target == 1
+    contact = torch.zeros_like(particle)
+    for dy, dx in _DIRECTIONS:
+        ahead = torch.zeros_like(particle)
+        behind = torch.zeros_like(particle)
+        for step in range(1, reach + 1):
+            ahead |= _shifted(particle, step * dy, step * dx)
+            behind |= _shifted(particle, -step * dy, -step * dx)
+        contact |= ahead & behind
+    return contact & ~particle & (target != ignore_index)
 
 
 def particle_dsc(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE) -> torch.Tensor:
@@ -63,10 +120,16 @@ class SegmenterModule(L.LightningModule):
         dice_weight: float = 1.0,
         ce_weight: float = 1.0,
         normalize: str = "none",
+        contact_weight: float = 0.0,
+        contact_reach: int = 3,
     ):
         super().__init__()
         # "none" by default: the synthetic images' grey levels are the real ones, so no normalisation is needed.
         check_normalize(normalize, "model.normalize")
+        if not (isinstance(contact_weight, (int, float)) and math.isfinite(contact_weight) and contact_weight >= 0):
+            raise ConfigError(f"model.contact_weight={contact_weight!r}: expected a number >= 0 (0: every pixel alike)")
+        if isinstance(contact_reach, bool) or not isinstance(contact_reach, int) or contact_reach < 1:
+            raise ConfigError(f"model.contact_reach={contact_reach!r}: expected a whole number of px >= 1")
         self.save_hyperparameters()
         self.net = UNet(1, n_classes, depth, base)
 
@@ -81,7 +144,10 @@ class SegmenterModule(L.LightningModule):
     def _losses(self, batch):
         image, mask = batch
         logits = self(image)
-        ce = cross_entropy(logits, mask)
+        weight = None
+        if self.hparams.get("contact_weight", 0.0) > 0:
+            weight = 1.0 + self.hparams.contact_weight * contact_pixels(mask, self.hparams.contact_reach).float()
+        ce = cross_entropy(logits, mask, weight=weight)
         dl = soft_dice_loss(logits, mask)
         return logits, ce, dl, self.hparams.ce_weight * ce + self.hparams.dice_weight * dl
 
