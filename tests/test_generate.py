@@ -504,27 +504,52 @@ def test_bad_parameters_are_refused_naming_what_is_expected(tiny_run, tmp_path):
 # --- grey_spread --------------------------------------------------------------------------------------------
 
 
-def test_match_grey_moves_both_means_exactly_and_keeps_labels_meaning():
-    from drgan.dataset.grey_spread import draw, match_grey
+def test_match_grey_moves_both_levels_exactly_and_keeps_labels_meaning():
+    from drgan.dataset.grey_spread import draw, grey_levels, match_grey
 
     labels = np.zeros((8, 8), np.int32)
     labels[2:5, 2:5] = 1
     image = np.where(labels > 0, 0.8, 0.5).astype(np.float32)
-    image[0, 0], image[7, 7] = 0.45, 0.55  # background noise: mean still 0.5
-    moved = match_grey(image, labels, (0.3, 0.9))
-    assert moved[labels == 0].mean() == pytest.approx(0.3, abs=1e-6)
-    assert moved[labels > 0].mean() == pytest.approx(0.9, abs=1e-6)
+    image[0, 0], image[7, 7] = 0.45, 0.55  # background noise: median still 0.5
+    moved = match_grey(image, labels, (0.3, 0.9), margin=0)
+    assert np.median(moved[labels == 0]) == pytest.approx(0.3, abs=1e-6)
+    assert np.median(moved[labels > 0]) == pytest.approx(0.9, abs=1e-6)
     assert moved[0, 0] == pytest.approx(0.3 - 0.05 * 2, abs=1e-6)  # deviations scaled by the contrast gain (2x)
-    dark = match_grey(image, labels, (0.8, 0.1))  # the direction may flip: the caller draws from its own polarity
-    assert dark[labels > 0].mean() == pytest.approx(0.1, abs=1e-6)
+    dark = match_grey(image, labels, (0.8, 0.1), margin=0)  # the direction may flip: the caller draws from its polarity
+    assert np.median(dark[labels > 0]) == pytest.approx(0.1, abs=1e-6)
     assert np.array_equal(match_grey(image, np.zeros_like(labels), (0.3, 0.9)), image)  # no particle: unchanged
     levels = np.array([[0.1, 0.2], [0.3, 0.4], [0.5, 0.6]])
     assert draw(levels, 7) == draw(levels, 7) and {draw(levels, s) for s in range(40)} == {tuple(r) for r in levels}
 
 
+def test_grey_levels_leave_edges_out_on_both_sides():
+    from drgan.dataset.grey_spread import grey_levels, match_grey
+
+    # A 10 x 10 particle of grey 0.8 with a 2-px bright rim (1.0, SEM edge brightening) and a 2-px halo (0.3) on a
+    # 0.1 background: the levels are those of the core and of the far background, whatever the rim and halo.
+    image = np.full((40, 40), 0.1, np.float32)
+    image[13:27, 13:27] = 0.3  # halo
+    image[15:25, 15:25] = 1.0  # rim
+    image[17:23, 17:23] = 0.8  # core
+    particle = np.zeros((40, 40), bool)
+    particle[15:25, 15:25] = True
+    assert grey_levels(image, particle) == pytest.approx((0.1, 0.8))
+    assert grey_levels(image, particle, margin=0)[1] == pytest.approx(1.0)  # the rim outnumbers the core: 64 vs 36 px
+    # an outline found 1 px too small (a classical threshold's) gives the levels of the true one with a wider margin
+    smaller = np.zeros_like(particle)
+    smaller[16:24, 16:24] = True
+    assert grey_levels(image, smaller, margin=3) == pytest.approx((0.1, 0.8))
+    moved = match_grey(image, particle, (0.2, 0.6))
+    assert grey_levels(moved, particle) == pytest.approx((0.2, 0.6), abs=1e-6)
+    # a particle thinner than twice the margin keeps all its pixels
+    thin = np.zeros_like(particle)
+    thin[5, 5:30] = True
+    assert grey_levels(image, thin)[1] == pytest.approx(float(np.median(image[thin])))
+
+
 def test_grey_spread_gives_each_image_a_real_patchs_grey_levels(tiny_run, tmp_path):
     from drgan.data.patches import PatchSet
-    from drgan.dataset.grey_spread import patch_grey_levels
+    from drgan.dataset.grey_spread import grey_levels, patch_grey_levels
 
     patches = PatchSet.load(tiny_run / "patches")
     levels = patch_grey_levels(patches.train, patches.params["segment"], patches.params["polarity"])
@@ -534,11 +559,10 @@ def test_grey_spread_gives_each_image_a_real_patchs_grey_levels(tiny_run, tmp_pa
     for item in ids(out):
         image = read(out / "images" / f"{item}.png").astype(np.float64) / 255
         labels = read(out / "labels" / f"{item}.png")
-        backgrounds.append(image[labels == 0].mean())
-        # one real patch's background mean (to 8-bit rounding); the particle mean is exact before clipping to [0, 1]
+        backgrounds.append(grey_levels(image, labels > 0)[0])
+        # one real patch's background grey (to 8-bit rounding); the particle grey is exact before clipping to [0, 1]
         # (test_match_grey_...), which moves it on these tiny, noisy 24 px renders
         assert np.abs(levels[:, 0] - backgrounds[-1]).min() < 0.01
-    assert np.ptp(backgrounds) > 0 or len(levels) == 1
     assert json.loads((out / "config.json").read_text())["fixed"]["grey_spread"] is True
     with pytest.raises(ConfigError, match="grey_spread"):  # a folder keeps its settings: resuming without it is refused
         run_generate(tiny_run, out, n_background=0)

@@ -6,9 +6,13 @@ settings, film thickness): on tio2_tsem the real 256-px windows' background grey
 percentile) and the generated set's 0.78-0.92 (experiments/realism/README.md). A segmenter trained on the narrow set
 calls the darkest real images all particle and the brightest all background (issue 29).
 
-With grey_spread, image i takes the (background, particle) mean grey of one real *train* patch, drawn with the
-image's own seed, and its grey levels are mapped by the affine function that sends its own background mean and
-particle mean (known exactly from its labels) there: x -> b' + (x - b) (p' - b') / (p - b), clipped to [0, 1].
+With grey_spread, image i takes the (background, particle) grey of one real *train* patch, drawn with the
+image's own seed, and its grey levels are mapped by the affine function that sends its own background and
+particle grey (from its labels) there: x -> b' + (x - b) (p' - b') / (p - b), clipped to [0, 1].
+Both sides measure alike (`grey_levels`): medians of the background beyond EDGE_MARGIN px from any particle and of
+the particles' cores (EDGE_MARGIN px in). Means over the whole classes were biased on the real side, whose classical
+foreground is not the true outline: on tio2_sem it leaves the particles' bright edges and dim parts to the
+background, whose mean then came out too bright for the darkest windows (5th percentile 1.56x the masks').
 Labels do not change; noise and texture scale with the contrast, as they do in a real image. The real patches'
 means come from drgan's classical segmentation with the patch set's own settings (no annotation is read), so they
 are what drgan's profile would measure.
@@ -21,10 +25,27 @@ import numpy as np
 from drgan.errors import DataError
 
 MIN_SHARE = 0.02  # a patch counts only when particles and background each cover at least this share of it
+EDGE_MARGIN = 2  # px: edges (blur, SEM edge brightening, a classical outline's offset) are left out of both levels
+
+
+def grey_levels(image: np.ndarray, particle: np.ndarray, margin: int = EDGE_MARGIN) -> tuple[float, float]:
+    """(background, particle) grey of ``image``: the median of the pixels farther than ``margin`` px from any
+    ``particle`` pixel, and the median of the particle pixels ``margin`` px inside their outline (all of either
+    class where nothing is left of it)."""
+    from scipy import ndimage as ndi
+
+    particle = np.asarray(particle, bool)
+    background, core = ~particle, particle
+    if margin > 0:
+        far = ~ndi.binary_dilation(particle, iterations=margin)
+        inner = ndi.binary_erosion(particle, iterations=margin, border_value=1)
+        background = far if far.any() else background
+        core = inner if inner.any() else core
+    return float(np.median(image[background])), float(np.median(image[core]))
 
 
 def patch_grey_levels(patches: np.ndarray, segment: dict, polarity: str) -> np.ndarray:
-    """(N, 2) mean (background, particle) grey of each patch in which both are shown (others left out)."""
+    """(N, 2) (background, particle) grey (`grey_levels`) of each patch in which both are shown (others left out)."""
     from drgan.data.particles import SegmentParams, particle_foreground
 
     params = SegmentParams.from_config(segment)
@@ -33,7 +54,7 @@ def patch_grey_levels(patches: np.ndarray, segment: dict, polarity: str) -> np.n
         particle = particle_foreground(patch, params, polarity)
         share = particle.mean()
         if MIN_SHARE <= share <= 1 - MIN_SHARE:
-            levels.append((float(patch[~particle].mean()), float(patch[particle].mean())))
+            levels.append(grey_levels(patch, particle))
     if not levels:
         raise DataError(
             f"grey_spread: none of the {len(patches)} real patches shows both particles and background (classical "
@@ -42,19 +63,22 @@ def patch_grey_levels(patches: np.ndarray, segment: dict, polarity: str) -> np.n
     return np.asarray(levels, dtype=np.float64)
 
 
-def match_grey(image: np.ndarray, labels: np.ndarray, target: tuple[float, float]) -> np.ndarray:
-    """``image`` with its background mean and particle mean (``labels`` > 0) moved to ``target`` (background,
-    particle) by one affine grey map, clipped to [0, 1]. Unchanged when either is missing or they are equal."""
+def match_grey(
+    image: np.ndarray, labels: np.ndarray, target: tuple[float, float], margin: int = EDGE_MARGIN
+) -> np.ndarray:
+    """``image`` with its background and particle grey (`grey_levels` of ``labels`` > 0) moved to ``target``
+    (background, particle) by one affine grey map, clipped to [0, 1]. Unchanged when either is missing or they are
+    equal."""
     image = np.asarray(image, dtype=np.float32)
     particle = np.asarray(labels) > 0
     if not particle.any() or particle.all():
         return image
-    background_mean, particle_mean = float(image[~particle].mean()), float(image[particle].mean())
-    if abs(particle_mean - background_mean) < 1e-6:
+    background_grey, particle_grey = grey_levels(image, particle, margin)
+    if abs(particle_grey - background_grey) < 1e-6:
         return image
     new_background, new_particle = target
-    gain = (new_particle - new_background) / (particle_mean - background_mean)
-    return np.clip(new_background + (image - background_mean) * gain, 0.0, 1.0).astype(np.float32)
+    gain = (new_particle - new_background) / (particle_grey - background_grey)
+    return np.clip(new_background + (image - background_grey) * gain, 0.0, 1.0).astype(np.float32)
 
 
 def draw(levels: np.ndarray, seed: int) -> tuple[float, float]:
