@@ -505,7 +505,7 @@ def test_bad_parameters_are_refused_naming_what_is_expected(tiny_run, tmp_path):
 
 
 def test_match_grey_moves_both_levels_exactly_and_keeps_labels_meaning():
-    from drgan.dataset.grey_spread import draw, grey_levels, match_grey
+    from drgan.dataset.grey_spread import draw, match_grey
 
     labels = np.zeros((8, 8), np.int32)
     labels[2:5, 2:5] = 1
