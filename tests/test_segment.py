@@ -235,7 +235,9 @@ def test_contact_weighted_cross_entropy_matches_a_hand_computation_and_trains_th
     _, ce_b, _, _ = b._losses((image, target))
     logits = a(image).detach()
     assert ce_a.item() == pytest.approx(cross_entropy(logits, target).item(), rel=1e-5)
-    assert ce_b.item() == pytest.approx(cross_entropy(logits, target, weight=1.0 + 9.0 * contact.float()).item(), rel=1e-5)
+    assert ce_b.item() == pytest.approx(
+        cross_entropy(logits, target, weight=1.0 + 9.0 * contact.float()).item(), rel=1e-5
+    )
     for bad, match in ((-1.0, "contact_weight=-1.0"), (float("nan"), "contact_weight=nan")):
         with pytest.raises(ConfigError, match=match):
             SegmenterModule(depth=2, base=4, contact_weight=bad)
