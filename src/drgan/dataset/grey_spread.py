@@ -14,7 +14,7 @@ the particles' cores (EDGE_MARGIN px in). Means over the whole classes were bias
 foreground is not the true outline: on tio2_sem it leaves the particles' bright edges and dim parts to the
 background, whose mean then came out too bright for the darkest windows (5th percentile 1.56x the masks').
 Labels do not change; noise and texture scale with the contrast, as they do in a real image. The real patches'
-means come from drgan's classical segmentation with the patch set's own settings (no annotation is read), so they
+levels come from drgan's classical segmentation with the patch set's own settings (no annotation is read), so they
 are what drgan's profile would measure.
 """
 

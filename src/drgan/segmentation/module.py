@@ -145,7 +145,7 @@ class SegmenterModule(L.LightningModule):
         image, mask = batch
         logits = self(image)
         weight = None
-        if self.hparams.get("contact_weight", 0.0) > 0:
+        if self.hparams.contact_weight > 0:
             weight = 1.0 + self.hparams.contact_weight * contact_pixels(mask, self.hparams.contact_reach).float()
         ce = cross_entropy(logits, mask, weight=weight)
         dl = soft_dice_loss(logits, mask)
