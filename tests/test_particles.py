@@ -211,3 +211,64 @@ def test_area_weighted_median_by_hand():
     assert P.area_weighted_median(np.array([1.0, 1.0, 1.0, 10.0])) == 10.0  # areas 1, 1, 1, 100
     assert P.area_weighted_median(np.array([3.0, 4.0])) == 4.0  # 9 of 25 below 4
     assert P.area_weighted_median(np.array([5.0, 5.0, 5.0])) == 5.0
+
+
+def test_the_search_reports_the_separability_of_the_scale_it_returns():
+    """refine_scale returns the last scale it segmented with and that segmentation's separability: the final
+    segmentation at the returned scale passes (or fails) min_separability exactly as the search saw it (returning
+    the next scale with the previous one's separability left grainy images with a scale and no particle)."""
+    image, _, _ = discs(size=256, diameter=30, n=8, polarity="dark", noise=0.06, grain=1.5, seed=5)
+    prepared = [P.prepare(image, "dark", True)]
+    for start in (12.0, 20.0, 48.0):
+        scale, _, separability = P.refine_scale(prepared, P.SegmentParams(), start)
+        _, at_scale = P._foreground(prepared[0], replace(P.SegmentParams(), min_separability=0.0).resolved(scale))
+        assert separability == pytest.approx(at_scale, abs=1e-9), start
+
+
+def test_blob_centres_are_the_particles_not_the_grain():
+    """A few particles on a grainy film: the centres are the particles' (most LoG maxima there are grain); densely
+    packed touching particles keep one centre each (their noise is measured on the film between them)."""
+    for seed in (6, 7):
+        image, _, centres = discs(size=256, diameter=24, n=6, noise=0.08, grain=1.5, seed=seed, gap=20)
+        found = np.argwhere(P.blob_centres(image, 24.0))
+        assert abs(len(found) - len(centres)) <= 1, (seed, len(found))
+        truth = np.array(centres)
+        assert all(np.hypot(*(truth - f).T).min() <= 6 for f in found)
+    image, _, centres = discs(size=160, diameter=26, n=14, seed=3, gap=-3.0)
+    assert abs(int(P.blob_centres(image, 26.0).sum()) - len(centres)) <= 1
+
+
+def _with_specks(image: np.ndarray, centres: list, radius: float, contrast: float, n: int = 12) -> np.ndarray:
+    """``image`` with n bright specks (discs of ``radius`` px) at least 24 px from every particle centre."""
+    yy, xx = np.mgrid[: image.shape[0], : image.shape[1]]
+    near = np.zeros(image.shape, bool)
+    for c in centres:
+        near |= np.hypot(yy - c[0], xx - c[1]) <= 24
+    rng, placed = np.random.default_rng(9), 0
+    while placed < n:
+        c = rng.uniform(8, image.shape[0] - 8, 2)
+        speck = np.hypot(yy - c[0], xx - c[1]) <= radius
+        if (speck & near).any():
+            continue
+        image[speck] += contrast
+        near |= np.hypot(yy - c[0], xx - c[1]) <= 12
+        placed += 1
+    return image
+
+
+@pytest.mark.parametrize("seed", [10, 11])
+def test_a_few_particles_on_grain_are_found_and_grain_specks_are_not(seed):
+    """Six particles on a grainy film at their known scale: every one found (with the Otsu region around the grain's
+    LoG maxima too, the separability fell below min_separability and nothing was), and bright specks of 7 px far
+    from them, past the threshold and above min_area, are not foreground (they were)."""
+    params = P.SegmentParams(scale=24).resolved()
+    image, _, centres = discs(size=256, diameter=24, n=6, noise=0.08, grain=2.5, seed=seed, gap=30)
+    foreground, separability = P._foreground(P.prepare(image, "bright", True), params)
+    assert separability >= params.min_separability and ndi.label(foreground)[1] == 6
+    assert all(foreground[int(c[0]), int(c[1])] for c in centres)
+
+    image, _, centres = discs(size=256, diameter=24, n=6, noise=0.06, grain=1.5, seed=seed, gap=30)
+    image = _with_specks(image, centres, radius=3.5, contrast=0.3)
+    foreground, _ = P._foreground(P.prepare(image, "bright", True), params)
+    labels, n = ndi.label(foreground)
+    assert n == 6 and all(foreground[int(c[0]), int(c[1])] for c in centres)

@@ -401,10 +401,12 @@ def refine_scale(
     prepared: Sequence[Prepared], params: SegmentParams, scale: float, weighted: bool = False
 ) -> tuple[float, bool, float]:
     """Segment with the settings of ``scale``, take the median equivalent diameter of the segments not touching the
-    border as the next scale, until it moves less than 10 % (a few rounds). Returns (scale, whether it settled with
-    the segments' median within CONSISTENT of it, mean separability). The LoG sees a particle's core (faceted,
-    textured or rimmed particles respond below their size; rods by their width); the segments see its area."""
-    separability = 0.0
+    border as the next scale, until it moves less than 10 % (a few rounds). Returns (scale, whether its segments'
+    median lies within CONSISTENT of it, mean separability): the scale returned is the last one segmented with, so
+    that its separability is the one the final segmentation will have (the next scale's can fall below
+    ``min_separability`` and leave nothing). The LoG sees a particle's core (faceted, textured or rimmed particles
+    respond below their size; rods by their width); the segments see its area."""
+    separability, settled = 0.0, False
     for _ in range(REFINE_ROUNDS):
         resolved = replace(params, min_separability=0.0).resolved(scale)
         diameters, separabilities = [], []
@@ -414,12 +416,12 @@ def refine_scale(
             diameters.append(segment_diameters(split_touching(foreground, resolved), resolved))
         d = np.concatenate(diameters)
         separability = float(np.mean(separabilities))
-        if d.size == 0:
-            return scale, False, separability
+        if d.size == 0:  # nothing of plausible area: this scale segments no particle, however well it separates
+            return scale, False, 0.0
         new = area_weighted_median(d) if weighted else float(np.median(d))
         settled = abs(math.log(new / scale)) < CONSISTENT
-        if abs(math.log(new / scale)) < 0.1:
-            return new, True, separability
+        if abs(math.log(new / scale)) < 0.1 or _ == REFINE_ROUNDS - 1:
+            return scale, settled, separability
         scale = new
     return scale, settled, separability
 
@@ -456,14 +458,20 @@ class NoParticles(DataError):
 
 def blob_centres(bright: np.ndarray, diameter: float) -> np.ndarray:
     """bool (H, W): centres of the bright blobs of about ``diameter`` px: maxima of -s^2 LoG_s at s = d / (2 sqrt 2),
-    at least d / 2 apart, of at least a quarter of the strong ones' response (their 90th percentile)."""
+    at least d / 2 apart, of at least a quarter of the strong ones' response (their 90th percentile) and standing
+    SIGNIFICANCE robust stds out of the response's noise on the background. On a grainy film with a few particles
+    most maxima are grain, and their 90th percentile is grain too; the noise is measured where the image lies below
+    its Otsu threshold (the film; between densely packed particles, their dark gaps, where it is low)."""
     s = diameter / (2 * math.sqrt(2))
     r = _log_stack(bright, np.array([s]))[0]
     window = max(3, int(diameter / 2) | 1)
     peak = (r == ndi.maximum_filter(r, size=window, mode="nearest")) & (r > 0)
     if not peak.any():
         return peak
-    return peak & (r >= 0.25 * np.quantile(r[peak], 0.9))
+    film = r[bright <= threshold_otsu(bright)] if np.ptp(bright) > 0 else r.ravel()
+    centre = np.median(film)
+    noise = 1.4826 * np.median(np.abs(film - centre))
+    return peak & (r >= max(0.25 * np.quantile(r[peak], 0.9), centre + SIGNIFICANCE * noise))
 
 
 def _foreground(prepared: Prepared, params: SegmentParams) -> tuple[np.ndarray, float]:
@@ -471,36 +479,47 @@ def _foreground(prepared: Prepared, params: SegmentParams) -> tuple[np.ndarray, 
 
     Otsu's threshold is taken over the pixels within one diameter of a blob of the particles' size (not the whole
     image): a few particles on a wide background give a lopsided histogram where Otsu cuts into the background's
-    noise, while around the particles both classes are well represented."""
+    noise, while around the particles both classes are well represented.
+
+    A connected piece of the foreground is kept when it is at least ``min_area`` and reaches within half a
+    diameter of such a blob centre: grain, noise and texture specks past the threshold away from every blob of
+    the particles' size are not particles (on a grainy film they outnumber a few particles and would set the
+    median); a hollow particle's rim lies within half a diameter of its centre."""
     flat = _threshold(flatten(prepared.bright, params.background), prepared.annotations, params)
     if params.background:  # the illumination flattened only where it separates particles better
         plain = _threshold(prepared.bright, prepared.annotations, params)
         flat = max(flat, plain, key=lambda t: t[1])
-    foreground, separability = flat
+    foreground, separability, centres = flat
     if separability < params.min_separability:
         return np.zeros(foreground.shape, bool), separability
-    components, _ = ndi.label(foreground)
-    foreground &= (np.bincount(components.ravel()) >= params.min_area)[components]
-    return foreground, separability
+    components, n = ndi.label(foreground)
+    keep = np.bincount(components.ravel(), minlength=n + 1) >= params.min_area
+    near = ndi.distance_transform_edt(~centres) <= 0.5 * params.scale
+    keep &= np.bincount(components[near], minlength=n + 1) > 0
+    keep[0] = False
+    return keep[components], separability
 
 
-def _threshold(image: np.ndarray, annotations: np.ndarray, params: SegmentParams) -> tuple[np.ndarray, float]:
+def _threshold(
+    image: np.ndarray, annotations: np.ndarray, params: SegmentParams
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """(pixels past Otsu's threshold, its separability, the blob centres it was taken around)."""
     smooth = ndi.gaussian_filter(image, params.sigma, mode="reflect") if params.sigma > 0 else image
     empty = np.zeros(smooth.shape, bool)
     if smooth.max() - smooth.min() < 1e-6:
-        return empty, 0.0
+        return empty, 0.0, empty
     centres = blob_centres(image, params.scale) & ~annotations
     if not centres.any():
-        return empty, 0.0
+        return empty, 0.0, centres
     region = (ndi.distance_transform_edt(~centres) <= params.scale) & ~annotations
     values = smooth[region]
     threshold = threshold_otsu(values)
     above = values > threshold
     w1 = above.mean()
     if w1 in (0.0, 1.0):
-        return empty, 0.0
+        return empty, 0.0, centres
     between = w1 * (1 - w1) * (values[above].mean() - values[~above].mean()) ** 2
-    return (smooth > threshold) & ~annotations, float(between / values.var())
+    return (smooth > threshold) & ~annotations, float(between / values.var()), centres
 
 
 def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
