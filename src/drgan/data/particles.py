@@ -456,22 +456,25 @@ class NoParticles(DataError):
         )
 
 
-def blob_centres(bright: np.ndarray, diameter: float) -> np.ndarray:
+def blob_centres(bright: np.ndarray, diameter: float, significant: bool = False) -> np.ndarray:
     """bool (H, W): centres of the bright blobs of about ``diameter`` px: maxima of -s^2 LoG_s at s = d / (2 sqrt 2),
-    at least d / 2 apart, of at least a quarter of the strong ones' response (their 90th percentile) and standing
-    SIGNIFICANCE robust stds out of the response's noise on the background. On a grainy film with a few particles
-    most maxima are grain, and their 90th percentile is grain too; the noise is measured where the image lies below
-    its Otsu threshold (the film; between densely packed particles, their dark gaps, where it is low)."""
+    at least d / 2 apart, of at least a quarter of the strong ones' response (their 90th percentile).
+    ``significant``: they must also stand SIGNIFICANCE robust stds out of the response on the film (the pixels
+    below the image's Otsu threshold): on a grainy film with a few particles most maxima are grain, and their 90th
+    percentile is grain too. Not by default: on a dense packing the film is the gaps and the particles' shaded
+    sides, whose response is as strong as the particles', and real centres would be lost."""
     s = diameter / (2 * math.sqrt(2))
     r = _log_stack(bright, np.array([s]))[0]
     window = max(3, int(diameter / 2) | 1)
     peak = (r == ndi.maximum_filter(r, size=window, mode="nearest")) & (r > 0)
     if not peak.any():
         return peak
-    film = r[bright <= threshold_otsu(bright)] if np.ptp(bright) > 0 else r.ravel()
-    centre = np.median(film)
-    noise = 1.4826 * np.median(np.abs(film - centre))
-    return peak & (r >= max(0.25 * np.quantile(r[peak], 0.9), centre + SIGNIFICANCE * noise))
+    level = 0.25 * np.quantile(r[peak], 0.9)
+    if significant and np.ptp(bright) > 0:
+        film = r[bright <= threshold_otsu(bright)]
+        centre = np.median(film)
+        level = max(level, centre + SIGNIFICANCE * 1.4826 * np.median(np.abs(film - centre)))
+    return peak & (r >= level)
 
 
 def _foreground(prepared: Prepared, params: SegmentParams) -> tuple[np.ndarray, float]:
@@ -479,17 +482,25 @@ def _foreground(prepared: Prepared, params: SegmentParams) -> tuple[np.ndarray, 
 
     Otsu's threshold is taken over the pixels within one diameter of a blob of the particles' size (not the whole
     image): a few particles on a wide background give a lopsided histogram where Otsu cuts into the background's
-    noise, while around the particles both classes are well represented.
+    noise, while around the particles both classes are well represented. Where those blobs leave the separability
+    below ``min_separability``, it is taken again around the blobs that stand out of the film's noise
+    (`blob_centres`' ``significant``): a grainy film whose own maxima surrounded the few particles.
 
     A connected piece of the foreground is kept when it is at least ``min_area`` and reaches within half a
-    diameter of such a blob centre: grain, noise and texture specks past the threshold away from every blob of
-    the particles' size are not particles (on a grainy film they outnumber a few particles and would set the
-    median); a hollow particle's rim lies within half a diameter of its centre."""
-    flat = _threshold(flatten(prepared.bright, params.background), prepared.annotations, params)
+    diameter of a blob centre: grain, noise and texture specks past the threshold away from every blob of the
+    particles' size are not particles (on a grainy film they outnumber a few particles and would set the median);
+    a hollow particle's rim lies within half a diameter of its centre."""
+    candidates = [prepared.bright]
     if params.background:  # the illumination flattened only where it separates particles better
-        plain = _threshold(prepared.bright, prepared.annotations, params)
-        flat = max(flat, plain, key=lambda t: t[1])
-    foreground, separability, centres = flat
+        candidates.insert(0, flatten(prepared.bright, params.background))
+    foreground, separability, centres = max(
+        (_threshold(image, prepared.annotations, params) for image in candidates), key=lambda t: t[1]
+    )
+    if separability < params.min_separability:
+        foreground, separability, centres = max(
+            (_threshold(image, prepared.annotations, params, significant=True) for image in candidates),
+            key=lambda t: t[1],
+        )
     if separability < params.min_separability:
         return np.zeros(foreground.shape, bool), separability
     components, n = ndi.label(foreground)
@@ -501,14 +512,14 @@ def _foreground(prepared: Prepared, params: SegmentParams) -> tuple[np.ndarray, 
 
 
 def _threshold(
-    image: np.ndarray, annotations: np.ndarray, params: SegmentParams
+    image: np.ndarray, annotations: np.ndarray, params: SegmentParams, significant: bool = False
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """(pixels past Otsu's threshold, its separability, the blob centres it was taken around)."""
     smooth = ndi.gaussian_filter(image, params.sigma, mode="reflect") if params.sigma > 0 else image
     empty = np.zeros(smooth.shape, bool)
     if smooth.max() - smooth.min() < 1e-6:
         return empty, 0.0, empty
-    centres = blob_centres(image, params.scale) & ~annotations
+    centres = blob_centres(image, params.scale, significant) & ~annotations
     if not centres.any():
         return empty, 0.0, centres
     region = (ndi.distance_transform_edt(~centres) <= params.scale) & ~annotations
