@@ -10,13 +10,14 @@
 #    (real-trained, area-based epochs), at most 12 epochs with early stopping on the validation loss;
 # 4. drgan.evaluate of each group on the 8 test ids (DSC, AP50, PQ and the particle statistics).
 # Outputs under OUT (default runs/statistics/SET); nothing of it is committed (the real images are licensed
-# no-derivatives). SEEDS="0" for a single seed; MINUTES=12 for a shorter GAN; STEPS="gan generate segment evaluate" to run a part.
+# no-derivatives). SEEDS="0" for a single seed; KINDS=synthetic for the synthetic-trained alone; MINUTES=12 for a shorter GAN; STEPS="gan generate segment evaluate" to run a part.
 set -euo pipefail
 SET=${1:?usage: run.sh tio2_sem|tio2_tsem [OUT]}
 OUT=${2:-runs/statistics/$SET}
 DATA=${DRGAN_DATA:-../shared/datasets}/$SET
 SEEDS=${SEEDS:-0 1 2}
 STEPS=${STEPS:-gan generate segment evaluate}
+KINDS=${KINDS:-synthetic real}   # which U-Nets: on the generated pairs, on the real train images
 EPOCHS=${EPOCHS:-12}
 MINUTES=${MINUTES:-27}   # the GAN's wall-clock budget
 GAN=$OUT/gan
@@ -38,7 +39,7 @@ if has generate; then
 fi
 if has segment; then
   for seed in $SEEDS; do
-    for kind in synthetic real; do
+    for kind in $KINDS; do
       run=$OUT/seg_${kind}_$seed
       [ -f "$run/metrics.json" ] && continue
       resume=(); [ -f "$run/checkpoints/last.ckpt" ] && resume=(ckpt_path=last)
@@ -49,7 +50,7 @@ if has segment; then
   done
 fi
 if has evaluate; then
-  for kind in synthetic real; do
+  for kind in $KINDS; do
     ckpts=$(for seed in $SEEDS; do printf '%s,' "$OUT/seg_${kind}_$seed/checkpoints/last.ckpt"; done)
     python -m drgan.evaluate data="$DATA" out="$OUT/eval_$kind" "models=[${ckpts%,}]"
   done
