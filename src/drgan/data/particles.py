@@ -18,9 +18,11 @@ every length follows from the particles' own scale, measured first.
    fractions of the diameter (calibrated where the TiO2 sets meet their masks: sigma 1.5 px and seeds 6 px apart
    at 26 px); the uneven illumination is removed at 3 diameters (a grey opening: larger than any particle, so none
    is flattened away); a value set by the user is kept exactly.
-5. **Foreground and watershed**: Otsu's threshold of the smoothed, flattened image, refused when the image is not
-   bimodal (separability below ``min_separability``); the distance transform's maxima, at least ``min_distance``
-   apart, seed a watershed that splits touching particles.
+5. **Foreground and watershed**: Otsu's threshold of the smoothed, flattened image over the pixels within one
+   diameter of the blobs of that size (`blob_centres`; on a grainy film with a few particles, taken again around the
+   blobs that stand out of the film's noise), refused when it does not separate two classes (separability below
+   ``min_separability``); pieces that reach no blob centre within half a diameter are grain or texture specks; the
+   distance transform's maxima, at least ``min_distance`` apart, seed a watershed that splits touching particles.
 """
 
 from __future__ import annotations
