@@ -274,3 +274,12 @@ def test_a_few_particles_on_grain_are_found_and_grain_specks_are_not(seed):
     image = _with_specks(image, centres, radius=3.5, contrast=0.3)
     foreground, _ = P._foreground(P.prepare(image, "bright", True), params)
     assert all(foreground[int(c[0]), int(c[1])] for c in centres) and ndi.label(foreground)[1] <= 7
+
+
+@pytest.mark.parametrize("seed", [10, 11])
+def test_the_scale_of_a_few_particles_on_grain_is_found(seed):
+    """No scale given: the search retries around the significant blobs as the final segmentation does (it segments
+    with min_separability 0, and retried only below that, never: 'no particles found' on such images)."""
+    image, _, centres = discs(size=256, diameter=24, n=6, noise=0.08, grain=2.5, seed=seed, gap=30)
+    params, labels, d = measured(image, "bright")
+    assert abs(params.scale / 24 - 1) < 0.1 and len(d) == len(centres) and abs(np.median(d) / 24 - 1) < 0.1

@@ -413,7 +413,7 @@ def refine_scale(
         resolved = replace(params, min_separability=0.0).resolved(scale)
         diameters, separabilities = [], []
         for p in prepared:
-            foreground, sep = _foreground(p, resolved)
+            foreground, sep = _foreground(p, resolved, retry_below=params.min_separability)
             separabilities.append(sep)
             diameters.append(segment_diameters(split_touching(foreground, resolved), resolved))
         d = np.concatenate(diameters)
@@ -479,8 +479,12 @@ def blob_centres(bright: np.ndarray, diameter: float, significant: bool = False)
     return peak & (r >= level)
 
 
-def _foreground(prepared: Prepared, params: SegmentParams) -> tuple[np.ndarray, float]:
-    """(foreground, separability) of prepared, with resolved params.
+def _foreground(
+    prepared: Prepared, params: SegmentParams, retry_below: float | None = None
+) -> tuple[np.ndarray, float]:
+    """(foreground, separability) of prepared, with resolved params. ``retry_below``: the separability below which
+    the threshold is taken again around the significant blobs (default ``params.min_separability``; the scale search
+    segments with min_separability 0 but retries as the final segmentation will).
 
     Otsu's threshold is taken over the pixels within one diameter of a blob of the particles' size (not the whole
     image): a few particles on a wide background give a lopsided histogram where Otsu cuts into the background's
@@ -498,7 +502,7 @@ def _foreground(prepared: Prepared, params: SegmentParams) -> tuple[np.ndarray, 
     foreground, separability, centres = max(
         (_threshold(image, prepared.annotations, params) for image in candidates), key=lambda t: t[1]
     )
-    if separability < params.min_separability:
+    if separability < (params.min_separability if retry_below is None else retry_below):
         foreground, separability, centres = max(
             (_threshold(image, prepared.annotations, params, significant=True) for image in candidates),
             key=lambda t: t[1],
