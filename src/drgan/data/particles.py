@@ -409,7 +409,7 @@ def refine_scale(
     ``min_separability`` and leave nothing). The LoG sees a particle's core (faceted, textured or rimmed particles
     respond below their size; rods by their width); the segments see its area."""
     separability, settled = 0.0, False
-    for _ in range(REFINE_ROUNDS):
+    for round_ in range(REFINE_ROUNDS):
         resolved = replace(params, min_separability=0.0).resolved(scale)
         diameters, separabilities = [], []
         for p in prepared:
@@ -422,7 +422,7 @@ def refine_scale(
             return scale, False, 0.0
         new = area_weighted_median(d) if weighted else float(np.median(d))
         settled = abs(math.log(new / scale)) < CONSISTENT
-        if abs(math.log(new / scale)) < 0.1 or _ == REFINE_ROUNDS - 1:
+        if abs(math.log(new / scale)) < 0.1 or round_ == REFINE_ROUNDS - 1:
             return scale, settled, separability
         scale = new
     return scale, settled, separability
