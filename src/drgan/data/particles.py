@@ -461,22 +461,33 @@ class NoParticles(DataError):
 def blob_centres(bright: np.ndarray, diameter: float, significant: bool = False) -> np.ndarray:
     """bool (H, W): centres of the bright blobs of about ``diameter`` px: maxima of -s^2 LoG_s at s = d / (2 sqrt 2),
     at least d / 2 apart, of at least a quarter of the strong ones' response (their 90th percentile).
-    ``significant``: they must also stand SIGNIFICANCE robust stds out of the response on the film (the pixels
-    below the image's Otsu threshold): on a grainy film with a few particles most maxima are grain, and their 90th
-    percentile is grain too. Not by default: on a dense packing the film is the gaps and the particles' shaded
-    sides, whose response is as strong as the particles', and real centres would be lost."""
+    ``significant``: they must also stand out of the film's noise (`_out_of_film_noise`). Not by default: on a dense
+    packing the film is the gaps and the particles' shaded sides, whose response is as strong as the particles',
+    and real centres would be lost."""
+    response, centres = _blob_maxima(bright, diameter)
+    return _out_of_film_noise(bright, response, centres) if significant else centres
+
+
+def _blob_maxima(bright: np.ndarray, diameter: float) -> tuple[np.ndarray, np.ndarray]:
+    """(-s^2 LoG_s of ``bright``, `blob_centres` without ``significant``): the response is kept for the retry."""
     s = diameter / (2 * math.sqrt(2))
     r = _log_stack(bright, np.array([s]))[0]
     window = max(3, int(diameter / 2) | 1)
     peak = (r == ndi.maximum_filter(r, size=window, mode="nearest")) & (r > 0)
-    if not peak.any():
-        return peak
-    level = 0.25 * np.quantile(r[peak], 0.9)
-    if significant and np.ptp(bright) > 0:
-        film = r[bright <= threshold_otsu(bright)]
-        centre = np.median(film)
-        level = max(level, centre + SIGNIFICANCE * 1.4826 * np.median(np.abs(film - centre)))
-    return peak & (r >= level)
+    if peak.any():
+        peak &= r >= 0.25 * np.quantile(r[peak], 0.9)
+    return r, peak
+
+
+def _out_of_film_noise(bright: np.ndarray, response: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """The ``centres`` whose ``response`` stands SIGNIFICANCE robust stds out of the response on the film (the
+    pixels below the image's Otsu threshold): on a grainy film with a few particles most maxima are grain, and the
+    90th percentile of the maxima is grain too."""
+    if not centres.any() or np.ptp(bright) == 0:
+        return centres
+    film = response[bright <= threshold_otsu(bright)]
+    centre = np.median(film)
+    return centres & (response >= centre + SIGNIFICANCE * 1.4826 * np.median(np.abs(film - centre)))
 
 
 def _foreground(
@@ -490,22 +501,30 @@ def _foreground(
     image): a few particles on a wide background give a lopsided histogram where Otsu cuts into the background's
     noise, while around the particles both classes are well represented. Where those blobs leave the separability
     below ``min_separability``, it is taken again around the blobs that stand out of the film's noise
-    (`blob_centres`' ``significant``): a grainy film whose own maxima surrounded the few particles.
+    (`blob_centres`' ``significant``; the smoothing and the LoG response are reused): a grainy film whose own maxima
+    surrounded the few particles.
 
     A connected piece of the foreground is kept when it is at least ``min_area`` and reaches within half a
     diameter of a blob centre: grain, noise and texture specks past the threshold away from every blob of the
     particles' size are not particles (on a grainy film they outnumber a few particles and would set the median);
     a hollow particle's rim lies within half a diameter of its centre."""
-    candidates = [prepared.bright]
+    images = [prepared.bright]
     if params.background:  # the illumination flattened only where it separates particles better
-        candidates.insert(0, flatten(prepared.bright, params.background))
-    foreground, separability, centres = max(
-        (_threshold(image, prepared.annotations, params) for image in candidates), key=lambda t: t[1]
-    )
-    if separability < (params.min_separability if retry_below is None else retry_below):
-        foreground, separability, centres = max(
-            (_threshold(image, prepared.annotations, params, significant=True) for image in candidates),
+        images.insert(0, flatten(prepared.bright, params.background))
+    smooths = [ndi.gaussian_filter(im, params.sigma, mode="reflect") if params.sigma > 0 else im for im in images]
+    maxima = [_blob_maxima(im, params.scale) for im in images]
+
+    def best(centre_sets: list[np.ndarray]) -> tuple[np.ndarray, float, np.ndarray]:
+        return max(
+            (_threshold(smooth, c & ~prepared.annotations, prepared.annotations, params.scale)
+             for smooth, c in zip(smooths, centre_sets)),
             key=lambda t: t[1],
+        )  # fmt: skip
+
+    foreground, separability, centres = best([peak for _, peak in maxima])
+    if separability < (params.min_separability if retry_below is None else retry_below):
+        foreground, separability, centres = best(
+            [_out_of_film_noise(im, r, peak) for im, (r, peak) in zip(images, maxima)]
         )
     if separability < params.min_separability:
         return np.zeros(foreground.shape, bool), separability
@@ -518,17 +537,16 @@ def _foreground(
 
 
 def _threshold(
-    image: np.ndarray, annotations: np.ndarray, params: SegmentParams, significant: bool = False
+    smooth: np.ndarray, centres: np.ndarray, annotations: np.ndarray, scale: float
 ) -> tuple[np.ndarray, float, np.ndarray]:
-    """(pixels past Otsu's threshold, its separability, the blob centres it was taken around)."""
-    smooth = ndi.gaussian_filter(image, params.sigma, mode="reflect") if params.sigma > 0 else image
+    """(pixels of ``smooth`` past Otsu's threshold of the pixels within ``scale`` of the ``centres``, its
+    separability, the centres)."""
     empty = np.zeros(smooth.shape, bool)
     if smooth.max() - smooth.min() < 1e-6:
         return empty, 0.0, empty
-    centres = blob_centres(image, params.scale, significant) & ~annotations
     if not centres.any():
         return empty, 0.0, centres
-    region = (ndi.distance_transform_edt(~centres) <= params.scale) & ~annotations
+    region = (ndi.distance_transform_edt(~centres) <= scale) & ~annotations
     values = smooth[region]
     threshold = threshold_otsu(values)
     above = values > threshold
