@@ -8,6 +8,7 @@ from scipy import ndimage as ndi
 from test_data import SHAPE, SIZE, STRIDE, disc_image, lattice_centres
 
 from drgan.data import mine_patches
+from drgan.data.particles import NoParticles
 from drgan.data.datamodule import RealPatchDataModule
 from drgan.data.polarity import detect_polarity, image_vote, isophote_convexity, resolve_polarity, to_bright
 from drgan.errors import ConfigError, DataError
@@ -141,12 +142,11 @@ def test_dark_particles_mine_the_same_patches_as_their_bright_twin(field):
     # the patches keep the image's own values: dark particles stay dark
     r, c = dark.train_positions[0]
     np.testing.assert_array_equal(dark.train[0], dark_twin(image)[r : r + SIZE, c : c + SIZE])
-    # mined with the wrong polarity, the bright background is taken for particles: no window is free of them, and
-    # a background patch must be (none taken rather than windows full of "particles")
-    wrong = mine_patches(
-        [dark_twin(image)], ids, size=SIZE, stride=STRIDE, min_particles=2, n_background=3, progress=False
-    )
-    assert len(wrong.background) == 0 and wrong.params["background_report"]["found"] == 0
+    # mined with the wrong polarity, the bright background is one "particle" whose round holes (the real particles)
+    # are its own: no particle of plausible size anywhere, and the error names the polarity key (not windows full
+    # of "particles" taken as background)
+    with pytest.raises(NoParticles, match="data.polarity"):
+        mine_patches([dark_twin(image)], ids, size=SIZE, stride=STRIDE, min_particles=2, n_background=3, progress=False)
 
 
 def test_to_bright_is_the_negative_for_dark_particles():

@@ -293,11 +293,15 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     given = seg["setting"]
     data = {"segment": {k: v for k, v in seg["params"].items() if k in SEGMENT_KEYS}}
     estimate = seg["scale_estimate"]
+    log_scale = (
+        "no LoG blob stood out (particles fill the image), a diameter searched from 8 px up,"
+        if estimate is None or estimate["diameter_px"] is None
+        else f"LoG blob scale {estimate['diameter_px']} px,"
+    )
     how = (
         "set by hand (data.segment)"
         if "scale" in given
-        else f"measured: LoG blob scale {estimate['diameter_px']} px, refined to the segments' own median "
-        f"({estimate['refined_px']} px)"
+        else f"measured: {log_scale} refined to the segments' own median ({estimate['refined_px']} px)"
     )
     notes = {
         "data.segment.scale": f"particle diameter {seg['scale_px']} px, {how}",

@@ -41,6 +41,7 @@ def _unit(array: np.ndarray) -> np.ndarray:
 # Annotations are drawn in (nearly) pure black or white: pixels within this of 0 or 1 are candidates.
 ANNOTATION_LEVEL = 0.06
 EDGE_BAND = 0.2  # text and panel letters lie within this share of the image size from an edge
+CHAR_DENSITY_SHARE = 0.5  # characters near an edge are text unless the inside holds at least half their density
 FRAME_SHARE = 0.15  # a label box or data bar is masked with a margin of this share of its narrow side (its frame)
 
 
@@ -51,7 +52,9 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
     annotation when it is a solid bar (long, thin, filling its box; anywhere), a solid box (a rectangle that fills
     its box and lies within EDGE_BAND of an edge), an info band (across most of the width along the top or bottom,
     holes filled: a microscope's data bar with its text) or a character: small, drawn with strokes much thinner
-    than its height, within EDGE_BAND of an edge or beside another annotation. Boxes and bands are masked whole,
+    than its height, within EDGE_BAND of an edge (but not when groups of that shape and level lie inside the image
+    at CHAR_DENSITY_SHARE of the edges' density or more: then they are the image's own, such as the black gaps of a
+    dense packing). Boxes and bands are masked whole,
     with their frame (FRAME_SHARE). Particles are blobs (their thickness is their size) and are not drawn in
     exactly one grey, so they stay. The mask is grown by 2 px (anti-aliased edges)."""
     grey = np.asarray(grey, np.float32)
@@ -68,6 +71,7 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
         boxes = ndi.find_objects(labels)
         thickness = ndi.distance_transform_edt(candidates)
         chars = np.zeros(n + 1, bool)
+        inner_chars = 0  # character-shaped groups away from every edge: the image's own (gaps, grain), not text
         for index, box in enumerate(boxes, start=1):
             rows, cols = box
             bh, bw = rows.stop - rows.start, cols.stop - cols.start
@@ -95,7 +99,13 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
                 mask[box] |= own
             elif char:
                 chars[index] = near_edge
-        # Characters count when near an edge (panel letters, scale-bar text); the rest stay particles or grain.
+                inner_chars += not near_edge
+        # Characters count when near an edge (panel letters, scale-bar text); the rest stay particles or grain. Unless
+        # the inside holds them about as densely: then this level draws the image itself (a dense packing's black
+        # gaps, a bright film's white specks), and its character-shaped groups near an edge are more of the same.
+        inner_area = max(0, h - 2 * band) * max(0, w - 2 * band)
+        if inner_chars and inner_area and inner_chars / inner_area >= CHAR_DENSITY_SHARE * chars.sum() / (h * w - inner_area):
+            chars[:] = False
         mask |= chars[labels]
     if mask.any():
         mask = ndi.binary_dilation(mask, iterations=2)

@@ -344,12 +344,8 @@ def resolve_params(
         return params.resolved(), None
     prepared = [prepare(image, polarity, params.annotations) for image in images]
     estimate = estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
-    if estimate.diameter_px is None:
-        raise NoParticles(
-            f"no blob stood out of the noise at any scale (LoG diameters {estimate.diameters_tried_px[0]:.0f}-"
-            f"{estimate.diameters_tried_px[1]:.0f} px, {polarity} particles)",
-            params,
-        )
+    # No blob standing out of the response's noise is no proof of no particles: where particles fill the image (a
+    # dense layer of rods), they *are* the response's spread at their scale. The search's own starts still run.
     scale, tried = search_scale(prepared, params, estimate.diameter_px)
     if scale is None:
         # Every start collapsed to grain: specks that outnumber a few particles pull the plain median of the
@@ -359,8 +355,14 @@ def resolve_params(
         scale, weighted_tried = search_scale(prepared, params, estimate.diameter_px, weighted=True)
         tried = tried + weighted_tried
     if scale is None:
+        log_scale = (
+            f"no blob stood out of the noise at any scale (LoG diameters {estimate.diameters_tried_px[0]:.0f}-"
+            f"{estimate.diameters_tried_px[1]:.0f} px), and"
+            if estimate.diameter_px is None
+            else f"the LoG scale {estimate.diameter_px:.1f} px and"
+        )
         raise NoParticles(
-            f"the LoG scale {estimate.diameter_px:.1f} px and the diameters "
+            f"{log_scale} the diameters "
             f"{', '.join(f'{t[0]:.0f}' for t in tried)} px tried as starting points gave no consistent particle size "
             f"(Otsu separability at most {max((t[2] for t in tried), default=0):.2f}, needed "
             f"{params.min_separability}; {polarity} particles)",
@@ -379,17 +381,21 @@ LARGER_BONUS = 0.05
 
 
 def search_scale(
-    prepared: Sequence[Prepared], params: SegmentParams, log_diameter: float, weighted: bool = False
+    prepared: Sequence[Prepared], params: SegmentParams, log_diameter: float | None, weighted: bool = False
 ) -> tuple[float | None, list[tuple[float, float, float]]]:
     """The particle diameter: of the scales that segment into particles of their own size (fixed points of
-    `refine_scale`, started from the LoG's diameter and from 8, 16, .. px up to half the image), the one whose
-    foreground separates best from the background (Otsu separability, plus LARGER_BONUS per doubling). Grain and
+    `refine_scale`, started from the LoG's diameter (None: no blob stood out) and from 8, 16, .. px up to half the
+    image), the one whose foreground separates best from the background (Otsu separability, plus LARGER_BONUS per
+    doubling). Grain and
     noise make fixed points at small scales too, but there the threshold cuts noise (separability ~2/pi); at the
     particles' scale it cuts particles from background. Without a fixed point, the best scale reached. ``weighted``:
     each round moves to the segments' area-weighted median instead of their median (`refine_scale`). Returns
     (diameter or None, [(start, scale reached, separability)])."""
     limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
-    starts = sorted({round(log_diameter, 1), *(d for d in START_DIAMETERS if d <= limit)})
+    starts = {d for d in START_DIAMETERS if d <= limit}
+    if log_diameter is not None:
+        starts.add(round(log_diameter, 1))
+    starts = sorted(starts)
     tried, found = [], []
     for start in starts:
         scale, consistent, separability = refine_scale(prepared, params, start, weighted)
@@ -533,7 +539,39 @@ def _foreground(
     near = ndi.distance_transform_edt(~centres) <= 0.5 * params.scale
     keep &= np.bincount(components[near], minlength=n + 1) > 0
     keep[0] = False
-    return keep[components], separability
+    return _fill_round_holes(keep[components], params), separability
+
+
+# A hole at least this convex, and filling at least this share of the disc of its length, is a particle's own darker
+# centre, not a gap between several particles (concave, or a square between four: 0.64 of its disc at most)
+ROUND_HOLE_SOLIDITY = 0.85
+ROUND_HOLE_FILL = 0.7
+
+
+def _fill_round_holes(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
+    """``foreground`` with its round holes filled: a particle seen as a bright rim around a centre as grey as the
+    background (SEM edge effect on spheres, hollow shells) thresholds into a ring, which the watershed would cut into
+    arcs of a fraction of its size. A hole is the particle's own centre when it is round (solidity at least
+    ROUND_HOLE_SOLIDITY, area at least ROUND_HOLE_FILL of the disc of its major axis) and of plausible area; a gap
+    among touching particles is bounded by several convex outlines, so it is concave (an equal-sphere packing's:
+    solidity ~0.6) or, smoothed at a large scale, a rounded polygon far from a disc, and stays."""
+    holes = ndi.binary_fill_holes(foreground) & ~foreground
+    if not holes.any():
+        return foreground
+    from skimage.measure import regionprops
+
+    labels, _ = ndi.label(holes)
+    filled = foreground.copy()
+    for region in regionprops(labels):
+        disc = math.pi / 4 * region.axis_major_length**2  # the disc of the hole's length: a round hole fills most
+        if (
+            params.min_area <= region.area <= params.max_area
+            and region.solidity >= ROUND_HOLE_SOLIDITY
+            and region.area >= ROUND_HOLE_FILL * disc
+        ):
+            box = region.slice
+            filled[box] |= region.image
+    return filled
 
 
 def _threshold(
