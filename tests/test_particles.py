@@ -351,3 +351,15 @@ def test_only_round_holes_are_filled():
     assert filled[50, 50] and filled[disc(50, 50, 12)].all()  # the ring's centre is its particle's
     assert not filled[138, 60] and not filled[60, 150]  # the gaps among touching particles stay background
     assert (filled & ~(ring | three | four)).sum() == (disc(50, 50, 13) & ~ring).sum()
+
+
+def test_no_blob_standing_out_is_no_proof_of_no_particles(monkeypatch):
+    # where particles fill the image (a dense layer of rods), they are the LoG response's own spread and none stands
+    # out of it: the search still runs from its fixed starts (before: "no blob stood out", an error)
+    image, _, _ = discs(size=192, diameter=24, n=14, seed=4)
+    nothing = P.ScaleEstimate(None, 0, 0.0, (3.0, 96.0))
+    monkeypatch.setattr(P, "estimate_scale", lambda *args, **kwargs: nothing)
+    params, estimate = P.resolve_params([image], None, "bright")
+    assert abs(params.scale / 24 - 1) < 0.15 and estimate.diameter_px is None and estimate.refined_px is not None
+    with pytest.raises(P.NoParticles, match="no blob stood out.*no consistent particle size"):
+        P.resolve_params([np.full((96, 96), 0.5, np.float32)], None, "bright")
