@@ -44,10 +44,12 @@ from drgan.errors import ConfigError, DataError
 
 # --- settings ---------------------------------------------------------------------------------------------
 
-# Fractions of the particle diameter d (px). sigma and min_distance reproduce the calibration on the TiO2 train
-# images (sigma 1.5, seeds 6 px apart for particles of ~26 px: experiments/profile/README.md).
+# Fractions of the particle diameter d (px). sigma reproduces the calibration on the TiO2 train images (sigma 1.5 for
+# particles of ~26 px); min_distance was 6 / 26 there too, and is 0.17 since the TiO2 SEM film's black specks are no
+# longer taken for text (the scale settles at ~30 px, where 0.23 d left -25 % particles per patch against the masks,
+# 0.17 d -19 %; experiments/profile/README.md).
 SIGMA_PER_DIAMETER = 1.5 / 26
-MIN_DISTANCE_PER_DIAMETER = 6 / 26
+MIN_DISTANCE_PER_DIAMETER = 0.17
 MIN_AREA_DIAMETER = 0.27  # a segment narrower than 0.27 d is a speck or a watershed sliver
 MAX_AREA_DIAMETER = 4.0  # one wider than 4 d is an agglomerate the watershed could not split
 BACKGROUND_PER_DIAMETER = 3.0  # the illumination is flattened at this many diameters
@@ -63,7 +65,7 @@ class SegmentParams:
 
     scale: float | None = None  # particle diameter, px; None: estimated (`estimate_scale`)
     sigma: float | None = None  # Gaussian smoothing before thresholding, px; None: 0.058 scale
-    min_distance: int | None = None  # least distance between watershed seeds, px; None: 0.23 scale
+    min_distance: int | None = None  # least distance between watershed seeds, px; None: 0.17 scale
     min_area: int | None = None  # smaller segments are noise, specks or slivers, px^2; None: disc of 0.27 scale
     max_area: int | None = None  # larger segments are unsplit agglomerates, px^2; None: disc of 4 scale
     background: float | None = None  # illumination flattened at this size, px (0: not); None: 3 scale
