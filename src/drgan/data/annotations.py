@@ -104,7 +104,11 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
         # the inside holds them about as densely: then this level draws the image itself (a dense packing's black
         # gaps, a bright film's white specks), and its character-shaped groups near an edge are more of the same.
         inner_area = max(0, h - 2 * band) * max(0, w - 2 * band)
-        if inner_chars and inner_area and inner_chars / inner_area >= CHAR_DENSITY_SHARE * chars.sum() / (h * w - inner_area):
+        if (
+            inner_chars
+            and inner_area
+            and inner_chars / inner_area >= CHAR_DENSITY_SHARE * chars.sum() / (h * w - inner_area)
+        ):
             chars[:] = False
         mask |= chars[labels]
     if mask.any():
