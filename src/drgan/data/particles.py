@@ -388,9 +388,8 @@ def search_scale(
     """The particle diameter: of the scales that segment into particles of their own size (fixed points of
     `refine_scale`, started from the LoG's diameter (None: no blob stood out) and from 8, 16, .. px up to half the
     image), the one whose foreground separates best from the background (Otsu separability, plus LARGER_BONUS per
-    doubling). Grain and
-    noise make fixed points at small scales too, but there the threshold cuts noise (separability ~2/pi); at the
-    particles' scale it cuts particles from background. Without a fixed point, the best scale reached. ``weighted``:
+    doubling). Grain and noise make fixed points at small scales too, but there the threshold cuts noise
+    (separability ~2/pi); at the particles' scale it cuts particles from background. Without a fixed point, the best scale reached. ``weighted``:
     each round moves to the segments' area-weighted median instead of their median (`refine_scale`). Returns
     (diameter or None, [(start, scale reached, separability)])."""
     limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
@@ -571,8 +570,7 @@ def _fill_round_holes(foreground: np.ndarray, params: SegmentParams) -> np.ndarr
             and region.solidity >= ROUND_HOLE_SOLIDITY
             and region.area >= ROUND_HOLE_FILL * disc
         ):
-            box = region.slice
-            filled[box] |= region.image
+            filled[region.slice] |= region.image
     return filled
 
 
