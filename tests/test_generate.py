@@ -547,22 +547,66 @@ def test_grey_levels_leave_edges_out_on_both_sides():
     assert grey_levels(image, thin)[1] == pytest.approx(float(np.median(image[thin])))
 
 
+def _ramped_discs(background: float, core: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(image, labels) of 4 discs of radius 9 px on 96 x 96 px: grey ``core`` within 4 px of the centre, falling
+    linearly to ``background`` at the true outline (a dim edge, as SEM particles' sides), with a little noise."""
+    yy, xx = np.mgrid[:96, :96]
+    image = np.full((96, 96), background, np.float64)
+    labels = np.zeros((96, 96), np.int32)
+    for k, (y, x) in enumerate([(24, 24), (24, 70), (70, 26), (68, 68)], 1):
+        r = np.hypot(yy - y, xx - x)
+        inside = r < 9
+        labels[inside] = k
+        ramp = np.clip((9 - r) / 5, 0, 1)
+        image[inside] = background + (core - background) * ramp[inside]
+    image += np.random.default_rng(seed).normal(0, 0.01, image.shape)
+    return image.astype(np.float32), labels
+
+
+def test_grey_spread_measures_generated_images_as_it_measured_the_real_ones():
+    from drgan.dataset.grey_spread import GreySpread, grey_levels, match_grey
+
+    # The classical outline (an Otsu threshold) of a particle with a dim edge lies inside the true one, so the
+    # real patches' particle grey is that of the bright part. A generated image of the same particles, moved to
+    # that level, must come out with the real image's grey levels on its *true* outlines too.
+    segment = {"scale": 18}
+    real, real_labels = _ramped_discs(0.1, 0.6, seed=0)
+    spread = GreySpread.from_patches(real[None], segment, "bright", resolution=96)
+    generated, labels = _ramped_discs(0.4, 0.9, seed=1)  # the same particles, other levels
+    moved, info = spread.apply(generated, labels, seed=3)
+    assert info["measured_by"] == "classical" and info["target"] == pytest.approx(spread.levels[0], abs=1e-4)
+    truth = grey_levels(real, real_labels > 0)
+    assert grey_levels(moved, labels > 0) == pytest.approx(truth, abs=0.01)
+    # measured by its labels instead, the generated image's particles come out brighter than the real ones
+    by_labels = match_grey(generated, labels, tuple(spread.levels[0]))
+    assert grey_levels(by_labels, labels > 0)[1] > truth[1] + 0.03
+    # an image in which the segmentation finds no particle is measured by its labels
+    flat = (0.4 + np.random.default_rng(2).normal(0, 0.01, (96, 96))).astype(np.float32)
+    assert spread.particles(flat, labels)[1] == "labels"
+
+
 def test_grey_spread_gives_each_image_a_real_patchs_grey_levels(tiny_run, tmp_path):
     from drgan.data.patches import PatchSet
-    from drgan.dataset.grey_spread import grey_levels, patch_grey_levels
+    from drgan.dataset.grey_spread import GreySpread, grey_levels
 
     patches = PatchSet.load(tiny_run / "patches")
-    levels = patch_grey_levels(patches.train, patches.params["segment"], patches.params["polarity"])
     out = tmp_path / "spread"
     run_generate(tiny_run, out, "grey_spread=true", n_background=0)
-    backgrounds = []
+    resolution = read(out / "images" / f"{ids(out)[0]}.png").shape[0]
+    spread = GreySpread.from_patches(patches.train, patches.params["segment"], patches.params["polarity"], resolution)
     for item in ids(out):
         image = read(out / "images" / f"{item}.png").astype(np.float64) / 255
         labels = read(out / "labels" / f"{item}.png")
-        backgrounds.append(grey_levels(image, labels > 0)[0])
-        # one real patch's background grey (to 8-bit rounding); the particle grey is exact before clipping to [0, 1]
-        # (test_match_grey_...), which moves it on these tiny, noisy 24 px renders
-        assert np.abs(levels[:, 0] - backgrounds[-1]).min() < 0.01
+        meta = json.loads((out / "meta" / f"{item}.json").read_text())["grey_spread"]
+        assert meta["measured_by"] in ("classical", "labels")
+        assert any(np.allclose(meta["target"], level, atol=1e-4) for level in spread.levels)  # one real patch's
+        # measured as it was moved: the background grey of that patch (to 8-bit rounding; the particle grey is exact
+        # before clipping to [0, 1], which moves it on these tiny, noisy 24 px renders)
+        if meta["measured_by"] == "labels":
+            particle = labels > 0
+        else:
+            particle = spread.particles(image.astype(np.float32), labels)[0]
+        assert grey_levels(image, particle)[0] == pytest.approx(meta["target"][0], abs=0.01)
     assert json.loads((out / "config.json").read_text())["fixed"]["grey_spread"] is True
     with pytest.raises(ConfigError, match="grey_spread"):  # a folder keeps its settings: resuming without it is refused
         run_generate(tiny_run, out, n_background=0)

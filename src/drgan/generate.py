@@ -49,7 +49,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from drgan.data.polarity import check_polarity
 from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
-from drgan.dataset.grey_spread import draw, match_grey, patch_grey_levels
+from drgan.dataset.grey_spread import GreySpread
 from drgan.dataset.layout import DatasetFolder, syn_id
 from drgan.dataset.manifest import write_manifest, write_shard_manifest
 from drgan.dataset.settings import fixed_settings, settings_from
@@ -153,9 +153,9 @@ def render_index(module, sample_phi, settings: dict, index: int):
     labels = np.asarray(sample.labels)
     mask = class_mask(labels, settings["contour_px"])
     label_s = time.perf_counter() - start
-    image = sample.image
-    if settings.get("grey_levels") is not None:  # grey_spread: this image's grey levels drawn from a real patch
-        image = match_grey(image, labels, draw(settings["grey_levels"], seeds["render"]))
+    image, spread = sample.image, None
+    if settings.get("grey_spread_levels") is not None:  # grey_spread: this image's grey levels from a real patch
+        image, spread = settings["grey_spread_levels"].apply(image, labels, seeds["render"])
     check = contrast_check(image, labels, settings["min_contrast"], settings["min_background"], settings["polarity"])
     sigma_key = module.generator.material.noise_sigma.key
     meta = {
@@ -170,6 +170,8 @@ def render_index(module, sample_phi, settings: dict, index: int):
         "background_fraction": check.background_fraction,
         "particles_visible": check.particles_visible,
     }
+    if spread is not None:
+        meta["grey_spread"] = spread
     return image, labels, mask, check, meta, render_s, label_s
 
 
@@ -191,6 +193,7 @@ def generate(cfg: DictConfig) -> dict:
     model_cfg = OmegaConf.create(settings["model_cfg"])
     module = load_module(Path(settings["ckpt"]), settings["model_cfg"])
     use_parameters(module, settings["parameters"], settings["model_cfg"])
+    resolution = int(module.generator.scene.spec.render.resolution)
     render_settings = settings  # what render_index reads: settings, and the real grey levels with grey_spread
     if module.textured or settings["grey_spread"]:
         from drgan.data.patches import PatchSet
@@ -199,14 +202,16 @@ def generate(cfg: DictConfig) -> dict:
         if module.textured:
             module.use_background_texture(patches.background)
         if settings["grey_spread"]:
-            levels = patch_grey_levels(patches.train, patches.params.get("segment") or {}, settings["polarity"])
-            render_settings = {**settings, "grey_levels": levels}
+            spread = GreySpread.from_patches(
+                patches.train, patches.params.get("segment") or {}, settings["polarity"], resolution
+            )
+            render_settings = {**settings, "grey_spread_levels": spread}
+            levels = spread.levels
             log.info(
                 "grey_spread: grey levels of %d real train patches: background %.3f-%.3f, particles %.3f-%.3f "
-                "(5th-95th percentile)",
+                "(5th-95th percentile); each image's own measured by the same segmentation",
                 len(levels), *np.quantile(levels[:, 0], [0.05, 0.95]), *np.quantile(levels[:, 1], [0.05, 0.95]),
             )  # fmt: skip
-    resolution = int(module.generator.scene.spec.render.resolution)
     log.info(
         "generating %d images of %s into %s (shard %s, %d x %d px, spp %s, contour %d px)",
         settings["n"], settings["material"], out, shard, resolution, resolution,
