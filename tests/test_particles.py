@@ -221,7 +221,8 @@ def test_the_search_reports_the_separability_of_the_scale_it_returns():
     prepared = [P.prepare(image, "dark", True)]
     for start in (12.0, 20.0, 48.0):
         scale, _, separability = P.refine_scale(prepared, P.SegmentParams(), start)
-        _, at_scale = P._foreground(prepared[0], replace(P.SegmentParams(), min_separability=0.0).resolved(scale))
+        at_scale = P._foreground(prepared[0], replace(P.SegmentParams(), min_separability=0.0).resolved(scale))
+        at_scale = at_scale.separability
         assert separability == pytest.approx(at_scale, abs=1e-9), start
 
 
@@ -269,12 +270,12 @@ def test_a_few_particles_on_grain_are_found_and_grain_specks_are_not(seed):
     smooth = ndi.gaussian_filter(bright, params.sigma, mode="reflect")
     plain = P._threshold(smooth, P.blob_centres(bright, params.scale), np.zeros(image.shape, bool), params.scale)
     assert plain[1] < params.min_separability  # around every LoG maximum: the grain's threshold
-    foreground, separability = P._foreground(P.prepare(image, "bright", True), params)
+    foreground, separability, _ = P._foreground(P.prepare(image, "bright", True), params)
     assert separability >= params.min_separability and ndi.label(foreground)[1] == 6
     assert all(foreground[int(c[0]), int(c[1])] for c in centres)
 
     image = _with_specks(image, centres, radius=3.5, contrast=0.3)
-    foreground, _ = P._foreground(P.prepare(image, "bright", True), params)
+    foreground = P._foreground(P.prepare(image, "bright", True), params).foreground
     assert all(foreground[int(c[0]), int(c[1])] for c in centres) and ndi.label(foreground)[1] <= 7
 
 
@@ -363,3 +364,19 @@ def test_no_blob_standing_out_is_no_proof_of_no_particles(monkeypatch):
     assert abs(params.scale / 24 - 1) < 0.15 and estimate.diameter_px is None and estimate.refined_px is not None
     with pytest.raises(P.NoParticles, match="no blob stood out.*no consistent particle size"):
         P.resolve_params([np.full((96, 96), 0.5, np.float32)], None, "bright")
+
+
+def test_a_retry_that_separates_worse_is_not_kept(monkeypatch):
+    # Below min_separability the threshold is taken again around the blobs standing out of the film's noise. On a
+    # dense packing none does (the "film" is the gaps and the particles' sides): the retry has nothing to threshold
+    # and must not replace the first cut, else the scale search sees "no particle" at the particles' own scale.
+    image, _, _ = discs(size=160, diameter=24, n=12, seed=2)
+    params = P.SegmentParams(scale=24, min_separability=0.0).resolved()
+    prepared = P.prepare(image, "bright")
+    first = P._foreground(prepared, params)  # min_separability 0: never retried
+    assert first.separability > 0.7 and first.foreground.any()
+    monkeypatch.setattr(P, "_out_of_film_noise", lambda bright, response, centres: np.zeros_like(centres))
+    retried = P._foreground(prepared, params, retry_below=0.99)  # retried, and the retry finds no blob
+    assert retried.separability == first.separability
+    np.testing.assert_array_equal(retried.foreground, first.foreground)
+    assert P.refine_scale([prepared], P.SegmentParams(min_separability=0.99), 24).separability > 0.7

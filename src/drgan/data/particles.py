@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -382,6 +383,14 @@ MIN_SCALE = 6.0  # px: smaller fixed points are grain, texture or JPEG blocks (E
 LARGER_BONUS = 0.05
 
 
+class Fixed(NamedTuple):
+    """Where `refine_scale` ended."""
+
+    scale: float  # px: the last scale segmented with
+    consistent: bool  # its segments' median lies within CONSISTENT of it
+    separability: float  # mean over the images
+
+
 def search_scale(
     prepared: Sequence[Prepared], params: SegmentParams, log_diameter: float | None, weighted: bool = False
 ) -> tuple[float | None, list[tuple[float, float, float]]]:
@@ -389,50 +398,43 @@ def search_scale(
     `refine_scale`, started from the LoG's diameter (None: no blob stood out) and from 8, 16, .. px up to half the
     image), the one whose foreground separates best from the background (Otsu separability, plus LARGER_BONUS per
     doubling). Grain and noise make fixed points at small scales too, but there the threshold cuts noise
-    (separability ~2/pi); at the particles' scale it cuts particles from background. Without a fixed point, the best scale reached. ``weighted``:
-    each round moves to the segments' area-weighted median instead of their median (`refine_scale`). Returns
-    (diameter or None, [(start, scale reached, separability)])."""
+    (separability ~2/pi); at the particles' scale it cuts particles from background. Without a fixed point, the best
+    scale reached. ``weighted``: each round moves to the segments' area-weighted median instead of their median
+    (`refine_scale`). Returns (diameter or None, [(start, scale reached, separability)])."""
     limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
     starts = {d for d in START_DIAMETERS if d <= limit}
     if log_diameter is not None:
         starts.add(round(log_diameter, 1))
-    starts = sorted(starts)
-    tried, found = [], []
-    for start in starts:
-        scale, consistent, separability = refine_scale(prepared, params, start, weighted)
-        tried.append((start, scale, separability))
-        if separability >= params.min_separability and scale >= MIN_SCALE:
-            found.append((consistent, separability + LARGER_BONUS * math.log2(scale), scale))
-    return (max(found)[2] if found else None), tried
+    tried = [(start, refine_scale(prepared, params, start, weighted)) for start in sorted(starts)]
+
+    def best(fixed: list[Fixed]) -> Fixed:
+        return max(fixed, key=lambda f: (f.consistent, f.separability + LARGER_BONUS * math.log2(f.scale)))
+
+    found = [f for _, f in tried if f.separability >= params.min_separability and f.scale >= MIN_SCALE]
+    return (best(found).scale if found else None), [(start, f.scale, f.separability) for start, f in tried]
 
 
-def refine_scale(
-    prepared: Sequence[Prepared], params: SegmentParams, scale: float, weighted: bool = False
-) -> tuple[float, bool, float]:
+def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: float, weighted: bool = False) -> Fixed:
     """Segment with the settings of ``scale``, take the median equivalent diameter of the segments not touching the
-    border as the next scale, until it moves less than 10 % (a few rounds). Returns (scale, whether its segments'
-    median lies within CONSISTENT of it, mean separability): the scale returned is the last one segmented with, so
-    that its separability is the one the final segmentation will have (the next scale's can fall below
-    ``min_separability`` and leave nothing). The LoG sees a particle's core (faceted, textured or rimmed particles
+    border as the next scale, until it moves less than 10 % (a few rounds). Returns where it ended (`Fixed`): the
+    scale returned is the last one segmented with, so that its separability is the one the final segmentation will
+    have (the next scale's can fall below ``min_separability`` and leave nothing). The LoG sees a particle's core (faceted, textured or rimmed particles
     respond below their size; rods by their width); the segments see its area."""
-    separability, settled = 0.0, False
     for round_ in range(REFINE_ROUNDS):
         resolved = replace(params, min_separability=0.0).resolved(scale)
-        diameters, separabilities = [], []
+        diameters, cuts = [], []
         for p in prepared:
-            foreground, sep = _foreground(p, resolved, retry_below=params.min_separability)
-            separabilities.append(sep)
-            diameters.append(segment_diameters(split_touching(foreground, resolved), resolved))
+            cuts.append(_foreground(p, resolved, retry_below=params.min_separability))
+            diameters.append(segment_diameters(split_touching(cuts[-1].foreground, resolved), resolved))
         d = np.concatenate(diameters)
-        separability = float(np.mean(separabilities))
         if d.size == 0:  # nothing of plausible area: this scale segments no particle, however well it separates
-            return scale, False, 0.0
+            return Fixed(scale, False, 0.0)
         new = area_weighted_median(d) if weighted else float(np.median(d))
-        settled = abs(math.log(new / scale)) < CONSISTENT
         if abs(math.log(new / scale)) < 0.1 or round_ == REFINE_ROUNDS - 1:
-            return scale, settled, separability
+            separability = float(np.mean([c.separability for c in cuts]))
+            return Fixed(scale, abs(math.log(new / scale)) < CONSISTENT, separability)
         scale = new
-    return scale, settled, separability
+    raise AssertionError("unreachable: the last round returns")
 
 
 def area_weighted_median(diameters: np.ndarray) -> float:
@@ -497,19 +499,19 @@ def _out_of_film_noise(bright: np.ndarray, response: np.ndarray, centres: np.nda
     return centres & (response >= centre + SIGNIFICANCE * 1.4826 * np.median(np.abs(film - centre)))
 
 
-def _foreground(
-    prepared: Prepared, params: SegmentParams, retry_below: float | None = None
-) -> tuple[np.ndarray, float]:
-    """(foreground, separability) of prepared, with resolved params. ``retry_below``: the separability below which
-    the threshold is taken again around the significant blobs (default ``params.min_separability``; the scale search
-    segments with min_separability 0 but retries as the final segmentation will).
+def _foreground(prepared: Prepared, params: SegmentParams, retry_below: float | None = None) -> Cut:
+    """The foreground of prepared, with resolved params, and how well its threshold separated (`Cut`).
+    ``retry_below``: the separability below which the threshold is taken again around the significant blobs
+    (default ``params.min_separability``; the scale search segments with min_separability 0 but retries as the final
+    segmentation will).
 
     Otsu's threshold is taken over the pixels within one diameter of a blob of the particles' size (not the whole
     image): a few particles on a wide background give a lopsided histogram where Otsu cuts into the background's
     noise, while around the particles both classes are well represented. Where those blobs leave the separability
     below ``min_separability``, it is taken again around the blobs that stand out of the film's noise
     (`blob_centres`' ``significant``; the smoothing and the LoG response are reused): a grainy film whose own maxima
-    surrounded the few particles.
+    surrounded the few particles. The retry is kept only where it separates better (on a dense packing no blob
+    stands out of the "film", which is the particles' gaps and sides, and the retry has nothing to threshold).
 
     A connected piece of the foreground is kept when it is at least ``min_area`` and reaches within half a
     diameter of a blob centre: grain, noise and texture specks past the threshold away from every blob of the
@@ -521,26 +523,25 @@ def _foreground(
     smooths = [ndi.gaussian_filter(im, params.sigma, mode="reflect") if params.sigma > 0 else im for im in images]
     maxima = [_blob_maxima(im, params.scale) for im in images]
 
-    def best(centre_sets: list[np.ndarray]) -> tuple[np.ndarray, float, np.ndarray]:
+    def best(centre_sets: list[np.ndarray]) -> Cut:
         return max(
             (_threshold(smooth, c & ~prepared.annotations, prepared.annotations, params.scale)
              for smooth, c in zip(smooths, centre_sets)),
-            key=lambda t: t[1],
+            key=lambda cut: cut.separability,
         )  # fmt: skip
 
-    foreground, separability, centres = best([peak for _, peak in maxima])
-    if separability < (params.min_separability if retry_below is None else retry_below):
-        foreground, separability, centres = best(
-            [_out_of_film_noise(im, r, peak) for im, (r, peak) in zip(images, maxima)]
-        )
-    if separability < params.min_separability:
-        return np.zeros(foreground.shape, bool), separability
-    components, n = ndi.label(foreground)
+    cut = best([peak for _, peak in maxima])
+    if cut.separability < (params.min_separability if retry_below is None else retry_below):
+        retry = best([_out_of_film_noise(im, r, peak) for im, (r, peak) in zip(images, maxima)])
+        cut = retry if retry.separability >= cut.separability else cut
+    if cut.separability < params.min_separability:
+        return cut._replace(foreground=np.zeros(cut.foreground.shape, bool))
+    components, n = ndi.label(cut.foreground)
     keep = np.bincount(components.ravel(), minlength=n + 1) >= params.min_area
-    near = ndi.distance_transform_edt(~centres) <= 0.5 * params.scale
+    near = ndi.distance_transform_edt(~cut.centres) <= 0.5 * params.scale
     keep &= np.bincount(components[near], minlength=n + 1) > 0
     keep[0] = False
-    return _fill_round_holes(keep[components], params), separability
+    return cut._replace(foreground=_fill_round_holes(keep[components], params))
 
 
 # A hole at least this convex, and filling at least this share of the disc of its length, is a particle's own darker
@@ -574,25 +575,31 @@ def _fill_round_holes(foreground: np.ndarray, params: SegmentParams) -> np.ndarr
     return filled
 
 
-def _threshold(
-    smooth: np.ndarray, centres: np.ndarray, annotations: np.ndarray, scale: float
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """(pixels of ``smooth`` past Otsu's threshold of the pixels within ``scale`` of the ``centres``, its
-    separability, the centres)."""
+class Cut(NamedTuple):
+    """A threshold's foreground and how well it separates (`_threshold`)."""
+
+    foreground: np.ndarray  # bool
+    separability: float  # Otsu's between-class / total variance
+    centres: np.ndarray  # bool: the blob centres whose surroundings were thresholded
+
+
+def _threshold(smooth: np.ndarray, centres: np.ndarray, annotations: np.ndarray, scale: float) -> Cut:
+    """Pixels of ``smooth`` past Otsu's threshold of the pixels within ``scale`` of the ``centres``, and how well
+    that threshold separates them (`Cut`)."""
     empty = np.zeros(smooth.shape, bool)
     if smooth.max() - smooth.min() < 1e-6:
-        return empty, 0.0, empty
+        return Cut(empty, 0.0, empty)
     if not centres.any():
-        return empty, 0.0, centres
+        return Cut(empty, 0.0, centres)
     region = (ndi.distance_transform_edt(~centres) <= scale) & ~annotations
     values = smooth[region]
     threshold = threshold_otsu(values)
     above = values > threshold
     w1 = above.mean()
     if w1 in (0.0, 1.0):
-        return empty, 0.0, centres
+        return Cut(empty, 0.0, centres)
     between = w1 * (1 - w1) * (values[above].mean() - values[~above].mean()) ** 2
-    return (smooth > threshold) & ~annotations, float(between / values.var()), centres
+    return Cut((smooth > threshold) & ~annotations, float(between / values.var()), centres)
 
 
 def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
@@ -603,7 +610,7 @@ def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, 
         params, _ = resolve_params([image], params, polarity)
     except NoParticles:
         return np.zeros(np.shape(image)[:2], bool)
-    return _foreground(prepare(image, polarity, params.annotations), params)[0]
+    return _foreground(prepare(image, polarity, params.annotations), params).foreground
 
 
 def segment_particles(
@@ -621,7 +628,7 @@ def segment_particles(
     except NoParticles:
         shape = np.shape(image)[:2]
         return np.zeros(shape, np.int32), np.zeros(shape, bool)
-    foreground, _ = _foreground(prepare(image, polarity, params.annotations), params)
+    foreground = _foreground(prepare(image, polarity, params.annotations), params).foreground
     return split_touching(foreground, params), foreground
 
 
@@ -644,5 +651,5 @@ def segment_with_report(
     image: np.ndarray, params: SegmentParams, polarity: str
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """(labels, foreground, Otsu separability) with resolved ``params``: the profile reports the separability."""
-    foreground, separability = _foreground(prepare(image, polarity, params.annotations), params)
-    return split_touching(foreground, params), foreground, separability
+    cut = _foreground(prepare(image, polarity, params.annotations), params)
+    return split_touching(cut.foreground, params), cut.foreground, cut.separability
