@@ -95,10 +95,32 @@ def test_a_data_bar_and_a_label_box_with_frames_are_not_particles(polarity):
     assert abs(np.median(d) / diameter - 1) < 0.1 and abs(params.scale / diameter - 1) < 0.15
 
 
+def test_a_rod_is_one_particle_and_a_neck_still_splits():
+    """A rod's ridge in the distance transform rises and falls a few % along its length (digitised, slightly uneven
+    sides): every maximum min_distance apart seeds a piece of about its width. With neck_depth a seed must stand that
+    share of its height above the saddle to a higher one: the rod stays whole, touching discs (a deep neck) split."""
+    params = P.SegmentParams(scale=24, neck_depth=0.2).resolved()
+    yy, xx = np.mgrid[:80, :160]
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        half_width = 10 + np.cumsum(rng.normal(0, 0.15, 160)).clip(-1.5, 1.5)  # sides uneven by up to 1.5 px
+        angle = rng.uniform(-0.3, 0.3)
+        along = (xx - 80) * np.cos(angle) + (yy - 40) * np.sin(angle)
+        across = -(xx - 80) * np.sin(angle) + (yy - 40) * np.cos(angle)
+        rod = (np.abs(along) <= 55) & (np.abs(across) <= half_width[np.clip(xx, 0, 159)])
+        every_maximum = P.split_touching(rod, replace(params, neck_depth=0.0)).max()
+        assert every_maximum >= 3, (seed, every_maximum)  # pieces of about the rod's width
+        assert P.split_touching(rod, params).max() == 1, seed
+    pair = (np.hypot(yy - 40, xx - 60) <= 12) | (np.hypot(yy - 40, xx - 82) <= 12)  # overlapping by 2 px
+    assert P.split_touching(pair, params).max() == 2
+    with pytest.raises(ConfigError, match="neck_depth"):
+        P.SegmentParams(neck_depth=1.0)
+
+
 def test_thin_strands_are_not_cut_into_particle_sized_fragments():
     """A film wrinkle (a wavy strand 3-7 px wide): every local maximum of its distance transform along its length
     seeds a segment (the default); with seed_depth=1 only 1-px-deep maxima (h-maxima) do, so it stays a few pieces."""
-    params = P.SegmentParams(scale=15, seed_depth=1.0).resolved()
+    params = P.SegmentParams(scale=15, seed_depth=1.0, neck_depth=0.0).resolved()
     rows = np.arange(96)[:, None]
     for seed in range(4):
         rng = np.random.default_rng(seed)

@@ -165,15 +165,15 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
 
     folder = _folder(tmp_path, "dark", n=2)
     monkeypatch.chdir(tmp_path)
-    result = profile(
-        compose([f"data.dir={folder}", "name=dark_discs", f"out={tmp_path / 'out'}"], config_name="profile")
-    )  # crop_rows auto: the white bar found and dropped
+    overrides = [f"data.dir={folder}", "name=dark_discs", f"out={tmp_path / 'out'}", "data.segment.neck_depth=0.2"]
+    result = profile(compose(overrides, config_name="profile"))  # crop_rows auto: the white bar found and dropped
     assert result["polarity"]["value"] == "dark" and result["material"]["parent"] == "tio2_tsem"
     assert result["data"]["crop_rows"] == "auto" and abs(result["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
     text = (tmp_path / "drgan_conf" / "material" / "dark_discs.yaml").read_text()
     assert "  - tio2_tsem\n" in text and "noise_grain_px:" in text
     cfg = compose(["material=dark_discs"], config_name="train")
     assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark" and cfg.data.crop_rows == "auto"
+    assert cfg.data.segment.neck_depth == 0.2 and "    neck_depth: 0.2\n" in text  # a key given travels
     # No ring at the discs' edges: the transmission material renders no fringe, and says why.
     assert result["edge"]["ring"]["kind"] == "none" and result["material"]["fringe"] is None
     assert cfg.material.imaging.fringe is None and "#   edge fringe: none" in text

@@ -291,7 +291,8 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     same lengths) and data.min_particles when too few windows hold the default 3 particles (large particles)."""
     seg, counts = result["segmentation"], result["particles_per_patch"]
     given = seg["setting"]
-    data = {"segment": {k: v for k, v in seg["params"].items() if k in SEGMENT_KEYS}}
+    # the lengths (from the scale or given), and any other key given by hand (neck_depth, min_separability, ..)
+    data = {"segment": {k: v for k, v in seg["params"].items() if k in SEGMENT_KEYS or k in given}}
     estimate = seg["scale_estimate"]
     log_scale = (
         "no LoG blob stood out (particles fill the image), a diameter searched from 8 px up,"
@@ -516,7 +517,7 @@ def report_markdown(r: dict) -> str:
     seg_table = "| key | value | why |\n|---|---|---|\n" + "\n".join(
         f"| data.segment.{k} | {v} | {'set by hand' if k in seg['setting'] else 'from the scale'} |"
         for k, v in seg["params"].items()
-        if k in SEGMENT_KEYS
+        if k in SEGMENT_KEYS or k in seg["setting"]
     )
     seg_table += "\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in data_notes.items())
     return (

@@ -54,6 +54,7 @@ MIN_DISTANCE_PER_DIAMETER = 0.17
 MIN_AREA_DIAMETER = 0.27  # a segment narrower than 0.27 d is a speck or a watershed sliver
 MAX_AREA_DIAMETER = 4.0  # one wider than 4 d is an agglomerate the watershed could not split
 BACKGROUND_PER_DIAMETER = 3.0  # the illumination is flattened at this many diameters
+NECK_DEPTH = 0.0  # a watershed seed's least depth, as a share of its height (`SegmentParams.neck_depth`)
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,14 @@ class SegmentParams:
     # touching TiO2 particles, whose necks are as shallow (tio2_sem patch count -17 % -> -34 %), so it is off by
     # default: a key to set for images with strands (experiments/profile/README.md). 0: every maximum seeds.
     seed_depth: float = 0.0
+    # A watershed seed must stand this share of its own height above the saddle to a higher peak of the distance
+    # transform (its neck; `_neck_caps`): most touching particles meet at deep necks (EMPS instance maps: 95 % of
+    # touching pairs at >= 0.22 of the lower particle's radius, median 0.74), while a rod's ridge and an irregular
+    # particle's bumps rise a few % above theirs (median 0.03, 90 % <= 0.12), so 0.2 keeps rods and irregular
+    # particles whole. Off by default: agglomerated TiO2 particles are split by their annotators at necks as shallow
+    # (tio2_sem masks: half of the touching pairs below 0.13), and 0.2 merges them (experiments/profile/README.md).
+    # 0: every maximum min_distance apart seeds.
+    neck_depth: float = NECK_DEPTH
     # Otsu's between-class / total variance around the blobs of the particles' size. Smoothed noise scores
     # 0.635-0.64 (2/pi for Gaussian noise) at any scale; particles at their own scale 0.66-0.91 (EMPS, most > 0.7).
     min_separability: float = 0.66
@@ -95,6 +104,10 @@ class SegmentParams:
         if (low is not None and low <= 0) or (low is not None and high is not None and low > high):
             raise ConfigError(
                 f"data.segment min_area={low}, max_area={high}: expected 0 < min_area <= max_area (px^2) or null"
+            )
+        if not (isinstance(self.neck_depth, (int, float)) and 0 <= self.neck_depth < 1):
+            raise ConfigError(
+                f"data.segment.neck_depth={self.neck_depth!r}: expected a share of a seed's height in [0, 1)"
             )
         if not (isinstance(self.seed_depth, (int, float)) and 0 <= self.seed_depth < math.inf):
             raise ConfigError(f"data.segment.seed_depth={self.seed_depth!r}: expected a depth >= 0 px")
@@ -633,7 +646,8 @@ def segment_particles(
 
 
 def split_touching(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
-    """Watershed of the distance transform: seeds at its maxima at least min_distance apart (one per particle core)."""
+    """Watershed of the distance transform: seeds at its maxima at least min_distance apart (one per particle core)
+    that stand neck_depth of their height above the saddle to a higher one (a neck, not a bump on a ridge)."""
     if not foreground.any():
         return np.zeros(foreground.shape, np.int32)
     components, _ = ndi.label(foreground)
@@ -643,8 +657,26 @@ def split_touching(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
     seed_mask[tuple(peaks.T)] = True
     if params.seed_depth > 0:
         seed_mask &= h_maxima(distance, params.seed_depth).astype(bool)
+    if params.neck_depth > 0:
+        seed_mask = _neck_caps(distance, params.neck_depth, seed_mask)
     seeds, _ = ndi.label(seed_mask)  # a flat top (plateau) yields adjacent peaks: one seed, not several
     return watershed(-distance, seeds, mask=foreground).astype(np.int32)
+
+
+def _neck_caps(distance: np.ndarray, depth: float, peaks: np.ndarray) -> np.ndarray:
+    """bool: the caps of the distance transform's domes that stand ``depth`` of their height above the saddle to a
+    higher dome (s + 1 <= (1 - depth) (p + 1) for a peak p over a saddle s: the dynamic of log(1 + distance); the
+    1 px keeps pixel-high bumps of thin pieces from counting as necks), those holding one of ``peaks``. A cap is the
+    dome's top lowered by that depth, so a ridge of equal or nearly equal maxima (a rod) is one cap: one seed, where
+    h-maxima would keep each of its equal tops. Every component keeps its top, which stands log(1 + p) above the
+    background's 0."""
+    from skimage.morphology import local_maxima, reconstruction
+
+    height = np.log1p(distance)
+    lowered = reconstruction(height - (-math.log(1 - depth)), height, method="dilation")
+    caps, _ = ndi.label(local_maxima(lowered) & (distance > 0))
+    held = np.unique(caps[peaks])
+    return np.isin(caps, held[held > 0])
 
 
 def segment_with_report(
