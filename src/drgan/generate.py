@@ -154,8 +154,8 @@ def render_index(module, sample_phi, settings: dict, index: int):
     mask = class_mask(labels, settings["contour_px"])
     label_s = time.perf_counter() - start
     image, spread = sample.image, None
-    if settings.get("grey_spread_levels") is not None:  # grey_spread: this image's grey levels from a real patch
-        image, spread = settings["grey_spread_levels"].apply(image, labels, seeds["render"])
+    if settings.get("spread") is not None:  # grey_spread: this image's grey levels from a real patch
+        image, spread = settings["spread"].apply(image, labels, seeds["render"])
     check = contrast_check(image, labels, settings["min_contrast"], settings["min_background"], settings["polarity"])
     sigma_key = module.generator.material.noise_sigma.key
     meta = {
@@ -194,7 +194,7 @@ def generate(cfg: DictConfig) -> dict:
     module = load_module(Path(settings["ckpt"]), settings["model_cfg"])
     use_parameters(module, settings["parameters"], settings["model_cfg"])
     resolution = int(module.generator.scene.spec.render.resolution)
-    render_settings = settings  # what render_index reads: settings, and the real grey levels with grey_spread
+    render_settings = settings  # what render_index reads: settings, and with grey_spread the GreySpread ("spread")
     if module.textured or settings["grey_spread"]:
         from drgan.data.patches import PatchSet
 
@@ -205,7 +205,7 @@ def generate(cfg: DictConfig) -> dict:
             spread = GreySpread.from_patches(
                 patches.train, patches.params.get("segment") or {}, settings["polarity"], resolution
             )
-            render_settings = {**settings, "grey_spread_levels": spread}
+            render_settings = {**settings, "spread": spread}
             levels = spread.levels
             log.info(
                 "grey_spread: grey levels of %d real train patches: background %.3f-%.3f, particles %.3f-%.3f "

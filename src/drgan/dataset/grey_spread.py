@@ -25,10 +25,14 @@ contrast in every generated image; measured alike on both sides, it cancels (exp
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drgan.errors import DataError
+
+if TYPE_CHECKING:
+    from drgan.data.particles import SegmentParams
 
 MIN_SHARE = 0.02  # a patch counts only when particles and background each cover at least this share of it
 EDGE_MARGIN = 2  # px: edges (blur, SEM edge brightening, a classical outline's offset) are left out of both levels
@@ -93,7 +97,7 @@ class GreySpread:
     image's levels onto one drawn patch's (`apply`)."""
 
     levels: np.ndarray  # (N, 2) (background, particle) grey of the real patches that show both
-    segment: object  # SegmentParams of the patch set, at the generated images' px
+    segment: SegmentParams  # the patch set's settings, at the generated images' px
     polarity: str  # the particles' side of the grey scale: "bright" or "dark"
 
     @classmethod
