@@ -673,7 +673,7 @@ def _neck_caps(distance: np.ndarray, depth: float, peaks: np.ndarray) -> np.ndar
     from skimage.morphology import local_maxima, reconstruction
 
     height = np.log1p(distance)
-    lowered = reconstruction(height - (-math.log(1 - depth)), height, method="dilation")
+    lowered = reconstruction(height + math.log(1 - depth), height, method="dilation")  # each dome lowered by depth
     caps, _ = ndi.label(local_maxima(lowered) & (distance > 0))
     held = np.unique(caps[peaks])
     return np.isin(caps, held[held > 0])
