@@ -54,16 +54,24 @@ def grey_levels(image: np.ndarray, particle: np.ndarray, margin: int = EDGE_MARG
     return float(np.median(image[background])), float(np.median(image[core]))
 
 
-def patch_grey_levels(patches: np.ndarray, segment: dict, polarity: str) -> np.ndarray:
+def classical_particles(image: np.ndarray, segment, polarity: str) -> np.ndarray | None:
+    """bool: the particles drgan's classical segmentation (``segment``: SegmentParams or a data.segment mapping)
+    finds in ``image``, or None unless particles and background each cover at least MIN_SHARE of it."""
+    from drgan.data.particles import particle_foreground
+
+    particle = particle_foreground(image, segment, polarity)
+    return particle if MIN_SHARE <= particle.mean() <= 1 - MIN_SHARE else None
+
+
+def patch_grey_levels(patches: np.ndarray, segment, polarity: str) -> np.ndarray:
     """(N, 2) (background, particle) grey (`grey_levels`) of each patch in which both are shown (others left out)."""
-    from drgan.data.particles import SegmentParams, particle_foreground
+    from drgan.data.particles import SegmentParams
 
     params = SegmentParams.from_config(segment)
     levels = []
     for patch in np.asarray(patches, dtype=np.float32):
-        particle = particle_foreground(patch, params, polarity)
-        share = particle.mean()
-        if MIN_SHARE <= share <= 1 - MIN_SHARE:
+        particle = classical_particles(patch, params, polarity)
+        if particle is not None:
             levels.append(grey_levels(patch, particle))
     if not levels:
         raise DataError(
@@ -106,18 +114,16 @@ class GreySpread:
         scaled to generated images of ``resolution`` px."""
         from drgan.data.particles import SegmentParams
 
-        levels = patch_grey_levels(patches, segment, polarity)
-        params = SegmentParams.from_config(segment).scaled(resolution / np.shape(patches)[-1])
-        return cls(levels, params, polarity)
+        params = SegmentParams.from_config(segment)
+        levels = patch_grey_levels(patches, params, polarity)
+        return cls(levels, params.scaled(resolution / np.shape(patches)[-1]), polarity)
 
     def particles(self, image: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, str]:
         """(particle pixels, "classical" or "labels"): where the real patches' segmentation finds particles and
         background in ``image`` (each at least MIN_SHARE), its foreground, measured as the real levels were;
         otherwise the exact labels."""
-        from drgan.data.particles import particle_foreground
-
-        foreground = particle_foreground(image, self.segment, self.polarity)
-        if MIN_SHARE <= foreground.mean() <= 1 - MIN_SHARE:
+        foreground = classical_particles(image, self.segment, self.polarity)
+        if foreground is not None:
             return foreground, "classical"
         return np.asarray(labels) > 0, "labels"
 
