@@ -513,11 +513,10 @@ def report_markdown(r: dict) -> str:
         for f in s["fits"]
     )
     px = r["pixel_size"]
-    _, data_notes = data_settings(r)
+    data, data_notes = data_settings(r)  # the table shows the keys the material carries
     seg_table = "| key | value | why |\n|---|---|---|\n" + "\n".join(
         f"| data.segment.{k} | {v} | {'set by hand' if k in seg['setting'] else 'from the scale'} |"
-        for k, v in seg["params"].items()
-        if k in SEGMENT_KEYS or k in seg["setting"]
+        for k, v in data["segment"].items()
     )
     seg_table += "\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in data_notes.items())
     return (
