@@ -54,8 +54,9 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
     holes filled: a microscope's data bar with its text) or a character: small, drawn with strokes much thinner
     than its height, within EDGE_BAND of an edge (but not when groups of that shape and level lie inside the image
     at CHAR_DENSITY_SHARE of the edges' density or more: then they are the image's own, such as the black gaps of a
-    dense packing). Boxes and bands are masked whole, with their frame (FRAME_SHARE). Particles are blobs (their thickness is their size) and are not drawn in
-    exactly one grey, so they stay. The mask is grown by 2 px (anti-aliased edges)."""
+    dense packing). Boxes and bands are masked whole, with their frame (FRAME_SHARE). Particles are blobs (their
+    thickness is their size) and are not drawn in exactly one grey, so they stay. The mask is grown by 2 px
+    (anti-aliased edges)."""
     grey = np.asarray(grey, np.float32)
     h, w = grey.shape
     short = min(h, w)

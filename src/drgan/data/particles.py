@@ -431,8 +431,9 @@ def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: flo
     """Segment with the settings of ``scale``, take the median equivalent diameter of the segments not touching the
     border as the next scale, until it moves less than 10 % (a few rounds). Returns where it ended (`Fixed`): the
     scale returned is the last one segmented with, so that its separability is the one the final segmentation will
-    have (the next scale's can fall below ``min_separability`` and leave nothing). The LoG sees a particle's core (faceted, textured or rimmed particles
-    respond below their size; rods by their width); the segments see its area."""
+    have (the next scale's can fall below ``min_separability`` and leave nothing). The LoG sees a particle's core
+    (faceted, textured or rimmed particles respond below their size; rods by their width); the segments see its
+    area."""
     for round_ in range(REFINE_ROUNDS):
         resolved = replace(params, min_separability=0.0).resolved(scale)
         diameters, cuts = [], []
