@@ -402,3 +402,50 @@ def test_a_retry_that_separates_worse_is_not_kept(monkeypatch):
     assert retried.separability == first.separability
     np.testing.assert_array_equal(retried.foreground, first.foreground)
     assert P.refine_scale([prepared], P.SegmentParams(min_separability=0.99), 24).separability > 0.7
+
+
+def _rods_and_pairs(kind: str, seed: int = 0, size: int = 224) -> tuple[np.ndarray, int]:
+    """(bright image, particles): ``rods`` 12 px wide and 56-64 px long with sides uneven by up to 1.5 px, or
+    ``pairs`` of 26 px discs overlapping by half a radius (a neck 0.13 of their radius deep) beside single discs."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    image, placed = np.full((size, size), 0.3), []
+    for _ in range(400):
+        if len(placed) == 8:
+            break
+        c = rng.uniform(40, size - 40, 2)
+        if any(np.hypot(*(c - c2)) < 62 for c2 in placed):
+            continue
+        placed.append(c)
+        if kind == "rods":
+            angle, length = rng.uniform(0, np.pi), rng.uniform(56, 64)
+            along = (xx - c[1]) * np.cos(angle) + (yy - c[0]) * np.sin(angle)
+            across = -(xx - c[1]) * np.sin(angle) + (yy - c[0]) * np.cos(angle)
+            half_width = 6 + np.cumsum(rng.normal(0, 0.15, size)).clip(-1.5, 1.5)
+            shape = (np.abs(along) <= length / 2) & (np.abs(across) <= half_width[np.clip(xx, 0, size - 1)])
+        else:
+            offset = 6.5 * np.array([np.cos(a := rng.uniform(0, np.pi)), np.sin(a)]) * (len(placed) % 2)
+            shape = np.zeros((size, size), bool)
+            for centre in (c - offset, c + offset):
+                shape |= np.hypot(yy - centre[0], xx - centre[1]) <= 13
+        image[shape] = 0.65
+    image += 0.02 * rng.standard_normal((size, size))
+    n = len(placed) if kind == "rods" else len(placed) + (len(placed) + 1) // 2  # the odd ones are pairs
+    return np.clip(image, 0, 1).astype(np.float32), n
+
+
+@pytest.mark.parametrize("kind", ["rods", "pairs"])
+def test_the_neck_depth_is_chosen_by_how_alike_the_sizes_come_out(kind):
+    """neck_depth left None: rods cut into pieces of every length along their ridge are merged whole (their sizes
+    alike), touching discs merged at their shallow necks would make singles and pairs, so they stay split."""
+    image, n = _rods_and_pairs(kind)
+    params, estimate = P.resolve_params([image], None, "bright")
+    labels, _ = P.segment_particles(image, params, "bright")
+    spreads = dict(estimate.necks)
+    assert params.neck_depth == (P.NECK_DEPTH if kind == "rods" else 0.0), spreads
+    assert labels.max() == n, (kind, labels.max(), n)
+    assert set(spreads) == {0.0, P.NECK_DEPTH}
+    narrower = spreads[P.NECK_DEPTH] < P.NECK_SPREAD * spreads[0.0]
+    assert narrower == (kind == "rods"), spreads
+    given = P.resolve_params([image], P.SegmentParams(neck_depth=0.0), "bright")[0]
+    assert given.neck_depth == 0.0  # a depth given is kept

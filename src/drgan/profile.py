@@ -25,7 +25,15 @@ from tqdm import tqdm
 
 from drgan.data import profile as est
 from drgan.data.images import list_images, read_grey, read_split
-from drgan.data.particles import NoParticles, SegmentParams, annotation_mask, as_grey, resolve_params
+from drgan.data.particles import (
+    NECK_DEPTH,
+    NECK_SPREAD,
+    NoParticles,
+    SegmentParams,
+    annotation_mask,
+    as_grey,
+    resolve_params,
+)
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.io import figure_png, write_bytes, write_json
@@ -310,6 +318,7 @@ def data_settings(result: dict) -> tuple[dict, dict]:
         + (f" ({', '.join(sorted(given))} given)" if given else "")
         + f"; Otsu separability {seg['separability_median']:.2f} (particles segmented: {seg['particles']})",
     }
+    notes["data.segment.neck_depth"] = _neck_note(seg["params"]["neck_depth"], "neck_depth" in given, estimate)
     enough = counts["with_3_or_more"]["windows"] / max(1, counts["windows"])
     if enough < MIN_WINDOW_SHARE:
         data["min_particles"] = max(1, min(3, int(counts["median"])))
@@ -320,7 +329,7 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     return data, notes
 
 
-SEGMENT_KEYS = ("scale", "sigma", "min_distance", "min_area", "max_area", "background")
+SEGMENT_KEYS = ("scale", "sigma", "min_distance", "min_area", "max_area", "background", "neck_depth")
 MIN_WINDOW_SHARE = 0.2  # below this share of windows with >= 3 particles, training mines windows with fewer
 
 
@@ -501,6 +510,25 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
 
 
 # --- report and figures -----------------------------------------------------------------------------------
+
+
+def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
+    """Why the watershed's seeds have the neck depth they have (`drgan.data.particles.choose_neck`)."""
+    if given:
+        return f"{depth}, set by hand"
+    if estimate is None:
+        return f"{depth}: chosen by the segment sizes at the scale given (`drgan.data.particles.choose_neck`)"
+    spreads = {d: s for d, s in estimate.get("necks", [])}
+    if len(spreads) < 2 or any(s is None for s in spreads.values()):
+        why = "no shallow neck to merge at this scale" if len(spreads) < 2 else "the other depth found no particle"
+        return f"{depth}: {why}"
+    plain, deep = spreads[0.0], spreads[NECK_DEPTH]
+    verdict = "narrower" if depth else f"not narrower than {NECK_SPREAD} of it"
+    return (
+        f"{depth}: segment sizes spread log(q90/q10) {deep:.2f} with seeds at necks of {NECK_DEPTH}, {plain:.2f} with "
+        f"every maximum seeding ({verdict}; rods and irregular particles merged whole are alike in size, touching "
+        "particles merged are not)"
+    )
 
 
 def report_markdown(r: dict) -> str:

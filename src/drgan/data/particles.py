@@ -54,7 +54,10 @@ MIN_DISTANCE_PER_DIAMETER = 0.17
 MIN_AREA_DIAMETER = 0.27  # a segment narrower than 0.27 d is a speck or a watershed sliver
 MAX_AREA_DIAMETER = 4.0  # one wider than 4 d is an agglomerate the watershed could not split
 BACKGROUND_PER_DIAMETER = 3.0  # the illumination is flattened at this many diameters
-NECK_DEPTH = 0.0  # a watershed seed's least depth, as a share of its height (`SegmentParams.neck_depth`)
+# `SegmentParams.neck_depth` left None: NECK_DEPTH is taken when it narrows the spread of the segments' sizes,
+# log(q90 / q10) of their diameters, to NECK_SPREAD of that with every maximum seeding or less (`choose_neck`).
+NECK_DEPTH = 0.2
+NECK_SPREAD = 0.8
 
 
 @dataclass(frozen=True)
@@ -85,8 +88,8 @@ class SegmentParams:
     # particle's bumps rise a few % above theirs (median 0.03, 90 % <= 0.12), so 0.2 keeps rods and irregular
     # particles whole. Off by default: agglomerated TiO2 particles are split by their annotators at necks as shallow
     # (tio2_sem masks: half of the touching pairs below 0.13), and 0.2 merges them (experiments/profile/README.md).
-    # 0: every maximum min_distance apart seeds.
-    neck_depth: float = NECK_DEPTH
+    # 0: every maximum min_distance apart seeds. None: 0 or NECK_DEPTH, whichever the images' sizes say (`choose_neck`).
+    neck_depth: float | None = None
     # Otsu's between-class / total variance around the blobs of the particles' size. Smoothed noise scores
     # 0.635-0.64 (2/pi for Gaussian noise) at any scale; particles at their own scale 0.66-0.91 (EMPS, most > 0.7).
     min_separability: float = 0.66
@@ -105,9 +108,10 @@ class SegmentParams:
             raise ConfigError(
                 f"data.segment min_area={low}, max_area={high}: expected 0 < min_area <= max_area (px^2) or null"
             )
-        if not (isinstance(self.neck_depth, (int, float)) and 0 <= self.neck_depth < 1):
+        if self.neck_depth is not None and not (isinstance(self.neck_depth, (int, float)) and 0 <= self.neck_depth < 1):
             raise ConfigError(
-                f"data.segment.neck_depth={self.neck_depth!r}: expected a share of a seed's height in [0, 1)"
+                f"data.segment.neck_depth={self.neck_depth!r}: expected a share of a seed's height in [0, 1), or null"
+                " (chosen from the images)"
             )
         if not (isinstance(self.seed_depth, (int, float)) and 0 <= self.seed_depth < math.inf):
             raise ConfigError(f"data.segment.seed_depth={self.seed_depth!r}: expected a depth >= 0 px")
@@ -129,10 +133,12 @@ class SegmentParams:
 
     @property
     def is_resolved(self) -> bool:
-        return None not in (self.scale, self.sigma, self.min_distance, self.min_area, self.max_area, self.background)
+        lengths = (self.scale, self.sigma, self.min_distance, self.min_area, self.max_area, self.background)
+        return None not in (*lengths, self.neck_depth)
 
     def resolved(self, scale: float | None = None) -> SegmentParams:
-        """Every length set: those given kept, the others from ``scale`` (or self.scale), the particle diameter."""
+        """Every length set: those given kept, the others from ``scale`` (or self.scale), the particle diameter. A
+        neck depth left None becomes 0 here (every maximum seeds): `resolve_params` chooses it from images."""
         d = float(self.scale if self.scale is not None else scale) if (self.scale or scale) else None
         if d is None:
             raise ConfigError("SegmentParams.resolved: no particle scale (give data.segment.scale or an image)")
@@ -146,6 +152,7 @@ class SegmentParams:
             min_area=min_area,
             max_area=max_area,
             background=self.background if self.background is not None else round(BACKGROUND_PER_DIAMETER * d, 1),
+            neck_depth=self.neck_depth or 0.0,
         )
 
     def scaled(self, factor: float) -> SegmentParams:
@@ -216,6 +223,7 @@ class ScaleEstimate:
     diameters_tried_px: tuple[float, float]  # the range of the LoG scales, as disc diameters
     refined_px: float | None = None  # the diameter chosen by `search_scale`
     candidates: tuple = ()  # (start, fixed point, separability) of each search
+    necks: tuple = ()  # (neck depth, size spread log(q90 / q10)) of each depth `choose_neck` tried
 
     def as_dict(self) -> dict:
         return {
@@ -225,6 +233,7 @@ class ScaleEstimate:
             "diameters_tried_px": [round(v, 1) for v in self.diameters_tried_px],
             "refined_px": None if self.refined_px is None else round(self.refined_px, 2),
             "candidates": [[round(float(v), 3) for v in c] for c in self.candidates],
+            "necks": [[float(depth), None if math.isnan(spread) else round(spread, 3)] for depth, spread in self.necks],
         }
 
 
@@ -352,13 +361,74 @@ def flatten(bright: np.ndarray, size: float) -> np.ndarray:
 def resolve_params(
     images: Sequence[np.ndarray], params: SegmentParams | None = None, polarity: str = "bright"
 ) -> tuple[SegmentParams, ScaleEstimate | None]:
-    """``params`` with every length set: the scale estimated from ``images`` when not given (None when given)."""
+    """``params`` with every length and the neck depth set: the scale estimated from ``images`` when not given (the
+    estimate is None when it was), the neck depth chosen from them when None (`choose_neck`)."""
     params = SegmentParams.from_config(params)
     if params.is_resolved:
         return params, None
-    if params.scale is not None:
+    if params.neck_depth is not None and params.scale is not None:
         return params.resolved(), None
     prepared = [prepare(image, polarity, params.annotations) for image in images]
+    if params.neck_depth is None:
+        return choose_neck(prepared, params, polarity)
+    return _resolve_scale(prepared, params, polarity)
+
+
+def choose_neck(
+    prepared: Sequence[Prepared], params: SegmentParams, polarity: str
+) -> tuple[SegmentParams, ScaleEstimate | None]:
+    """Resolve ``params`` twice, with every maximum seeding (neck depth 0) and with NECK_DEPTH, and keep NECK_DEPTH
+    where it narrows the spread of the segments' diameters, log(q90 / q10), to NECK_SPREAD of the other's or less.
+
+    A rod or an irregular particle cut along its ridge gives pieces of every length, and merged back the particles
+    are alike; touching particles merged at their necks give singles, pairs and triples, no narrower than before.
+    EMPS (every third image, 85 with >= 5 instances): where 0.2 set the median right and 0 did not, its spread was
+    0.57 of the other's (median; 17 of 20 below 0.8); tio2_sem's set 0.90, tio2_tsem's 1.15 (experiments/profile/
+    README.md). Merging at necks makes particles larger: a deeper search that settled at a smaller scale found
+    something else (a field of alike specks), and is not kept. Where one of them finds no particle, the other is
+    kept; where neither, the error is the first's. A depth that changes no segment at the first's scale is not
+    searched again."""
+    tried: list[tuple[float, float]] = []
+    first: NoParticles | None = None
+    best: tuple[SegmentParams, ScaleEstimate | None, float] | None = None
+    for depth in (0.0, NECK_DEPTH):
+        try:
+            resolved, estimate = _resolve_scale(prepared, replace(params, neck_depth=depth), polarity)
+        except NoParticles as error:
+            first = first or error
+            tried.append((depth, math.nan))
+            continue
+        cuts = [_foreground(p, resolved).foreground for p in prepared]
+        labels = [split_touching(cut, resolved) for cut in cuts]
+        spread = size_spread(np.concatenate([segment_diameters(lab, resolved) for lab in labels]))
+        tried.append((depth, spread))
+        if best is None:
+            best = (resolved, estimate, spread)
+            deeper = replace(resolved, neck_depth=NECK_DEPTH)
+            if all(lab.max() == split_touching(cut, deeper).max() for lab, cut in zip(labels, cuts)):
+                break  # no shallow neck at this scale: nothing for the deeper seeds to merge
+        elif spread < NECK_SPREAD * best[2] and resolved.scale >= best[0].scale:  # NaN: fewer than two segments
+            best = (resolved, estimate, spread)
+    if best is None:
+        raise first
+    resolved, estimate, _ = best
+    return resolved, None if estimate is None else replace(estimate, necks=tuple(tried))
+
+
+def size_spread(diameters: np.ndarray) -> float:
+    """log(q90 / q10) of the diameters: how unlike the segments are in size (NaN for fewer than two)."""
+    if diameters.size < 2:
+        return math.nan
+    low, high = np.quantile(diameters, [0.1, 0.9])
+    return float(math.log(high / low))
+
+
+def _resolve_scale(
+    prepared: Sequence[Prepared], params: SegmentParams, polarity: str
+) -> tuple[SegmentParams, ScaleEstimate | None]:
+    """``params`` (neck depth set) with every length set: from the scale given, else from the scale searched."""
+    if params.scale is not None:
+        return params.resolved(), None
     estimate = estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
     # No blob standing out of the response's noise is no proof of no particles: where particles fill the image (a
     # dense layer of rods), they *are* the response's spread at their scale. The search's own starts still run.
