@@ -329,6 +329,7 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     return data, notes
 
 
+WHY_SEGMENT = {"scale": "measured", "neck_depth": "chosen by the segment sizes (note below)"}
 SEGMENT_KEYS = ("scale", "sigma", "min_distance", "min_area", "max_area", "background", "neck_depth")
 MIN_WINDOW_SHARE = 0.2  # below this share of windows with >= 3 particles, training mines windows with fewer
 
@@ -543,7 +544,7 @@ def report_markdown(r: dict) -> str:
     px = r["pixel_size"]
     data, data_notes = data_settings(r)  # the table shows the keys the material carries
     seg_table = "| key | value | why |\n|---|---|---|\n" + "\n".join(
-        f"| data.segment.{k} | {v} | {'set by hand' if k in seg['setting'] else 'from the scale'} |"
+        f"| data.segment.{k} | {v} | {'set by hand' if k in seg['setting'] else WHY_SEGMENT.get(k, 'from the scale')} |"
         for k, v in data["segment"].items()
     )
     seg_table += "\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in data_notes.items())

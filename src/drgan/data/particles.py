@@ -393,7 +393,8 @@ def choose_neck(
     best: tuple[SegmentParams, ScaleEstimate | None, float] | None = None
     for depth in (0.0, NECK_DEPTH):
         try:
-            resolved, estimate = _resolve_scale(prepared, replace(params, neck_depth=depth), polarity)
+            smallest = best[0].scale if best is not None else None  # merging at necks makes particles no smaller
+            resolved, estimate = _resolve_scale(prepared, replace(params, neck_depth=depth), polarity, smallest)
         except NoParticles as error:
             first = first or error
             tried.append((depth, math.nan))
@@ -424,21 +425,22 @@ def size_spread(diameters: np.ndarray) -> float:
 
 
 def _resolve_scale(
-    prepared: Sequence[Prepared], params: SegmentParams, polarity: str
+    prepared: Sequence[Prepared], params: SegmentParams, polarity: str, smallest: float | None = None
 ) -> tuple[SegmentParams, ScaleEstimate | None]:
-    """``params`` (neck depth set) with every length set: from the scale given, else from the scale searched."""
+    """``params`` (neck depth set) with every length set: from the scale given, else from the scale searched
+    (started from ``smallest`` and above only, when given)."""
     if params.scale is not None:
         return params.resolved(), None
     estimate = estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
     # No blob standing out of the response's noise is no proof of no particles: where particles fill the image (a
     # dense layer of rods), they *are* the response's spread at their scale. The search's own starts still run.
-    scale, tried = search_scale(prepared, params, estimate.diameter_px)
+    scale, tried = search_scale(prepared, params, estimate.diameter_px, smallest=smallest)
     if scale is None:
         # Every start collapsed to grain: specks that outnumber a few particles pull the plain median of the
         # segments, round after round, below MIN_SCALE. Their share of the segments' *area* is small, so the search
         # follows the area-weighted median instead (only here: where the plain search settles, it measures
         # polydisperse particles better, e.g. TiO2's, whose area-weighted median lies 10-15 % above the median).
-        scale, weighted_tried = search_scale(prepared, params, estimate.diameter_px, weighted=True)
+        scale, weighted_tried = search_scale(prepared, params, estimate.diameter_px, weighted=True, smallest=smallest)
         tried = tried + weighted_tried
     if scale is None:
         log_scale = (
@@ -475,7 +477,11 @@ class Fixed(NamedTuple):
 
 
 def search_scale(
-    prepared: Sequence[Prepared], params: SegmentParams, log_diameter: float | None, weighted: bool = False
+    prepared: Sequence[Prepared],
+    params: SegmentParams,
+    log_diameter: float | None,
+    weighted: bool = False,
+    smallest: float | None = None,
 ) -> tuple[float | None, list[tuple[float, float, float]]]:
     """The particle diameter: of the scales that segment into particles of their own size (fixed points of
     `refine_scale`, started from the LoG's diameter (None: no blob stood out) and from 8, 16, .. px up to half the
@@ -488,6 +494,8 @@ def search_scale(
     starts = {d for d in START_DIAMETERS if d <= limit}
     if log_diameter is not None:
         starts.add(round(log_diameter, 1))
+    if smallest is not None:  # only from this scale up (`choose_neck`)
+        starts = {d for d in starts if d > smallest} | {round(smallest, 2)}
     tried = [(start, refine_scale(prepared, params, start, weighted)) for start in sorted(starts)]
 
     def best(fixed: list[Fixed]) -> Fixed:
