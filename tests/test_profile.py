@@ -155,6 +155,11 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert type(placement) is layout._PLACEMENT_KINDS[saved["agglomeration"]["placement"]]
     assert cfg.data.dir == str(folder.resolve()) and list(cfg.data.crop_rows) == [320, 336]
     assert cfg.renderer.spp == 16 and cfg.material.filter_stddev == 3.0  # inherited from the parent (HIM)
+    # The neck depth the profile chose (its segmentation's) travels, and the report says why
+    chosen = saved["segmentation"]["params"]["neck_depth"]
+    assert chosen in (0.0, 0.2) and cfg.data.segment.neck_depth == chosen
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert f"| data.segment.neck_depth | {chosen} | chosen by the segment sizes" in report
 
     with pytest.raises(ConfigError, match="exists"):
         profile(compose(overrides, config_name="profile"))  # no overwrite without overwrite=true

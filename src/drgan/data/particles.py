@@ -86,9 +86,10 @@ class SegmentParams:
     # transform (its neck; `_neck_caps`): most touching particles meet at deep necks (EMPS instance maps: 95 % of
     # touching pairs at >= 0.22 of the lower particle's radius, median 0.74), while a rod's ridge and an irregular
     # particle's bumps rise a few % above theirs (median 0.03, 90 % <= 0.12), so 0.2 keeps rods and irregular
-    # particles whole. Off by default: agglomerated TiO2 particles are split by their annotators at necks as shallow
-    # (tio2_sem masks: half of the touching pairs below 0.13), and 0.2 merges them (experiments/profile/README.md).
-    # 0: every maximum min_distance apart seeds. None: 0 or NECK_DEPTH, whichever the images' sizes say (`choose_neck`).
+    # particles whole. But agglomerated TiO2 particles are split by their annotators at necks as shallow (tio2_sem
+    # masks: half of the touching pairs below 0.13), and 0.2 merges them (experiments/profile/README.md). 0: every
+    # maximum min_distance apart seeds. None (the default): 0 or NECK_DEPTH, whichever the images' sizes say
+    # (`choose_neck`).
     neck_depth: float | None = None
     # Otsu's between-class / total variance around the blobs of the particles' size. Smoothed noise scores
     # 0.635-0.64 (2/pi for Gaussian noise) at any scale; particles at their own scale 0.66-0.91 (EMPS, most > 0.7).
@@ -383,8 +384,8 @@ def choose_neck(
     A rod or an irregular particle cut along its ridge gives pieces of every length, and merged back the particles
     are alike; touching particles merged at their necks give singles, pairs and triples, no narrower than before.
     EMPS (every third image, 85 with >= 5 instances): where 0.2 set the median right and 0 did not, its spread was
-    0.57 of the other's (median; 17 of 20 below 0.8); tio2_sem's set 0.90, tio2_tsem's 1.15 (experiments/profile/
-    README.md). Merging at necks makes particles larger: a deeper search that settled at a smaller scale found
+    0.66 of the other's (median; 16 of 19 below 0.8, the 20th found nothing with 0); tio2_sem's set 0.90, tio2_tsem's
+    1.15 (experiments/profile/README.md). Merging at necks makes particles larger: a deeper search that settled at a smaller scale found
     something else (a field of alike specks), and is not kept. Where one of them finds no particle, the other is
     kept; where neither, the error is the first's. A depth that changes no segment at the first's scale is not
     searched again."""
