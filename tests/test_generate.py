@@ -572,6 +572,7 @@ def test_grey_spread_measures_generated_images_as_it_measured_the_real_ones():
     segment = {"scale": 18}
     real, real_labels = _ramped_discs(0.1, 0.6, seed=0)
     spread = GreySpread.from_patches(real[None], segment, "bright", resolution=96)
+    assert spread.segment.is_resolved  # resolved once on the real patches, not per generated image
     generated, labels = _ramped_discs(0.4, 0.9, seed=1)  # the same particles, other levels
     moved, info = spread.apply(generated, labels, seed=3)
     assert info["measured_by"] == "classical" and info["target"] == pytest.approx(spread.levels[0], abs=1e-4)

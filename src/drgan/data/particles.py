@@ -699,8 +699,9 @@ def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, 
     """The bool foreground of `segment_particles` without splitting it into particles (cheaper): pixels past
     the Otsu threshold of the smoothed, flattened image in the particles' direction, less annotations and
     connected specks below ``min_area``. All False when no particle stands out."""
-    try:
-        params, _ = resolve_params([image], params, polarity)
+    params = SegmentParams.from_config(params)
+    try:  # the neck depth splits the foreground, it does not change it: none chosen
+        params, _ = resolve_params([image], replace(params, neck_depth=params.neck_depth or 0.0), polarity)
     except NoParticles:
         return np.zeros(np.shape(image)[:2], bool)
     return _foreground(prepare(image, polarity, params.annotations), params).foreground
