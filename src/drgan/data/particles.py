@@ -384,8 +384,8 @@ def choose_neck(
     A rod or an irregular particle cut along its ridge gives pieces of every length, and merged back the particles
     are alike; touching particles merged at their necks give singles, pairs and triples, no narrower than before.
     EMPS (every third image, 85 with >= 5 instances): where 0.2 set the median right and 0 did not, its spread was
-    0.66 of the other's (median; 16 of 19 below 0.8, the 20th found nothing with 0); tio2_sem's set 0.90, tio2_tsem's
-    1.15 (experiments/profile/README.md). Merging at necks makes particles larger: a deeper search that settled at a smaller scale found
+    0.66 of the other's (median; 16 of 19 below 0.8, the 20th found nothing with 0); tio2_sem's train set 0.92,
+    tio2_tsem's 1.01 (experiments/profile/README.md). Merging at necks makes particles larger: a deeper search that settled at a smaller scale found
     something else (a field of alike specks), and is not kept. Where one of them finds no particle, the other is
     kept; where neither, the error is the first's. A depth that changes no segment at the first's scale is not
     searched again."""
