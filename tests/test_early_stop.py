@@ -148,6 +148,7 @@ def test_the_kid_screen_skips_the_full_fid_of_an_epoch_that_is_no_better(images,
     assert not list((out / "checkpoints" / "epochs").glob("epoch_001.ckpt"))
 
 
+@pytest.mark.slow  # two trainings: ~10 s
 def test_the_progress_bar_shows_a_screened_out_epoch_as_screened(images, tmp_path, monkeypatch):  # noqa: F811
     """The bar shows the last logged val/fid: NaN for an epoch the screen turned away, which reads "screened"."""
     from drgan.callbacks import TrainingProgressBar
@@ -167,6 +168,7 @@ def test_the_progress_bar_shows_a_screened_out_epoch_as_screened(images, tmp_pat
     assert np.isfinite(shown[-1]["val/fid"])  # a full FID is shown as its value
 
 
+@pytest.mark.slow  # two trainings: ~10 s
 def test_a_full_fid_after_the_screen_equals_the_fid_without_one(images, tmp_path):  # noqa: F811
     """The screen's images are the first of the full set (same seeds): the candidate's FID is unchanged."""
     fids = []
