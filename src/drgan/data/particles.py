@@ -385,16 +385,16 @@ def choose_neck(
     are alike; touching particles merged at their necks give singles, pairs and triples, no narrower than before.
     EMPS (every third image, 85 with >= 5 instances): where 0.2 set the median right and 0 did not, its spread was
     0.66 of the other's (median; 16 of 19 below 0.8, the 20th found nothing with 0); tio2_sem's train set 0.92,
-    tio2_tsem's 1.01 (experiments/profile/README.md). Merging at necks makes particles larger: a deeper search that settled at a smaller scale found
-    something else (a field of alike specks), and is not kept. Where one of them finds no particle, the other is
-    kept; where neither, the error is the first's. A depth that changes no segment at the first's scale is not
-    searched again."""
+    tio2_tsem's 1.01 (experiments/profile/README.md). Merging at necks makes particles larger: a deeper search that
+    settled at a smaller scale found something else (a field of alike specks), and is not kept. Where one of them
+    finds no particle, the other is kept; where neither, the error is the first's. A depth that changes no segment
+    at the first's scale is not searched again."""
     tried: list[tuple[float, float]] = []
     first: NoParticles | None = None
     best: tuple[SegmentParams, ScaleEstimate | None, float] | None = None
     for depth in (0.0, NECK_DEPTH):
+        smallest = best[0].scale if best is not None else None  # merging at necks makes particles no smaller
         try:
-            smallest = best[0].scale if best is not None else None  # merging at necks makes particles no smaller
             resolved, estimate = _resolve_scale(prepared, replace(params, neck_depth=depth), polarity, smallest)
         except NoParticles as error:
             first = first or error
