@@ -449,3 +449,39 @@ def test_the_neck_depth_is_chosen_by_how_alike_the_sizes_come_out(kind):
     assert narrower == (kind == "rods"), spreads
     given = P.resolve_params([image], P.SegmentParams(neck_depth=0.0), "bright")[0]
     assert given.neck_depth == 0.0  # a depth given is kept
+
+
+def _spheres(edge: str, size: int = 224, diameter: float = 40.0, n: int = 10, seed: int = 0) -> np.ndarray:
+    """Dark particles in transmission, exp(-1.2 thickness) on a 0.75 film, blurred 1 px, noise 0.02: spheres
+    ("dome": the projected thickness sqrt(1 - r^2 / R^2) falls to nothing at the outline) or flat discs ("step")."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    thickness, centres, r = np.zeros((size, size)), [], diameter / 2
+    while len(centres) < n:
+        c = rng.uniform(r + 2, size - r - 2, 2)
+        if all(np.hypot(*(c - c2)) > 2 * r + 4 for c2 in centres):
+            centres.append(c)
+            q = 1 - ((yy - c[0]) ** 2 + (xx - c[1]) ** 2) / r**2
+            thickness = np.maximum(thickness, np.sqrt(q.clip(0)) if edge == "dome" else (q >= 0).astype(float))
+    image = ndi.gaussian_filter(0.75 * np.exp(-1.2 * thickness), 1.0) + 0.02 * rng.standard_normal((size, size))
+    return np.clip(image, 0, 1).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_outlines_lie_at_the_particles_steepest_edge(seed):
+    """Otsu's threshold outlines a sphere inside its edge (its contrast falls off towards the outline); the
+    segments are grown out to the level of the strongest edges. A flat disc's edge is where Otsu cuts: it stays."""
+    sizes = {}
+    for edge in ("dome", "step"):
+        image = _spheres(edge, seed=seed)
+        params, _ = P.resolve_params([image], None, "dark")
+        labels, foreground = P.segment_particles(image, params, "dark")
+        cut = P._foreground(P.prepare(image, "dark"), params)
+        otsu = P.segment_diameters(P.split_touching(cut.foreground, params), params)
+        grown = P.segment_diameters(labels, params)
+        assert len(grown) == len(otsu) == 10  # grown, none merged, none added
+        assert foreground.sum() >= cut.foreground.sum() and (foreground | ~cut.foreground).all()
+        sizes[edge] = np.median(otsu) / 40, np.median(grown) / 40
+    assert sizes["dome"][0] < 0.94 and sizes["dome"][1] > sizes["dome"][0] + 0.025  # Otsu's inside, grown out
+    assert abs(sizes["dome"][1] - 1) < 0.05 and abs(sizes["step"][1] - 1) < 0.02
+    assert sizes["step"][1] - sizes["step"][0] < 0.015
