@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -331,6 +331,9 @@ class Prepared:
 
     bright: np.ndarray  # float32, particles bright, annotations filled
     annotations: np.ndarray  # bool: pixels drawn on the image (scale bar, text), never particles
+    # What the scale search has segmented of this image, per setting (`_measure`): it visits the same scales from
+    # several starts and with both neck depths.
+    measured: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def prepare(image: np.ndarray, polarity: str, annotations: bool = True) -> Prepared:
@@ -400,14 +403,13 @@ def choose_neck(
             first = first or error
             tried.append((depth, math.nan))
             continue
-        cuts = [_foreground(p, resolved).foreground for p in prepared]
-        labels = [split_touching(cut, resolved) for cut in cuts]
-        spread = size_spread(np.concatenate([segment_diameters(lab, resolved) for lab in labels]))
+        measures = [_measure(p, resolved) for p in prepared]
+        spread = size_spread(np.concatenate([m.diameters for m in measures]))
         tried.append((depth, spread))
         if best is None:
             best = (resolved, estimate, spread)
             deeper = replace(resolved, neck_depth=NECK_DEPTH)
-            if all(lab.max() == split_touching(cut, deeper).max() for lab, cut in zip(labels, cuts)):
+            if all(m.segments == _measure(p, deeper).segments for m, p in zip(measures, prepared)):
                 break  # no shallow neck at this scale: nothing for the deeper seeds to merge
         elif spread < NECK_SPREAD * best[2] and resolved.scale >= best[0].scale:  # NaN: fewer than two segments
             best = (resolved, estimate, spread)
@@ -515,19 +517,46 @@ def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: flo
     area."""
     for round_ in range(REFINE_ROUNDS):
         resolved = replace(params, min_separability=0.0).resolved(scale)
-        diameters, cuts = [], []
-        for p in prepared:
-            cuts.append(_foreground(p, resolved, retry_below=params.min_separability))
-            diameters.append(segment_diameters(split_touching(cuts[-1].foreground, resolved), resolved))
-        d = np.concatenate(diameters)
+        measures = [_measure(p, resolved, retry_below=params.min_separability) for p in prepared]
+        d = np.concatenate([m.diameters for m in measures])
         if d.size == 0:  # nothing of plausible area: this scale segments no particle, however well it separates
             return Fixed(scale, False, 0.0)
         new = area_weighted_median(d) if weighted else float(np.median(d))
         if abs(math.log(new / scale)) < 0.1 or round_ == REFINE_ROUNDS - 1:
-            separability = float(np.mean([c.separability for c in cuts]))
+            separability = float(np.mean([m.separability for m in measures]))
             return Fixed(scale, abs(math.log(new / scale)) < CONSISTENT, separability)
         scale = new
     raise AssertionError("unreachable: the last round returns")
+
+
+class Measure(NamedTuple):
+    """What the scale search needs of one segmentation (`_measure`)."""
+
+    diameters: np.ndarray  # `segment_diameters`
+    segments: int  # all watershed segments
+    separability: float  # of the threshold
+
+
+def _measure(prepared: Prepared, params: SegmentParams, retry_below: float | None = None) -> Measure:
+    """`_foreground` (``retry_below`` as there) and `split_touching` of ``prepared`` with resolved ``params``,
+    measured; each foreground and each split made once per image (memoised on ``prepared.measured``). The
+    foreground does not depend on the neck depth, and below ``min_separability`` it is empty (the same threshold
+    otherwise), so the searches with either depth and either separability share it."""
+    retry = params.min_separability if retry_below is None else retry_below
+    plain = replace(params, min_separability=0.0)
+    cut_key = (replace(plain, neck_depth=None), retry)
+    if cut_key not in prepared.measured:
+        cut = _foreground(prepared, cut_key[0], retry_below=retry)
+        prepared.measured[cut_key] = (np.packbits(cut.foreground), cut.separability)
+    packed, separability = prepared.measured[cut_key]
+    kept = separability >= params.min_separability
+    key = (plain, retry, kept)
+    if key not in prepared.measured:
+        shape = prepared.bright.shape
+        foreground = np.unpackbits(packed, count=shape[0] * shape[1]).reshape(shape).astype(bool)
+        labels = split_touching(foreground & kept, params)
+        prepared.measured[key] = Measure(segment_diameters(labels, params), int(labels.max()), separability)
+    return prepared.measured[key]
 
 
 def area_weighted_median(diameters: np.ndarray) -> float:
@@ -735,24 +764,25 @@ def edge_level(cut: Cut, scale: float) -> float | None:
     return level if level < cut.threshold else None
 
 
-def grow_to_edges(cut: Cut, labels: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+def grow_to_edges(cut: Cut, labels: np.ndarray, scale: float, annotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(labels, foreground) with every segment grown out to the particles' edge level (`edge_level`) over the
     pixels connected to it, each pixel to the segment it is reached from first going down the grey (a watershed):
-    segments grow, none merge and none appear. Unchanged where the edges lie at the threshold or above."""
-    extent = _grown_foreground(cut, scale)
+    segments grow, none merge and none appear, none into the ``annotations``. Unchanged where the edges lie at the
+    threshold or above."""
+    extent = _grown_foreground(cut, scale, annotations)
     if extent is cut.foreground:
         return labels, extent
     return watershed(-cut.smooth, labels, mask=extent).astype(np.int32), extent
 
 
-def _grown_foreground(cut: Cut, scale: float) -> np.ndarray:
+def _grown_foreground(cut: Cut, scale: float, annotations: np.ndarray) -> np.ndarray:
     """The foreground grown out to the edge level (`edge_level`), over connected pixels at most OUTLINE_BAND
     diameters from it (where the level was measured: not into a film that happens to lie above it); the foreground
     itself where there is no lower edge."""
     level = edge_level(cut, scale)
     if level is None:
         return cut.foreground
-    within = ndi.distance_transform_edt(~cut.foreground) <= max(2.0, OUTLINE_BAND * scale)
+    within = (ndi.distance_transform_edt(~cut.foreground) <= max(2.0, OUTLINE_BAND * scale)) & ~annotations
     return ndi.binary_propagation(cut.foreground, mask=((cut.smooth >= level) & within) | cut.foreground)
 
 
@@ -765,7 +795,8 @@ def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, 
         params, _ = resolve_params([image], replace(params, neck_depth=params.neck_depth or 0.0), polarity)
     except NoParticles:
         return np.zeros(np.shape(image)[:2], bool)
-    return _grown_foreground(_foreground(prepare(image, polarity, params.annotations), params), params.scale)
+    prepared = prepare(image, polarity, params.annotations)
+    return _grown_foreground(_foreground(prepared, params), params.scale, prepared.annotations)
 
 
 def segment_particles(
@@ -825,6 +856,7 @@ def segment_with_report(
     image: np.ndarray, params: SegmentParams, polarity: str
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """(labels, foreground, Otsu separability) with resolved ``params``: the profile reports the separability."""
-    cut = _foreground(prepare(image, polarity, params.annotations), params)
-    labels, foreground = grow_to_edges(cut, split_touching(cut.foreground, params), params.scale)
+    prepared = prepare(image, polarity, params.annotations)
+    cut = _foreground(prepared, params)
+    labels, foreground = grow_to_edges(cut, split_touching(cut.foreground, params), params.scale, prepared.annotations)
     return labels, foreground, cut.separability
