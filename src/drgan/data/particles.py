@@ -23,6 +23,8 @@ every length follows from the particles' own scale, measured first.
    blobs that stand out of the film's noise), refused when it does not separate two classes (separability below
    ``min_separability``); pieces that reach no blob centre within half a diameter are grain or texture specks; the
    distance transform's maxima, at least ``min_distance`` apart, seed a watershed that splits touching particles.
+6. **Outlines at the edges** (`grow_to_edges`): where the particles' strongest edges lie below Otsu's threshold (a
+   sphere's contrast falls off towards its outline), each segment grows out to them, none merging.
 """
 
 from __future__ import annotations
