@@ -261,7 +261,7 @@ def measure_edge(images):
     params, _ = resolve_params(images, None, "dark")
     samples = []
     for image in images:
-        labels, foreground, _ = est.segment_image(image, params, "dark")
+        labels, foreground = est.segment_image(image, params, "dark")[:2]
         samples.append(est.edge_samples(image, labels, foreground, annotation_mask(image)))
     return est.edge_profile(samples)
 

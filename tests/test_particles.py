@@ -485,3 +485,14 @@ def test_outlines_lie_at_the_particles_steepest_edge(seed):
     assert sizes["dome"][0] < 0.94 and sizes["dome"][1] > sizes["dome"][0] + 0.025  # Otsu's inside, grown out
     assert abs(sizes["dome"][1] - 1) < 0.05 and abs(sizes["step"][1] - 1) < 0.02
     assert sizes["step"][1] - sizes["step"][0] < 0.015
+
+
+def test_outlines_not_grown_when_told():
+    image = _spheres("dome")
+    params = replace(P.resolve_params([image], None, "dark")[0], grow_outlines=False)
+    labels, foreground = P.segment_particles(image, params, "dark")
+    cut = P._foreground(P.prepare(image, "dark"), params)
+    assert (foreground == cut.foreground).all() and (labels == P.split_touching(cut.foreground, params)).all()
+    assert (P.particle_foreground(image, params, "dark") == cut.foreground).all()
+    with pytest.raises(ConfigError, match="grow_outlines"):
+        P.SegmentParams(grow_outlines="yes")

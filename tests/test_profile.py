@@ -43,7 +43,7 @@ def measure(images, polarity):
     params, _ = resolve_params(images, None, polarity)  # the scale measured, as the profile does
     tables, fgs = [], []
     for image in images:
-        labels, fg, _ = est.segment_image(image, params, polarity)
+        labels, fg = est.segment_image(image, params, polarity)[:2]
         tables.append(est.particle_table(labels))
         fgs.append(fg)
     d = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
@@ -160,6 +160,10 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert chosen in (0.0, 0.2) and cfg.data.segment.neck_depth == chosen
     report = (tmp_path / "out" / "report.md").read_text()
     assert f"| data.segment.neck_depth | {chosen} | chosen by the segment sizes" in report
+    grown = saved["segmentation"]["outlines_grown"]  # the report says what the outlines' growth did
+    n = saved["data"]["images"]
+    assert 0 <= grown["images"] <= n and "- `data.segment.grow_outlines`: true: " in report
+    assert (f"on {grown['images']} of {n} images" if grown["images"] else f"on none of the {n} images") in report
 
     with pytest.raises(ConfigError, match="exists"):
         profile(compose(overrides, config_name="profile"))  # no overwrite without overwrite=true
@@ -171,6 +175,7 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     folder = _folder(tmp_path, "dark", n=2)
     monkeypatch.chdir(tmp_path)
     overrides = [f"data.dir={folder}", "name=dark_discs", f"out={tmp_path / 'out'}", "data.segment.neck_depth=0.2"]
+    overrides.append("data.segment.grow_outlines=false")
     result = profile(compose(overrides, config_name="profile"))  # crop_rows auto: the white bar found and dropped
     assert result["polarity"]["value"] == "dark" and result["material"]["parent"] == "tio2_tsem"
     assert result["data"]["crop_rows"] == "auto" and abs(result["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
@@ -179,6 +184,7 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     cfg = compose(["material=dark_discs"], config_name="train")
     assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark" and cfg.data.crop_rows == "auto"
     assert cfg.data.segment.neck_depth == 0.2 and "    neck_depth: 0.2\n" in text  # a key given travels
+    assert cfg.data.segment.grow_outlines is False and result["segmentation"]["outlines_grown"]["images"] == 0
     # No ring at the discs' edges: the transmission material renders no fringe, and says why.
     assert result["edge"]["ring"]["kind"] == "none" and result["material"]["fringe"] is None
     assert cfg.material.imaging.fringe is None and "#   edge fringe: none" in text

@@ -47,7 +47,7 @@ def measure(amplitude: float, width: float, values: tuple, images: int, seed: in
     params, _ = resolve_params(rendered, None, "dark")
     samples = []
     for image in rendered:
-        labels, foreground, _ = est.segment_image(image, params, "dark")
+        labels, foreground = est.segment_image(image, params, "dark")[:2]
         samples.append(est.edge_samples(image, labels, foreground, annotation_mask(image)))
     return est.edge_profile(samples)
 

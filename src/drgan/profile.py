@@ -137,13 +137,14 @@ def profile(cfg: DictConfig) -> dict:
         _write_failure_figure(out, images, polarity, None)
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
 
-    tables, foregrounds, labels_kept, counts, ce, separabilities, edges = [], [], [], [], [], [], []
+    tables, foregrounds, labels_kept, counts, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
     for image in tqdm(images, desc="segmenting", unit="image"):
-        labels, foreground, separability = est.segment_image(image, params, polarity)
+        labels, foreground, separability, added = est.segment_image(image, params, polarity)
         table = est.particle_table(labels)
         tables.append(table)
         foregrounds.append(foreground)
         separabilities.append(separability)
+        grown.append(added)
         labels_kept.append(labels if len(labels_kept) < 4 else None)
         # The edge profile leaves out particles beside annotations (a scale bar may hide a neighbour).
         exclude = annotation_mask(as_grey(image)) if params.annotations else None
@@ -190,6 +191,11 @@ def profile(cfg: DictConfig) -> dict:
             "scale_estimate": scale.as_dict() if scale else None,
             "setting": {k: v for k, v in setting.as_dict().items() if v != SegmentParams().as_dict()[k]},
             "separability_median": round(float(np.median(separabilities)), 4),
+            # images whose outlines grew out to the particles' edges, and the foreground added (median over those)
+            "outlines_grown": {
+                "images": sum(g > 0 for g in grown),
+                "foreground_added_median": round(float(np.median([g for g in grown if g > 0] or [0.0])), 4),
+            },
             "params": params.as_dict(),
             "particles": int(sum(len(t["diameter_px"]) for t in tables)),
             "particles_not_touching_border": int(inner.size),
@@ -319,6 +325,7 @@ def data_settings(result: dict) -> tuple[dict, dict]:
         + f"; Otsu separability {seg['separability_median']:.2f} (particles segmented: {seg['particles']})",
     }
     notes["data.segment.neck_depth"] = _neck_note(seg["params"]["neck_depth"], "neck_depth" in given, estimate)
+    notes["data.segment.grow_outlines"] = _outline_note(seg, result["data"]["images"])
     enough = counts["with_3_or_more"]["windows"] / max(1, counts["windows"])
     if enough < MIN_WINDOW_SHARE:
         data["min_particles"] = max(1, min(3, int(counts["median"])))
@@ -529,6 +536,19 @@ def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
         f"{depth}: segment sizes spread log(q90/q10) {deep:.2f} with seeds at necks of {NECK_DEPTH}, {plain:.2f} with "
         f"every maximum seeding ({verdict}; rods and irregular particles merged whole are alike in size, touching "
         "particles merged are not)"
+    )
+
+
+def _outline_note(seg: dict, images: int) -> str:
+    """What the outlines' growth to the particles' edges did (`drgan.data.particles.grow_to_edges`)."""
+    if not seg["params"].get("grow_outlines", True):
+        return "false (set by hand): Otsu's outlines"
+    grown = seg.get("outlines_grown") or {"images": 0}
+    if not grown["images"]:
+        return f"true: on none of the {images} images did the strongest edges lie below Otsu's threshold"
+    return (
+        f"true: the outlines grew out to the particles' strongest edges, below Otsu's threshold, on {grown['images']} "
+        f"of {images} images (foreground +{100 * grown['foreground_added_median']:.0f} %, median); false keeps Otsu's"
     )
 
 

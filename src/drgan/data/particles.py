@@ -93,6 +93,9 @@ class SegmentParams:
     # maximum min_distance apart seeds. None (the default): 0 or NECK_DEPTH, whichever the images' sizes say
     # (`choose_neck`).
     neck_depth: float | None = None
+    # Segments grow out to the particles' strongest edges where those lie below Otsu's threshold (`grow_to_edges`);
+    # False: Otsu's outlines.
+    grow_outlines: bool = True
     # Otsu's between-class / total variance around the blobs of the particles' size. Smoothed noise scores
     # 0.635-0.64 (2/pi for Gaussian noise) at any scale; particles at their own scale 0.66-0.91 (EMPS, most > 0.7).
     min_separability: float = 0.66
@@ -118,6 +121,8 @@ class SegmentParams:
             )
         if not (isinstance(self.seed_depth, (int, float)) and 0 <= self.seed_depth < math.inf):
             raise ConfigError(f"data.segment.seed_depth={self.seed_depth!r}: expected a depth >= 0 px")
+        if not isinstance(self.grow_outlines, bool):
+            raise ConfigError(f"data.segment.grow_outlines={self.grow_outlines!r}: expected true or false")
         if not 0 <= self.min_separability < 1:
             raise ConfigError(f"data.segment.min_separability={self.min_separability}: expected in [0, 1)")
 
@@ -798,7 +803,8 @@ def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, 
     except NoParticles:
         return np.zeros(np.shape(image)[:2], bool)
     prepared = prepare(image, polarity, params.annotations)
-    return _grown_foreground(_foreground(prepared, params), params.scale, prepared.annotations)
+    cut = _foreground(prepared, params)
+    return _grown_foreground(cut, params.scale, prepared.annotations) if params.grow_outlines else cut.foreground
 
 
 def segment_particles(
@@ -816,8 +822,8 @@ def segment_particles(
     except NoParticles:
         shape = np.shape(image)[:2]
         return np.zeros(shape, np.int32), np.zeros(shape, bool)
-    labels, foreground, _ = segment_with_report(image, params, polarity)
-    return labels, foreground
+    found = segment_with_report(image, params, polarity)
+    return found.labels, found.foreground
 
 
 def split_touching(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
@@ -854,11 +860,22 @@ def _neck_caps(distance: np.ndarray, depth: float, peaks: np.ndarray) -> np.ndar
     return np.isin(caps, held[held > 0])
 
 
-def segment_with_report(
-    image: np.ndarray, params: SegmentParams, polarity: str
-) -> tuple[np.ndarray, np.ndarray, float]:
-    """(labels, foreground, Otsu separability) with resolved ``params``: the profile reports the separability."""
+class Segmentation(NamedTuple):
+    """`segment_with_report`: the segmentation and what the profile reports of it."""
+
+    labels: np.ndarray  # int32, 0 = none
+    foreground: np.ndarray  # bool
+    separability: float  # Otsu's
+    grown: float  # the share of foreground the outlines' growth added (`grow_to_edges`; 0: none)
+
+
+def segment_with_report(image: np.ndarray, params: SegmentParams, polarity: str) -> Segmentation:
+    """`segment_particles` with resolved ``params``, and what the profile reports of it (`Segmentation`)."""
     prepared = prepare(image, polarity, params.annotations)
     cut = _foreground(prepared, params)
-    labels, foreground = grow_to_edges(cut, split_touching(cut.foreground, params), params.scale, prepared.annotations)
-    return labels, foreground, cut.separability
+    labels = split_touching(cut.foreground, params)
+    if not params.grow_outlines:
+        return Segmentation(labels, cut.foreground, cut.separability, 0.0)
+    labels, foreground = grow_to_edges(cut, labels, params.scale, prepared.annotations)
+    grown = float(foreground.sum() / cut.foreground.sum() - 1) if cut.foreground.any() else 0.0
+    return Segmentation(labels, foreground, cut.separability, grown)

@@ -30,7 +30,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from drgan.data.particles import SegmentParams, segment_with_report
+from drgan.data.particles import Segmentation, SegmentParams, segment_with_report
 from drgan.errors import DataError
 
 # The high-pass that isolates noise from the background's slow shading: image minus its Gaussian blur.
@@ -41,15 +41,14 @@ BACKGROUND_MARGIN = 6  # px
 # --- segmentation -----------------------------------------------------------------------------------------
 
 
-def segment_image(image: np.ndarray, params: SegmentParams, polarity: str) -> tuple[np.ndarray, np.ndarray, float]:
-    """(labels, foreground, Otsu separability) of drgan.data.particles with resolved ``params``, keeping only
-    segments of plausible area."""
-    labels, foreground, separability = segment_with_report(image, params, polarity)
-    areas = np.bincount(labels.ravel())
+def segment_image(image: np.ndarray, params: SegmentParams, polarity: str) -> Segmentation:
+    """drgan.data.particles' segmentation with resolved ``params`` (`Segmentation`), keeping only segments of
+    plausible area."""
+    found = segment_with_report(image, params, polarity)
+    areas = np.bincount(found.labels.ravel())
     keep = (areas >= params.min_area) & (areas <= params.max_area)
     keep[0] = False
-    labels = np.where(keep[labels], labels, 0).astype(np.int32)
-    return labels, foreground, separability
+    return found._replace(labels=np.where(keep[found.labels], found.labels, 0).astype(np.int32))
 
 
 PARTICLE_COLUMNS = ("area_px", "diameter_px", "row", "col", "axis_ratio", "touches_border", "touches_other")
