@@ -796,7 +796,8 @@ def _grown_foreground(cut: Cut, scale: float, annotations: np.ndarray) -> np.nda
 def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
     """The bool foreground of `segment_particles` without splitting it into particles (cheaper): pixels past
     the Otsu threshold of the smoothed, flattened image in the particles' direction, less annotations and
-    connected specks below ``min_area``. All False when no particle stands out."""
+    connected specks below ``min_area``, grown out to the particles' edges (`grow_to_edges`). All False when no
+    particle stands out."""
     params = SegmentParams.from_config(params)
     try:  # the neck depth splits the foreground, it does not change it: none chosen
         params, _ = resolve_params([image], replace(params, neck_depth=params.neck_depth or 0.0), polarity)
@@ -814,7 +815,8 @@ def segment_particles(
 
     Returns (labels, foreground): int32 labels (0 = none) of the watershed segments, and the bool
     foreground mask: everything above the threshold except annotations and connected specks smaller than
-    min_area (it keeps agglomerates too large to count as particles). ``params`` not resolved (the default):
+    min_area (it keeps agglomerates too large to count as particles), grown out to the particles' edges where
+    those lie below the threshold (`grow_to_edges`; the labels with it). ``params`` not resolved (the default):
     the lengths follow from this image's particle scale. Empty when no particle stands out.
     """
     try:
