@@ -496,3 +496,20 @@ def test_outlines_not_grown_when_told():
     assert (P.particle_foreground(image, params, "dark") == cut.foreground).all()
     with pytest.raises(ConfigError, match="grow_outlines"):
         P.SegmentParams(grow_outlines="yes")
+
+
+def test_only_segments_of_plausible_area_grow():
+    """A watershed sliver or speck below min_area keeps its pixels (grown, hundreds of them on a textured film
+    would count as particles); a particle beside it grows out to its edge."""
+    yy, xx = np.mgrid[:128, :128]
+    dome = lambda r0, c0, r: np.sqrt((1 - ((yy - r0) ** 2 + (xx - c0) ** 2) / r**2).clip(0))  # noqa: E731
+    smooth = ndi.gaussian_filter(dome(64, 50, 24) + dome(64, 100, 7), 1.5).astype(np.float32)
+    threshold = 0.5
+    foreground = smooth > threshold
+    labels = ndi.label(foreground)[0]
+    areas = np.bincount(labels.ravel())
+    min_area = int(areas[2]) + 1  # the small dome is a speck
+    cut = P.Cut(foreground, 0.9, np.zeros_like(foreground), smooth, threshold)
+    grown, extent = P.grow_to_edges(cut, labels, 48.0, min_area, np.zeros_like(foreground))
+    assert np.bincount(grown.ravel(), minlength=3)[1] > 1.1 * areas[1]  # the particle grew
+    assert ((grown == 2) == (labels == 2)).all() and (extent == (grown > 0)).all()  # the speck did not

@@ -771,15 +771,23 @@ def edge_level(cut: Cut, scale: float) -> float | None:
     return level if level < cut.threshold else None
 
 
-def grow_to_edges(cut: Cut, labels: np.ndarray, scale: float, annotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def grow_to_edges(
+    cut: Cut, labels: np.ndarray, scale: float, min_area: int, annotations: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(labels, foreground) with every segment grown out to the particles' edge level (`edge_level`) over the
     pixels connected to it, each pixel to the segment it is reached from first going down the grey (a watershed):
-    segments grow, none merge and none appear, none into the ``annotations``. Unchanged where the edges lie at the
-    threshold or above."""
+    segments of ``min_area`` or more grow, none merge and none appear, none into the ``annotations``. Unchanged
+    where the edges lie at the threshold or above."""
     extent = _grown_foreground(cut, scale, annotations)
     if extent is cut.foreground:
         return labels, extent
-    return watershed(-cut.smooth, labels, mask=extent).astype(np.int32), extent
+    grown = watershed(-cut.smooth, labels, mask=extent).astype(np.int32)
+    # A watershed sliver or speck below min_area stays as it was: grown, hundreds of them on a textured film
+    # would cross min_area and count as particles.
+    small = np.bincount(labels.ravel(), minlength=grown.max() + 1) < min_area
+    small[0] = False
+    kept = ~small[grown] | (labels > 0)
+    return np.where(kept, grown, 0).astype(np.int32), extent & kept
 
 
 def _grown_foreground(cut: Cut, scale: float, annotations: np.ndarray) -> np.ndarray:
@@ -878,6 +886,6 @@ def segment_with_report(image: np.ndarray, params: SegmentParams, polarity: str)
     labels = split_touching(cut.foreground, params)
     if not params.grow_outlines:
         return Segmentation(labels, cut.foreground, cut.separability, 0.0)
-    labels, foreground = grow_to_edges(cut, labels, params.scale, prepared.annotations)
+    labels, foreground = grow_to_edges(cut, labels, params.scale, params.min_area, prepared.annotations)
     grown = float(foreground.sum() / cut.foreground.sum() - 1) if cut.foreground.any() else 0.0
     return Segmentation(labels, foreground, cut.separability, grown)
