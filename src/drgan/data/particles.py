@@ -738,7 +738,7 @@ OUTLINE_BAND = 0.25  # x the diameter: the band around the outlines whose contou
 MIN_CONTOUR = 20  # px: a level whose contour in the band is shorter says nothing
 
 
-def edge_level(cut: Cut, scale: float) -> float | None:
+def edge_level(cut: Cut, scale: float, outside: np.ndarray | None = None) -> float | None:
     """The grey level of the particles' strongest edges, where it lies below the threshold (None elsewhere).
 
     Otsu's threshold sits where the two classes' histograms part, about halfway up the particles' edge or above
@@ -747,12 +747,13 @@ def edge_level(cut: Cut, scale: float) -> float | None:
     falls off towards its outline (a sphere in transmission: contrast sqrt(1 - r^2 / R^2)) has its steepest
     gradient, and its outline, further out: the instance maps' outlines lie at 0.38 (median). Of the iso-grey
     contours in a band around the outlines (OUTLINE_BAND diameters either side), the level whose contour has the
-    largest mean gradient magnitude is the particles' edge."""
+    largest mean gradient magnitude is the particles' edge. ``outside``: the foreground's distance transform
+    outside it, when the caller has it."""
     foreground, smooth = cut.foreground, cut.smooth
     if smooth is None or not foreground.any() or foreground.all():
         return None
-    band = max(2.0, OUTLINE_BAND * scale)
-    outside = ndi.distance_transform_edt(~foreground)
+    band = _outline_band(scale)
+    outside = ndi.distance_transform_edt(~foreground) if outside is None else outside
     film = smooth[outside > band]
     if film.size == 0:
         return None
@@ -769,6 +770,11 @@ def edge_level(cut: Cut, scale: float) -> float | None:
         strength.append(gradient[contour].mean() if contour.sum() >= MIN_CONTOUR else 0.0)
     level = float(low + (high - low) * OUTLINE_LEVELS[int(np.argmax(strength))])
     return level if level < cut.threshold else None
+
+
+def _outline_band(scale: float) -> float:
+    """px: OUTLINE_BAND diameters, at least 2 px."""
+    return max(2.0, OUTLINE_BAND * scale)
 
 
 def grow_to_edges(
@@ -794,18 +800,22 @@ def _grown_foreground(cut: Cut, scale: float, annotations: np.ndarray) -> np.nda
     """The foreground grown out to the edge level (`edge_level`), over connected pixels at most OUTLINE_BAND
     diameters from it (where the level was measured: not into a film that happens to lie above it); the foreground
     itself where there is no lower edge."""
-    level = edge_level(cut, scale)
+    if cut.smooth is None or not cut.foreground.any():
+        return cut.foreground
+    outside = ndi.distance_transform_edt(~cut.foreground)
+    level = edge_level(cut, scale, outside)
     if level is None:
         return cut.foreground
-    within = (ndi.distance_transform_edt(~cut.foreground) <= max(2.0, OUTLINE_BAND * scale)) & ~annotations
+    within = (outside <= _outline_band(scale)) & ~annotations
     return ndi.binary_propagation(cut.foreground, mask=((cut.smooth >= level) & within) | cut.foreground)
 
 
 def particle_foreground(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
     """The bool foreground of `segment_particles` without splitting it into particles (cheaper): pixels past
     the Otsu threshold of the smoothed, flattened image in the particles' direction, less annotations and
-    connected specks below ``min_area``, grown out to the particles' edges (`grow_to_edges`). All False when no
-    particle stands out."""
+    connected specks below ``min_area``, grown out to the particles' edges (`grow_to_edges`; unsplit, every piece
+    grows, watershed slivers too: a superset of `segment_particles`' foreground). All False when no particle
+    stands out."""
     params = SegmentParams.from_config(params)
     try:  # the neck depth splits the foreground, it does not change it: none chosen
         params, _ = resolve_params([image], replace(params, neck_depth=params.neck_depth or 0.0), polarity)
