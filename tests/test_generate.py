@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -564,6 +565,7 @@ def _ramped_discs(background: float, core: float, seed: int) -> tuple[np.ndarray
 
 
 def test_grey_spread_measures_generated_images_as_it_measured_the_real_ones():
+    from drgan.data.particles import particle_foreground
     from drgan.dataset.grey_spread import GreySpread, grey_levels, match_grey
 
     # The classical outline (an Otsu threshold) of a particle with a dim edge lies inside the true one, so the
@@ -573,6 +575,10 @@ def test_grey_spread_measures_generated_images_as_it_measured_the_real_ones():
     real, real_labels = _ramped_discs(0.1, 0.6, seed=0)
     spread = GreySpread.from_patches(real[None], segment, "bright", resolution=96)
     assert spread.segment.is_resolved  # resolved once on the real patches, not per generated image
+    # levels are cores inside the threshold's own outline: grown to the edges it would take in the dim ramp
+    assert not spread.segment.grow_outlines
+    core = grey_levels(real, particle_foreground(real, replace(spread.segment, grow_outlines=False), "bright"))
+    assert spread.levels[0] == pytest.approx(core, abs=1e-6)
     generated, labels = _ramped_discs(0.4, 0.9, seed=1)  # the same particles, other levels
     moved, info = spread.apply(generated, labels, seed=3)
     assert info["measured_by"] == "classical" and info["target"] == pytest.approx(spread.levels[0], abs=1e-4)

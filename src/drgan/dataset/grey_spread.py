@@ -24,7 +24,7 @@ contrast in every generated image; measured alike on both sides, it cancels (exp
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -117,6 +117,10 @@ class GreySpread:
         from drgan.data.particles import resolve_params
 
         params, _ = resolve_params(list(np.asarray(patches, dtype=np.float32)), segment, polarity)
+        # The threshold's own outline, not grown to the edges (`grow_to_edges`): a level is a core's median, and the
+        # grown outline takes in the dim edge, which a render and a micrograph fade through unlike each other (on
+        # tio2_sem, grown on both sides, the generated contrast's 5th percentile came out 11 % high, 3 % without).
+        params = replace(params, grow_outlines=False)
         levels = patch_grey_levels(patches, params, polarity)
         return cls(levels, params.scaled(resolution / np.shape(patches)[-1]), polarity)
 
