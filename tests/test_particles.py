@@ -229,6 +229,36 @@ def test_a_search_collapsed_to_specks_falls_back_to_the_area_weighted_median():
     assert abs(params.scale / 16 - 1) < 0.1 and found.refined_px == pytest.approx(params.scale, abs=0.01)
 
 
+def test_a_larger_scale_of_far_more_alike_segments_wins_below_min_separability(monkeypatch):
+    """A dense packing of large textured particles: the texture's specks (every size) separate better than the
+    particles' narrow gaps. The larger fixed point wins when its segments are alike (spread at most ALIKE_SPREAD of
+    the specks'), it separates at least ALIKE_SEPARABILITY and holds ALIKE_SEGMENTS; the final segmentation's
+    min_separability is lowered to what it separated, so that it keeps what the search saw."""
+    image, _, _ = discs(size=128, diameter=24, n=6, seed=0)
+
+    def search(fixed_points):
+        def refine(prepared, params, start, weighted=False):
+            return fixed_points[0] if start < 30 else fixed_points[1]
+
+        monkeypatch.setattr(P, "refine_scale", refine)
+        params, found = P.resolve_params([image], P.SegmentParams(neck_depth=0.0), "bright")
+        return params, found
+
+    specks = P.Fixed(9.0, True, 0.75, 0.75, 1.6, 400)
+    params, found = search([specks, P.Fixed(40.0, True, 0.6, 0.583, 0.3, 12)])
+    assert params.scale == 40.0 and found.alike and params.min_separability == 0.58
+    for other in (
+        P.Fixed(40.0, True, 0.6, 0.58, 0.9, 12),  # not alike enough: 0.9 > 0.5 x 1.6
+        P.Fixed(40.0, True, 0.5, 0.5, 0.3, 12),  # separates too little
+        P.Fixed(40.0, True, 0.6, 0.58, 0.3, 4),  # too few segments
+        P.Fixed(40.0, False, 0.6, 0.58, 0.3, 12),  # not a fixed point
+    ):
+        params, found = search([specks, other])
+        assert params.scale == 9.0 and not found.alike and params.min_separability == 0.66, other
+    params, found = search([P.Fixed(9.0, True, 0.75, 0.75, 1.6, 400), P.Fixed(40.0, True, 0.7, 0.7, 0.3, 12)])
+    assert params.scale == 40.0 and not found.alike and params.min_separability == 0.66  # the plain rule's choice
+
+
 def test_area_weighted_median_by_hand():
     assert P.area_weighted_median(np.array([1.0, 1.0, 1.0, 10.0])) == 10.0  # areas 1, 1, 1, 100
     assert P.area_weighted_median(np.array([3.0, 4.0])) == 4.0  # 9 of 25 below 4
@@ -242,7 +272,7 @@ def test_the_search_reports_the_separability_of_the_scale_it_returns():
     image, _, _ = discs(size=256, diameter=30, n=8, polarity="dark", noise=0.06, grain=1.5, seed=5)
     prepared = [P.prepare(image, "dark", True)]
     for start in (12.0, 20.0, 48.0):
-        scale, _, separability = P.refine_scale(prepared, P.SegmentParams(), start)
+        scale, separability = (lambda f: (f.scale, f.separability))(P.refine_scale(prepared, P.SegmentParams(), start))
         at_scale = P._foreground(prepared[0], replace(P.SegmentParams(), min_separability=0.0).resolved(scale))
         at_scale = at_scale.separability
         assert separability == pytest.approx(at_scale, abs=1e-9), start

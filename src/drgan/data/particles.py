@@ -231,6 +231,7 @@ class ScaleEstimate:
     diameters_tried_px: tuple[float, float]  # the range of the LoG scales, as disc diameters
     refined_px: float | None = None  # the diameter chosen by `search_scale`
     candidates: tuple = ()  # (start, fixed point, separability) of each search
+    alike: bool = False  # chosen below min_separability for its alike segments (`search_scale`)
     necks: tuple = ()  # (neck depth, size spread log(q90 / q10)) of each depth `choose_neck` tried
 
     def as_dict(self) -> dict:
@@ -241,6 +242,7 @@ class ScaleEstimate:
             "diameters_tried_px": [round(v, 1) for v in self.diameters_tried_px],
             "refined_px": None if self.refined_px is None else round(self.refined_px, 2),
             "candidates": [[round(float(v), 3) for v in c] for c in self.candidates],
+            "alike": self.alike,
             "necks": [[float(depth), None if math.isnan(spread) else round(spread, 3)] for depth, spread in self.necks],
         }
 
@@ -444,15 +446,15 @@ def _resolve_scale(
     estimate = estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
     # No blob standing out of the response's noise is no proof of no particles: where particles fill the image (a
     # dense layer of rods), they *are* the response's spread at their scale. The search's own starts still run.
-    scale, tried = search_scale(prepared, params, estimate.diameter_px, smallest=smallest)
-    if scale is None:
+    fixed, tried = search_scale(prepared, params, estimate.diameter_px, smallest=smallest)
+    if fixed is None:
         # Every start collapsed to grain: specks that outnumber a few particles pull the plain median of the
         # segments, round after round, below MIN_SCALE. Their share of the segments' *area* is small, so the search
         # follows the area-weighted median instead (only here: where the plain search settles, it measures
         # polydisperse particles better, e.g. TiO2's, whose area-weighted median lies 10-15 % above the median).
-        scale, weighted_tried = search_scale(prepared, params, estimate.diameter_px, weighted=True, smallest=smallest)
+        fixed, weighted_tried = search_scale(prepared, params, estimate.diameter_px, weighted=True, smallest=smallest)
         tried = tried + weighted_tried
-    if scale is None:
+    if fixed is None:
         log_scale = (
             f"no blob stood out of the noise at any scale (LoG diameters {estimate.diameters_tried_px[0]:.0f}-"
             f"{estimate.diameters_tried_px[1]:.0f} px), and"
@@ -466,7 +468,10 @@ def _resolve_scale(
             f"{params.min_separability}; {polarity} particles)",
             params,
         )
-    return params.resolved(scale), replace(estimate, refined_px=scale, candidates=tuple(tried))
+    alike = fixed.lowest < params.min_separability
+    if alike:  # the final segmentation keeps what the search saw: lowered to the least-separating image's
+        params = replace(params, min_separability=math.floor(100 * fixed.lowest) / 100)
+    return params.resolved(fixed.scale), replace(estimate, refined_px=fixed.scale, candidates=tuple(tried), alike=alike)
 
 
 REFINE_ROUNDS = 4
@@ -476,6 +481,14 @@ MIN_SCALE = 6.0  # px: smaller fixed points are grain, texture or JPEG blocks (E
 # Per doubling of the scale: texture inside large particles separates nearly as well as the particles themselves
 # (EMPS: 0.88 at 3.7 px against 0.86 at 35 px), so of two fixed points the larger wins unless clearly worse.
 LARGER_BONUS = 0.05
+# A dense packing of large textured particles: their narrow gaps make a lopsided histogram that Otsu separates at
+# 0.58-0.63 (below min_separability), while the texture cut into specks separates at 0.72-0.79. The specks come in
+# every size (size spread log(q90 / q10) 1.4-1.8), the particles alike (0.03-0.7): a larger fixed point separating
+# at least ALIKE_SEPARABILITY whose segments' spread is at most ALIKE_SPREAD of the chosen one's, over at least
+# ALIKE_SEGMENTS segments, wins (EMPS: 5 medians won, none lost; experiments/profile/README.md).
+ALIKE_SEPARABILITY = 0.55
+ALIKE_SPREAD = 0.5
+ALIKE_SEGMENTS = 5
 
 
 class Fixed(NamedTuple):
@@ -484,6 +497,9 @@ class Fixed(NamedTuple):
     scale: float  # px: the last scale segmented with
     consistent: bool  # its segments' median lies within CONSISTENT of it
     separability: float  # mean over the images
+    lowest: float = 0.0  # the least of the images' separabilities
+    spread: float = math.nan  # `size_spread` of its segments (not touching the border, of plausible area)
+    segments: int = 0  # how many those are
 
 
 def search_scale(
@@ -492,14 +508,16 @@ def search_scale(
     log_diameter: float | None,
     weighted: bool = False,
     smallest: float | None = None,
-) -> tuple[float | None, list[tuple[float, float, float]]]:
+) -> tuple[Fixed | None, list[tuple[float, float, float]]]:
     """The particle diameter: of the scales that segment into particles of their own size (fixed points of
     `refine_scale`, started from the LoG's diameter (None: no blob stood out) and from 8, 16, .. px up to half the
     image), the one whose foreground separates best from the background (Otsu separability, plus LARGER_BONUS per
     doubling). Grain and noise make fixed points at small scales too, but there the threshold cuts noise
     (separability ~2/pi); at the particles' scale it cuts particles from background. Without a fixed point, the best
-    scale reached. ``weighted``: each round moves to the segments' area-weighted median instead of their median
-    (`refine_scale`). Returns (diameter or None, [(start, scale reached, separability)])."""
+    scale reached. A larger fixed point whose segments are far more alike in size wins although it separates less
+    (ALIKE_*: a dense packing of textured particles, whose texture separates better than their narrow gaps).
+    ``weighted``: each round moves to the segments' area-weighted median instead of their median (`refine_scale`).
+    Returns (where it ended or None, [(start, scale reached, separability)])."""
     limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
     starts = {d for d in START_DIAMETERS if d <= limit}
     if log_diameter is not None:
@@ -512,7 +530,20 @@ def search_scale(
         return max(fixed, key=lambda f: (f.consistent, f.separability + LARGER_BONUS * math.log2(f.scale)))
 
     found = [f for _, f in tried if f.separability >= params.min_separability and f.scale >= MIN_SCALE]
-    return (best(found).scale if found else None), [(start, f.scale, f.separability) for start, f in tried]
+    record = [(start, f.scale, f.separability) for start, f in tried]
+    if not found:
+        return None, record
+    chosen = best(found)
+    alike = [
+        f
+        for _, f in tried
+        if f.consistent
+        and f.scale > chosen.scale
+        and f.separability >= ALIKE_SEPARABILITY
+        and f.segments >= ALIKE_SEGMENTS
+        and f.spread <= ALIKE_SPREAD * chosen.spread  # NaN (fewer than two segments): never
+    ]
+    return (min(alike, key=lambda f: f.spread) if alike else chosen), record
 
 
 def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: float, weighted: bool = False) -> Fixed:
@@ -530,8 +561,9 @@ def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: flo
             return Fixed(scale, False, 0.0)
         new = area_weighted_median(d) if weighted else float(np.median(d))
         if abs(math.log(new / scale)) < 0.1 or round_ == REFINE_ROUNDS - 1:
-            separability = float(np.mean([m.separability for m in measures]))
-            return Fixed(scale, abs(math.log(new / scale)) < CONSISTENT, separability)
+            separabilities = [m.separability for m in measures]
+            consistent = abs(math.log(new / scale)) < CONSISTENT
+            return Fixed(scale, consistent, float(np.mean(separabilities)), min(separabilities), size_spread(d), d.size)
         scale = new
     raise AssertionError("unreachable: the last round returns")
 
