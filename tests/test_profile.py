@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -164,6 +165,17 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     n = saved["data"]["images"]
     assert 0 <= grown["images"] <= n and "- `data.segment.grow_outlines`: true: " in report
     assert (f"on {grown['images']} of {n} images" if grown["images"] else f"on none of the {n} images") in report
+    # A scale chosen below min_separability for its alike segments writes the lowered value, and says why
+    from drgan.profile import data_settings
+
+    assert not saved["segmentation"]["scale_estimate"]["alike"]
+    assert "min_separability" not in saved["material"]["data"]["segment"]
+    alike = copy.deepcopy(saved)
+    alike["segmentation"]["scale_estimate"]["alike"] = True
+    alike["segmentation"]["params"]["min_separability"] = 0.58
+    data, notes = data_settings(alike)
+    assert data["segment"]["min_separability"] == 0.58
+    assert notes["data.segment.min_separability"].startswith("0.58 (default 0.66): the particles' scale separates")
 
     with pytest.raises(ConfigError, match="exists"):
         profile(compose(overrides, config_name="profile"))  # no overwrite without overwrite=true
