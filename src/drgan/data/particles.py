@@ -483,9 +483,9 @@ MIN_SCALE = 6.0  # px: smaller fixed points are grain, texture or JPEG blocks (E
 LARGER_BONUS = 0.05
 # A dense packing of large textured particles: their narrow gaps make a lopsided histogram that Otsu separates at
 # 0.58-0.63 (below min_separability), while the texture cut into specks separates at 0.72-0.79. The specks come in
-# every size (size spread log(q90 / q10) 1.4-1.8), the particles alike (0.03-0.7): a larger fixed point separating
-# at least ALIKE_SEPARABILITY whose segments' spread is at most ALIKE_SPREAD of the chosen one's, over at least
-# ALIKE_SEGMENTS segments, wins (EMPS: 5 medians won, none lost; experiments/profile/README.md).
+# every size (size spread log(q90 / q10) 1.4-1.8), the particles alike (0.03-0.7): a larger fixed point below
+# min_separability but at least ALIKE_SEPARABILITY, whose segments' spread is at most ALIKE_SPREAD of the chosen
+# one's, over at least ALIKE_SEGMENTS segments, wins (EMPS: 4 medians won, none lost; experiments/profile/README.md).
 ALIKE_SEPARABILITY = 0.55
 ALIKE_SPREAD = 0.5
 ALIKE_SEGMENTS = 5
@@ -514,8 +514,9 @@ def search_scale(
     image), the one whose foreground separates best from the background (Otsu separability, plus LARGER_BONUS per
     doubling). Grain and noise make fixed points at small scales too, but there the threshold cuts noise
     (separability ~2/pi); at the particles' scale it cuts particles from background. Without a fixed point, the best
-    scale reached. A larger fixed point whose segments are far more alike in size wins although it separates less
-    (ALIKE_*: a dense packing of textured particles, whose texture separates better than their narrow gaps).
+    scale reached. A larger fixed point below ``min_separability`` whose segments are far more alike in size wins
+    although it separates less (ALIKE_*: a dense packing of textured particles, whose texture separates better than
+    their narrow gaps).
     ``weighted``: each round moves to the segments' area-weighted median instead of their median (`refine_scale`).
     Returns (where it ended or None, [(start, scale reached, separability)])."""
     limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
@@ -539,7 +540,7 @@ def search_scale(
         for _, f in tried
         if f.consistent
         and f.scale > chosen.scale
-        and f.separability >= ALIKE_SEPARABILITY
+        and ALIKE_SEPARABILITY <= f.separability < params.min_separability  # above: the plain rule judged it
         and f.segments >= ALIKE_SEGMENTS
         and f.spread <= ALIKE_SPREAD * chosen.spread  # NaN (fewer than two segments): never
     ]
