@@ -260,6 +260,9 @@ def test_a_larger_scale_of_far_more_alike_segments_wins_below_min_separability(m
     # above min_separability the plain rule judges alone: sharp specks (0.85 + 0.05 log2 9) beat 0.7 + 0.05 log2 40
     params, found = search([P.Fixed(9.0, True, 0.85, 0.85, 1.6, 400), P.Fixed(40.0, True, 0.7, 0.7, 0.3, 12)])
     assert params.scale == 9.0 and not found.alike
+    # the plain rule's choice, separating well on average but less on one of several images, keeps min_separability
+    params, found = search([P.Fixed(9.0, True, 0.6, 0.6, 1.6, 400), P.Fixed(40.0, True, 0.7, 0.6, 0.3, 12)])
+    assert params.scale == 40.0 and not found.alike and params.min_separability == 0.66
 
 
 def test_area_weighted_median_by_hand():

@@ -468,7 +468,7 @@ def _resolve_scale(
             f"{params.min_separability}; {polarity} particles)",
             params,
         )
-    alike = fixed.lowest < params.min_separability
+    alike = fixed.separability < params.min_separability  # chosen for its alike segments (`search_scale`)
     if alike:  # the final segmentation keeps what the search saw: lowered to the least-separating image's
         params = replace(params, min_separability=math.floor(100 * fixed.lowest) / 100)
     return params.resolved(fixed.scale), replace(estimate, refined_px=fixed.scale, candidates=tuple(tried), alike=alike)
