@@ -3,6 +3,7 @@ touching particles, an empty field, 16-bit and RGB input)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -236,13 +237,12 @@ def test_a_larger_scale_of_far_more_alike_segments_wins_below_min_separability(m
     min_separability is lowered to what it separated, so that it keeps what the search saw."""
     image, _, _ = discs(size=128, diameter=24, n=6, seed=0)
 
-    def search(fixed_points):
+    def search(fixed_points, **given):
         def refine(prepared, params, start, weighted=False):
             return fixed_points[0] if start < 30 else fixed_points[1]
 
         monkeypatch.setattr(P, "refine_scale", refine)
-        params, found = P.resolve_params([image], P.SegmentParams(neck_depth=0.0), "bright")
-        return params, found
+        return P.resolve_params([image], P.SegmentParams(neck_depth=0.0, **given), "bright")
 
     specks = P.Fixed(9.0, True, 0.75, 0.75, 1.6, 400)
     params, found = search([specks, P.Fixed(40.0, True, 0.6, 0.583, 0.3, 12)])
@@ -263,6 +263,29 @@ def test_a_larger_scale_of_far_more_alike_segments_wins_below_min_separability(m
     # the plain rule's choice, separating well on average but less on one of several images, keeps min_separability
     params, found = search([P.Fixed(9.0, True, 0.6, 0.6, 1.6, 400), P.Fixed(40.0, True, 0.7, 0.6, 0.3, 12)])
     assert params.scale == 40.0 and not found.alike and params.min_separability == 0.66
+    # one of several images separating nothing at the alike scale lowers nothing
+    params, found = search([specks, P.Fixed(40.0, True, 0.6, 0.2, 0.3, 12)])
+    assert params.scale == 9.0 and not found.alike and params.min_separability == 0.66
+    # a min_separability set by hand is kept: no alike scale below it
+    params, found = search([specks, P.Fixed(40.0, True, 0.6, 0.6, 0.3, 12)], min_separability=0.62)
+    assert params.scale == 9.0 and not found.alike and params.min_separability == 0.62
+
+
+def test_the_deeper_neck_search_judges_with_the_lowered_min_separability(monkeypatch):
+    """`choose_neck`'s second search (neck depth 0.2, from the first's scale up) runs with the threshold the first
+    lowered: with the default it could not see the alike scale it starts from, and would report no particle."""
+    image, _, _ = discs(size=192, diameter=40, n=10, gap=-12, seed=0)  # touching: the deeper seeds merge some
+    seen = []
+
+    def refine(prepared, params, start, weighted=False):
+        seen.append((params.neck_depth, params.min_separability))
+        return P.Fixed(9.0, True, 0.75, 0.75, 1.6, 400) if start < 30 else P.Fixed(40.0, True, 0.6, 0.6, 0.3, 12)
+
+    monkeypatch.setattr(P, "refine_scale", refine)
+    params, found = P.resolve_params([image], P.SegmentParams(), "bright")
+    assert {t for d, t in seen if d == 0.0} == {0.66} and {t for d, t in seen if d == P.NECK_DEPTH} == {0.6}
+    assert all(not math.isnan(spread) for _, spread in found.necks)  # both depths found particles
+    assert params.scale == 40.0 and params.min_separability == 0.6 and found.alike
 
 
 def test_area_weighted_median_by_hand():

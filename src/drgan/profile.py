@@ -325,13 +325,14 @@ def data_settings(result: dict) -> tuple[dict, dict]:
         + f"; Otsu separability {seg['separability_median']:.2f} (particles segmented: {seg['particles']})",
     }
     notes["data.segment.neck_depth"] = _neck_note(seg["params"]["neck_depth"], "neck_depth" in given, estimate)
-    if estimate is not None and estimate.get("alike") and "min_separability" not in given:
-        data["segment"]["min_separability"] = seg["params"]["min_separability"]
+    lowered = seg["params"]["min_separability"]
+    if lowered != SegmentParams().min_separability and "min_separability" not in given:
+        data["segment"]["min_separability"] = lowered
         notes["data.segment.min_separability"] = (
-            f"{seg['params']['min_separability']} (default {SegmentParams().min_separability}): the particles' scale "
-            "separates less than a finer one, but its segments are far more alike in size (a dense packing of "
-            "textured particles: narrow gaps, texture cut into specks of every size at the finer scale); set "
-            "data.segment.scale to override"
+            f"{lowered} (default {SegmentParams().min_separability}): the particles' scale separates less than a "
+            "finer one, but its segments are far more alike in size (a dense packing of textured particles: narrow "
+            "gaps, texture cut into specks of every size at the finer scale); to decide, set data.segment.scale "
+            "and data.segment.min_separability together"
         )
     notes["data.segment.grow_outlines"] = _outline_note(seg, result["data"]["images"])
     enough = counts["with_3_or_more"]["windows"] / max(1, counts["windows"])

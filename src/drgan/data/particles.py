@@ -63,6 +63,9 @@ BACKGROUND_PER_DIAMETER = 3.0  # the illumination is flattened at this many diam
 # log(q90 / q10) of their diameters, to NECK_SPREAD of that with every maximum seeding or less (`choose_neck`).
 NECK_DEPTH = 0.2
 NECK_SPREAD = 0.8
+# Otsu's separability (between-class / total variance) below which a threshold separates no two classes (a Gaussian's
+# 2 / pi = 0.64). Left at this default, the scale search may lower it for a dense packing (`search_scale`).
+MIN_SEPARABILITY = 0.66
 
 
 @dataclass(frozen=True)
@@ -101,7 +104,7 @@ class SegmentParams:
     grow_outlines: bool = True
     # Otsu's between-class / total variance around the blobs of the particles' size. Smoothed noise scores
     # 0.635-0.64 (2/pi for Gaussian noise) at any scale; particles at their own scale 0.66-0.91 (EMPS, most > 0.7).
-    min_separability: float = 0.66
+    min_separability: float = MIN_SEPARABILITY
 
     def __post_init__(self) -> None:
         for key in ("scale", "sigma", "background"):
@@ -409,8 +412,12 @@ def choose_neck(
     best: tuple[SegmentParams, ScaleEstimate | None, float] | None = None
     for depth in (0.0, NECK_DEPTH):
         smallest = best[0].scale if best is not None else None  # merging at necks makes particles no smaller
+        # the first's threshold: lowered for a dense packing (`search_scale`), the deeper search judges its scale too
+        threshold = best[0].min_separability if best is not None else params.min_separability
         try:
-            resolved, estimate = _resolve_scale(prepared, replace(params, neck_depth=depth), polarity, smallest)
+            resolved, estimate = _resolve_scale(
+                prepared, replace(params, neck_depth=depth, min_separability=threshold), polarity, smallest
+            )
         except NoParticles as error:
             first = first or error
             tried.append((depth, math.nan))
@@ -424,7 +431,8 @@ def choose_neck(
             if all(m.segments == _measure(p, deeper).segments for m, p in zip(measures, prepared)):
                 break  # no shallow neck at this scale: nothing for the deeper seeds to merge
         elif spread < NECK_SPREAD * best[2] and resolved.scale >= best[0].scale:  # NaN: fewer than two segments
-            best = (resolved, estimate, spread)
+            alike = best[1] is not None and best[1].alike  # the threshold it searched with was the first's
+            best = (resolved, estimate if estimate is None else replace(estimate, alike=alike), spread)
     if best is None:
         raise first
     resolved, estimate, _ = best
@@ -472,8 +480,8 @@ def _resolve_scale(
             params,
         )
     alike = fixed.separability < params.min_separability  # chosen for its alike segments (`search_scale`)
-    if alike:  # the final segmentation keeps what the search saw: lowered to the least-separating image's
-        params = replace(params, min_separability=math.floor(100 * fixed.lowest) / 100)
+    if alike:  # lowered to the least-separating image's (two decimals, down), so that every image keeps its particles
+        params = replace(params, min_separability=math.floor(100 * fixed.lowest + 1e-9) / 100)
     return params.resolved(fixed.scale), replace(estimate, refined_px=fixed.scale, candidates=tuple(tried), alike=alike)
 
 
@@ -487,8 +495,9 @@ LARGER_BONUS = 0.05
 # A dense packing of large textured particles: their narrow gaps make a lopsided histogram that Otsu separates at
 # 0.58-0.63 (below min_separability), while the texture cut into specks separates at 0.72-0.79. The specks come in
 # every size (size spread log(q90 / q10) 1.4-1.8), the particles alike (0.03-0.7): a larger fixed point below
-# min_separability but at least ALIKE_SEPARABILITY, whose segments' spread is at most ALIKE_SPREAD of the chosen
-# one's, over at least ALIKE_SEGMENTS segments, wins (EMPS: 4 medians won, none lost; experiments/profile/README.md).
+# min_separability but at least ALIKE_SEPARABILITY on every image, whose segments' spread is at most ALIKE_SPREAD of
+# the chosen one's, over at least ALIKE_SEGMENTS segments, wins (EMPS: 4 medians won, none lost;
+# experiments/profile/README.md). Of several, the most alike.
 ALIKE_SEPARABILITY = 0.55
 ALIKE_SPREAD = 0.5
 ALIKE_SEGMENTS = 5
@@ -519,7 +528,7 @@ def search_scale(
     (separability ~2/pi); at the particles' scale it cuts particles from background. Without a fixed point, the best
     scale reached. A larger fixed point below ``min_separability`` whose segments are far more alike in size wins
     although it separates less (ALIKE_*: a dense packing of textured particles, whose texture separates better than
-    their narrow gaps).
+    their narrow gaps), where ``min_separability`` is the default (a value set by hand is kept).
     ``weighted``: each round moves to the segments' area-weighted median instead of their median (`refine_scale`).
     Returns (where it ended or None, [(start, scale reached, separability)])."""
     limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
@@ -538,12 +547,15 @@ def search_scale(
     if not found:
         return None, record
     chosen = best(found)
+    if params.min_separability != MIN_SEPARABILITY:
+        return chosen, record
     alike = [
         f
         for _, f in tried
         if f.consistent
         and f.scale > chosen.scale
-        and ALIKE_SEPARABILITY <= f.separability < params.min_separability  # above: the plain rule judged it
+        and f.separability < params.min_separability  # above it the plain rule judged it
+        and f.lowest >= ALIKE_SEPARABILITY  # on every image: one image separating nothing lowers nothing
         and f.segments >= ALIKE_SEGMENTS
         and f.spread <= ALIKE_SPREAD * chosen.spread  # NaN (fewer than two segments): never
     ]

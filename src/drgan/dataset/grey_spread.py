@@ -14,8 +14,9 @@ the particles' cores (EDGE_MARGIN px in). Means over the whole classes were bias
 foreground is not the true outline: on tio2_sem it leaves the particles' bright edges and dim parts to the
 background, whose mean then came out too bright for the darkest windows (5th percentile 1.56x the masks').
 Labels do not change; noise and texture scale with the contrast, as they do in a real image. The real patches'
-levels come from drgan's classical segmentation with the patch set's own settings (no annotation is read), so they
-are what drgan's profile would measure; and the generated image's own levels are measured by that same segmentation
+levels come from drgan's classical segmentation with the patch set's own settings (no annotation is read), with the
+threshold's own outlines (not grown to the edges: a core's median, the dim edge left out); and the generated image's
+own levels are measured by that same segmentation
 (`GreySpread`), not by its exact labels: the classical outline is an Otsu threshold, tighter than a particle's true
 outline where its edge is dim, so its core median is brighter (on tio2_sem's train patches 0.522 against the masks'
 0.478). Measured by labels on one side and the classical outline on the other, that bias became 11 % too much
@@ -110,8 +111,8 @@ class GreySpread:
 
     @classmethod
     def from_patches(cls, patches: np.ndarray, segment: dict, polarity: str, resolution: int) -> GreySpread:
-        """From (N, S, S) real patches segmented with ``segment`` (the patch set's settings, at S px): the settings
-        scaled to generated images of ``resolution`` px. Settings not resolved (a patch set older than a key, or
+        """From (N, S, S) real patches segmented with ``segment`` (the patch set's settings, at S px; the outlines
+        not grown): the settings scaled to generated images of ``resolution`` px. Settings not resolved (a patch set older than a key, or
         made by hand) are resolved once on the patches, so that every patch and every generated image is segmented
         alike (not each at a scale of its own)."""
         from drgan.data.particles import resolve_params
