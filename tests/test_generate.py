@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -579,8 +578,6 @@ def test_grey_spread_measures_generated_images_as_it_measured_the_real_ones():
     assert not spread.segment.grow_outlines
     core = grey_levels(real, particle_foreground(real, spread.segment, "bright"))
     assert spread.levels[0] == pytest.approx(core, abs=1e-6)
-    grown = grey_levels(real, particle_foreground(real, replace(spread.segment, grow_outlines=True), "bright"))
-    assert grown[1] < core[1] - 0.01  # what the grown outline's core would have measured: the dim ramp's grey
     generated, labels = _ramped_discs(0.4, 0.9, seed=1)  # the same particles, other levels
     moved, info = spread.apply(generated, labels, seed=3)
     assert info["measured_by"] == "classical" and info["target"] == pytest.approx(spread.levels[0], abs=1e-4)
