@@ -26,6 +26,7 @@ from tqdm import tqdm
 from drgan.data import profile as est
 from drgan.data.images import list_images, read_grey, read_split
 from drgan.data.particles import (
+    MIN_SEPARABILITY,
     NECK_DEPTH,
     NECK_SPREAD,
     NoParticles,
@@ -326,10 +327,10 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     }
     notes["data.segment.neck_depth"] = _neck_note(seg["params"]["neck_depth"], "neck_depth" in given, estimate)
     lowered = seg["params"]["min_separability"]
-    if lowered != SegmentParams().min_separability and "min_separability" not in given:
+    if lowered != MIN_SEPARABILITY and "min_separability" not in given:
         data["segment"]["min_separability"] = lowered
         notes["data.segment.min_separability"] = (
-            f"{lowered} (default {SegmentParams().min_separability}): the particles' scale separates less than a "
+            f"{lowered} (default {MIN_SEPARABILITY}): the particles' scale separates less than a "
             "finer one, but its segments are far more alike in size (a dense packing of textured particles: narrow "
             "gaps, texture cut into specks of every size at the finer scale); to decide, set data.segment.scale "
             "and data.segment.min_separability together"

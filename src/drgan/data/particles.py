@@ -237,7 +237,7 @@ class ScaleEstimate:
     diameters_tried_px: tuple[float, float]  # the range of the LoG scales, as disc diameters
     refined_px: float | None = None  # the diameter chosen by `search_scale`
     candidates: tuple = ()  # (start, fixed point, separability) of each search
-    alike: bool = False  # chosen below min_separability for its alike segments (`search_scale`)
+    alike: bool = False  # min_separability lowered for a scale of alike segments (`search_scale`; `resolve_params`)
     necks: tuple = ()  # (neck depth, size spread log(q90 / q10)) of each depth `choose_neck` tried
 
     def as_dict(self) -> dict:
@@ -389,8 +389,11 @@ def resolve_params(
         return params.resolved(), None
     prepared = [prepare(image, polarity, params.annotations) for image in images]
     if params.neck_depth is None:
-        return choose_neck(prepared, params, polarity)
-    return _resolve_scale(prepared, params, polarity)
+        resolved, estimate = choose_neck(prepared, params, polarity)
+    else:
+        resolved, estimate = _resolve_scale(prepared, params, polarity)
+    alike = resolved.min_separability < params.min_separability  # lowered for a dense packing (`search_scale`)
+    return resolved, None if estimate is None else replace(estimate, alike=alike)
 
 
 def choose_neck(
@@ -431,8 +434,7 @@ def choose_neck(
             if all(m.segments == _measure(p, deeper).segments for m, p in zip(measures, prepared)):
                 break  # no shallow neck at this scale: nothing for the deeper seeds to merge
         elif spread < NECK_SPREAD * best[2] and resolved.scale >= best[0].scale:  # NaN: fewer than two segments
-            alike = best[1] is not None and best[1].alike  # the threshold it searched with was the first's
-            best = (resolved, estimate if estimate is None else replace(estimate, alike=alike), spread)
+            best = (resolved, estimate, spread)
     if best is None:
         raise first
     resolved, estimate, _ = best
@@ -479,10 +481,10 @@ def _resolve_scale(
             f"{params.min_separability}; {polarity} particles)",
             params,
         )
-    alike = fixed.separability < params.min_separability  # chosen for its alike segments (`search_scale`)
-    if alike:  # lowered to the least-separating image's (two decimals, down), so that every image keeps its particles
+    if fixed.separability < params.min_separability:  # chosen for its alike segments (`search_scale`): lowered to
+        # the least-separating image's (two decimals, down), so that every image keeps its particles
         params = replace(params, min_separability=math.floor(100 * fixed.lowest + 1e-9) / 100)
-    return params.resolved(fixed.scale), replace(estimate, refined_px=fixed.scale, candidates=tuple(tried), alike=alike)
+    return params.resolved(fixed.scale), replace(estimate, refined_px=fixed.scale, candidates=tuple(tried))
 
 
 REFINE_ROUNDS = 4

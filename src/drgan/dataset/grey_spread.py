@@ -112,9 +112,9 @@ class GreySpread:
     @classmethod
     def from_patches(cls, patches: np.ndarray, segment: dict, polarity: str, resolution: int) -> GreySpread:
         """From (N, S, S) real patches segmented with ``segment`` (the patch set's settings, at S px; the outlines
-        not grown): the settings scaled to generated images of ``resolution`` px. Settings not resolved (a patch set older than a key, or
-        made by hand) are resolved once on the patches, so that every patch and every generated image is segmented
-        alike (not each at a scale of its own)."""
+        not grown): the settings scaled to generated images of ``resolution`` px. Settings not resolved (a patch set
+        older than a key, or made by hand) are resolved once on the patches, so that every patch and every generated
+        image is segmented alike (not each at a scale of its own)."""
         from drgan.data.particles import resolve_params
 
         params, _ = resolve_params(list(np.asarray(patches, dtype=np.float32)), segment, polarity)
