@@ -463,6 +463,33 @@ def test_a_retry_that_separates_worse_is_not_kept(monkeypatch):
     assert P.refine_scale([prepared], P.SegmentParams(min_separability=0.99), 24).separability > 0.7
 
 
+@pytest.mark.parametrize("min_separability", [0.58, 0.5, 0.66, 0.7])
+def test_a_lowered_threshold_retries_where_the_scale_search_did(monkeypatch, min_separability):
+    # The first cut separates at 0.62, the retry around the significant blobs at 0.64: the scale search retries below
+    # the default 0.66, and the final segmentation with the threshold it lowered (0.58) must segment what it measured
+    image, _, _ = discs(size=128, diameter=24, n=6, seed=1)
+    prepared = P.prepare(image, "bright")
+    seen = []
+
+    def threshold(smooth, centres, annotations, scale):
+        seen.append(int(centres.sum()))
+        cut = real(smooth, centres, annotations, scale)
+        return cut._replace(separability=0.62 if len(seen) == 1 else 0.64)
+
+    real = P._threshold
+    monkeypatch.setattr(P, "_threshold", threshold)
+    monkeypatch.setattr(P, "_out_of_film_noise", lambda bright, response, centres: centres)
+    params = P.SegmentParams(scale=24, background=0, min_separability=min_separability).resolved()
+    cut = P._foreground(prepared, params)
+    assert len(seen) == 2 and cut.separability == 0.64
+    assert P.retry_separability(params) == max(min_separability, P.MIN_SEPARABILITY)
+    seen.clear()  # the search's measurement: min_separability 0, retried as the final segmentation will be
+    measured = P._measure(
+        P.prepare(image, "bright"), replace(params, min_separability=0.0), P.retry_separability(params)
+    )
+    assert measured.separability == cut.separability
+
+
 def _rods_and_pairs(kind: str, seed: int = 0, size: int = 224) -> tuple[np.ndarray, int]:
     """(bright image, particles): ``rods`` 12 px wide and 56-64 px long with sides uneven by up to 1.5 px, or
     ``pairs`` of 26 px discs overlapping by half a radius (a neck 0.13 of their radius deep) beside single discs."""

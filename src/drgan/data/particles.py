@@ -573,7 +573,7 @@ def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: flo
     area."""
     for round_ in range(REFINE_ROUNDS):
         resolved = replace(params, min_separability=0.0).resolved(scale)
-        measures = [_measure(p, resolved, retry_below=params.min_separability) for p in prepared]
+        measures = [_measure(p, resolved, retry_below=retry_separability(params)) for p in prepared]
         d = np.concatenate([m.diameters for m in measures])
         if d.size == 0:  # nothing of plausible area: this scale segments no particle, however well it separates
             return Fixed(scale, False, 0.0)
@@ -599,7 +599,7 @@ def _measure(prepared: Prepared, params: SegmentParams, retry_below: float | Non
     measured; each foreground and each split made once per image (memoised on ``prepared.measured``). The
     foreground does not depend on the neck depth, and below ``min_separability`` it is empty (the same threshold
     otherwise), so the searches with either depth and either separability share it."""
-    retry = params.min_separability if retry_below is None else retry_below
+    retry = retry_separability(params) if retry_below is None else retry_below
     plain = replace(params, min_separability=0.0)
     cut_key = (replace(plain, neck_depth=None), retry)
     if cut_key not in prepared.measured:
@@ -678,16 +678,25 @@ def _out_of_film_noise(bright: np.ndarray, response: np.ndarray, centres: np.nda
     return centres & (response >= centre + SIGNIFICANCE * 1.4826 * np.median(np.abs(film - centre)))
 
 
+def retry_separability(params: SegmentParams) -> float:
+    """The separability below which `_foreground` thresholds again around the blobs standing out of the film's
+    noise: the default MIN_SEPARABILITY, or ``params.min_separability`` where it is higher. A threshold below the
+    default (the scale search's, lowered for a dense packing, or one set by hand) says which cuts to accept, not
+    which to try again: the search measured its fixed points retrying below the default, so the final segmentation
+    with the lowered threshold segments what the search measured."""
+    return max(params.min_separability, MIN_SEPARABILITY)
+
+
 def _foreground(prepared: Prepared, params: SegmentParams, retry_below: float | None = None) -> Cut:
     """The foreground of prepared, with resolved params, and how well its threshold separated (`Cut`).
     ``retry_below``: the separability below which the threshold is taken again around the significant blobs
-    (default ``params.min_separability``; the scale search segments with min_separability 0 but retries as the final
+    (default `retry_separability`; the scale search segments with min_separability 0 but retries as the final
     segmentation will).
 
     Otsu's threshold is taken over the pixels within one diameter of a blob of the particles' size (not the whole
     image): a few particles on a wide background give a lopsided histogram where Otsu cuts into the background's
     noise, while around the particles both classes are well represented. Where those blobs leave the separability
-    below ``min_separability``, it is taken again around the blobs that stand out of the film's noise
+    below ``retry_below``, it is taken again around the blobs that stand out of the film's noise
     (`blob_centres`' ``significant``; the smoothing and the LoG response are reused): a grainy film whose own maxima
     surrounded the few particles. The retry is kept only where it separates better (on a dense packing no blob
     stands out of the "film", which is the particles' gaps and sides, and the retry has nothing to threshold).
@@ -710,7 +719,7 @@ def _foreground(prepared: Prepared, params: SegmentParams, retry_below: float | 
         )  # fmt: skip
 
     cut = best([peak for _, peak in maxima])
-    if cut.separability < (params.min_separability if retry_below is None else retry_below):
+    if cut.separability < (retry_separability(params) if retry_below is None else retry_below):
         retry = best([_out_of_film_noise(im, r, peak) for im, (r, peak) in zip(images, maxima)])
         cut = retry if retry.separability >= cut.separability else cut
     if cut.separability < params.min_separability:
