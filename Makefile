@@ -29,9 +29,11 @@ lint: setup
 # One pytest worker per core (pytest-xdist), each test file on one worker (its module and session fixtures built
 # once): 2 cores run the default suite in ~5 min instead of ~7.5 (experiments/benchmarks/test_suite.md).
 PYTEST_WORKERS ?= -n auto --dist loadfile
+# The 15 slowest tests are listed after each run: the default run's 6-minute budget is watched where it is spent.
+PYTEST_DURATIONS ?= --durations=15
 
 test: setup
-	$(PYTHON) -m pytest -q $(PYTEST_WORKERS)
+	$(PYTHON) -m pytest -q $(PYTEST_WORKERS) $(PYTEST_DURATIONS)
 
 test-slow: setup
 	$(PYTHON) -m pytest -q -m slow $(PYTEST_WORKERS)
