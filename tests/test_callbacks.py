@@ -320,6 +320,7 @@ def test_parameter_spread_hand_computed():
         parameter_spread(values, [0.0], [1.0])
 
 
+@pytest.mark.slow  # two trainings and a resume: ~20 s (the default run's longest)
 def test_training_with_callbacks_writes_best_epoch_metrics_plots_and_resumes(images, tmp_path):  # noqa: F811
     import mlflow
 

@@ -248,6 +248,7 @@ def test_every_material_trains_a_step(material, images, tmp_path):
     assert metrics["train/skipped_steps"] == 0 and metrics["time/render_s"] > 0
 
 
+@pytest.mark.slow  # two trainings and a resume: ~15 s
 def test_resume_continues_epochs_and_mlflow_run(images, tmp_path, caplog):
     import logging
 
