@@ -3,7 +3,7 @@
 # time limit of its own so that one hang cannot eat the session's device time, every log under $OUT.
 #   carry: .gpu_site.tar.xz (bash ../shared/gpu/build_site.sh), .gpu_wheels (pytest's wheels: the GPU machine has
 #          no pytest), .gpu_data/tio2_sem/images (a few *train* images of tio2_sem; never a test id)
-#   command: bash experiments/gpu/check.sh [STEPS]     STEPS: any of "variant tests bench train generate ddp"
+#   command: bash experiments/gpu/check.sh [STEPS]     STEPS: any of "variant tests bench train generate probe genbench ddp"
 # Results and what they mean: experiments/gpu/README.md.
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
@@ -57,23 +57,10 @@ from drgan import backend; print('drgan auto ->', backend.resolve_variant('auto'
     log "generated $(ls /tmp/gen/images 2>/dev/null | wc -l) images"
     mkdir -p "$OUT/gen" && for f in $(ls /tmp/gen/images 2>/dev/null | sort | head -8); do cp "/tmp/gen/images/$f" "$OUT/gen/"; done
     cp /tmp/gen/manifest.json "$OUT/gen/" 2>/dev/null ;;
-  probe)  # where cuda and llvm disagree in test_scene's rectangle test: rays that hit one surface and miss the other
-    run probe 60 python3 -c "
-import numpy as np
-from drgan import backend; backend.use_variant('auto')
-from drgan.backend import dr, mi
-from drgan.scene.scene import rectangle_mesh
-to_world = mi.ScalarTransform4f().translate([1, -2, 5]).rotate([1, 0.3, 0], 160).scale([3, 2, 1])
-tri = mi.load_dict({'type': 'scene', 'shape': rectangle_mesh('lamp', to_world)})
-rect = mi.load_dict({'type': 'scene', 'shape': {'type': 'rectangle', 'to_world': to_world}})
-xy = np.random.default_rng(0).uniform(-5, 5, (2, 4000)).astype(np.float32)
-rays = mi.Ray3f(mi.Point3f(mi.Float(xy[0]), mi.Float(xy[1]), 0.0), mi.Vector3f(0.05, -0.1, 1.0))
-a, b = tri.ray_intersect(rays), rect.ray_intersect(rays)
-va, vb = np.array(a.is_valid()), np.array(b.is_valid())
-print('triangles hit', va.sum(), 'rectangle hit', vb.sum(), 'disagree', (va != vb).sum())
-both = va & vb
-print('t max diff', np.abs(np.array(a.t) - np.array(b.t))[both].max() if both.any() else None)
-" ;;
+  probe)  # where cuda and llvm disagree in test_scene's rectangle test (experiments/gpu/probe_rectangle.py)
+    DRGAN_VARIANT=cuda_ad_rgb run probe 60 python3 experiments/gpu/probe_rectangle.py ;;
+  genbench)  # benchmarks/generate.py: pairs per minute by spp and resolution, render and labels apart
+    run genbench ${GENBENCH_LIMIT:-120} python3 benchmarks/generate.py --spp 16 121 --resolution 256 512 --images 20 ;;
   ddp)
     run ddp ${DDP_LIMIT:-120} python3 -m drgan.train experiment=tio2_sem logger=none data.split=null trainer=ddp trainer.devices=1 \
       trainer.max_epochs=1 trainer.limit_train_batches=5 "$FID_EXTRACTOR" ${TRAIN_ARGS:-} paths.log_dir=/tmp/runs run_name=gpu_ddp ;;
