@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import time
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from PIL import Image
 
 from drgan.data import (
     PatchSet,
+    SegmentParams,
     contact_sheet,
     count_particles,
     dihedral_augment,
@@ -109,6 +111,29 @@ def test_mined_counts_match_truth_and_selection_keeps_three_or_more(synthetic):
     patch_of = {tuple(p): t for p, t in zip(ps.train_positions, ps.train)}
     r, c = next(iter(kept))
     np.testing.assert_array_equal(patch_of[(r, c)], image[r : r + SIZE, c : c + SIZE])
+
+
+def test_the_scale_search_names_the_settings_that_mine_alike_without_it(synthetic, caplog):
+    """The search (minutes per image on real micrographs) logs the overrides that skip it; mined with them, the same
+    patches and the same resolved settings come out, and nothing is searched."""
+    image, _, _ = synthetic
+    with caplog.at_level(logging.INFO, logger="drgan.data.patches"):
+        searched = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, n_background=2, progress=False)
+    assert "searching the particle scale on 1 of the 1 images" in caplog.text
+    overrides = dict(
+        re.findall(r"data\.segment\.(\w+)=(\S+)", caplog.text.split("mine alike without the search with")[1])
+    )
+    assert set(overrides) >= {"scale", "neck_depth"} and float(overrides["scale"]) > 0
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="drgan.data.patches"):
+        pinned = mine_patches(
+            [image], ["syn"], size=SIZE, stride=STRIDE, n_background=2, progress=False,
+            segment=SegmentParams(**{key: float(value) for key, value in overrides.items()}),
+        )  # fmt: skip
+    assert "searching" not in caplog.text and "mine alike" not in caplog.text
+    assert pinned.params["segment"] == searched.params["segment"]
+    np.testing.assert_array_equal(pinned.train_positions, searched.train_positions)
+    np.testing.assert_array_equal(pinned.background_positions, searched.background_positions)
 
 
 def test_overlapping_windows_are_dropped(synthetic):

@@ -39,29 +39,48 @@ def main() -> None:
     print(f"numpy: min dot over hits {dot[both].min():.7f}, hits with dot < 0.999: {(dot[both] < 0.999).sum()}")
     for name, n in (("triangles", na), ("rectangle", nb)):
         length = np.linalg.norm(n, axis=0)
-        print(f"  {name}: |n| over hits in [{length[both].min():.6f}, {length[both].max():.6f}], "
-              f"non-finite over all rays {(~np.isfinite(n)).any(axis=0).sum()}, over misses "
-              f"{(~np.isfinite(n[:, ~both])).any(axis=0).sum()}")
+        print(
+            f"  {name}: |n| over hits in [{length[both].min():.6f}, {length[both].max():.6f}], "
+            f"non-finite over all rays {(~np.isfinite(n)).any(axis=0).sum()}, over misses "
+            f"{(~np.isfinite(n[:, ~both])).any(axis=0).sum()}"
+        )
     bad = np.flatnonzero(both & (dot < 0.999))[:5]
     for i in bad:
         print(f"  ray {i}: n_tri {na[:, i]}, n_rect {nb[:, i]}, t {np.array(a.t)[i]:.6f} / {np.array(b.t)[i]:.6f}")
     # the test's own expressions, through Dr.Jit's reductions
     hit = a.is_valid()
     selected = dr.select(hit, dr.dot(a.n, b.n), 1.0)
-    print("drjit: dr.all(valid == valid)", dr.all(a.is_valid() == b.is_valid()),
-          "| dr.min(select(hit, dot, 1))", dr.min(selected), "| numpy min of the same array", np.array(selected).min(),
-          "| dr.max(select(hit, |dt|/t, 0))", dr.max(dr.select(hit, dr.abs(a.t - b.t) / b.t, 0.0)))
+    print(
+        "drjit: dr.all(valid == valid)",
+        dr.all(a.is_valid() == b.is_valid()),
+        "| dr.min(select(hit, dot, 1))",
+        dr.min(selected),
+        "| numpy min of the same array",
+        np.array(selected).min(),
+        "| dr.max(select(hit, |dt|/t, 0))",
+        dr.max(dr.select(hit, dr.abs(a.t - b.t) / b.t, 0.0)),
+    )
     # the same with each scene's intersection evaluated in a kernel of its own (what the test now does)
     a = tri.ray_intersect(rays)
     dr.eval(a)
     b = rect.ray_intersect(rays)
     dr.eval(b)
     hit = a.is_valid()
-    print("drjit, evaluated apart: dr.all(valid == valid)", dr.all(a.is_valid() == b.is_valid()),
-          "| dr.min(select(hit, dot, 1))", dr.min(dr.select(hit, dr.dot(a.n, b.n), 1.0)))
+    print(
+        "drjit, evaluated apart: dr.all(valid == valid)",
+        dr.all(a.is_valid() == b.is_valid()),
+        "| dr.min(select(hit, dot, 1))",
+        dr.min(dr.select(hit, dr.dot(a.n, b.n), 1.0)),
+    )
     ones = mi.Float(np.ones(4000, np.float32))
-    print("drjit: dr.min of 4,000 ones", dr.min(ones), "| dr.min of dr.select(mask, ones, 1.0)",
-          dr.min(dr.select(hit, ones, 1.0)), "| dr.all(a mask == itself)", dr.all(hit == hit))
+    print(
+        "drjit: dr.min of 4,000 ones",
+        dr.min(ones),
+        "| dr.min of dr.select(mask, ones, 1.0)",
+        dr.min(dr.select(hit, ones, 1.0)),
+        "| dr.all(a mask == itself)",
+        dr.all(hit == hit),
+    )
 
 
 if __name__ == "__main__":

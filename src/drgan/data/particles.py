@@ -156,11 +156,12 @@ class SegmentParams:
         d = float(self.scale if self.scale is not None else scale) if (self.scale or scale) else None
         if d is None:
             raise ConfigError("SegmentParams.resolved: no particle scale (give data.segment.scale or an image)")
+        d = round(d, 2)  # the lengths follow from the scale as recorded: set by hand, it resolves to the same
         min_area = self.min_area or max(4, int(round(math.pi / 4 * (MIN_AREA_DIAMETER * d) ** 2)))
         max_area = self.max_area or max(min_area, int(round(math.pi / 4 * (MAX_AREA_DIAMETER * d) ** 2)))
         return replace(
             self,
-            scale=round(d, 2),
+            scale=d,
             sigma=self.sigma if self.sigma is not None else round(SIGMA_PER_DIAMETER * d, 2),
             min_distance=self.min_distance or max(1, int(round(MIN_DISTANCE_PER_DIAMETER * d))),
             min_area=min_area,

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -363,7 +364,23 @@ def mine_patches(
     check_image_sizes(images, ids, size)
     # One particle scale for the whole set (up to SCALE_IMAGES images spread over it): every image is segmented alike.
     step = max(1, len(images) // SCALE_IMAGES)
-    segment, estimate = resolve_params(list(images[::step][:SCALE_IMAGES]), segment, polarity)
+    sample = list(images[::step][:SCALE_IMAGES])
+    given = SegmentParams.from_config(segment)
+    if given.scale is None or given.neck_depth is None:
+        log.info(
+            "data: searching the particle scale on %d of the %d images (data.segment.scale/neck_depth not set; "
+            "about a minute per image on 2 cores)", len(sample), len(images),
+        )  # fmt: skip
+    started = time.perf_counter()
+    segment, estimate = resolve_params(sample, segment, polarity)
+    if estimate is not None or given.neck_depth is None:
+        pinned = f"data.segment.scale={segment.scale} data.segment.neck_depth={segment.neck_depth}"
+        if segment.min_separability != given.min_separability:
+            pinned += f" data.segment.min_separability={segment.min_separability}"
+        log.info(
+            "data: particle scale %.2f px, neck depth %s (searched in %.0f s); the same images mine alike without the "
+            "search with %s", segment.scale, segment.neck_depth, time.perf_counter() - started, pinned,
+        )  # fmt: skip
 
     train_candidates: list[_Candidate] = []
     background_candidates: list[_Candidate] = []
