@@ -49,6 +49,16 @@ def test_grainy_dark_particles_are_found_at_their_size():
     assert 8 <= len(np.unique(labels)) - 1 <= 12
 
 
+def test_the_scale_search_shows_its_progress_only_when_asked(capsys):
+    image, _, _ = discs(size=96, diameter=20, n=4, seed=2)
+    quiet, _ = P.resolve_params([image], None, "bright")
+    assert capsys.readouterr().err == ""
+    shown, _ = P.resolve_params([image], None, "bright", progress=True)
+    err = capsys.readouterr().err
+    assert "particle scale, neck depth 0:" in err and ("start/s" in err or "s/start" in err)
+    assert shown == quiet  # the bar changes nothing it measures
+
+
 def test_scale_bar_and_text_are_not_particles():
     image, _, _ = discs(size=256, diameter=20, n=14, seed=2)
     canvas = Image.fromarray((image * 255).astype(np.uint8))

@@ -133,7 +133,7 @@ def profile(cfg: DictConfig) -> dict:
     setting = _segment_setting(cfg)
     step = max(1, len(images) // SCALE_IMAGES)
     try:
-        params, scale = resolve_params(images[::step][:SCALE_IMAGES], setting, polarity)
+        params, scale = resolve_params(images[::step][:SCALE_IMAGES], setting, polarity, progress=True)
     except NoParticles as error:
         _write_failure_figure(out, images, polarity, None)
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None

@@ -43,6 +43,7 @@ from skimage.feature import peak_local_max
 from skimage.filters import threshold_otsu
 from skimage.morphology import h_maxima
 from skimage.segmentation import watershed
+from tqdm import tqdm
 
 from drgan.data.annotations import ANNOTATION_LEVEL, EDGE_BAND, annotation_mask, as_grey  # noqa: F401 (re-exported)
 from drgan.data.polarity import to_bright
@@ -379,10 +380,11 @@ def flatten(bright: np.ndarray, size: float) -> np.ndarray:
 
 
 def resolve_params(
-    images: Sequence[np.ndarray], params: SegmentParams | None = None, polarity: str = "bright"
+    images: Sequence[np.ndarray], params: SegmentParams | None = None, polarity: str = "bright", progress: bool = False
 ) -> tuple[SegmentParams, ScaleEstimate | None]:
     """``params`` with every length and the neck depth set: the scale estimated from ``images`` when not given (the
-    estimate is None when it was), the neck depth chosen from them when None (`choose_neck`)."""
+    estimate is None when it was), the neck depth chosen from them when None (`choose_neck`). ``progress``: a bar
+    per search over its starting diameters (each a few segmentations of every image: minutes on large images)."""
     params = SegmentParams.from_config(params)
     if params.is_resolved:
         return params, None
@@ -390,15 +392,15 @@ def resolve_params(
         return params.resolved(), None
     prepared = [prepare(image, polarity, params.annotations) for image in images]
     if params.neck_depth is None:
-        resolved, estimate = choose_neck(prepared, params, polarity)
+        resolved, estimate = choose_neck(prepared, params, polarity, progress)
     else:
-        resolved, estimate = _resolve_scale(prepared, params, polarity)
+        resolved, estimate = _resolve_scale(prepared, params, polarity, progress=progress)
     alike = resolved.min_separability < params.min_separability  # lowered for a dense packing (`search_scale`)
     return resolved, None if estimate is None else replace(estimate, alike=alike)
 
 
 def choose_neck(
-    prepared: Sequence[Prepared], params: SegmentParams, polarity: str
+    prepared: Sequence[Prepared], params: SegmentParams, polarity: str, progress: bool = False
 ) -> tuple[SegmentParams, ScaleEstimate | None]:
     """Resolve ``params`` twice, with every maximum seeding (neck depth 0) and with NECK_DEPTH, and keep NECK_DEPTH
     where it narrows the spread of the segments' diameters, log(q90 / q10), to NECK_SPREAD of the other's or less.
@@ -420,7 +422,7 @@ def choose_neck(
         threshold = best[0].min_separability if best is not None else params.min_separability
         try:
             resolved, estimate = _resolve_scale(
-                prepared, replace(params, neck_depth=depth, min_separability=threshold), polarity, smallest
+                prepared, replace(params, neck_depth=depth, min_separability=threshold), polarity, smallest, progress
             )
         except NoParticles as error:
             first = first or error
@@ -451,7 +453,11 @@ def size_spread(diameters: np.ndarray) -> float:
 
 
 def _resolve_scale(
-    prepared: Sequence[Prepared], params: SegmentParams, polarity: str, smallest: float | None = None
+    prepared: Sequence[Prepared],
+    params: SegmentParams,
+    polarity: str,
+    smallest: float | None = None,
+    progress: bool = False,
 ) -> tuple[SegmentParams, ScaleEstimate | None]:
     """``params`` (neck depth set) with every length set: from the scale given, else from the scale searched
     (started from ``smallest`` and above only, when given)."""
@@ -460,13 +466,15 @@ def _resolve_scale(
     estimate = estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
     # No blob standing out of the response's noise is no proof of no particles: where particles fill the image (a
     # dense layer of rods), they *are* the response's spread at their scale. The search's own starts still run.
-    fixed, tried = search_scale(prepared, params, estimate.diameter_px, smallest=smallest)
+    fixed, tried = search_scale(prepared, params, estimate.diameter_px, smallest=smallest, progress=progress)
     if fixed is None:
         # Every start collapsed to grain: specks that outnumber a few particles pull the plain median of the
         # segments, round after round, below MIN_SCALE. Their share of the segments' *area* is small, so the search
         # follows the area-weighted median instead (only here: where the plain search settles, it measures
         # polydisperse particles better, e.g. TiO2's, whose area-weighted median lies 10-15 % above the median).
-        fixed, weighted_tried = search_scale(prepared, params, estimate.diameter_px, weighted=True, smallest=smallest)
+        fixed, weighted_tried = search_scale(
+            prepared, params, estimate.diameter_px, weighted=True, smallest=smallest, progress=progress
+        )
         tried = tried + weighted_tried
     if fixed is None:
         log_scale = (
@@ -523,6 +531,7 @@ def search_scale(
     log_diameter: float | None,
     weighted: bool = False,
     smallest: float | None = None,
+    progress: bool = False,
 ) -> tuple[Fixed | None, list[tuple[float, float, float]]]:
     """The particle diameter: of the scales that segment into particles of their own size (fixed points of
     `refine_scale`, started from the LoG's diameter (None: no blob stood out) and from 8, 16, .. px up to half the
@@ -533,6 +542,7 @@ def search_scale(
     although it separates less (ALIKE_*: a dense packing of textured particles, whose texture separates better than
     their narrow gaps), where ``min_separability`` is the default (a value set by hand is kept).
     ``weighted``: each round moves to the segments' area-weighted median instead of their median (`refine_scale`).
+    ``progress``: a bar over the starting diameters.
     Returns (where it ended or None, [(start, scale reached, separability)])."""
     limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
     starts = {d for d in START_DIAMETERS if d <= limit}
@@ -540,7 +550,9 @@ def search_scale(
         starts.add(round(log_diameter, 1))
     if smallest is not None:  # only from this scale up (`choose_neck`)
         starts = {d for d in starts if d > smallest} | {round(smallest, 2)}
-    tried = [(start, refine_scale(prepared, params, start, weighted)) for start in sorted(starts)]
+    what = f"particle scale, neck depth {params.neck_depth or 0:g}{', area-weighted' if weighted else ''}"
+    bar = tqdm(sorted(starts), desc=what, unit="start", disable=not progress)
+    tried = [(start, refine_scale(prepared, params, start, weighted)) for start in bar]
 
     def best(fixed: list[Fixed]) -> Fixed:
         return max(fixed, key=lambda f: (f.consistent, f.separability + LARGER_BONUS * math.log2(f.scale)))

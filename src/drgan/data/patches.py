@@ -372,7 +372,7 @@ def mine_patches(
             "about a minute per image on 2 cores)", len(sample), len(images),
         )  # fmt: skip
     started = time.perf_counter()
-    segment, estimate = resolve_params(sample, segment, polarity)
+    segment, estimate = resolve_params(sample, segment, polarity, progress=progress)
     if estimate is not None or given.neck_depth is None:
         pinned = f"data.segment.scale={segment.scale} data.segment.neck_depth={segment.neck_depth}"
         if segment.min_separability != given.min_separability:
