@@ -15,7 +15,7 @@ from hydra.utils import instantiate
 from drgan.configs import compose
 from drgan.data.images import read_grey
 from drgan.data.particles import resolve_params
-from drgan.data.patches import SCALE_IMAGES
+from drgan.data.patches import scale_sample
 
 
 def main() -> None:
@@ -27,13 +27,12 @@ def main() -> None:
         paths, ids, _ = dm.resolve_ids()
         images = [read_grey(p, dm.crop_rows) for p in paths]
         dm.resolve_polarity(images)
-        step = max(1, len(images) // SCALE_IMAGES)  # as mine_patches samples them
-        sample = images[::step][:SCALE_IMAGES]
+        sample = scale_sample(images)  # as mine_patches samples them
         t = time.perf_counter()
         params, estimate = resolve_params(sample, dm.segment, dm.polarity)
         seconds = time.perf_counter() - t
         print(
-            f"{name}: {len(ids)} train images, {len(sample)} searched ({', '.join(ids[::step][:SCALE_IMAGES])}), "
+            f"{name}: {len(ids)} train images, {len(sample)} searched ({', '.join(scale_sample(ids))}), "
             f"{dm.polarity} particles, {seconds:.0f} s"
         )
         print(f"  resolved: {params.as_dict()}")

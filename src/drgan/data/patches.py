@@ -315,6 +315,11 @@ def check_image_sizes(images: Sequence[np.ndarray], ids: Sequence[str], size: in
             )
 
 
+def scale_sample(items: Sequence) -> list:
+    """The images (or their ids) the particle scale of a set is searched on: up to SCALE_IMAGES spread over it."""
+    return list(items[:: max(1, len(items) // SCALE_IMAGES)][:SCALE_IMAGES])
+
+
 def mine_patches(
     images: Sequence[np.ndarray],
     ids: Sequence[str],
@@ -363,8 +368,7 @@ def mine_patches(
         )
     check_image_sizes(images, ids, size)
     # One particle scale for the whole set (up to SCALE_IMAGES images spread over it): every image is segmented alike.
-    step = max(1, len(images) // SCALE_IMAGES)
-    sample = list(images[::step][:SCALE_IMAGES])
+    sample = scale_sample(images)
     given = SegmentParams.from_config(segment)
     if given.scale is None or given.neck_depth is None:
         log.info(
