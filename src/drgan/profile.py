@@ -35,13 +35,12 @@ from drgan.data.particles import (
     as_grey,
     resolve_params,
 )
+from drgan.data.patches import scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.io import figure_png, write_bytes, write_json
 
 log = logging.getLogger(__name__)
-
-SCALE_IMAGES = 8  # images the particle scale is estimated on (spread over the set)
 
 
 # --- settings and images ----------------------------------------------------------------------------------
@@ -127,13 +126,12 @@ def profile(cfg: DictConfig) -> dict:
     polarity, estimate = resolve_polarity(polarity_setting, images)
     log.info("polarity: %s (%s)", polarity, "detected" if estimate else "set")
 
-    # The particle scale (and from it every segmentation length), on up to SCALE_IMAGES images spread over the set;
+    # The particle scale (and from it every segmentation length), on the images mining searches it on (scale_sample);
     # data.segment keys given are kept as given.
     out = Path(str(cfg.out))
     setting = _segment_setting(cfg)
-    step = max(1, len(images) // SCALE_IMAGES)
     try:
-        params, scale = resolve_params(images[::step][:SCALE_IMAGES], setting, polarity, progress=True)
+        params, scale = resolve_params(scale_sample(images), setting, polarity, progress=True)
     except NoParticles as error:
         _write_failure_figure(out, images, polarity, None)
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
