@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 from hydra.utils import instantiate
 
 from drgan.configs import compose
 from drgan.data.images import read_grey
-from drgan.data.particles import resolve_params
+from drgan.data.particles import SegmentParams, resolve_params
 from drgan.data.patches import scale_sample
 
 
@@ -29,7 +30,9 @@ def main() -> None:
         dm.resolve_polarity(images)
         sample = scale_sample(images)  # as mine_patches samples them
         t = time.perf_counter()
-        params, estimate = resolve_params(sample, dm.segment, dm.polarity)
+        # the scale and neck depth the experiment sets are what is measured again: searched as if unset
+        unset = replace(SegmentParams.from_config(dm.segment), scale=None, neck_depth=None)
+        params, estimate = resolve_params(sample, unset, dm.polarity)
         seconds = time.perf_counter() - t
         print(
             f"{name}: {len(ids)} train images, {len(sample)} searched ({', '.join(scale_sample(ids))}), "
