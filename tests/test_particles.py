@@ -157,6 +157,22 @@ def test_touching_particles_are_split():
     assert abs((len(np.unique(labels)) - 1) - len(centres)) <= 2
 
 
+def test_a_particle_near_the_border_does_not_touch_it():
+    """The smoothing must not mirror a particle across the image border: reflected, a 110 px particle 2 px from the
+    border (smoothed at 6.4 px) and its mirror image blur across the gap, its segment reaches the border and it is
+    not measured (the synthetic sweep's one miss: 384 px, two whole 110 px discs, one of them 2 px from the edge)."""
+    size, d = 300, 110.0
+    yy, xx = np.mgrid[:size, :size]
+    image = np.full((size, size), 0.3)
+    image[(yy - (2 + d / 2)) ** 2 + (xx - 60) ** 2 <= (d / 2) ** 2] += 0.35  # 2 px from the top border
+    image[(yy - 220) ** 2 + (xx - 220) ** 2 <= (d / 2) ** 2] += 0.35
+    image += 0.02 * np.random.default_rng(0).standard_normal((size, size))
+    params = P.SegmentParams(scale=d).resolved()
+    labels, _ = P.segment_particles(image.astype(np.float32), params, "bright")
+    assert labels[0].max() == 0  # the top row stays background
+    assert len(P.segment_diameters(labels, params)) == 2
+
+
 def test_an_empty_field_fails_clearly():
     rng = np.random.default_rng(4)
     image = np.clip(0.4 + 0.05 * ndi.gaussian_filter(rng.standard_normal((160, 160)), 1.5) * 3, 0, 1)
