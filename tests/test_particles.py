@@ -422,6 +422,31 @@ def test_the_black_gaps_of_a_dense_packing_are_not_text():
     assert mask[:24, :30].any()  # the white panel letter still is text
 
 
+def test_a_scale_bars_label_is_text_among_black_specks_of_the_image():
+    """Dark TEM particles with black specks inside: character-shaped black groups lie inside the image as densely as
+    along its edges, so characters near the edges are the image's own (the dense-packing rule above), but the
+    label beside the scale bar is text all the same (EMPS 5737e0c2c7: "200 nm" measured as two particles)."""
+    image, _, centres = discs(size=256, diameter=30, n=10, polarity="dark", seed=5)
+    rng = np.random.default_rng(5)
+    for c in centres:  # three black specks (2 x 3 px) in each particle
+        for dy, dx in rng.integers(-8, 7, (3, 2)):
+            y, x = int(c[0]) + dy, int(c[1]) + dx
+            image[y : y + 2, x : x + 3] = 0.0
+    canvas = Image.fromarray((image * 255).astype(np.uint8))
+    pen = ImageDraw.Draw(canvas)
+    pen.fontmode = "1"  # solid strokes, as figures burn labels in
+    pen.rectangle((150, 240, 240, 244), fill=0)  # the scale bar, bottom right
+    pen.text((160, 218), "200 nm", fill=0, font=ImageFont.load_default(size=14))
+    image = np.asarray(canvas, np.float32) / 255
+    black = image <= P.ANNOTATION_LEVEL
+    ink = np.zeros(image.shape, bool)
+    ink[205:238, 155:240] = black[205:238, 155:240]
+    mask = P.annotation_mask(image)
+    assert mask[240:245, 150:241].all()  # the bar
+    assert ink.sum() > 30 and mask[ink].all()  # its label (before: none of it)
+    assert mask[:190][black[:190]].mean() < 0.05  # the specks in the particles stay the image's
+
+
 def _rings(diameter=40.0, n=6, size=256, seed=3, rim=0.25):
     """Particles seen as bright rims around a centre as grey as the background (SEM edge effect, hollow shells)."""
     rng = np.random.default_rng(seed)

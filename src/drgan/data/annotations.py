@@ -38,6 +38,25 @@ def _unit(array: np.ndarray) -> np.ndarray:
     return (array - low) / (high - low) if high > low else np.zeros_like(array)
 
 
+BAR_LABEL_GAP = 1.5  # a scale bar's label lies at most this many character heights above or below the bar
+BAR_LABEL_SPAN = 0.25  # x the bar's length: and over its span widened by this much either side
+
+
+def _beside(char: tuple[slice, slice], bar: tuple[slice, slice]) -> bool:
+    """Whether a character's box lies where a scale bar's label is written: above or below the (horizontal) bar, at
+    most BAR_LABEL_GAP character heights from it (the character's own height, or a tenth of the bar's length where
+    that is more: anti-aliased text breaks into fragments), over the bar's span widened by BAR_LABEL_SPAN of its
+    length either side (a vertical bar: the same turned by 90 degrees)."""
+    (cr, cc), (br, bc) = char, bar
+    if br.stop - br.start > bc.stop - bc.start:  # a vertical bar: swap rows and columns
+        (cr, cc), (br, bc) = (cc, cr), (bc, br)
+    length = bc.stop - bc.start
+    gap = max(br.start - cr.stop, cr.start - br.stop)
+    height = max(cr.stop - cr.start, 0.1 * length)
+    margin = BAR_LABEL_SPAN * length
+    return gap <= BAR_LABEL_GAP * height and cc.start >= bc.start - margin and cc.stop <= bc.stop + margin
+
+
 # Annotations are drawn in (nearly) pure black or white: pixels within this of 0 or 1 are candidates.
 ANNOTATION_LEVEL = 0.06
 EDGE_BAND = 0.2  # text and panel letters lie within this share of the image size from an edge
@@ -54,9 +73,10 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
     holes filled: a microscope's data bar with its text) or a character: small, drawn with strokes much thinner
     than its height, within EDGE_BAND of an edge (but not when groups of that shape and level lie inside the image
     at CHAR_DENSITY_SHARE of the edges' density or more: then they are the image's own, such as the black gaps of a
-    dense packing). Boxes and bands are masked whole, with their frame (FRAME_SHARE). Particles are blobs (their
-    thickness is their size) and are not drawn in exactly one grey, so they stay. The mask is grown by 2 px
-    (anti-aliased edges)."""
+    dense packing), or right above or below a solid bar of their grey, over its span (`_beside`: a scale bar's
+    label is text, however dense the image's own marks of that grey). Boxes and bands are masked whole, with their
+    frame (FRAME_SHARE). Particles are blobs (their thickness is their size) and are not drawn in exactly one grey,
+    so they stay. The mask is grown by 2 px (anti-aliased edges)."""
     grey = np.asarray(grey, np.float32)
     h, w = grey.shape
     short = min(h, w)
@@ -71,6 +91,8 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
         boxes = ndi.find_objects(labels)
         thickness = ndi.distance_transform_edt(candidates)
         chars = np.zeros(n + 1, bool)
+        char_boxes: dict[int, tuple[slice, slice]] = {}
+        bars: list[tuple[slice, slice]] = []  # scale bars (not a line along the border)
         inner_chars = 0  # character-shaped groups away from every edge: the image's own (gaps, grain), not text
         for index, box in enumerate(boxes, start=1):
             rows, cols = box
@@ -97,8 +119,11 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
                 mask[max(rows.start - m, 0) : rows.stop + m, max(cols.start - m, 0) : cols.stop + m] = True
             elif bar:
                 mask[box] |= own
+                if min(rows.start, cols.start, h - rows.stop, w - cols.stop) > 0:  # not a line along the border
+                    bars.append(box)
             elif char:
                 chars[index] = near_edge
+                char_boxes[index] = box
                 inner_chars += not near_edge
         # Characters count when near an edge (panel letters, scale-bar text); the rest stay particles or grain. Unless
         # the inside holds them about as densely: then this level draws the image itself (a dense packing's black
@@ -110,6 +135,9 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
             and inner_chars / inner_area >= CHAR_DENSITY_SHARE * chars.sum() / (h * w - inner_area)
         ):
             chars[:] = False
+        # A scale bar's label is text however dense the image's own marks: characters of its grey beside it.
+        for index, box in char_boxes.items():
+            chars[index] |= any(_beside(box, bar) for bar in bars)
         mask |= chars[labels]
     if mask.any():
         mask = ndi.binary_dilation(mask, iterations=2)
