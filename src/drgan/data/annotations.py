@@ -103,7 +103,8 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
                 continue
             fill = area / (bh * bw)
             thick = 2.0 * float(thickness[box][own].max())  # stroke width: the widest inscribed disc
-            near_edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop) <= band
+            edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop)  # px to the nearest border
+            near_edge = edge <= band
             long_, narrow = max(bh, bw), min(bh, bw)
             bar = long_ >= 4 * narrow and long_ >= 0.04 * short and fill >= 0.75 and narrow <= 0.06 * short
             filled = ndi.binary_fill_holes(own).mean()
@@ -119,7 +120,7 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
                 mask[max(rows.start - m, 0) : rows.stop + m, max(cols.start - m, 0) : cols.stop + m] = True
             elif bar:
                 mask[box] |= own
-                if min(rows.start, cols.start, h - rows.stop, w - cols.stop) > 0:  # not a line along the border
+                if edge > 0:  # not a line along the border
                     bars.append(box)
             elif char:
                 chars[index] = near_edge
