@@ -55,7 +55,7 @@ def test_the_scale_search_shows_its_progress_only_when_asked(capsys):
     assert capsys.readouterr().err == ""
     shown, _ = P.resolve_params([image], None, "bright", progress=True)
     err = capsys.readouterr().err
-    assert "particle scale, neck depth 0:" in err and ("start/s" in err or "s/start" in err)
+    assert "particle scale:" in err and ("scale/s" in err or "s/scale" in err)
     assert shown == quiet  # the bar changes nothing it measures
 
 
@@ -245,73 +245,137 @@ def _small_particles_among_specks() -> np.ndarray:
     return image
 
 
-def test_a_search_collapsed_to_specks_falls_back_to_the_area_weighted_median():
-    """Every start of the plain search collapses to the specks, below MIN_SCALE (no particle size); following the
-    segments' area-weighted median, the search settles at the particles."""
+def test_small_particles_among_more_specks_are_the_scale_that_persists():
+    """100 specks of 4.6 px among 16 px particles: the specks' own scale never holds (their median follows the
+    smoothing), the particles' holds over many scales; the search settles at the particles."""
     image = _small_particles_among_specks()
-    prepared = [P.prepare(image, "bright", True)]
-    estimate = P.estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
-    assert P.search_scale(prepared, P.SegmentParams(), estimate.diameter_px)[0] is None
     params, found = P.resolve_params([image], None, "bright")
     assert abs(params.scale / 16 - 1) < 0.1 and found.refined_px == pytest.approx(params.scale, abs=0.01)
+    chosen = max(found.candidates, key=lambda f: f.evidence)
+    assert chosen.basin >= 5 and abs(chosen.median / 16 - 1) < 0.15
 
 
-def test_a_larger_scale_of_far_more_alike_segments_wins_below_min_separability(monkeypatch):
-    """A dense packing of large textured particles: the texture's specks (every size) separate better than the
-    particles' narrow gaps. The larger fixed point wins when its segments are alike (spread at most ALIKE_SPREAD of
-    the specks'), it separates at least ALIKE_SEPARABILITY and holds ALIKE_SEGMENTS; the final segmentation's
-    min_separability is lowered to what it separated, so that it keeps what the search saw."""
-    image, _, _ = discs(size=128, diameter=24, n=6, seed=0)
+def _on_map(monkeypatch, at, given=None, size=256):
+    """resolve_params on a scripted scale map: ``at(scale, depth)`` gives the segments' numbers (a dict overriding
+    median (NaN: none), weighted (default: the median), spread, segments, separability, lowest (default: the
+    separability)) for every segmentation the search asks for. Returns (params, estimate, scales asked)."""
+    asked = []
 
-    def search(fixed_points, **given):
-        def refine(prepared, params, start, weighted=False):
-            return fixed_points[0] if start < 30 else fixed_points[1]
+    def point(prepared, params, scale, depth):
+        asked.append((round(scale, 2), depth))
+        v = {"median": math.nan, "spread": 0.3, "segments": 12, "separability": 0.8, **at(scale, depth)}
+        v.setdefault("weighted", v["median"])
+        v.setdefault("lowest", v["separability"])
+        return P.Point(round(scale, 2), depth, **v)
 
-        monkeypatch.setattr(P, "refine_scale", refine)
-        return P.resolve_params([image], P.SegmentParams(neck_depth=0.0, **given), "bright")
+    monkeypatch.setattr(P, "_point", point)
+    image = np.zeros((size, size), np.float32)
+    params, estimate = P.resolve_params([image], P.SegmentParams(**(given or {})), "bright")
+    return params, estimate, asked
 
-    specks = P.Fixed(9.0, True, 0.75, 0.75, 1.6, 400)
-    params, found = search([specks, P.Fixed(40.0, True, 0.6, 0.583, 0.3, 12)])
-    assert params.scale == 40.0 and found.alike and params.min_separability == 0.58
+
+def _specks_and_particles(particles: dict, specks: dict | None = None):
+    """Specks whose median follows the scale up to 10 px (a fixed point at each grid scale there, each holding over
+    one), particles of 40 px at every scale from 14 to 100 px (one fixed point holding over ~12), agglomerates above."""
+
+    def at(scale, depth):
+        if scale <= 10.5:
+            return {"median": scale, "separability": 0.9, "spread": 1.6, "segments": 400, **(specks or {})}
+        if scale < 14:
+            return {"median": 0.5 * scale}
+        if scale <= 100:
+            return {"median": 40.0, **particles}
+        return {"median": 2 * scale}
+
+    return at
+
+
+def test_the_scale_that_persists_wins_over_one_that_separates_better(monkeypatch):
+    # the former rule (separability + 0.05 per doubling) chose the specks: 0.9 + 0.05 log2 6 > 0.75 + 0.05 log2 40
+    params, estimate, asked = _on_map(monkeypatch, _specks_and_particles({"separability": 0.75}))
+    assert params.scale == pytest.approx(40, abs=0.5) and params.neck_depth == 0.0 and not estimate.alike
+    assert params.min_separability == P.MIN_SEPARABILITY
+    scales = {f.scale: f for f in estimate.candidates if f.depth == 0.0}
+    assert scales[6.0].basin <= 2 and scales[40.36].basin >= 12  # the specks and the particles
+    assert estimate.grid and len({s for s, _ in asked}) >= len(P.scale_grid((256, 256)))
+    # a small change away from both fixed points (here: the specks separating even better) changes nothing
+    again, _, _ = _on_map(monkeypatch, _specks_and_particles({"separability": 0.75}, {"separability": 0.97}))
+    assert again.scale == params.scale
+
+
+def test_a_fixed_point_below_min_separability_is_a_candidate_when_its_segments_are_alike(monkeypatch):
+    """A dense packing of textured particles: their narrow gaps separate at 0.55-0.65, their texture's specks
+    better. Alike segments (spread <= ALIKE_SPREAD), ALIKE_SEGMENTS of them, separating ALIKE_SEPARABILITY on every
+    image make the fixed point a candidate; the final min_separability is lowered to what it separated."""
+    alike = {"separability": 0.6, "lowest": 0.583, "spread": 0.3, "segments": 12}
+    params, estimate, _ = _on_map(monkeypatch, _specks_and_particles(alike))
+    assert params.scale == pytest.approx(40, abs=0.5) and estimate.alike and params.min_separability == 0.58
     for other in (
-        P.Fixed(40.0, True, 0.6, 0.58, 0.9, 12),  # not alike enough: 0.9 > 0.5 x 1.6
-        P.Fixed(40.0, True, 0.5, 0.5, 0.3, 12),  # separates too little
-        P.Fixed(40.0, True, 0.6, 0.58, 0.3, 4),  # too few segments
-        P.Fixed(40.0, False, 0.6, 0.58, 0.3, 12),  # not a fixed point
+        {**alike, "spread": 0.6},  # not alike enough
+        {**alike, "lowest": 0.5},  # one image separates too little
+        {**alike, "segments": 4},  # too few segments
     ):
-        params, found = search([specks, other])
-        assert params.scale == 9.0 and not found.alike and params.min_separability == 0.66, other
-    params, found = search([P.Fixed(9.0, True, 0.75, 0.75, 1.6, 400), P.Fixed(40.0, True, 0.7, 0.7, 0.3, 12)])
-    assert params.scale == 40.0 and not found.alike and params.min_separability == 0.66  # the plain rule's choice
-    # above min_separability the plain rule judges alone: sharp specks (0.85 + 0.05 log2 9) beat 0.7 + 0.05 log2 40
-    params, found = search([P.Fixed(9.0, True, 0.85, 0.85, 1.6, 400), P.Fixed(40.0, True, 0.7, 0.7, 0.3, 12)])
-    assert params.scale == 9.0 and not found.alike
-    # the plain rule's choice, separating well on average but less on one of several images, keeps min_separability
-    params, found = search([P.Fixed(9.0, True, 0.6, 0.6, 1.6, 400), P.Fixed(40.0, True, 0.7, 0.6, 0.3, 12)])
-    assert params.scale == 40.0 and not found.alike and params.min_separability == 0.66
-    # one of several images separating nothing at the alike scale lowers nothing
-    params, found = search([specks, P.Fixed(40.0, True, 0.6, 0.2, 0.3, 12)])
-    assert params.scale == 9.0 and not found.alike and params.min_separability == 0.66
-    # a min_separability set by hand is kept: no alike scale below it
-    params, found = search([specks, P.Fixed(40.0, True, 0.6, 0.6, 0.3, 12)], min_separability=0.62)
-    assert params.scale == 9.0 and not found.alike and params.min_separability == 0.62
+        params, estimate, _ = _on_map(monkeypatch, _specks_and_particles(other))
+        assert params.scale == 6.0 and not estimate.alike and params.min_separability == 0.66, other
+    # a min_separability set by hand is kept: no alike candidate below it
+    params, estimate, _ = _on_map(monkeypatch, _specks_and_particles(alike), {"min_separability": 0.62})
+    assert params.scale == 6.0 and not estimate.alike and params.min_separability == 0.62
 
 
-def test_the_deeper_neck_search_judges_with_the_lowered_min_separability(monkeypatch):
-    """`choose_neck`'s second search (neck depth 0.2, from the first's scale up) runs with the threshold the first
-    lowered: with the default it could not see the alike scale it starts from, and would report no particle."""
-    image, _, _ = discs(size=192, diameter=40, n=10, gap=-12, seed=0)  # touching: the deeper seeds merge some
-    seen = []
+def test_no_fixed_point_separating_enough_is_no_particles(monkeypatch):
+    def at(scale, depth):
+        return {"median": scale, "separability": 0.62, "spread": 1.5}
 
-    def refine(prepared, params, start, weighted=False):
-        seen.append((params.neck_depth, params.min_separability))
-        return P.Fixed(9.0, True, 0.75, 0.75, 1.6, 400) if start < 30 else P.Fixed(40.0, True, 0.6, 0.6, 0.3, 12)
+    with pytest.raises(P.NoParticles, match=r"no consistent particle size: \d+ scale\(s\).*at most 0.62.*needed 0.66"):
+        _on_map(monkeypatch, at)
+    with pytest.raises(P.NoParticles, match="at no scale were the segments of its own size"):
+        _on_map(monkeypatch, lambda scale, depth: {"median": 0.4 * scale})
 
-    monkeypatch.setattr(P, "refine_scale", refine)
-    params, found = P.resolve_params([image], P.SegmentParams(), "bright")
-    assert {t for d, t in seen if d == 0.0} == {0.66} and {t for d, t in seen if d == P.NECK_DEPTH} == {0.6}
-    assert all(not math.isnan(spread) for _, spread in found.necks)  # both depths found particles
-    assert params.scale == 40.0 and params.min_separability == 0.6 and found.alike
+
+def test_the_area_weighted_median_where_the_plain_one_agrees_nowhere(monkeypatch):
+    # specks outnumbering a few particles hold the plain median at a third of every scale; their share of the area
+    # is small, and the area-weighted median holds at the particles'
+    def at(scale, depth):
+        return {"median": scale / 3, "weighted": 24.0 if scale >= 10 else scale / 3, "spread": 1.2}
+
+    params, estimate, _ = _on_map(monkeypatch, at)
+    assert params.scale == 24.0
+    assert all(f.median == 24.0 for f in estimate.candidates)  # the plain map found none
+
+
+def test_fixed_points_the_grid_steps_over_and_above_its_top_are_found(monkeypatch):
+    # segments 1.4x their scale up to 28 px and 0.7x from 34 px: the map crosses its diagonal between two grid
+    # scales, where it is segmented too
+    def crossing(scale, depth):
+        if 28.6 < scale < 33.9:
+            return {"median": scale}
+        return {"median": 1.4 * scale if scale <= 28.6 else 0.7 * scale}
+
+    params, estimate, asked = _on_map(monkeypatch, crossing)
+    assert 28.6 < params.scale < 33.9 and any(28.6 < s < 33.9 for s, _ in asked)
+    # particles larger than half the image: the top scale's segments are still larger, and the map is followed up
+    params, estimate, asked = _on_map(monkeypatch, lambda scale, depth: {"median": min(1.5 * scale, 200.0)})
+    assert abs(params.scale / 200 - 1) < 0.1 and max(s for s, _ in asked) > P.scale_grid((256, 256))[-1]
+
+
+@pytest.mark.parametrize(
+    "deep, expected",
+    [
+        ({"spread": 0.1}, P.NECK_DEPTH),  # merged at necks, far more alike: rods whole
+        ({"spread": 0.7}, 0.0),  # merged, no more alike: touching particles merged
+    ],
+)
+def test_seeds_at_necks_need_more_alike_sizes_not_only_persistence(monkeypatch, deep, expected):
+    # with seeds at necks the particles hold over every scale (basin 19), with every maximum seeding over a few;
+    # persistence alone would always merge
+    def at(scale, depth):
+        if depth == 0.0:
+            return {"median": 30.0 if 24 <= scale <= 40 else 0.6 * scale, "spread": 0.8}
+        return {"median": 30.0, **deep}
+
+    params, estimate, _ = _on_map(monkeypatch, at)
+    assert params.neck_depth == expected and abs(params.scale / 30 - 1) < 0.1
+    assert estimate.depth == expected
 
 
 def test_area_weighted_median_by_hand():
@@ -321,16 +385,16 @@ def test_area_weighted_median_by_hand():
 
 
 def test_the_search_reports_the_separability_of_the_scale_it_returns():
-    """refine_scale returns the last scale it segmented with and that segmentation's separability: the final
+    """The search returns scales it segmented with and those segmentations' separabilities: the final
     segmentation at the returned scale passes (or fails) min_separability exactly as the search saw it (returning
     the next scale with the previous one's separability left grainy images with a scale and no particle)."""
     image, _, _ = discs(size=256, diameter=30, n=8, polarity="dark", noise=0.06, grain=1.5, seed=5)
     prepared = [P.prepare(image, "dark", True)]
-    for start in (12.0, 20.0, 48.0):
-        scale, separability = (lambda f: (f.scale, f.separability))(P.refine_scale(prepared, P.SegmentParams(), start))
-        at_scale = P._foreground(prepared[0], replace(P.SegmentParams(), min_separability=0.0).resolved(scale))
-        at_scale = at_scale.separability
-        assert separability == pytest.approx(at_scale, abs=1e-9), start
+    chosen, fixed, _ = P.search_scale(prepared, P.SegmentParams())
+    assert len(fixed) >= 2
+    for f in [chosen, *fixed]:
+        at_scale = P._foreground(prepared[0], replace(P.SegmentParams(), min_separability=0.0).resolved(f.scale))
+        assert f.separability == pytest.approx(at_scale.separability, abs=1e-9), f
 
 
 def test_blob_centres_are_the_particles_not_the_grain():
@@ -511,7 +575,7 @@ def test_a_retry_that_separates_worse_is_not_kept(monkeypatch):
     retried = P._foreground(prepared, params, retry_below=0.99)  # retried, and the retry finds no blob
     assert retried.separability == first.separability
     np.testing.assert_array_equal(retried.foreground, first.foreground)
-    assert P.refine_scale([prepared], P.SegmentParams(min_separability=0.99), 24).separability > 0.7
+    assert P._point([prepared], P.SegmentParams(min_separability=0.99), 24.0, 0.0).separability > 0.7
 
 
 @pytest.mark.parametrize("min_separability", [0.58, 0.5, 0.66, 0.7])
@@ -578,12 +642,10 @@ def test_the_neck_depth_is_chosen_by_how_alike_the_sizes_come_out(kind):
     image, n = _rods_and_pairs(kind)
     params, estimate = P.resolve_params([image], None, "bright")
     labels, _ = P.segment_particles(image, params, "bright")
-    spreads = dict(estimate.necks)
-    assert params.neck_depth == (P.NECK_DEPTH if kind == "rods" else 0.0), spreads
+    assert params.neck_depth == (P.NECK_DEPTH if kind == "rods" else 0.0), estimate.candidates
+    assert estimate.depth == params.neck_depth
     assert labels.max() == n, (kind, labels.max(), n)
-    assert set(spreads) == {0.0, P.NECK_DEPTH}
-    narrower = spreads[P.NECK_DEPTH] < P.NECK_SPREAD * spreads[0.0]
-    assert narrower == (kind == "rods"), spreads
+    assert {f.depth for f in estimate.candidates} == {0.0, P.NECK_DEPTH}  # both depths found a particle size
     given = P.resolve_params([image], P.SegmentParams(neck_depth=0.0), "bright")[0]
     assert given.neck_depth == 0.0  # a depth given is kept
 

@@ -4,8 +4,8 @@ Reads every (train) image, detects the polarity, segments the particles classica
 measures background grey, noise sigma and grain, the mean particle edge (and a defocus fringe on it), the diameter
 distribution (normal / lognormal / two-lognormal mixture, chosen by BIC), particles per patch, agglomeration,
 elongation and the pixel size. Writes, in `out` (default runs/profile/NAME): profile.json (every number),
-report.md, sizes.png, particles.png (real images with the detected outlines: keep them out of the repository),
-background_noise.png, edge_profile.png; and ./drgan_conf/material/NAME.yaml, a material inheriting the closest
+report.md, sizes.png, scale_search.png (how the particle scale was found), particles.png (real images with the
+detected outlines: keep them out of the repository), background_noise.png, edge_profile.png; and ./drgan_conf/material/NAME.yaml, a material inheriting the closest
 paper material, ready for `python -m drgan.train material=NAME`.
 """
 
@@ -26,9 +26,10 @@ from tqdm import tqdm
 from drgan.data import profile as est
 from drgan.data.images import list_images, read_grey, read_split
 from drgan.data.particles import (
+    CONSISTENT,
     MIN_SEPARABILITY,
     NECK_DEPTH,
-    NECK_SPREAD,
+    Fixed,
     NoParticles,
     SegmentParams,
     annotation_mask,
@@ -134,6 +135,8 @@ def profile(cfg: DictConfig) -> dict:
         params, scale = resolve_params(scale_sample(images), setting, polarity, progress=True)
     except NoParticles as error:
         _write_failure_figure(out, images, polarity, None)
+        if error.search is not None:
+            _scale_figure(out, error.search.as_dict())
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
 
     tables, foregrounds, labels_kept, counts, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
@@ -235,6 +238,8 @@ def profile(cfg: DictConfig) -> dict:
     }
     result["out"] = str(out.resolve())
     _write_figures(out, images, labels_kept, inner, fits, chosen, noise, foregrounds, counts, polarity)
+    if scale is not None:
+        _scale_figure(out, scale.as_dict())
     _edge_figure(out, edge)
     parent, yaml_text = material_yaml(result, fits, chosen)
     fringe = fringe_settings(result["edge"])[0] if parent_renders_fringe(parent) else None
@@ -529,21 +534,34 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
 
 
 def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
-    """Why the watershed's seeds have the neck depth they have (`drgan.data.particles.choose_neck`)."""
+    """Why the watershed's seeds have the neck depth they have (`drgan.data.particles.search_scale`)."""
     if given:
         return f"{depth}, set by hand"
     if estimate is None:
-        return f"{depth}: chosen by the segment sizes at the scale given (`drgan.data.particles.choose_neck`)"
-    spreads = {d: s for d, s in estimate.get("necks", [])}
-    if len(spreads) < 2 or any(s is None for s in spreads.values()):
-        why = "no shallow neck to merge at this scale" if len(spreads) < 2 else "the other depth found no particle"
-        return f"{depth}: {why}"
-    plain, deep = spreads[0.0], spreads[NECK_DEPTH]
-    verdict = "narrower" if depth else f"not narrower than {NECK_SPREAD} of it"
+        return f"{depth}: the more alike segment sizes at the scale given (`drgan.data.particles.search_scale`)"
+    fixed = [dict(zip(estimate["candidate_fields"], c)) for c in estimate.get("candidates", [])]
+    fixed = [Fixed(**{**f, "spread": math.nan if f["spread"] is None else f["spread"]}) for f in fixed]
+
+    def says(f: Fixed) -> str:
+        spread = "one segment" if math.isnan(f.spread) else f"size spread log(q90/q10) {f.spread:.2f}"
+        return f"{f.scale:.1f} px, holding over {f.basin} scales, {spread}"
+
+    def best(d: float) -> Fixed | None:
+        return max((f for f in fixed if f.depth == d), key=lambda f: f.evidence, default=None)
+
+    best = {d: best(d) for d in (0.0, NECK_DEPTH)}
+    other = best[NECK_DEPTH if depth == 0.0 else 0.0]
+    mine = best.get(depth)
+    what = "seeds at necks only" if depth else "every maximum seeding"
+    head = f"{depth} ({what}): chosen with the scale"
+    if mine is None:
+        return head
+    if other is None:
+        return f"{head} ({says(mine)}); the other depth gave no particle size of its own"
     return (
-        f"{depth}: segment sizes spread log(q90/q10) {deep:.2f} with seeds at necks of {NECK_DEPTH}, {plain:.2f} with "
-        f"every maximum seeding ({verdict}; rods and irregular particles merged whole are alike in size, touching "
-        "particles merged are not)"
+        f"{head}: {says(mine)}, against {says(other)} with the other depth (particles persist over scales and are "
+        "alike; a rod cut along its ridge gives pieces of every length, touching particles merged give singles and "
+        "pairs)"
     )
 
 
@@ -579,7 +597,7 @@ def report_markdown(r: dict) -> str:
     return (
         _report_head(r, b, s, c, a, seg, px, seg_table, fits)
         + edge_markdown(r.get("edge"), r["material"])
-        + "\nFigures: `sizes.png`, `particles.png` (real images: keep them out of repositories), "
+        + "\nFigures: `sizes.png`, `scale_search.png`, `particles.png` (real images: keep them out of repositories), "
         "`background_noise.png`, `edge_profile.png`.\n"
     )
 
@@ -665,6 +683,40 @@ Particles per patch: {c["definition"]}.
 |---|---|---|---|
 {fits}
 """
+
+
+def _scale_figure(out: Path, search: dict) -> None:
+    """scale_search.png: the segments' median diameter at each scale segmented, per neck depth, against the diagonal
+    where a segmentation agrees with its own scale (band: CONSISTENT); the fixed points found, marked by how many
+    scales segment to their size (the basin), and the one chosen (`drgan.data.particles.search_scale`)."""
+    grid = np.array([[s, d, np.nan if m is None else m] for s, d, m, _ in search["grid"]], dtype=float)
+    fixed = [dict(zip(search["candidate_fields"], c)) for c in search["candidates"]]
+
+    def plot(plt):
+        fig, ax = plt.subplots(figsize=(6.5, 5))
+        lo, hi = np.nanmin(grid[:, :1]) / 1.5, np.nanmax(grid[:, [0, 2]]) * 1.5
+        x = np.geomspace(lo, hi, 50)
+        ax.fill_between(x, x * math.exp(-CONSISTENT), x * math.exp(CONSISTENT), color="0.9", label="agrees with its scale")
+        ax.plot(x, x, color="0.6", lw=0.8)
+        for depth, colour in ((0.0, "C0"), (NECK_DEPTH, "C1")):
+            row = grid[grid[:, 1] == depth]
+            row = row[np.argsort(row[:, 0])]
+            what = "every maximum seeds" if depth == 0 else f"seeds at necks ({depth})"
+            ax.plot(row[:, 0], row[:, 2], "o-", ms=3, color=colour, label=f"segments' median, {what}")
+            for f in (f for f in fixed if f["depth"] == depth):
+                ax.scatter(f["scale"], f["median"], s=20 + 15 * f["basin"], facecolors="none", edgecolors=colour)
+                ax.annotate(str(f["basin"]), (f["scale"], f["median"]), textcoords="offset points", xytext=(6, -10),
+                            fontsize=7, color=colour)  # fmt: skip
+        if search.get("refined_px"):
+            ax.axvline(search["refined_px"], color="k", ls="--", lw=1, label=f"chosen {search['refined_px']} px")
+        ax.set(xscale="log", yscale="log", xlim=(lo, hi), ylim=(lo, hi), xlabel="scale segmented with (px)",
+               ylabel="segments' median diameter (px)",
+               title="particle scale search (circles: fixed points, number: scales holding their size)")  # fmt: skip
+        ax.title.set_fontsize(9)
+        ax.legend(fontsize=7, loc="upper left")
+        return fig
+
+    write_bytes(out / "scale_search.png", figure_png(plot))
 
 
 def _write_figures(out, images, labels, diameters, fits, chosen, noise, foregrounds, counts, polarity) -> None:

@@ -60,10 +60,12 @@ MIN_DISTANCE_PER_DIAMETER = 0.17
 MIN_AREA_DIAMETER = 0.27  # a segment narrower than 0.27 d is a speck or a watershed sliver
 MAX_AREA_DIAMETER = 4.0  # one wider than 4 d is an agglomerate the watershed could not split
 BACKGROUND_PER_DIAMETER = 3.0  # the illumination is flattened at this many diameters
-# `SegmentParams.neck_depth` left None: NECK_DEPTH is taken when it narrows the spread of the segments' sizes,
-# log(q90 / q10) of their diameters, to NECK_SPREAD of that with every maximum seeding or less (`choose_neck`).
+# `SegmentParams.neck_depth` left None: 0 or NECK_DEPTH, searched with the scale (`search_scale`); NECK_DEPTH only
+# where it narrows the spread of the segments' sizes, log(q90 / q10), to NECK_SPREAD of the plain seeds' near the
+# same scale (within NECK_NEAR in log scale) or less (`_plain_unless_more_alike`).
 NECK_DEPTH = 0.2
 NECK_SPREAD = 0.8
+NECK_NEAR = 0.35
 # Otsu's separability (between-class / total variance) below which a threshold separates no two classes (a Gaussian's
 # 2 / pi = 0.64). Left at this default, the scale search may lower it for a dense packing (`search_scale`).
 MIN_SEPARABILITY = 0.66
@@ -97,8 +99,8 @@ class SegmentParams:
     # particle's bumps rise a few % above theirs (median 0.03, 90 % <= 0.12), so 0.2 keeps rods and irregular
     # particles whole. But agglomerated TiO2 particles are split by their annotators at necks as shallow (tio2_sem
     # masks: half of the touching pairs below 0.13), and 0.2 merges them (experiments/profile/README.md). 0: every
-    # maximum min_distance apart seeds. None (the default): 0 or NECK_DEPTH, whichever the images' sizes say
-    # (`choose_neck`).
+    # maximum min_distance apart seeds. None (the default): 0 or NECK_DEPTH, searched with the scale: the one whose
+    # segments persist over more scales and are more alike in size (`search_scale`).
     neck_depth: float | None = None
     # Segments grow out to the particles' strongest edges where those lie below Otsu's threshold (`grow_to_edges`);
     # False: Otsu's outlines.
@@ -238,9 +240,10 @@ class ScaleEstimate:
     response: float  # median response of the voting blobs (grey levels: ~ the particles' contrast)
     diameters_tried_px: tuple[float, float]  # the range of the LoG scales, as disc diameters
     refined_px: float | None = None  # the diameter chosen by `search_scale`
-    candidates: tuple = ()  # (start, fixed point, separability) of each search
+    candidates: tuple = ()  # every fixed point `search_scale` found (`Fixed`)
     alike: bool = False  # min_separability lowered for a scale of alike segments (`search_scale`; `resolve_params`)
-    necks: tuple = ()  # (neck depth, size spread log(q90 / q10)) of each depth `choose_neck` tried
+    depth: float | None = None  # the neck depth chosen with the scale
+    grid: tuple = ()  # (scale, neck depth, segments' median, separability) of every scale segmented
 
     def as_dict(self) -> dict:
         return {
@@ -249,9 +252,11 @@ class ScaleEstimate:
             "response": round(self.response, 4),
             "diameters_tried_px": [round(v, 1) for v in self.diameters_tried_px],
             "refined_px": None if self.refined_px is None else round(self.refined_px, 2),
-            "candidates": [[round(float(v), 3) for v in c] for c in self.candidates],
+            "candidates": [f.as_list() for f in self.candidates],
+            "candidate_fields": list(Fixed._fields),
             "alike": self.alike,
-            "necks": [[float(depth), None if math.isnan(spread) else round(spread, 3)] for depth, spread in self.necks],
+            "neck_depth": self.depth,
+            "grid": [[round(s, 2), d, None if math.isnan(m) else round(m, 2), round(q, 3)] for s, d, m, q in self.grid],
         }
 
 
@@ -382,66 +387,58 @@ def flatten(bright: np.ndarray, size: float) -> np.ndarray:
 def resolve_params(
     images: Sequence[np.ndarray], params: SegmentParams | None = None, polarity: str = "bright", progress: bool = False
 ) -> tuple[SegmentParams, ScaleEstimate | None]:
-    """``params`` with every length and the neck depth set: the scale estimated from ``images`` when not given (the
-    estimate is None when it was), the neck depth chosen from them when None (`choose_neck`). ``progress``: a bar
-    per search over its starting diameters (each a few segmentations of every image: minutes on large images)."""
+    """``params`` with every length and the neck depth set: the scale and the neck depth searched together on
+    ``images`` (`search_scale`) where not given; the estimate is None when the scale was given. ``progress``: a bar
+    over the scales segmented (each a segmentation of every image: minutes on large images)."""
     params = SegmentParams.from_config(params)
     if params.is_resolved:
         return params, None
     if params.neck_depth is not None and params.scale is not None:
         return params.resolved(), None
     prepared = [prepare(image, polarity, params.annotations) for image in images]
-    if params.neck_depth is None:
-        resolved, estimate = choose_neck(prepared, params, polarity, progress)
+    # No blob standing out of the response's noise is no proof of no particles: where particles fill the image (a
+    # dense layer of rods), they *are* the response's spread at their scale. The grid is segmented regardless.
+    estimate = None
+    if params.scale is None:
+        estimate = estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
+    chosen, fixed, points = search_scale(prepared, params, progress=progress)
+    grid = tuple((p.scale, p.depth, p.median, p.separability) for p in points)
+    if chosen is None:
+        search = None if estimate is None else replace(estimate, candidates=tuple(fixed), grid=grid)
+        raise NoParticles(_nothing_consistent(estimate, points, fixed, params, polarity), params, search)
+    resolved = replace(params, neck_depth=chosen.depth)
+    if chosen.alike:  # lowered to the least-separating image's (two decimals, down): every image keeps its particles
+        resolved = replace(resolved, min_separability=math.floor(100 * chosen.lowest + 1e-9) / 100)
+    resolved = resolved.resolved(chosen.scale)
+    if estimate is None:
+        return resolved, None
+    return resolved, replace(
+        estimate, refined_px=chosen.scale, alike=chosen.alike, depth=chosen.depth, candidates=tuple(fixed), grid=grid
+    )
+
+
+def _nothing_consistent(estimate: ScaleEstimate, points, fixed, params: SegmentParams, polarity: str) -> str:
+    """What the search tried, for `NoParticles` (a scale given always resolves)."""
+    if estimate.diameter_px is None:
+        log_scale = (
+            f"no blob stood out of the noise at any scale (LoG diameters {estimate.diameters_tried_px[0]:.0f}-"
+            f"{estimate.diameters_tried_px[1]:.0f} px), and"
+        )
     else:
-        resolved, estimate = _resolve_scale(prepared, params, polarity, progress=progress)
-    alike = resolved.min_separability < params.min_separability  # lowered for a dense packing (`search_scale`)
-    return resolved, None if estimate is None else replace(estimate, alike=alike)
-
-
-def choose_neck(
-    prepared: Sequence[Prepared], params: SegmentParams, polarity: str, progress: bool = False
-) -> tuple[SegmentParams, ScaleEstimate | None]:
-    """Resolve ``params`` twice, with every maximum seeding (neck depth 0) and with NECK_DEPTH, and keep NECK_DEPTH
-    where it narrows the spread of the segments' diameters, log(q90 / q10), to NECK_SPREAD of the other's or less.
-
-    A rod or an irregular particle cut along its ridge gives pieces of every length, and merged back the particles
-    are alike; touching particles merged at their necks give singles, pairs and triples, no narrower than before.
-    EMPS (every third image, 85 with >= 5 instances): where 0.2 set the median right and 0 did not, its spread was
-    0.66 of the other's (median; 16 of 19 below 0.8, the 20th found nothing with 0); tio2_sem's train set 0.92,
-    tio2_tsem's 1.01 (experiments/profile/README.md). Merging at necks makes particles larger: a deeper search that
-    settled at a smaller scale found something else (a field of alike specks), and is not kept. Where one of them
-    finds no particle, the other is kept; where neither, the error is the first's. A depth that changes no segment
-    at the first's scale is not searched again."""
-    tried: list[tuple[float, float]] = []
-    first: NoParticles | None = None
-    best: tuple[SegmentParams, ScaleEstimate | None, float] | None = None
-    for depth in (0.0, NECK_DEPTH):
-        smallest = best[0].scale if best is not None else None  # merging at necks makes particles no smaller
-        # the first's threshold: lowered for a dense packing (`search_scale`), the deeper search judges its scale too
-        threshold = best[0].min_separability if best is not None else params.min_separability
-        try:
-            resolved, estimate = _resolve_scale(
-                prepared, replace(params, neck_depth=depth, min_separability=threshold), polarity, smallest, progress
-            )
-        except NoParticles as error:
-            first = first or error
-            tried.append((depth, math.nan))
-            continue
-        measures = [_measure(p, resolved) for p in prepared]
-        spread = size_spread(np.concatenate([m.diameters for m in measures]))
-        tried.append((depth, spread))
-        if best is None:
-            best = (resolved, estimate, spread)
-            deeper = replace(resolved, neck_depth=NECK_DEPTH)
-            if all(m.segments == _measure(p, deeper).segments for m, p in zip(measures, prepared)):
-                break  # no shallow neck at this scale: nothing for the deeper seeds to merge
-        elif spread < NECK_SPREAD * best[2] and resolved.scale >= best[0].scale:  # NaN: fewer than two segments
-            best = (resolved, estimate, spread)
-    if best is None:
-        raise first
-    resolved, estimate, _ = best
-    return resolved, None if estimate is None else replace(estimate, necks=tuple(tried))
+        log_scale = f"the LoG scale {estimate.diameter_px:.1f} px and"
+    scales = sorted({p.scale for p in points})
+    if fixed:
+        best = max(f.separability for f in fixed)
+        why = (
+            f"{len(fixed)} scale(s) whose segments agree with it, none separating enough (Otsu separability at most "
+            f"{best:.2f} there, needed {params.min_separability}; nor segments alike enough to go below it)"
+        )
+    else:
+        why = "at no scale were the segments of its own size (specks smaller, agglomerates larger)"
+    return (
+        f"{log_scale} segmenting at {len(scales)} scales ({scales[0]:.0f}-{scales[-1]:.0f} px) gave no consistent "
+        f"particle size: {why}; {polarity} particles"
+    )
 
 
 def size_spread(diameters: np.ndarray) -> float:
@@ -452,151 +449,258 @@ def size_spread(diameters: np.ndarray) -> float:
     return float(math.log(high / low))
 
 
-def _resolve_scale(
-    prepared: Sequence[Prepared],
-    params: SegmentParams,
-    polarity: str,
-    smallest: float | None = None,
-    progress: bool = False,
-) -> tuple[SegmentParams, ScaleEstimate | None]:
-    """``params`` (neck depth set) with every length set: from the scale given, else from the scale searched
-    (started from ``smallest`` and above only, when given)."""
-    if params.scale is not None:
-        return params.resolved(), None
-    estimate = estimate_scale([p.bright for p in prepared], [p.annotations for p in prepared])
-    # No blob standing out of the response's noise is no proof of no particles: where particles fill the image (a
-    # dense layer of rods), they *are* the response's spread at their scale. The search's own starts still run.
-    fixed, tried = search_scale(prepared, params, estimate.diameter_px, smallest=smallest, progress=progress)
-    if fixed is None:
-        # Every start collapsed to grain: specks that outnumber a few particles pull the plain median of the
-        # segments, round after round, below MIN_SCALE. Their share of the segments' *area* is small, so the search
-        # follows the area-weighted median instead (only here: where the plain search settles, it measures
-        # polydisperse particles better, e.g. TiO2's, whose area-weighted median lies 10-15 % above the median).
-        fixed, weighted_tried = search_scale(
-            prepared, params, estimate.diameter_px, weighted=True, smallest=smallest, progress=progress
-        )
-        tried = tried + weighted_tried
-    if fixed is None:
-        log_scale = (
-            f"no blob stood out of the noise at any scale (LoG diameters {estimate.diameters_tried_px[0]:.0f}-"
-            f"{estimate.diameters_tried_px[1]:.0f} px), and"
-            if estimate.diameter_px is None
-            else f"the LoG scale {estimate.diameter_px:.1f} px and"
-        )
-        raise NoParticles(
-            f"{log_scale} the diameters "
-            f"{', '.join(f'{t[0]:.0f}' for t in tried)} px tried as starting points gave no consistent particle size "
-            f"(Otsu separability at most {max((t[2] for t in tried), default=0):.2f}, needed "
-            f"{params.min_separability}; {polarity} particles)",
-            params,
-        )
-    if fixed.separability < params.min_separability:  # chosen for its alike segments (`search_scale`): lowered to
-        # the least-separating image's (two decimals, down), so that every image keeps its particles
-        params = replace(params, min_separability=math.floor(100 * fixed.lowest + 1e-9) / 100)
-    return params.resolved(fixed.scale), replace(estimate, refined_px=fixed.scale, candidates=tuple(tried))
-
+# --- the particle scale --------------------------------------------------------------------------------------------
+#
+# The particle diameter is a scale whose own segmentation (smoothing, seed distance and area limits set from it)
+# gives segments of that size: a fixed point of s -> median diameter of the segments. Textured images have several
+# (grain specks, particles, agglomerates). Following the map from a few starts (what this search did before) lands in
+# one basin or another, and a small change anywhere moved which (EMPS: a one-line change to the smoothing moved 121
+# of 240 medians, 13 across the 20 % line). So the map is segmented on a quarter-octave grid, every fixed point on it
+# is found, and they are judged by what makes a segmentation trustworthy in scale space: a structure that persists.
+# Particles segment to the same size over a wide range of settings (their median holds from a fraction of their size
+# to several times it: the basin), specks and texture follow the smoothing and hold over a step or two; and
+# particles are alike in size, specks come in every size (the size spread). experiments/profile/README.md.
 
 REFINE_ROUNDS = 4
-START_DIAMETERS = (8.0, 16.0, 32.0, 64.0, 128.0, 256.0)  # px, besides the LoG's: starting points of the search
 CONSISTENT = 0.15  # |log(segments' median / scale)| below this: the segmentation agrees with its scale
 MIN_SCALE = 6.0  # px: smaller fixed points are grain, texture or JPEG blocks (EMPS' smallest particles: 7 px)
-# Per doubling of the scale: texture inside large particles separates nearly as well as the particles themselves
-# (EMPS: 0.88 at 3.7 px against 0.86 at 35 px), so of two fixed points the larger wins unless clearly worse.
-LARGER_BONUS = 0.05
+# The size spread log(q90 / q10) a fixed point of fewer than two segments is judged with: one segment shows
+# nothing of how alike the particles are (specks of every size spread 1.4-1.8, alike particles 0.03-0.7)
+SPREAD_UNKNOWN = 3.0
 # A dense packing of large textured particles: their narrow gaps make a lopsided histogram that Otsu separates at
-# 0.58-0.63 (below min_separability), while the texture cut into specks separates at 0.72-0.79. The specks come in
-# every size (size spread log(q90 / q10) 1.4-1.8), the particles alike (0.03-0.7): a larger fixed point below
-# min_separability but at least ALIKE_SEPARABILITY on every image, whose segments' spread is at most ALIKE_SPREAD of
-# the chosen one's, over at least ALIKE_SEGMENTS segments, wins (EMPS: 4 medians won, none lost;
-# experiments/profile/README.md). Of several, the most alike.
+# 0.55-0.65 (below min_separability), while the texture cut into specks separates at 0.72-0.79. A fixed point below
+# min_separability is a candidate where it separates at least ALIKE_SEPARABILITY on every image and its segments
+# are alike (spread at most ALIKE_SPREAD) and at least ALIKE_SEGMENTS; where the default min_separability is kept
+# (a value set by hand is kept as given).
 ALIKE_SEPARABILITY = 0.55
 ALIKE_SPREAD = 0.5
 ALIKE_SEGMENTS = 5
 
 
-class Fixed(NamedTuple):
-    """Where `refine_scale` ended."""
+class Point(NamedTuple):
+    """Every image segmented with the settings of one scale and neck depth (`search_scale`)."""
 
-    scale: float  # px: the last scale segmented with
-    consistent: bool  # its segments' median lies within CONSISTENT of it
-    separability: float  # mean over the images
-    lowest: float = 0.0  # the least of the images' separabilities
-    spread: float = math.nan  # `size_spread` of its segments (not touching the border, of plausible area)
-    segments: int = 0  # how many those are
+    scale: float  # px
+    depth: float  # neck depth of the watershed's seeds
+    median: float  # of the segments' equivalent diameters (not touching the border, of plausible area); NaN: none
+    weighted: float  # their area-weighted median
+    spread: float  # `size_spread`
+    segments: int  # how many
+    separability: float  # of the threshold, mean over the images
+    lowest: float  # the least of the images'
+
+    def size(self, weighted: bool) -> float:
+        return self.weighted if weighted else self.median
+
+    def agrees(self, weighted: bool) -> bool:
+        """Its segments' (area-weighted) median lies within CONSISTENT of its scale."""
+        size = self.size(weighted)
+        return math.isfinite(size) and abs(math.log(size / self.scale)) < CONSISTENT
+
+
+class Fixed(NamedTuple):
+    """A fixed point of the scale map: of a run of grid scales whose segments agree with them, the one agreeing best
+    (refined to its segments' own median when chosen)."""
+
+    scale: float  # px
+    depth: float
+    median: float  # its segments' (area-weighted where the search followed that)
+    separability: float
+    lowest: float
+    spread: float
+    segments: int
+    basin: int  # grid scales (same depth) whose segments' median lies within CONSISTENT of this one's
+    alike: bool = False  # a candidate below min_separability for its alike segments (ALIKE_*)
+
+    @property
+    def evidence(self) -> float:
+        """How persistent and how alike: the basin (quarter-octave steps) less the size spread."""
+        return self.basin - (SPREAD_UNKNOWN if math.isnan(self.spread) else self.spread)
+
+    def as_list(self) -> list:
+        """The fields in order (JSON: NaN spread as None)."""
+        f = self
+        spread = None if math.isnan(f.spread) else round(f.spread, 3)
+        return [round(f.scale, 2), f.depth, round(f.median, 2), round(f.separability, 3), round(f.lowest, 3), spread,
+                f.segments, f.basin, f.alike]  # fmt: skip
+
+
+def scale_grid(shape: tuple[int, int]) -> np.ndarray:
+    """The scales searched: MIN_SCALE up to half the shorter side, SCALE_STEP apart (at least MIN_SCALE)."""
+    top = MAX_DIAMETER_SHARE * min(shape)
+    n = max(1, int(math.floor(math.log(max(top, MIN_SCALE) / MIN_SCALE) / math.log(SCALE_STEP) + 1e-9)) + 1)
+    return MIN_SCALE * SCALE_STEP ** np.arange(n)
 
 
 def search_scale(
-    prepared: Sequence[Prepared],
-    params: SegmentParams,
-    log_diameter: float | None,
-    weighted: bool = False,
-    smallest: float | None = None,
-    progress: bool = False,
-) -> tuple[Fixed | None, list[tuple[float, float, float]]]:
-    """The particle diameter: of the scales that segment into particles of their own size (fixed points of
-    `refine_scale`, started from the LoG's diameter (None: no blob stood out) and from 8, 16, .. px up to half the
-    image), the one whose foreground separates best from the background (Otsu separability, plus LARGER_BONUS per
-    doubling). Grain and noise make fixed points at small scales too, but there the threshold cuts noise
-    (separability ~2/pi); at the particles' scale it cuts particles from background. Without a fixed point, the best
-    scale reached. A larger fixed point below ``min_separability`` whose segments are far more alike in size wins
-    although it separates less (ALIKE_*: a dense packing of textured particles, whose texture separates better than
-    their narrow gaps), where ``min_separability`` is the default (a value set by hand is kept).
-    ``weighted``: each round moves to the segments' area-weighted median instead of their median (`refine_scale`).
-    ``progress``: a bar over the starting diameters.
-    Returns (where it ended or None, [(start, scale reached, separability)])."""
-    limit = MAX_DIAMETER_SHARE * min(min(p.bright.shape) for p in prepared)
-    starts = {d for d in START_DIAMETERS if d <= limit}
-    if log_diameter is not None:
-        starts.add(round(log_diameter, 1))
-    if smallest is not None:  # only from this scale up (`choose_neck`)
-        starts = {d for d in starts if d > smallest} | {round(smallest, 2)}
-    what = f"particle scale, neck depth {params.neck_depth or 0:g}{', area-weighted' if weighted else ''}"
-    bar = tqdm(sorted(starts), desc=what, unit="start", disable=not progress)
-    tried = [(start, refine_scale(prepared, params, start, weighted)) for start in bar]
+    prepared: Sequence[Prepared], params: SegmentParams, progress: bool = False
+) -> tuple[Fixed | None, list[Fixed], list[Point]]:
+    """The particle diameter and the neck depth (where not given): every image segmented at each scale of
+    `scale_grid` with each neck depth (0: every maximum seeds, NECK_DEPTH: seeds at necks only; `split_touching`),
+    the fixed points of each depth's map found (`fixed_points`), and of those separating at least
+    ``min_separability`` (or alike, ALIKE_*) the one with the most `Fixed.evidence`: the widest basin, less the
+    size spread. The chosen one is refined to its segments' own median (`refine`). Where no fixed point is a
+    candidate, the same on the segments' area-weighted median (specks outnumbering a few particles pull the plain
+    median below the particles' size at every scale; their share of the area is small). A scale given is
+    the grid (its depth chosen the same way, agreement not required).
+    Returns (the chosen or None, every fixed point found, every grid point)."""
+    depths = (0.0, NECK_DEPTH) if params.neck_depth is None else (float(params.neck_depth),)
+    given = params.scale is not None
+    shape = min((p.bright.shape for p in prepared), key=min)
+    scales = [float(params.scale)] if given else scale_grid(shape)
+    bar = tqdm(scales, desc="particle scale", unit="scale", disable=not progress)
+    points = [_point(prepared, params, s, depth) for s in bar for depth in depths]
+    if given:  # every depth at that scale; seeds at necks where they make the sizes more alike (`_more_alike`)
+        fixed = [_as_fixed(p, p.median, 1) for p in points]
+        return (fixed[-1] if _more_alike(fixed[-1], fixed[0]) else fixed[0]), fixed, points
+    points += _between_and_above(prepared, params, points, min(shape))
+    points.sort(key=lambda p: (p.depth, p.scale))
+    found: list[Fixed] = []
+    for weighted in (False, True):
+        fixed = [f for depth in depths for f in fixed_points([p for p in points if p.depth == depth], weighted)]
+        found += fixed
+        candidates = [c for c in (_candidate(f, params) for f in fixed) if c is not None]
+        if candidates:
+            best = max(candidates, key=lambda f: (f.evidence, f.separability))
+            if best.depth != 0.0 and params.neck_depth is None:
+                best = _plain_unless_more_alike(best, candidates, points, params, weighted)
+            return refine(prepared, params, best, weighted), found, points
+    return None, found, points
 
-    def best(fixed: list[Fixed]) -> Fixed:
-        return max(fixed, key=lambda f: (f.consistent, f.separability + LARGER_BONUS * math.log2(f.scale)))
 
-    found = [f for _, f in tried if f.separability >= params.min_separability and f.scale >= MIN_SCALE]
-    record = [(start, f.scale, f.separability) for start, f in tried]
-    if not found:
-        return None, record
-    chosen = best(found)
-    if params.min_separability != MIN_SEPARABILITY:
-        return chosen, record
-    alike = [
-        f
-        for _, f in tried
-        if f.consistent
-        and f.scale > chosen.scale
-        and f.separability < params.min_separability  # above it the plain rule judged it
+def _plain_unless_more_alike(
+    best: Fixed, candidates: list[Fixed], points: list[Point], params: SegmentParams, weighted: bool
+) -> Fixed:
+    """``best`` (seeds at necks only) where it makes the segments more alike than every maximum seeding does near
+    its scale (size spread at most NECK_SPREAD of that), else the plain segmentation: its best candidate within
+    NECK_NEAR of ``best``'s scale, or where it has none, itself at ``best``'s scale where its segments come within
+    twice CONSISTENT of that scale. Seeds at necks make a segmentation persist over scales by themselves (fewer
+    seeds, whatever the scale), so persistence cannot choose them over the plain seeds: merging touching particles
+    at shallow necks needs the sizes to say so (rods and irregular particles cut along their ridges come out in every
+    length; touching particles merged come out as singles, pairs and triples). On tio2_sem, whose annotators split
+    agglomerates at shallow necks, the plain map comes within 0.24 of its scale but never within CONSISTENT."""
+
+    near = [c for c in candidates if c.depth == 0.0 and abs(math.log(c.scale / best.scale)) <= NECK_NEAR]
+    if near:
+        plain = max(near, key=lambda f: (f.evidence, f.separability))
+    else:
+        row = [p for p in points if p.depth == 0.0]
+        at = min(row, key=lambda p: abs(math.log(p.scale / best.scale)))
+        size = at.size(weighted)
+        if not (math.isfinite(size) and abs(math.log(size / at.scale)) < 2 * CONSISTENT):
+            return best
+        plain = _candidate(_as_fixed(at, size, _basin(row, size, weighted)), params)
+        if plain is None:
+            return best
+    return best if _more_alike(best, plain) else plain
+
+
+def _more_alike(deep: Fixed, plain: Fixed) -> bool:
+    """Whether ``deep``'s segments spread in size less than NECK_SPREAD of ``plain``'s (unknown: SPREAD_UNKNOWN)."""
+
+    def spread(f: Fixed) -> float:
+        return SPREAD_UNKNOWN if math.isnan(f.spread) else f.spread
+
+    return spread(deep) < NECK_SPREAD * spread(plain)
+
+
+def _between_and_above(prepared, params: SegmentParams, points: list[Point], side: int) -> list[Point]:
+    """The scales the grid steps over: where the segments of one grid scale are larger than it and those of the next
+    smaller (beyond CONSISTENT both), a fixed point lies between, and the scale where the map crosses its diagonal
+    (interpolated in log scale) is segmented too; where the top scale's segments are still larger than it, the map
+    is followed up from there (its segments' median, REFINE_ROUNDS at most, up to the image's shorter side)."""
+    extra = []
+    for depth in sorted({p.depth for p in points}):
+        row = [p for p in points if p.depth == depth]
+        g = [math.log(p.median / p.scale) if math.isfinite(p.median) else math.nan for p in row]
+        for a, b, ga, gb in zip(row, row[1:], g, g[1:]):
+            if ga >= CONSISTENT and gb <= -CONSISTENT:
+                t = ga / (ga - gb)
+                extra.append(_point(prepared, params, a.scale ** (1 - t) * b.scale**t, depth))
+        top = row[-1]
+        for _ in range(REFINE_ROUNDS):
+            if not (math.isfinite(top.median) and top.median >= top.scale * math.exp(CONSISTENT) and top.median < side):
+                break
+            top = _point(prepared, params, top.median, depth)
+            extra.append(top)
+    return extra
+
+
+def _point(prepared: Sequence[Prepared], params: SegmentParams, scale: float, depth: float) -> Point:
+    resolved = replace(params, neck_depth=depth, min_separability=0.0).resolved(scale)
+    measures = [_measure(p, resolved, retry_below=retry_separability(params)) for p in prepared]
+    d = np.concatenate([m.diameters for m in measures])
+    separabilities = [m.separability for m in measures]
+    median, weighted = (float(np.median(d)), area_weighted_median(d)) if d.size else (math.nan, math.nan)
+    return Point(
+        resolved.scale, depth, median, weighted, size_spread(d), int(d.size),
+        float(np.mean(separabilities)), min(separabilities),
+    )  # fmt: skip
+
+
+def _as_fixed(point: Point, median: float, basin: int, alike: bool = False) -> Fixed:
+    p = point
+    return Fixed(p.scale, p.depth, median, p.separability, p.lowest, p.spread, p.segments, basin, alike)
+
+
+def fixed_points(points: Sequence[Point], weighted: bool = False) -> list[Fixed]:
+    """The fixed points of one depth's map (``points`` in order of scale): of each run of consecutive scales whose
+    segments agree with them (`Point.agrees`), the one agreeing best, with its basin: how many of ``points``
+    segment to within CONSISTENT of its size."""
+    sizes = [p.size(weighted) for p in points]
+    fixed, k = [], 0
+    while k < len(points):
+        if not points[k].agrees(weighted):
+            k += 1
+            continue
+        end = k
+        while end + 1 < len(points) and points[end + 1].agrees(weighted):
+            end += 1
+        best = min(range(k, end + 1), key=lambda j: abs(math.log(sizes[j] / points[j].scale)))
+        fixed.append(_as_fixed(points[best], float(sizes[best]), _basin(points, float(sizes[best]), weighted)))
+        k = end + 1
+    return fixed
+
+
+def _basin(points: Sequence[Point], size: float, weighted: bool) -> int:
+    """How many of ``points`` segment to within CONSISTENT of ``size``."""
+    sizes = np.array([p.size(weighted) for p in points])
+    with np.errstate(invalid="ignore"):
+        return int(np.sum(np.abs(np.log(sizes / size)) < CONSISTENT))
+
+
+def _candidate(f: Fixed, params: SegmentParams) -> Fixed | None:
+    """``f`` where it may be chosen: separating at least min_separability, or alike (ALIKE_*) where that is the
+    default; None otherwise."""
+    if f.separability >= params.min_separability:
+        return f
+    alike = (
+        params.min_separability == MIN_SEPARABILITY
         and f.lowest >= ALIKE_SEPARABILITY  # on every image: one image separating nothing lowers nothing
         and f.segments >= ALIKE_SEGMENTS
-        and f.spread <= ALIKE_SPREAD * chosen.spread  # NaN (fewer than two segments): never
-    ]
-    return (min(alike, key=lambda f: f.spread) if alike else chosen), record
+        and f.spread <= ALIKE_SPREAD  # NaN (fewer than two segments): never
+    )
+    return f._replace(alike=True) if alike else None
 
 
-def refine_scale(prepared: Sequence[Prepared], params: SegmentParams, scale: float, weighted: bool = False) -> Fixed:
-    """Segment with the settings of ``scale``, take the median equivalent diameter of the segments not touching the
-    border as the next scale, until it moves less than 10 % (a few rounds). Returns where it ended (`Fixed`): the
-    scale returned is the last one segmented with, so that its separability is the one the final segmentation will
-    have (the next scale's can fall below ``min_separability`` and leave nothing). The LoG sees a particle's core
-    (faceted, textured or rimmed particles respond below their size; rods by their width); the segments see its
-    area."""
-    for round_ in range(REFINE_ROUNDS):
-        resolved = replace(params, min_separability=0.0).resolved(scale)
-        measures = [_measure(p, resolved, retry_below=retry_separability(params)) for p in prepared]
-        d = np.concatenate([m.diameters for m in measures])
-        if d.size == 0:  # nothing of plausible area: this scale segments no particle, however well it separates
-            return Fixed(scale, False, 0.0)
-        new = area_weighted_median(d) if weighted else float(np.median(d))
-        if abs(math.log(new / scale)) < 0.1 or round_ == REFINE_ROUNDS - 1:
-            separabilities = [m.separability for m in measures]
-            consistent = abs(math.log(new / scale)) < CONSISTENT
-            return Fixed(scale, consistent, float(np.mean(separabilities)), min(separabilities), size_spread(d), d.size)
-        scale = new
-    raise AssertionError("unreachable: the last round returns")
+def refine(prepared: Sequence[Prepared], params: SegmentParams, f: Fixed, weighted: bool = False) -> Fixed:
+    """``f`` moved to its segments' own (area-weighted) median while that lies 10 % or more from its scale
+    (REFINE_ROUNDS at most), as long as the segmentation there still agrees with its scale, is still a candidate and
+    still segments to within CONSISTENT of ``f``'s size; else where it last did. The scale returned is one segmented
+    with, so that the final segmentation separates as the search saw it."""
+    current = f
+    for _ in range(REFINE_ROUNDS):
+        if abs(math.log(current.median / current.scale)) < 0.1:
+            break
+        point = _point(prepared, params, current.median, f.depth)
+        size = point.size(weighted)
+        if not point.agrees(weighted) or abs(math.log(size / f.median)) >= CONSISTENT:
+            break
+        moved = _candidate(_as_fixed(point, size, f.basin), params)
+        if moved is None:
+            break
+        current = moved
+    return current
 
 
 class Measure(NamedTuple):
@@ -648,10 +752,11 @@ def segment_diameters(labels: np.ndarray, params: SegmentParams) -> np.ndarray:
 
 
 class NoParticles(DataError):
-    """No particle found; the message says what was tried and which keys to set."""
+    """No particle found; the message says what was tried and which keys to set. ``search``: the scale search's
+    `ScaleEstimate` (its grid and fixed points) where one ran."""
 
-    def __init__(self, what: str, params: SegmentParams):
-        self.what, self.params = what, params
+    def __init__(self, what: str, params: SegmentParams, search: ScaleEstimate | None = None):
+        self.what, self.params, self.search = what, params, search
         super().__init__(
             f"no particles found: {what}. Set the particle size by hand with data.segment.scale=DIAMETER_PX (and, "
             "if needed, data.segment.sigma, min_distance, min_area, max_area, min_separability), or data.polarity="
