@@ -352,14 +352,10 @@ def test_mine_real_tio2_sem(tmp_path, request):
 @pytest.mark.parametrize("experiment", ["tio2_sem", "tio2_tsem"])
 def test_the_experiments_set_the_scale_their_train_ids_give(experiment):
     """experiment=tio2_sem / tio2_tsem set data.segment.scale and neck_depth so that training skips the search
-    (4-5 min on 2 cores): what the search finds on their train ids, as mining samples them, must be what they set."""
-    from dataclasses import replace
-
+    (6-7 min on 2 cores): what the search finds on their train ids, as mining samples them, must be what they set."""
     from hydra.utils import instantiate
 
     from drgan.configs import compose
-    from drgan.data.particles import resolve_params
-    from drgan.data.patches import scale_sample
 
     data = TIO2.parent
     if not (data / experiment / "images").is_dir():
@@ -369,10 +365,9 @@ def test_the_experiments_set_the_scale_their_train_ids_give(experiment):
     dm = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
     paths, _, test_ids = dm.resolve_ids()
     assert test_ids and not set(test_ids) & {p.stem for p in paths}
-    images = [read_grey(p, dm.crop_rows) for p in paths]
-    dm.resolve_polarity(images)
     pinned = SegmentParams.from_config(dm.segment)
-    searched, _ = resolve_params(scale_sample(images), replace(pinned, scale=None, neck_depth=None), dm.polarity)
+    searched, _, ids = dm.search_segment()
+    assert ids and not set(ids) & set(test_ids)
     assert (searched.scale, searched.neck_depth, searched.min_separability) == (
         pinned.scale, pinned.neck_depth, pinned.min_separability,
     ), "rerun `python experiments/profile/pin_scale.py` and set what it prints in the experiment"  # fmt: skip

@@ -198,8 +198,9 @@ def test_empty_folder_profile_says_what_was_tried_and_writes_the_figure(tmp_path
         profile(cfg)
     message = str(error.value)
     assert "no particles found" in message and "data.segment.scale" in message and "data.polarity" in message
-    assert "nan" not in message
-    assert (tmp_path / "out" / "particles.png").stat().st_size > 0
+    assert "nan" not in message and "no consistent particle size" in message and "scales (6-" in message
+    for figure in ("particles.png", "scale_search.png"):  # the images, and what the search saw
+        assert (tmp_path / "out" / figure).stat().st_size > 0
 
 
 def test_user_settings_are_kept_exactly():

@@ -135,9 +135,14 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     overrides = [f"data.dir={folder}", "data.crop_rows=[320,336]", "name=my_discs", f"out={tmp_path / 'out'}"]
     result = profile(compose(overrides, config_name="profile"))
     assert result["polarity"]["value"] == "bright" and result["data"]["split"] is None
-    for name in ("profile.json", "report.md", "sizes.png", "particles.png", "background_noise.png", "edge_profile.png"):
+    figures = ("sizes.png", "scale_search.png", "particles.png", "background_noise.png", "edge_profile.png")
+    for name in ("profile.json", "report.md", *figures):
         assert (tmp_path / "out" / name).stat().st_size > 0
     saved = json.loads((tmp_path / "out" / "profile.json").read_text())
+    search = saved["segmentation"]["scale_estimate"]  # every scale segmented and every fixed point, for the figure
+    fixed = [dict(zip(search["candidate_fields"], c)) for c in search["candidates"]]
+    assert len(search["grid"]) >= 2 * 8 and fixed and search["neck_depth"] in (0.0, 0.2)
+    assert any(abs(f["scale"] / search["refined_px"] - 1) < 0.1 and f["basin"] >= 3 for f in fixed)
     # Discs without a ring: the edge profile shows none, and a secondary-electron parent takes no fringe anyway.
     assert saved["edge"]["ring"]["kind"] == "none" and saved["material"]["fringe"] is None
     assert abs(saved["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
@@ -161,6 +166,7 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert chosen in (0.0, 0.2) and cfg.data.segment.neck_depth == chosen
     report = (tmp_path / "out" / "report.md").read_text()
     assert f"| data.segment.neck_depth | {chosen} | chosen by the segment sizes" in report
+    assert f"- `data.segment.neck_depth`: {chosen} (" in report and "chosen with the scale" in report
     grown = saved["segmentation"]["outlines_grown"]  # the report says what the outlines' growth did
     n = saved["data"]["images"]
     assert 0 <= grown["images"] <= n and "- `data.segment.grow_outlines`: true: " in report

@@ -9,14 +9,10 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 
 from hydra.utils import instantiate
 
 from drgan.configs import compose
-from drgan.data.images import read_grey
-from drgan.data.particles import SegmentParams, resolve_params
-from drgan.data.patches import scale_sample
 
 
 def main() -> None:
@@ -25,19 +21,12 @@ def main() -> None:
     for name in parser.parse_args().experiments:
         cfg = compose([f"experiment={name}", "logger=none", "data.cache_dir=null"], config_name="train")
         dm = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
-        paths, ids, _ = dm.resolve_ids()
-        images = [read_grey(p, dm.crop_rows) for p in paths]
-        dm.resolve_polarity(images)
-        sample = scale_sample(images)  # as mine_patches samples them
         t = time.perf_counter()
         # the scale and neck depth the experiment sets are what is measured again: searched as if unset
-        unset = replace(SegmentParams.from_config(dm.segment), scale=None, neck_depth=None)
-        params, estimate = resolve_params(sample, unset, dm.polarity)
+        params, estimate, searched = dm.search_segment()
         seconds = time.perf_counter() - t
-        print(
-            f"{name}: {len(ids)} train images, {len(sample)} searched ({', '.join(scale_sample(ids))}), "
-            f"{dm.polarity} particles, {seconds:.0f} s"
-        )
+        print(f"{name}: {len(searched)} train images searched ({', '.join(searched)}), {dm.polarity} particles, "
+              f"{seconds:.0f} s")  # fmt: skip
         print(f"  resolved: {params.as_dict()}")
         print(f"  estimate: {estimate.as_dict() if estimate else None}")
         print(

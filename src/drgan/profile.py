@@ -546,22 +546,22 @@ def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
         spread = "one segment" if math.isnan(f.spread) else f"size spread log(q90/q10) {f.spread:.2f}"
         return f"{f.scale:.1f} px, holding over {f.basin} scales, {spread}"
 
-    def best(d: float) -> Fixed | None:
+    def best_of(d: float) -> Fixed | None:
         return max((f for f in fixed if f.depth == d), key=lambda f: f.evidence, default=None)
 
-    best = {d: best(d) for d in (0.0, NECK_DEPTH)}
-    other = best[NECK_DEPTH if depth == 0.0 else 0.0]
-    mine = best.get(depth)
+    mine, other = best_of(depth), best_of(NECK_DEPTH if depth == 0.0 else 0.0)
     what = "seeds at necks only" if depth else "every maximum seeding"
     head = f"{depth} ({what}): chosen with the scale"
     if mine is None:
         return head
     if other is None:
         return f"{head} ({says(mine)}); the other depth gave no particle size of its own"
+    if (mine.scale, mine.segments, says(mine)) == (other.scale, other.segments, says(other)):
+        return f"{head} ({says(mine)}); no neck shallow enough to merge: both depths segment alike"
     return (
-        f"{head}: {says(mine)}, against {says(other)} with the other depth (particles persist over scales and are "
-        "alike; a rod cut along its ridge gives pieces of every length, touching particles merged give singles and "
-        "pairs)"
+        f"{head}: {says(mine)}, against {says(other)} with the other depth (seeds at necks only where they make the "
+        "sizes more alike than every maximum seeding does: a rod cut along its ridge gives pieces of every length, "
+        "touching particles merged give singles and pairs)"
     )
 
 
@@ -696,7 +696,9 @@ def _scale_figure(out: Path, search: dict) -> None:
         fig, ax = plt.subplots(figsize=(6.5, 5))
         lo, hi = np.nanmin(grid[:, :1]) / 1.5, np.nanmax(grid[:, [0, 2]]) * 1.5
         x = np.geomspace(lo, hi, 50)
-        ax.fill_between(x, x * math.exp(-CONSISTENT), x * math.exp(CONSISTENT), color="0.9", label="agrees with its scale")
+        ax.fill_between(
+            x, x * math.exp(-CONSISTENT), x * math.exp(CONSISTENT), color="0.9", label="agrees with its scale"
+        )
         ax.plot(x, x, color="0.6", lw=0.8)
         for depth, colour in ((0.0, "C0"), (NECK_DEPTH, "C1")):
             row = grid[grid[:, 1] == depth]

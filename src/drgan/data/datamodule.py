@@ -19,6 +19,7 @@ from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
 from drgan.data.images import list_images, read_grey, read_split
+from drgan.data.particles import ScaleEstimate, resolve_params
 from drgan.data.patches import (
     PatchSet,
     SegmentParams,
@@ -27,6 +28,7 @@ from drgan.data.patches import (
     dihedral_augment,
     mine_patches,
     resample_patches,
+    scale_sample,
 )
 from drgan.data.polarity import check_polarity, detect_polarity
 from drgan.errors import ConfigError, DataError
@@ -248,6 +250,19 @@ class RealPatchDataModule(LightningDataModule):
         self.segment = SegmentParams.from_config(patches.params["segment"])
         self.patches = patches
         log.info("data: %s", json.dumps(patches.summary()))
+
+    def search_segment(self) -> tuple[SegmentParams, ScaleEstimate | None, list[str]]:
+        """What mining's scale search finds on the train images (their crop, their polarity) with data.segment's
+        scale and neck depth unset: (the settings resolved, the search's `ScaleEstimate`, the ids searched). An
+        experiment pins these to skip the search (`experiments/profile/pin_scale.py`)."""
+        from dataclasses import replace
+
+        paths, ids, _ = self.resolve_ids()
+        images = [read_grey(p, self.crop_rows) for p in paths]
+        polarity = self.resolve_polarity(images)
+        unset = replace(SegmentParams.from_config(self.segment), scale=None, neck_depth=None)
+        params, estimate = resolve_params(scale_sample(images), unset, polarity)
+        return params, estimate, scale_sample(ids)
 
     def resolve_polarity(self, images: Sequence[np.ndarray]) -> str:
         """The particles' polarity: the setting, or detected from ``images`` when it is "auto" (logged)."""
