@@ -537,9 +537,11 @@ def search_scale(
 ) -> tuple[Fixed | None, list[Fixed], list[Point]]:
     """The particle diameter and the neck depth (where not given): every image segmented at each scale of
     `scale_grid` with each neck depth (0: every maximum seeds, NECK_DEPTH: seeds at necks only; `split_touching`),
-    the fixed points of each depth's map found (`fixed_points`), and of those separating at least
-    ``min_separability`` (or alike, ALIKE_*) the one with the most `Fixed.evidence`: the widest basin, less the
-    size spread. The chosen one is refined to its segments' own median (`refine`). Where no fixed point is a
+    and where the grid steps over a fixed point or ends below one, there too (`_between_and_above`); the fixed
+    points of each depth's map found (`fixed_points`), and of those separating at least ``min_separability`` (or
+    alike, ALIKE_*) the one with the most `Fixed.evidence`: the widest basin, less the size spread; seeds at necks
+    only where they make the sizes more alike (`_plain_unless_more_alike`). The chosen one is refined to its
+    segments' own median (`refine`). Where no fixed point is a
     candidate, the same on the segments' area-weighted median (specks outnumbering a few particles pull the plain
     median below the particles' size at every scale; their share of the area is small). A scale given is
     the grid (its depth chosen the same way, agreement not required).
