@@ -715,8 +715,8 @@ class Measure(NamedTuple):
 
 def _measure(prepared: Prepared, params: SegmentParams, retry_below: float | None = None) -> Measure:
     """`_foreground` (``retry_below`` as there) and `split_touching` of ``prepared`` with resolved ``params``,
-    measured; each foreground and each split made once per image (memoised on ``prepared.measured``). The
-    foreground does not depend on the neck depth, and below ``min_separability`` it is empty (the same threshold
+    measured; each foreground and each split made once per image (memoised on ``prepared.measured``; both neck
+    depths split at once). The foreground does not depend on the neck depth, and below ``min_separability`` it is empty (the same threshold
     otherwise), so the searches with either depth and either separability share it."""
     retry = retry_separability(params) if retry_below is None else retry_below
     plain = replace(params, min_separability=0.0)
@@ -730,8 +730,11 @@ def _measure(prepared: Prepared, params: SegmentParams, retry_below: float | Non
     if key not in prepared.measured:
         shape = prepared.bright.shape
         foreground = np.unpackbits(packed, count=shape[0] * shape[1]).reshape(shape).astype(bool)
-        labels = split_touching(foreground & kept, params)
-        prepared.measured[key] = Measure(segment_diameters(labels, params), int(labels.max()), separability)
+        # the search asks both depths at each scale: split with both at once (`split_by_depth`)
+        depths = {plain.neck_depth, *((0.0, NECK_DEPTH) if plain.neck_depth in (0.0, NECK_DEPTH) else ())}
+        for depth, labels in split_by_depth(foreground & kept, plain, sorted(depths)).items():
+            at = (replace(plain, neck_depth=depth), retry, kept)
+            prepared.measured[at] = Measure(segment_diameters(labels, params), int(labels.max()), separability)
     return prepared.measured[key]
 
 
@@ -1030,8 +1033,14 @@ def segment_particles(
 def split_touching(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
     """Watershed of the distance transform: seeds at its maxima at least min_distance apart (one per particle core)
     that stand neck_depth of their height above the saddle to a higher one (a neck, not a bump on a ridge)."""
+    return split_by_depth(foreground, params, (params.neck_depth,))[params.neck_depth]
+
+
+def split_by_depth(foreground: np.ndarray, params: SegmentParams, depths: Sequence[float]) -> dict[float, np.ndarray]:
+    """`split_touching` with each neck depth of ``depths``, sharing the distance transform and its maxima (the
+    scale search segments every scale with two depths); a depth whose caps remove no seed shares the watershed too."""
     if not foreground.any():
-        return np.zeros(foreground.shape, np.int32)
+        return {depth: np.zeros(foreground.shape, np.int32) for depth in depths}
     components, _ = ndi.label(foreground)
     distance = ndi.distance_transform_edt(foreground)
     peaks = peak_local_max(distance, min_distance=params.min_distance, labels=components, exclude_border=False)
@@ -1039,10 +1048,17 @@ def split_touching(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
     seed_mask[tuple(peaks.T)] = True
     if params.seed_depth > 0:
         seed_mask &= h_maxima(distance, params.seed_depth).astype(bool)
-    if params.neck_depth > 0:
-        seed_mask = _neck_caps(distance, params.neck_depth, seed_mask)
-    seeds, _ = ndi.label(seed_mask)  # a flat top (plateau) yields adjacent peaks: one seed, not several
-    return watershed(-distance, seeds, mask=foreground).astype(np.int32)
+    split: dict[float, np.ndarray] = {}
+    made: list[tuple[np.ndarray, np.ndarray]] = []
+    for depth in depths:
+        seeds_at = _neck_caps(distance, depth, seed_mask) if depth > 0 else seed_mask
+        same = next((labels for seeds, labels in made if np.array_equal(seeds, seeds_at)), None)
+        if same is None:
+            seeds, _ = ndi.label(seeds_at)  # a flat top (plateau) yields adjacent peaks: one seed, not several
+            same = watershed(-distance, seeds, mask=foreground).astype(np.int32)
+            made.append((seeds_at, same))
+        split[depth] = same
+    return split
 
 
 def _neck_caps(distance: np.ndarray, depth: float, peaks: np.ndarray) -> np.ndarray:
