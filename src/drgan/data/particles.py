@@ -13,10 +13,10 @@ every length follows from the particles' own scale, measured first.
    ``s = d / (2 sqrt 2)`` on a disc of diameter ``d`` whatever its contrast (Lindeberg's scale selection). Its
    maxima over position and scale, from 3 px to half the image, are the image's blobs; the strong ones (well above
    the response's noise at their scale) vote, weighted by their response, for the particle diameter. Grain and noise
-   respond at small scales only weakly and are outvoted; an agglomerate still shows its particles' seams. From it and
-   from 8, 16, .. px, `search_scale` follows each start to a scale whose segments have that median size, and keeps
-   the one that separates best; or, where a dense packing's narrow gaps separate less than its particles' texture,
-   the larger one whose segments are far more alike in size.
+   respond at small scales only weakly and are outvoted; an agglomerate still shows its particles' seams (the
+   report's reference). `search_scale` segments the images at every scale of a quarter-octave grid, finds every
+   scale whose segments have that median size (a fixed point), and keeps the one whose size holds over the most
+   scales, less its segments' spread in size (particles persist and are alike; specks follow the smoothing).
 4. **Settings from the scale** (`SegmentParams.resolved`): smoothing, seed distance and plausible areas are fixed
    fractions of the diameter (calibrated where the TiO2 sets meet their masks: sigma 1.5 px and seeds 6 px apart
    at 26 px); the uneven illumination is removed at 3 diameters (a grey opening: larger than any particle, so none
@@ -353,8 +353,8 @@ class Prepared:
 
     bright: np.ndarray  # float32, particles bright, annotations filled
     annotations: np.ndarray  # bool: pixels drawn on the image (scale bar, text), never particles
-    # What the scale search has segmented of this image, per setting (`_measure`): it visits the same scales from
-    # several starts and with both neck depths.
+    # What the scale search has segmented of this image, per setting (`_measure`): it refines and compares at scales
+    # it has segmented, with both neck depths.
     measured: dict = field(default_factory=dict, repr=False, compare=False)
 
 
