@@ -5,8 +5,9 @@ measures background grey, noise sigma and grain, the mean particle edge (and a d
 distribution (normal / lognormal / two-lognormal mixture, chosen by BIC), particles per patch, agglomeration,
 elongation and the pixel size. Writes, in `out` (default runs/profile/NAME): profile.json (every number),
 report.md, sizes.png, scale_search.png (how the particle scale was found), particles.png (real images with the
-detected outlines: keep them out of the repository), background_noise.png, edge_profile.png; and ./drgan_conf/material/NAME.yaml, a material inheriting the closest
-paper material, ready for `python -m drgan.train material=NAME`.
+detected outlines: keep them out of the repository), background_noise.png, edge_profile.png; and
+./drgan_conf/material/NAME.yaml, a material inheriting the closest paper material, ready for
+`python -m drgan.train material=NAME`.
 """
 
 from __future__ import annotations
@@ -539,8 +540,7 @@ def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
         return f"{depth}, set by hand"
     if estimate is None:
         return f"{depth}: the more alike segment sizes at the scale given (`drgan.data.particles.search_scale`)"
-    fixed = [dict(zip(estimate["candidate_fields"], c)) for c in estimate.get("candidates", [])]
-    fixed = [Fixed(**{**f, "spread": math.nan if f["spread"] is None else f["spread"]}) for f in fixed]
+    fixed = [Fixed.from_list(c) for c in estimate.get("candidates", [])]
 
     def says(f: Fixed) -> str:
         spread = "one segment" if math.isnan(f.spread) else f"size spread log(q90/q10) {f.spread:.2f}"
@@ -690,7 +690,7 @@ def _scale_figure(out: Path, search: dict) -> None:
     where a segmentation agrees with its own scale (band: CONSISTENT); the fixed points found, marked by how many
     scales segment to their size (the basin), and the one chosen (`drgan.data.particles.search_scale`)."""
     grid = np.array([[s, d, np.nan if m is None else m] for s, d, m, _ in search["grid"]], dtype=float)
-    fixed = [dict(zip(search["candidate_fields"], c)) for c in search["candidates"]]
+    fixed = [Fixed.from_list(c) for c in search["candidates"]]
 
     def plot(plt):
         fig, ax = plt.subplots(figsize=(6.5, 5))
@@ -705,9 +705,9 @@ def _scale_figure(out: Path, search: dict) -> None:
             row = row[np.argsort(row[:, 0])]
             what = "every maximum seeds" if depth == 0 else f"seeds at necks ({depth})"
             ax.plot(row[:, 0], row[:, 2], "o-", ms=3, color=colour, label=f"segments' median, {what}")
-            for f in (f for f in fixed if f["depth"] == depth):
-                ax.scatter(f["scale"], f["median"], s=20 + 15 * f["basin"], facecolors="none", edgecolors=colour)
-                ax.annotate(str(f["basin"]), (f["scale"], f["median"]), textcoords="offset points", xytext=(6, -10),
+            for f in (f for f in fixed if f.depth == depth):
+                ax.scatter(f.scale, f.median, s=20 + 15 * f.basin, facecolors="none", edgecolors=colour)
+                ax.annotate(str(f.basin), (f.scale, f.median), textcoords="offset points", xytext=(6, -10),
                             fontsize=7, color=colour)  # fmt: skip
         if search.get("refined_px"):
             ax.axvline(search["refined_px"], color="k", ls="--", lw=1, label=f"chosen {search['refined_px']} px")

@@ -524,6 +524,12 @@ class Fixed(NamedTuple):
         return [round(f.scale, 2), f.depth, round(f.median, 2), round(f.separability, 3), round(f.lowest, 3), spread,
                 f.segments, f.basin, f.alike]  # fmt: skip
 
+    @classmethod
+    def from_list(cls, values: Sequence) -> Fixed:
+        """Back from `as_list` (a profile.json's candidates)."""
+        f = cls(*values)
+        return f._replace(spread=math.nan if f.spread is None else f.spread)
+
 
 def scale_grid(shape: tuple[int, int]) -> np.ndarray:
     """The scales searched: MIN_SCALE up to half the shorter side, SCALE_STEP apart (at least MIN_SCALE)."""
