@@ -262,7 +262,7 @@ def _on_map(monkeypatch, at, given=None, size=256):
     separability)) for every segmentation the search asks for. Returns (params, estimate, scales asked)."""
     asked = []
 
-    def point(prepared, params, scale, depth):
+    def point(prepared, params, scale, depth, coarse=True):
         asked.append((round(scale, 2), depth))
         v = {"median": math.nan, "spread": 0.3, "segments": 12, "separability": 0.8, **at(scale, depth)}
         v.setdefault("weighted", v["median"])
