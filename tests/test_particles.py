@@ -425,6 +425,31 @@ def test_a_scale_seen_averaged_down_must_separate_at_full_resolution(monkeypatch
     assert params.scale == pytest.approx(20, rel=0.1)
 
 
+def _small_on_noise(plateau_until: float):
+    """Particles of ~7.3 px on a noisy film (EMPS ed3a3cb76b): at their own scale the noise's specks join them and
+    nothing separates enough; smoothed as for 12 px and more they separate and come out at their size up to
+    ``plateau_until``, larger agglomerates of them above."""
+
+    def at(scale, depth):
+        if scale < 11:
+            return {"median": scale, "separability": 0.65, "spread": 1.0}
+        if scale <= plateau_until:
+            return {"median": 7.2 * (scale / 12) ** 0.1, "separability": 0.7}
+        return {"median": 0.6 * scale, "separability": 0.7}
+
+    return at
+
+
+def test_particles_separating_only_when_smoothed_more_are_a_plateau(monkeypatch):
+    params, estimate, _ = _on_map(monkeypatch, _small_on_noise(plateau_until=30))
+    assert params.scale == 12.0 and params.min_separability == P.MIN_SEPARABILITY  # the least smoothing separating
+    plateau = [f for f in estimate.candidates if f.scale == 12.0]
+    assert plateau and plateau[0].median == pytest.approx(7.2) and plateau[0].basin == 6  # 12 to 28.5 px
+    # a size held over fewer than PLATEAU_SCALES (12 to 20 px: four) is no plateau: noise's specks do that
+    with pytest.raises(P.NoParticles):
+        _on_map(monkeypatch, _small_on_noise(plateau_until=21))
+
+
 def test_area_weighted_median_by_hand():
     assert P.area_weighted_median(np.array([1.0, 1.0, 1.0, 10.0])) == 10.0  # areas 1, 1, 1, 100
     assert P.area_weighted_median(np.array([3.0, 4.0])) == 4.0  # 9 of 25 below 4

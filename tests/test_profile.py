@@ -182,6 +182,13 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     data, notes = data_settings(alike)
     assert data["segment"]["min_separability"] == 0.58
     assert notes["data.segment.min_separability"].startswith("0.58 (default 0.66): the particles' scale separates")
+    # A scale that smooths more than the particles' size asks (a plateau) says so, with the segments' size
+    assert not saved["segmentation"]["scale_estimate"]["plateau"]
+    plateau = copy.deepcopy(saved)
+    plateau["segmentation"]["scale_estimate"]["plateau"] = True
+    note = data_settings(plateau)[1]["data.segment.scale"]
+    size = saved["sizes"]["median_diameter_px"]
+    assert "no scale agreed with its segments' size" in note and f"one size ({size:.1f} px)" in note
 
     with pytest.raises(ConfigError, match="exists"):
         profile(compose(overrides, config_name="profile"))  # no overwrite without overwrite=true

@@ -318,11 +318,17 @@ def data_settings(result: dict) -> tuple[dict, dict]:
         if estimate is None or estimate["diameter_px"] is None
         else f"LoG blob scale {estimate['diameter_px']} px,"
     )
-    how = (
-        "set by hand (data.segment)"
-        if "scale" in given
-        else f"measured: {log_scale} refined to the segments' own median ({estimate['refined_px']} px)"
-    )
+    if "scale" in given:
+        how = "set by hand (data.segment)"
+    elif estimate.get("plateau"):
+        how = (
+            f"measured: {log_scale} no scale agreed with its segments' size and separated enough; from "
+            f"{estimate['refined_px']} px up the segments keep one size ({result['sizes']['median_diameter_px']:.1f} px) over an "
+            "octave and more: small particles that separate from a noisy film only when smoothed more than their size"
+            " asks (the scale sets the smoothing; the sizes are the segments')"
+        )
+    else:
+        how = f"measured: {log_scale} refined to the segments' own median ({estimate['refined_px']} px)"
     notes = {
         "data.segment.scale": f"particle diameter {seg['scale_px']} px, {how}",
         "data.segment (sigma, min_distance, min_area, max_area, background)": "from the scale unless set by hand"

@@ -242,6 +242,7 @@ class ScaleEstimate:
     refined_px: float | None = None  # the diameter chosen by `search_scale`
     candidates: tuple = ()  # every fixed point `search_scale` found (`Fixed`)
     alike: bool = False  # min_separability lowered for a scale of alike segments (`search_scale`; `resolve_params`)
+    plateau: bool = False  # the scale smooths more than the particles' size asks (`_plateau`)
     depth: float | None = None  # the neck depth chosen with the scale
     grid: tuple = ()  # (scale, neck depth, segments' median, separability) of every scale segmented
 
@@ -255,6 +256,7 @@ class ScaleEstimate:
             "candidates": [f.as_list() for f in self.candidates],
             "candidate_fields": list(Fixed._fields),
             "alike": self.alike,
+            "plateau": self.plateau,
             "neck_depth": self.depth,
             "grid": [[round(s, 2), d, None if math.isnan(m) else round(m, 2), round(q, 3)] for s, d, m, q in self.grid],
         }
@@ -415,7 +417,13 @@ def resolve_params(
     if estimate is None:
         return resolved, None
     return resolved, replace(
-        estimate, refined_px=chosen.scale, alike=chosen.alike, depth=chosen.depth, candidates=tuple(fixed), grid=grid
+        estimate,
+        refined_px=chosen.scale,
+        alike=chosen.alike,
+        plateau=chosen.plateau,
+        depth=chosen.depth,
+        candidates=tuple(fixed),
+        grid=grid,
     )
 
 
@@ -439,7 +447,8 @@ def _nothing_consistent(estimate: ScaleEstimate, points, fixed, params: SegmentP
         why = "at no scale were the segments of its own size (specks smaller, agglomerates larger)"
     return (
         f"{log_scale} segmenting at {len(scales)} scales ({scales[0]:.0f}-{scales[-1]:.0f} px) gave no consistent "
-        f"particle size: {why}; {polarity} particles"
+        f"particle size: {why}; nor did the segments keep one size over {PLATEAU_SCALES} scales where they separate"
+        f" enough; {polarity} particles"
     )
 
 
@@ -513,6 +522,7 @@ class Fixed(NamedTuple):
     segments: int
     basin: int  # grid scales (same depth) whose segments' median lies within CONSISTENT of this one's
     alike: bool = False  # a candidate below min_separability for its alike segments (ALIKE_*)
+    plateau: bool = False  # not a fixed point: a size held below the scale over an octave and more (`_plateau`)
 
     @property
     def evidence(self) -> float:
@@ -524,11 +534,11 @@ class Fixed(NamedTuple):
         f = self
         spread = None if math.isnan(f.spread) else round(f.spread, 3)
         return [round(f.scale, 2), f.depth, round(f.median, 2), round(f.separability, 3), round(f.lowest, 3), spread,
-                f.segments, f.basin, f.alike]  # fmt: skip
+                f.segments, f.basin, f.alike, f.plateau]  # fmt: skip
 
     @classmethod
     def from_list(cls, values: Sequence) -> Fixed:
-        """Back from `as_list` (a profile.json's candidates)."""
+        """Back from `as_list` (a profile.json's candidates; one written before `plateau` existed has one field less)."""
         f = cls(*values)
         return f._replace(spread=math.nan if f.spread is None else f.spread)
 
@@ -551,7 +561,8 @@ def search_scale(
     only where they make the sizes more alike (`_plain_unless_more_alike`). The chosen one is refined to its
     segments' own median (`refine`). Where no fixed point is a
     candidate, the same on the segments' area-weighted median (specks outnumbering a few particles pull the plain
-    median below the particles' size at every scale; their share of the area is small). A scale given is
+    median below the particles' size at every scale; their share of the area is small); where none is either, a
+    size the segments keep over an octave of scales that separate (`_plateau`). A scale given is
     the grid (its depth chosen the same way, agreement not required).
     Returns (the chosen or None, every fixed point found, every grid point)."""
     depths = (0.0, NECK_DEPTH) if params.neck_depth is None else (float(params.neck_depth),)
@@ -578,7 +589,40 @@ def search_scale(
             if chosen is not None:
                 return chosen, found, points
             candidates = [c for c in candidates if c not in (top, best)]  # seen averaged down only: the next
+    plateau = _plateau([p for p in points if p.depth == 0.0], params)
+    if plateau is not None:
+        found.append(plateau)
+        chosen = _full_resolution(prepared, params, plateau, False)
+        if chosen is not None:
+            return chosen, found, points
     return None, found, points
+
+
+PLATEAU_SCALES = 5  # grid scales (an octave) over which segments must hold their size to be particles (`_plateau`)
+
+
+def _plateau(row: Sequence[Point], params: SegmentParams) -> Fixed | None:
+    """Where no fixed point is a candidate: the longest run of at least PLATEAU_SCALES consecutive scales of
+    ``row`` (one depth, in order of scale) that all separate at least ``min_separability`` and whose segments' medians
+    lie within twice CONSISTENT of each other (in log), at its smallest scale; None where there is none. Particles
+    a few px across on a noisy film separate only when smoothed more than their own scale asks: at their own scale
+    the noise's specks join them (EMPS ed3a3cb76b: 7 px particles, separability 0.65 at 6-10 px), and from twice it
+    they come out at their size, whatever the smoothing, for an octave and more. Noise and grain have no such run:
+    their specks grow with the smoothing."""
+    best: tuple[int, int] | None = None
+    for start in range(len(row)):
+        end, low, high = start, math.inf, -math.inf
+        while end < len(row) and math.isfinite(row[end].median) and row[end].separability >= params.min_separability:
+            low, high = min(low, row[end].median), max(high, row[end].median)
+            if math.log(high / low) >= 2 * CONSISTENT:
+                break
+            end += 1
+        if end - start >= PLATEAU_SCALES and (best is None or end - start > best[1] - best[0]):
+            best = (start, end)
+    if best is None:
+        return None
+    p = row[best[0]]
+    return _as_fixed(p, p.median, best[1] - best[0])._replace(plateau=True)
 
 
 def _plain_unless_more_alike(
@@ -686,13 +730,15 @@ def _at_resolution(prepared: Prepared, scale: float) -> tuple[Prepared, int]:
 def _full_resolution(prepared: Sequence[Prepared], params: SegmentParams, f: Fixed, weighted: bool) -> Fixed | None:
     """``f`` measured again at full resolution where the search saw it on copies averaged down (the final
     segmentation is at full resolution: it must separate as the search saw it); None where it is no longer a
-    candidate (`_candidate`) or its segments no longer agree with its scale."""
+    candidate (`_candidate`) or its segments no longer come within CONSISTENT of the size seen averaged down."""
     if all(_at_resolution(p, f.scale)[1] == 1 for p in prepared):
         return f
     point = _point(prepared, params, f.scale, f.depth, coarse=False)
-    if not point.agrees(weighted):
+    size = point.size(weighted)
+    if not (math.isfinite(size) and abs(math.log(size / f.median)) < CONSISTENT):
         return None
-    return _candidate(_as_fixed(point, point.size(weighted), f.basin), params)
+    moved = _candidate(_as_fixed(point, size, f.basin), params)
+    return None if moved is None else moved._replace(plateau=f.plateau)
 
 
 def _as_fixed(point: Point, median: float, basin: int, alike: bool = False) -> Fixed:
