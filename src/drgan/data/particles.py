@@ -976,15 +976,17 @@ def _fill_round_holes(foreground: np.ndarray, params: SegmentParams) -> np.ndarr
         return foreground
     from skimage.measure import regionprops
 
-    labels, _ = ndi.label(holes)
+    labels, n = ndi.label(holes)
+    areas = np.bincount(labels.ravel(), minlength=n + 1)
+    plausible = (areas >= params.min_area) & (areas <= params.max_area)
+    plausible[0] = False
+    if not plausible.any():  # a noisy foreground has thousands of pinholes: their shapes are never asked for
+        return foreground
+    labels = np.where(plausible[labels], labels, 0)
     filled = foreground.copy()
     for region in regionprops(labels):
         disc = math.pi / 4 * region.axis_major_length**2  # the disc of the hole's length: a round hole fills most
-        if (
-            params.min_area <= region.area <= params.max_area
-            and region.solidity >= ROUND_HOLE_SOLIDITY
-            and region.area >= ROUND_HOLE_FILL * disc
-        ):
+        if region.area >= ROUND_HOLE_FILL * disc and region.solidity >= ROUND_HOLE_SOLIDITY:  # the hull last: dearest
             filled[region.slice] |= region.image
     return filled
 
