@@ -17,6 +17,9 @@ every length follows from the particles' own scale, measured first.
    report's reference). `search_scale` segments the images at every scale of a quarter-octave grid, finds every
    scale whose segments have that median size (a fixed point), and keeps the one whose size holds over the most
    scales, less its segments' spread in size (particles persist and are alike; specks follow the smoothing).
+   Scales of 2 WORK_DIAMETER and more are segmented on copies averaged down (`_at_resolution`: particles of 24-48
+   px there), the chosen one checked at full resolution; where no scale agrees with its segments, a size they keep
+   over an octave of smoothing is the particles' (`_plateau`: small particles on a noisy film).
 4. **Settings from the scale** (`SegmentParams.resolved`): smoothing, seed distance and plausible areas are fixed
    fractions of the diameter (calibrated where the TiO2 sets meet their masks: sigma 1.5 px and seeds 6 px apart
    at 26 px); the uneven illumination is removed at 3 diameters (a grey opening: larger than any particle, so none
