@@ -390,10 +390,11 @@ def test_large_scales_are_searched_on_copies_averaged_down():
     prepared = P.Prepared(bright, annotations)
     assert P._at_resolution(prepared, 47.9) == (prepared, 1)  # below 2 WORK_DIAMETER: the image itself
     view, f = P._at_resolution(prepared, 50.0)
-    assert f == 2 and view.bright.shape == (5, 6)  # the last column (13 = 6 x 2 + 1) left out
+    assert f == 2 and view.bright.shape == (5, 7)  # the last column (13 = 6 x 2 + 1) padded with itself
     assert view.bright[0, 0] == pytest.approx((0 + 1 + 13 + 14) / 4) and view.bright[4, 5] == pytest.approx(
         (8 * 13 + 10 + 8 * 13 + 11 + 9 * 13 + 10 + 9 * 13 + 11) / 4
     )
+    assert view.bright[4, 6] == pytest.approx((8 * 13 + 12 + 9 * 13 + 12) / 2)
     assert view.annotations.sum() == 1 and view.annotations[1, 2]  # rows 2-3, columns 4-5
     assert P._at_resolution(prepared, 50.0)[0] is view and P._at_resolution(prepared, 72.0)[1] == 3
 

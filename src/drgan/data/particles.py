@@ -714,16 +714,18 @@ def _at_resolution(prepared: Prepared, scale: float) -> tuple[Prepared, int]:
     """``prepared`` averaged down over blocks of f x f px, f = floor(scale / WORK_DIAMETER) (at least 1), and f: the
     search's large scales are segmented with particles WORK_DIAMETER to 2 WORK_DIAMETER px across, which measures a
     diameter to a few % and costs 1 / f^2 (the smoothing, the distance transforms and the watershed grow with the
-    pixels, the smoothing with the scale too). The rows and columns past the last whole block are left out; a block
-    with an annotation pixel is annotation. Made once per factor (memoised on ``prepared.coarse``)."""
+    pixels, the smoothing with the scale too). The last row and column of blocks are padded with the border's pixels
+    (cropped instead, a segment reaching the border only in the strip cut off would count as a whole particle); a
+    block with an annotation pixel is annotation. Made once per factor (memoised on ``prepared.coarse``)."""
     f = max(1, int(scale // WORK_DIAMETER))
     if f == 1:
         return prepared, 1
     if f not in prepared.coarse:
-        h, w = (n // f * f for n in prepared.bright.shape)
+        h, w = (-(-n // f) for n in prepared.bright.shape)  # blocks, the last ones padded with the border's pixels
 
         def blocks(a: np.ndarray) -> np.ndarray:
-            return a[:h, :w].reshape(h // f, f, w // f, f)
+            pad = [(0, h * f - a.shape[0]), (0, w * f - a.shape[1])]
+            return np.pad(a, pad, mode="edge").reshape(h, f, w, f)
 
         bright = blocks(prepared.bright).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
         prepared.coarse[f] = Prepared(bright, blocks(prepared.annotations).any(axis=(1, 3)))
