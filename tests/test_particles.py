@@ -256,19 +256,15 @@ def test_small_particles_among_more_specks_are_the_scale_that_persists():
     assert chosen.basin >= 5 and abs(chosen.median / 16 - 1) < 0.15
 
 
-def _on_map(monkeypatch, at, given=None, size=256, full=None):
+def _on_map(monkeypatch, at, given=None, size=256):
     """resolve_params on a scripted scale map: ``at(scale, depth)`` gives the segments' numbers (a dict overriding
     median (NaN: none), weighted (default: the median), spread, segments, separability, lowest (default: the
-    separability)) for every segmentation the search asks for; ``full(scale, depth)``, where given, overrides them
-    where the search asks for a full-resolution segmentation (not averaged down). Returns (params, estimate, scales
-    asked)."""
+    separability)) for every segmentation the search asks for. Returns (params, estimate, scales asked)."""
     asked = []
 
-    def point(prepared, params, scale, depth, coarse=True):
+    def point(prepared, params, scale, depth):
         asked.append((round(scale, 2), depth))
         v = {"median": math.nan, "spread": 0.3, "segments": 12, "separability": 0.8, **at(scale, depth)}
-        if not coarse and full is not None:
-            v.update(full(scale, depth))
         v.setdefault("weighted", v["median"])
         v.setdefault("lowest", v["separability"])
         return P.Point(round(scale, 2), depth, **v)
@@ -381,49 +377,6 @@ def test_seeds_at_necks_need_more_alike_sizes_not_only_persistence(monkeypatch, 
     params, estimate, _ = _on_map(monkeypatch, at)
     assert params.neck_depth == expected and abs(params.scale / 30 - 1) < 0.1
     assert estimate.depth == expected
-
-
-def test_large_scales_are_searched_on_copies_averaged_down():
-    bright = np.arange(10 * 13, dtype=np.float32).reshape(10, 13)
-    annotations = np.zeros((10, 13), bool)
-    annotations[3, 5] = True
-    prepared = P.Prepared(bright, annotations)
-    assert P._at_resolution(prepared, 47.9) == (prepared, 1)  # below 2 WORK_DIAMETER: the image itself
-    view, f = P._at_resolution(prepared, 50.0)
-    assert f == 2 and view.bright.shape == (5, 7)  # the last column (13 = 6 x 2 + 1) padded with itself
-    assert view.bright[0, 0] == pytest.approx((0 + 1 + 13 + 14) / 4) and view.bright[4, 5] == pytest.approx(
-        (8 * 13 + 10 + 8 * 13 + 11 + 9 * 13 + 10 + 9 * 13 + 11) / 4
-    )
-    assert view.bright[4, 6] == pytest.approx((8 * 13 + 12 + 9 * 13 + 12) / 2)
-    assert view.annotations.sum() == 1 and view.annotations[1, 2]  # rows 2-3, columns 4-5
-    assert P._at_resolution(prepared, 50.0)[0] is view and P._at_resolution(prepared, 72.0)[1] == 3
-
-
-@pytest.mark.parametrize("polarity", ["bright", "dark"])
-def test_large_particles_measure_the_same_averaged_down(monkeypatch, polarity):
-    """Discs of 70 px: every scale from 48 px up is segmented at a half to a fifth of the resolution, and the scale
-    found, its depth and its segments' median agree with a search at full resolution everywhere."""
-    image, _, _ = discs(size=256, diameter=70, n=6, polarity=polarity, noise=0.05, grain=1.0, seed=4, gap=6)
-    prepared = [P.prepare(image, polarity, True)]
-    coarse, _, _ = P.search_scale(prepared, P.SegmentParams())
-    monkeypatch.setattr(P, "WORK_DIAMETER", math.inf)
-    full, _, _ = P.search_scale([P.prepare(image, polarity, True)], P.SegmentParams())
-    assert abs(coarse.scale / 70 - 1) < 0.1 and abs(math.log(coarse.scale / full.scale)) < 0.05
-    assert coarse.depth == full.depth and abs(math.log(coarse.median / full.median)) < 0.05
-
-
-def test_a_scale_seen_averaged_down_must_separate_at_full_resolution(monkeypatch):
-    # particles of 80 px hold over many scales (averaged down there), specks of 20 px over fewer
-    def at(scale, depth):
-        if 14 <= scale <= 24:
-            return {"median": 20.0}
-        return {"median": 80.0 if scale >= 40 else 0.6 * scale}
-
-    params, _, asked = _on_map(monkeypatch, at)
-    assert params.scale == pytest.approx(80, rel=0.1) and (round(params.scale, 2), 0.0) in asked
-    # the same 80 px segmented at full resolution separate less than min_separability: the next candidate
-    params, _, _ = _on_map(monkeypatch, at, full=lambda scale, depth: {"separability": 0.5})
-    assert params.scale == pytest.approx(20, rel=0.1)
 
 
 def _small_on_noise(plateau_until: float):

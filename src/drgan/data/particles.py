@@ -17,9 +17,8 @@ every length follows from the particles' own scale, measured first.
    report's reference). `search_scale` segments the images at every scale of a quarter-octave grid, finds every
    scale whose segments have that median size (a fixed point), and keeps the one whose size holds over the most
    scales, less its segments' spread in size (particles persist and are alike; specks follow the smoothing).
-   Scales of 2 WORK_DIAMETER and more are segmented on copies averaged down (`_at_resolution`: particles of 24-48
-   px there), the chosen one checked at full resolution; where no scale agrees with its segments, a size they keep
-   over an octave of smoothing is the particles' (`_plateau`: small particles on a noisy film).
+   Where no scale agrees with its segments, a size they keep over an octave of smoothing is the particles'
+   (`_plateau`: small particles on a noisy film).
 4. **Settings from the scale** (`SegmentParams.resolved`): smoothing, seed distance and plausible areas are fixed
    fractions of the diameter (calibrated where the TiO2 sets meet their masks: sigma 1.5 px and seeds 6 px apart
    at 26 px); the uneven illumination is removed at 3 diameters (a grey opening: larger than any particle, so none
@@ -361,8 +360,6 @@ class Prepared:
     # What the scale search has segmented of this image, per setting (`_measure`): it refines and compares at scales
     # it has segmented, with both neck depths.
     measured: dict = field(default_factory=dict, repr=False, compare=False)
-    # Copies averaged down by an integer factor (`_at_resolution`), each with its own memo.
-    coarse: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def prepare(image: np.ndarray, polarity: str, annotations: bool = True) -> Prepared:
@@ -573,7 +570,7 @@ def search_scale(
     shape = min((p.bright.shape for p in prepared), key=min)
     scales = [float(params.scale)] if given else scale_grid(shape)
     bar = tqdm(scales, desc="particle scale", unit="scale", disable=not progress)
-    points = [_point(prepared, params, s, depth, coarse=not given) for s in bar for depth in depths]
+    points = [_point(prepared, params, s, depth) for s in bar for depth in depths]
     if given:  # every depth at that scale; seeds at necks where they make the sizes more alike (`_more_alike`)
         fixed = [_as_fixed(p, p.median, 1) for p in points]
         return (fixed[-1] if _more_alike(fixed[-1], fixed[0]) else fixed[0]), fixed, points
@@ -584,21 +581,15 @@ def search_scale(
         fixed = [f for depth in depths for f in fixed_points([p for p in points if p.depth == depth], weighted)]
         found += fixed
         candidates = [c for c in (_candidate(f, params) for f in fixed) if c is not None]
-        while candidates:
-            top = best = max(candidates, key=lambda f: (f.evidence, f.separability))
+        if candidates:
+            best = max(candidates, key=lambda f: (f.evidence, f.separability))
             if best.depth != 0.0 and params.neck_depth is None:
                 best = _plain_unless_more_alike(best, candidates, points, params, weighted)
-            chosen = _full_resolution(prepared, params, refine(prepared, params, best, weighted), weighted)
-            if chosen is not None:
-                return chosen, found, points
-            candidates = [c for c in candidates if c not in (top, best)]  # seen averaged down only: the next
+            return refine(prepared, params, best, weighted), found, points
     plateau = _plateau([p for p in points if p.depth == 0.0], params)
     if plateau is not None:
         found.append(plateau)
-        chosen = _full_resolution(prepared, params, plateau, False)
-        if chosen is not None:
-            return chosen, found, points
-    return None, found, points
+    return plateau, found, points
 
 
 PLATEAU_SCALES = 5  # grid scales (an octave) over which segments must hold their size to be particles (`_plateau`)
@@ -686,64 +677,16 @@ def _between_and_above(prepared, params: SegmentParams, points: list[Point], sid
     return extra
 
 
-def _point(
-    prepared: Sequence[Prepared], params: SegmentParams, scale: float, depth: float, coarse: bool = True
-) -> Point:
-    """Every image segmented at ``scale`` with ``depth`` (on a copy averaged down where the scale allows it and
-    ``coarse``: `_at_resolution`), measured in full-resolution px."""
+def _point(prepared: Sequence[Prepared], params: SegmentParams, scale: float, depth: float) -> Point:
     resolved = replace(params, neck_depth=depth, min_separability=0.0).resolved(scale)
-    retry = retry_separability(params)
-    measures, diameters = [], []
-    for p in prepared:
-        view, f = _at_resolution(p, resolved.scale) if coarse else (p, 1)
-        measures.append(_measure(view, resolved.scaled(1 / f), retry_below=retry))
-        diameters.append(f * measures[-1].diameters)
-    d = np.concatenate(diameters)
+    measures = [_measure(p, resolved, retry_below=retry_separability(params)) for p in prepared]
+    d = np.concatenate([m.diameters for m in measures])
     separabilities = [m.separability for m in measures]
     median, weighted = (float(np.median(d)), area_weighted_median(d)) if d.size else (math.nan, math.nan)
     return Point(
         resolved.scale, depth, median, weighted, size_spread(d), int(d.size),
         float(np.mean(separabilities)), min(separabilities),
     )  # fmt: skip
-
-
-WORK_DIAMETER = 24.0  # px: the scale search segments a scale d on a copy averaged down by floor(d / WORK_DIAMETER)
-
-
-def _at_resolution(prepared: Prepared, scale: float) -> tuple[Prepared, int]:
-    """``prepared`` averaged down over blocks of f x f px, f = floor(scale / WORK_DIAMETER) (at least 1), and f: the
-    search's large scales are segmented with particles WORK_DIAMETER to 2 WORK_DIAMETER px across, which measures a
-    diameter to a few % and costs 1 / f^2 (the smoothing, the distance transforms and the watershed grow with the
-    pixels, the smoothing with the scale too). The last row and column of blocks are padded with the border's pixels
-    (cropped instead, a segment reaching the border only in the strip cut off would count as a whole particle); a
-    block with an annotation pixel is annotation. Made once per factor (memoised on ``prepared.coarse``)."""
-    f = max(1, int(scale // WORK_DIAMETER))
-    if f == 1:
-        return prepared, 1
-    if f not in prepared.coarse:
-        h, w = (-(-n // f) for n in prepared.bright.shape)  # blocks, the last ones padded with the border's pixels
-
-        def blocks(a: np.ndarray) -> np.ndarray:
-            pad = [(0, h * f - a.shape[0]), (0, w * f - a.shape[1])]
-            return np.pad(a, pad, mode="edge").reshape(h, f, w, f)
-
-        bright = blocks(prepared.bright).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
-        prepared.coarse[f] = Prepared(bright, blocks(prepared.annotations).any(axis=(1, 3)))
-    return prepared.coarse[f], f
-
-
-def _full_resolution(prepared: Sequence[Prepared], params: SegmentParams, f: Fixed, weighted: bool) -> Fixed | None:
-    """``f`` measured again at full resolution where the search saw it on copies averaged down (the final
-    segmentation is at full resolution: it must separate as the search saw it); None where it is no longer a
-    candidate (`_candidate`) or its segments no longer come within CONSISTENT of the size seen averaged down."""
-    if all(_at_resolution(p, f.scale)[1] == 1 for p in prepared):
-        return f
-    point = _point(prepared, params, f.scale, f.depth, coarse=False)
-    size = point.size(weighted)
-    if not (math.isfinite(size) and abs(math.log(size / f.median)) < CONSISTENT):
-        return None
-    moved = _candidate(_as_fixed(point, size, f.basin), params)
-    return None if moved is None else moved._replace(plateau=f.plateau)
 
 
 def _as_fixed(point: Point, median: float, basin: int, alike: bool = False) -> Fixed:
