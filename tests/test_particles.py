@@ -3,6 +3,7 @@ touching particles, an empty field, 16-bit and RGB input)."""
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 
@@ -402,6 +403,15 @@ def test_particles_separating_only_when_smoothed_more_are_a_plateau(monkeypatch)
     # a size held over fewer than PLATEAU_SCALES (12 to 20 px: four) is no plateau: noise's specks do that
     with pytest.raises(P.NoParticles):
         _on_map(monkeypatch, _small_on_noise(plateau_until=21))
+
+
+def test_candidates_go_to_json_and_back_including_those_written_before_the_plateau():
+    f = P.Fixed(12.0, 0.0, 7.23, 0.694, 0.694, math.nan, 22, 6, False, True)
+    assert json.loads(json.dumps(f.as_list()))[5] is None  # NaN spread: null
+    back = P.Fixed.from_list(json.loads(json.dumps(f.as_list())))
+    assert back.plateau and math.isnan(back.spread) and back._replace(spread=0.0) == f._replace(spread=0.0)
+    older = P.Fixed.from_list([28.54, 0.0, 28.1, 0.81, 0.8, 0.52, 40, 9, False])  # a profile.json of last month
+    assert not older.plateau and older.basin == 9
 
 
 def test_area_weighted_median_by_hand():
