@@ -98,6 +98,7 @@ def test_a_run_whose_fid_only_rises_stops_after_patience_and_says_why(images, tm
     assert run.data.tags["stop_reason"] == "patience" and "patience 2" in run.data.tags["stop_message"]
 
 
+@pytest.mark.slow  # four epochs of training: ~20 s on 2 cores (the default run's longest)
 def test_a_run_without_early_stopping_goes_to_max_epochs(images, tmp_path, monkeypatch):  # noqa: F811
     rising_fid(monkeypatch)
     out = tmp_path / "run"

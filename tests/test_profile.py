@@ -12,7 +12,7 @@ from PIL import Image
 from scipy import ndimage as ndi
 
 from drgan.data import profile as est
-from drgan.data.particles import resolve_params
+from drgan.data.particles import SegmentParams, resolve_params
 from drgan.errors import ConfigError, DataError
 
 GREY = {"bright": 0.25, "dark": 0.75}  # background grey level
@@ -40,8 +40,11 @@ def synthetic(polarity, rng, size=320, n=30, median=20.0, sigma=0.25, noise=0.03
     return np.clip(image, 0, 1).astype(np.float32), np.asarray(drawn)
 
 
-def measure(images, polarity):
-    params, _ = resolve_params(images, None, polarity)  # the scale measured, as the profile does
+def measure(images, polarity, scale=None):
+    """Segment ``images`` as the profile does: the scale searched (or ``scale`` px where given, and only the neck
+    depth chosen at it)."""
+    given = None if scale is None else SegmentParams(scale=scale)
+    params, _ = resolve_params(images, given, polarity)
     tables, fgs = [], []
     for image in images:
         labels, fg = est.segment_image(image, params, polarity)[:2]
@@ -82,9 +85,10 @@ def test_the_fit_picks_lognormal_for_lognormal_data_and_bimodal_for_two_sizes():
     _, chosen = est.fit_sizes(two)
     assert chosen.kind == "bimodal"
     assert abs(chosen.params["median1"] / 12 - 1) < 0.05 and abs(chosen.params["median2"] / 36 - 1) < 0.05
-    # On the images: discs of two sizes are segmented and fitted as a mixture too.
+    # On the images: discs of two sizes are segmented and fitted as a mixture too (at a scale between them: the
+    # search is tested in test_particles.py and below)
     images = [synthetic("bright", rng, diameters=rng.permutation([12.0] * 25 + [32.0] * 12))[0] for _ in range(3)]
-    d, _ = measure(images, "bright")
+    d, _ = measure(images, "bright", scale=20.0)
     assert est.fit_sizes(d)[1].kind == "bimodal"
 
 
