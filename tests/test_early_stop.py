@@ -123,6 +123,7 @@ def kid_by_epoch(monkeypatch, values):
     monkeypatch.setattr(fid_module, "kid", lambda a, b, subsets, size, seed: (float(values[seed]), 0.0))
 
 
+@pytest.mark.slow  # three epochs of training: ~14 s on 2 cores
 def test_the_kid_screen_skips_the_full_fid_of_an_epoch_that_is_no_better(images, tmp_path, monkeypatch):  # noqa: F811
     kid_by_epoch(monkeypatch, [1.0, 1.5, 1.1])  # epoch 1: 50 % above the lowest screen; epoch 2: within 20 %
     out = tmp_path / "run"
