@@ -321,11 +321,12 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     if "scale" in given:
         how = "set by hand (data.segment)"
     elif estimate.get("plateau"):
+        size = result["sizes"]["median_diameter_px"]
         how = (
             f"measured: {log_scale} no scale agreed with its segments' size and separated enough; from "
-            f"{estimate['refined_px']} px up the segments keep one size ({result['sizes']['median_diameter_px']:.1f} px) over an "
-            "octave and more: small particles that separate from a noisy film only when smoothed more than their size"
-            " asks (the scale sets the smoothing; the sizes are the segments')"
+            f"{estimate['refined_px']} px up the segments keep one size ({size:.1f} px) over an octave and more: "
+            "small particles that separate from a noisy film only when smoothed more than their size asks (the "
+            "scale sets the smoothing; the sizes are the segments')"
         )
     else:
         how = f"measured: {log_scale} refined to the segments' own median ({estimate['refined_px']} px)"
