@@ -255,10 +255,13 @@ def disc_image(rng, scene_fringe=None, ring=None, background=0.8, contrast=0.5, 
 
 
 def measure_edge(images):
+    """The mean edge profile of ``images`` (dark discs, 16-28 px), segmented at 24 px, the scale the search finds on
+    the discs with drawn rings: the edge is measured here; the scale search, with a fringe too, is the profile
+    test's (below) and test_particles'."""
     from drgan.data import profile as est
-    from drgan.data.particles import annotation_mask, resolve_params
+    from drgan.data.particles import SegmentParams, annotation_mask, resolve_params
 
-    params, _ = resolve_params(images, None, "dark")
+    params, _ = resolve_params(images, SegmentParams(scale=24.0), "dark")
     samples = []
     for image in images:
         labels, foreground = est.segment_image(image, params, "dark")[:2]

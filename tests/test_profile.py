@@ -204,7 +204,8 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     folder = _folder(tmp_path, "dark", n=2)
     monkeypatch.chdir(tmp_path)
     overrides = [f"data.dir={folder}", "name=dark_discs", f"out={tmp_path / 'out'}", "data.segment.neck_depth=0.2"]
-    overrides.append("data.segment.grow_outlines=false")
+    # the discs' median diameter given (the search is the bright test's, above): keys given travel, with their values
+    overrides += ["data.segment.grow_outlines=false", "data.segment.scale=20"]
     result = profile(compose(overrides, config_name="profile"))  # crop_rows auto: the white bar found and dropped
     assert result["polarity"]["value"] == "dark" and result["material"]["parent"] == "tio2_tsem"
     assert result["data"]["crop_rows"] == "auto" and abs(result["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
@@ -213,6 +214,7 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     cfg = compose(["material=dark_discs"], config_name="train")
     assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark" and cfg.data.crop_rows == "auto"
     assert cfg.data.segment.neck_depth == 0.2 and "    neck_depth: 0.2\n" in text  # a key given travels
+    assert cfg.data.segment.scale == 20
     assert cfg.data.segment.grow_outlines is False and result["segmentation"]["outlines_grown"]["images"] == 0
     # No ring at the discs' edges: the transmission material renders no fringe, and says why.
     assert result["edge"]["ring"]["kind"] == "none" and result["material"]["fringe"] is None
