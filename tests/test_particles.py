@@ -129,6 +129,37 @@ def test_a_rod_is_one_particle_and_a_neck_still_splits():
         P.SegmentParams(neck_depth=1.0)
 
 
+def test_the_neck_caps_are_those_of_one_reconstruction_over_the_image():
+    """`_neck_caps` works cluster by cluster (a threshold where a component holds one peak, its top; a
+    reconstruction on the box of every other cluster): its seeds are those of one reconstruction over the whole
+    image, with components touching diagonally (one a single pixel), pairs at necks, rods and lone discs."""
+    from skimage.feature import peak_local_max
+
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[:120, :160]
+    foreground = np.zeros((120, 160), bool)
+    for _ in range(14):  # discs of 4-28 px, overlapping at random: lone discs, pairs and chains
+        cy, cx, r = rng.uniform(0, 120), rng.uniform(0, 160), rng.uniform(2, 14)
+        foreground |= np.hypot(yy - cy, xx - cx) <= r
+    foreground[100:108, 4:60] = True  # a rod
+    foreground[2:6, 2:6] = True  # a square and a pixel touching it at a corner only (8-, not 4-connected)
+    foreground[6, 6] = True
+    foreground[10:14, 10:14] = True  # two squares meeting at a corner
+    foreground[14:18, 14:18] = True
+    packed = np.hypot((yy % 20) - 10, (xx % 20) - 10) >= 3  # a film with round holes: one cluster over the image
+    for field in (foreground, packed):
+        components, _ = ndi.label(field)
+        distance = ndi.distance_transform_edt(field)
+        for min_distance in (2, 4):
+            found = peak_local_max(distance, min_distance=min_distance, labels=components, exclude_border=False)
+            peaks = np.zeros(field.shape, bool)
+            peaks[tuple(found.T)] = True
+            for depth in (0.1, 0.2, 0.5):
+                expected = P._caps(distance, depth, peaks)
+                np.testing.assert_array_equal(P._neck_caps(distance, depth, peaks, components), expected)
+        assert ndi.label(expected)[1] < peaks.sum()  # the deepest caps merge seeds: the comparison is not idle
+
+
 def test_thin_strands_are_not_cut_into_particle_sized_fragments():
     """A film wrinkle (a wavy strand 3-7 px wide): every local maximum of its distance transform along its length
     seeds a segment (the default); with seed_depth=1 only 1-px-deep maxima (h-maxima) do, so it stays a few pieces."""

@@ -1102,7 +1102,7 @@ def split_by_depth(foreground: np.ndarray, params: SegmentParams, depths: Sequen
     split: dict[float, np.ndarray] = {}
     made: list[tuple[np.ndarray, np.ndarray]] = []
     for depth in depths:
-        seeds_at = _neck_caps(distance, depth, seed_mask) if depth > 0 else seed_mask
+        seeds_at = _neck_caps(distance, depth, seed_mask, components) if depth > 0 else seed_mask
         same = next((labels for seeds, labels in made if np.array_equal(seeds, seeds_at)), None)
         if same is None:
             seeds, _ = ndi.label(seeds_at)  # a flat top (plateau) yields adjacent peaks: one seed, not several
@@ -1112,13 +1112,55 @@ def split_by_depth(foreground: np.ndarray, params: SegmentParams, depths: Sequen
     return split
 
 
-def _neck_caps(distance: np.ndarray, depth: float, peaks: np.ndarray) -> np.ndarray:
-    """bool: the caps of the distance transform's domes that stand ``depth`` of their height above the saddle to a
-    higher dome (s + 1 <= (1 - depth) (p + 1) for a peak p over a saddle s: the dynamic of log(1 + distance); the
-    1 px keeps pixel-high bumps of thin pieces from counting as necks), those holding one of ``peaks``. A cap is the
-    dome's top lowered by that depth, so a ridge of equal or nearly equal maxima (a rod) is one cap: one seed, where
-    h-maxima would keep each of its equal tops. Every component keeps its top, which stands log(1 + p) above the
-    background's 0."""
+def _neck_caps(distance: np.ndarray, depth: float, peaks: np.ndarray, components: np.ndarray) -> np.ndarray:
+    """bool: the seeds at ``depth``: the caps of the distance transform's domes that stand ``depth`` of their height
+    above the saddle to a higher dome (s + 1 <= (1 - depth) (p + 1) for a peak p over a saddle s: the dynamic of
+    log(1 + distance); the 1 px keeps pixel-high bumps of thin pieces from counting as necks), those holding one of
+    ``peaks``. A cap is the dome's top lowered by that depth, so a ridge of equal or nearly equal maxima (a rod) is
+    one cap: one seed, where h-maxima would keep each of its equal tops. Every component keeps its top, which stands
+    log(1 + p) above the background's 0.
+
+    The same caps as one reconstruction over the image (`_caps`), at a fraction of its cost (it sorts every pixel):
+    nothing outside an 8-connected cluster of the foreground reaches its caps (the background's 0 lies below every
+    pixel of the foreground). A cluster that is one component (``components``: 4-connected labels) with one peak, its
+    top, has one cap: the pixels connected to the top that lie within the depth of it (a threshold). The other
+    clusters are reconstructed each on its bounding box, or all at once where those boxes would cover the image."""
+    height = np.log1p(distance)
+    n = int(components.max())
+    clusters, m = ndi.label(distance > 0, structure=np.ones((3, 3), bool))
+    cluster_of = np.zeros(n + 1, np.int64)
+    cluster_of[components] = clusters
+    alone = np.bincount(cluster_of[1:], minlength=m + 1)[cluster_of] == 1  # the component is its whole cluster
+    count = np.bincount(components[peaks], minlength=n + 1)
+    top = np.zeros(n + 1)
+    np.maximum.at(top, components, height)
+    at_peak = np.zeros(n + 1)
+    np.maximum.at(at_peak, components[peaks], height[peaks])
+    simple = alone & (count == 1) & (at_peak == top)
+    simple[0] = False
+    within = (height >= (top + math.log(1 - depth))[components]) & simple[components]
+    pieces, _ = ndi.label(within)
+    held = np.unique(pieces[peaks])
+    seeds = np.isin(pieces, held[held > 0])
+    rest = np.unique(cluster_of[(count > 0) & ~simple])
+    rest = rest[rest > 0]
+    if rest.size == 0:
+        return seeds
+    objects = ndi.find_objects(clusters)
+    boxes = [objects[c - 1] for c in rest]
+    if sum((r.stop - r.start + 2) * (c.stop - c.start + 2) for r, c in boxes) >= distance.size:
+        everywhere = _caps(distance, depth, peaks)  # the clusters' boxes cover the image: one pass is cheaper
+        return np.where(np.isin(clusters, rest), everywhere, seeds)
+    for c, (rows, cols) in zip(rest, boxes):
+        box = (slice(max(rows.start - 1, 0), rows.stop + 1), slice(max(cols.start - 1, 0), cols.stop + 1))
+        inside = clusters[box] == c
+        caps = _caps(np.where(inside, distance[box], 0.0), depth, peaks[box] & inside)
+        seeds[box] |= caps & inside
+    return seeds
+
+
+def _caps(distance: np.ndarray, depth: float, peaks: np.ndarray) -> np.ndarray:
+    """bool: the caps at ``depth`` holding one of ``peaks`` over all of ``distance`` (`_neck_caps`)."""
     from skimage.morphology import local_maxima, reconstruction
 
     height = np.log1p(distance)
