@@ -75,6 +75,28 @@ def test_scale_bar_and_text_are_not_particles():
     assert abs(np.median(d) / 20 - 1) < 0.1 and abs(params.scale / 20 - 1) < 0.15
 
 
+def test_a_mark_on_a_particle_leaves_it_whole():
+    """A label printed on a particle is a mark (never thresholded), but the particle goes on under it: its segment
+    is the whole disc, one piece; a label on the film stays out of every segment."""
+    yy, xx = np.mgrid[:256, :256]
+    image = np.full((256, 256), 0.3)
+    for cy, cx in ((50, 128), (180, 70), (180, 190)):
+        image[np.hypot(yy - cy, xx - cx) <= 44] = 0.65
+    canvas = Image.fromarray((image * 255).astype(np.uint8))
+    pen = ImageDraw.Draw(canvas)
+    pen.text((116, 28), "(b)", fill=0, font=ImageFont.load_default(size=18))  # black, on the top disc, near the edge
+    pen.text((116, 228), "(a)", fill=255, font=ImageFont.load_default(size=18))  # white, on the film
+    image = np.asarray(canvas, np.float32) / 255
+    marks = P.prepare(image, "bright", True).annotations
+    disc = np.hypot(yy - 50, xx - 128) <= 44
+    assert marks[disc].sum() > 20 and marks[yy > 200].sum() > 20  # both labels are read as marks
+    params = P.SegmentParams(scale=88.0, neck_depth=0.0, grow_outlines=False).resolved()
+    labels = P.segment_with_report(image, params, "bright").labels
+    inside = np.unique(labels[np.hypot(yy - 50, xx - 128) <= 42])
+    assert inside.size == 1 and inside[0] > 0  # one segment without pinholes: the whole disc
+    assert not (labels > 0)[marks & (yy > 200)].any()  # the label on the film is no particle
+
+
 def figure_crop(polarity: str) -> tuple[np.ndarray, float]:
     """A figure as users crop it from a paper: particles, a label box "d" with a grey frame top left, and the
     microscope's data bar along the bottom (near-white, framed, with text), saved as JPEG (grey ringing at every

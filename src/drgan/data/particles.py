@@ -903,7 +903,21 @@ def _foreground(prepared: Prepared, params: SegmentParams, retry_below: float | 
     near = ndi.distance_transform_edt(~cut.centres) <= 0.5 * params.scale
     keep &= np.bincount(components[near], minlength=n + 1) > 0
     keep[0] = False
-    return cut._replace(foreground=_fill_round_holes(keep[components], params))
+    return cut._replace(foreground=_fill_round_holes(_fill_marked_holes(keep[components], prepared), params))
+
+
+def _fill_marked_holes(foreground: np.ndarray, prepared: Prepared) -> np.ndarray:
+    """``foreground`` with its holes that lie wholly in ``prepared.annotations`` filled: a mark enclosed by one piece
+    of the foreground lies on a particle, and the particle goes on under it. Most are the particles' own texture
+    read as marks (specks and strokes of character size and contrast: EMPS bb3d8c922b's textured spheres lost
+    5,697 px of pinholes this way, and the distance transform around them cut each sphere into pieces); a label
+    printed on a particle hides part of it. Marks on the film or reaching it are left out as before."""
+    if not prepared.annotations.any():
+        return foreground
+    holes, n = ndi.label(ndi.binary_fill_holes(foreground) & ~foreground)
+    unmarked = np.bincount(holes[~prepared.annotations], minlength=n + 1) > 0
+    unmarked[0] = True
+    return foreground | ~unmarked[holes]
 
 
 # A hole at least this convex, and filling at least this share of the disc of its length, is a particle's own darker
