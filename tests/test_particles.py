@@ -633,7 +633,7 @@ def test_only_round_holes_are_filled():
     ring = disc(50, 50, 20) & ~disc(50, 50, 13)
     three = disc(150, 40, 20) | disc(150, 80, 20) | disc(150 - 34.64, 60, 20)  # touching: a concave gap between
     four = disc(40, 130, 20) | disc(40, 170, 20) | disc(80, 130, 20) | disc(80, 170, 20)  # a concave square gap
-    filled = P._fill_round_holes(ring | three | four, params)
+    filled = P._fill_holes(ring | three | four, params, np.zeros(ring.shape, bool))  # no marks
     assert filled[50, 50] and filled[disc(50, 50, 12)].all()  # the ring's centre is its particle's
     assert not filled[138, 60] and not filled[60, 150]  # the gaps among touching particles stay background
     assert (filled & ~(ring | three | four)).sum() == (disc(50, 50, 13) & ~ring).sum()

@@ -903,21 +903,7 @@ def _foreground(prepared: Prepared, params: SegmentParams, retry_below: float | 
     near = ndi.distance_transform_edt(~cut.centres) <= 0.5 * params.scale
     keep &= np.bincount(components[near], minlength=n + 1) > 0
     keep[0] = False
-    return cut._replace(foreground=_fill_round_holes(_fill_marked_holes(keep[components], prepared), params))
-
-
-def _fill_marked_holes(foreground: np.ndarray, prepared: Prepared) -> np.ndarray:
-    """``foreground`` with its holes that lie wholly in ``prepared.annotations`` filled: a mark enclosed by one piece
-    of the foreground lies on a particle, and the particle goes on under it. Most are the particles' own texture
-    read as marks (specks and strokes of character size and contrast: EMPS bb3d8c922b's textured spheres lost
-    5,697 px of pinholes this way, and the distance transform around them cut each sphere into pieces); a label
-    printed on a particle hides part of it. Marks on the film or reaching it are left out as before."""
-    if not prepared.annotations.any():
-        return foreground
-    holes, n = ndi.label(ndi.binary_fill_holes(foreground) & ~foreground)
-    unmarked = np.bincount(holes[~prepared.annotations], minlength=n + 1) > 0
-    unmarked[0] = True
-    return foreground | ~unmarked[holes]
+    return cut._replace(foreground=_fill_holes(keep[components], params, prepared.annotations))
 
 
 # A hole at least this convex, and filling at least this share of the disc of its length, is a particle's own darker
@@ -926,26 +912,38 @@ ROUND_HOLE_SOLIDITY = 0.85
 ROUND_HOLE_FILL = 0.7
 
 
-def _fill_round_holes(foreground: np.ndarray, params: SegmentParams) -> np.ndarray:
-    """``foreground`` with its round holes filled: a particle seen as a bright rim around a centre as grey as the
-    background (SEM edge effect on spheres, hollow shells) thresholds into a ring, which the watershed would cut into
-    arcs of a fraction of its size. A hole is the particle's own centre when it is round (solidity at least
-    ROUND_HOLE_SOLIDITY, area at least ROUND_HOLE_FILL of the disc of its major axis) and of plausible area; a gap
-    among touching particles is bounded by several convex outlines, so it is concave (an equal-sphere packing's:
-    solidity ~0.6) or, smoothed at a large scale, a rounded polygon far from a disc, and stays."""
+def _fill_holes(foreground: np.ndarray, params: SegmentParams, marks: np.ndarray) -> np.ndarray:
+    """``foreground`` with its marked and its round holes filled (the holes found once for both).
+
+    A hole that lies wholly in ``marks`` (the annotation mask) is a mark enclosed by one piece of the foreground: it
+    lies on a particle, and the particle goes on under it. Most are the particles' own texture read as marks (specks
+    and strokes of character size and contrast: EMPS bb3d8c922b's textured spheres lost 5,697 px of pinholes this
+    way, and the distance transform around them cut each sphere into pieces); a label printed on a particle hides
+    part of it. Marks on the film or reaching it are left out as before.
+
+    A round hole: a particle seen as a bright rim around a centre as grey as the background (SEM edge effect on
+    spheres, hollow shells) thresholds into a ring, which the watershed would cut into arcs of a fraction of its
+    size. A hole is the particle's own centre when it is round (solidity at least ROUND_HOLE_SOLIDITY, area at least
+    ROUND_HOLE_FILL of the disc of its major axis) and of plausible area; a gap among touching particles is bounded
+    by several convex outlines, so it is concave (an equal-sphere packing's: solidity ~0.6) or, smoothed at a large
+    scale, a rounded polygon far from a disc, and stays."""
     holes = ndi.binary_fill_holes(foreground) & ~foreground
     if not holes.any():
         return foreground
     from skimage.measure import regionprops
 
     labels, n = ndi.label(holes)
+    marked = np.zeros(n + 1, bool)
+    if marks.any():
+        marked = np.bincount(labels[~marks], minlength=n + 1) == 0
+        marked[0] = False
+    filled = foreground | marked[labels]
     areas = np.bincount(labels.ravel(), minlength=n + 1)
-    plausible = (areas >= params.min_area) & (areas <= params.max_area)
+    plausible = (areas >= params.min_area) & (areas <= params.max_area) & ~marked
     plausible[0] = False
     if not plausible.any():  # a noisy foreground has thousands of pinholes: their shapes are never asked for
-        return foreground
+        return filled
     labels = np.where(plausible[labels], labels, 0)
-    filled = foreground.copy()
     for region in regionprops(labels):
         disc = math.pi / 4 * region.axis_major_length**2  # the disc of the hole's length: a round hole fills most
         if region.area >= ROUND_HOLE_FILL * disc and region.solidity >= ROUND_HOLE_SOLIDITY:  # the hull last: dearest
