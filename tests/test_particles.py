@@ -12,6 +12,7 @@ import pytest
 from PIL import Image, ImageDraw, ImageFont
 from scipy import ndimage as ndi
 
+from drgan.data import annotations
 from drgan.data import particles as P
 from drgan.errors import ConfigError, DataError
 
@@ -73,6 +74,30 @@ def test_scale_bar_and_text_are_not_particles():
     params, labels, d = measured(image, "bright")
     assert not (labels > 0)[mask].any()  # nothing segmented on the bar, its text or the panel letter
     assert abs(np.median(d) / 20 - 1) < 0.1 and abs(params.scale / 20 - 1) < 0.15
+
+
+def test_a_scale_bar_softened_by_resampling_is_found_and_a_rod_is_not():
+    """A figure resampled (EMPS ec2cc16d2a: a white bar and label peaking at 0.92): they are no longer within
+    ANNOTATION_LEVEL of white, but still drawn solid and straight within SOFT_LEVEL; a rod as pale near the same edge
+    is not a solid strip of one width, and stays a particle."""
+    yy, xx = np.mgrid[:256, :256]
+    image = np.full((256, 256), 0.4)
+    rod = ((yy - 226) / 5.0) ** 2 + ((xx - 60) / 40.0) ** 2 <= 1  # 80 x 10 px, horizontal, near the bottom
+    image[rod] = 0.92
+    canvas = Image.fromarray((image * 255).astype(np.uint8))
+    pen = ImageDraw.Draw(canvas)
+    pen.fontmode = "1"  # solid strokes, then softened with the rest
+    pen.rectangle((150, 236, 240, 241), fill=235)  # a scale bar, bottom right
+    pen.text((160, 214), "200 nm", fill=235, font=ImageFont.load_default(size=16))
+    image = ndi.gaussian_filter(np.asarray(canvas, np.float32) / 255, 0.5)
+    assert image.max() < 1 - P.ANNOTATION_LEVEL  # nothing is drawn in white
+    mask = P.annotation_mask(image)
+    assert mask[237:241, 152:239].all()  # the bar
+    text = (image >= 1 - annotations.SOFT_LEVEL) & (yy < 232) & (xx >= 150)
+    assert text.sum() > 30 and mask[text].mean() > 0.9  # its label
+    assert not mask[rod].any()  # the rod
+    params, labels, _ = measured(image, "bright")
+    assert labels[rod].any() and not (labels > 0)[mask].any()  # the rod is a particle, the bar and label are not
 
 
 def test_a_mark_on_a_particle_leaves_it_whole():
@@ -360,13 +385,19 @@ def test_the_scale_that_persists_wins_over_one_that_separates_better(monkeypatch
 
 def test_a_fixed_point_below_min_separability_is_a_candidate_when_its_segments_are_alike(monkeypatch):
     """A dense packing of textured particles: their narrow gaps separate at 0.55-0.65, their texture's specks
-    better. Alike segments (spread <= ALIKE_SPREAD), ALIKE_SEGMENTS of them, separating ALIKE_SEPARABILITY on every
-    image make the fixed point a candidate; the final min_separability is lowered to what it separated."""
+    better. Alike segments (spread <= ALIKE_SPREAD, or <= ALIKE_SHARE of the specks' spread), ALIKE_SEGMENTS of them,
+    separating ALIKE_SEPARABILITY on every image make the fixed point a candidate; the final min_separability is
+    lowered to what it separated."""
     alike = {"separability": 0.6, "lowest": 0.583, "spread": 0.3, "segments": 12}
     params, estimate, _ = _on_map(monkeypatch, _specks_and_particles(alike))
     assert params.scale == pytest.approx(40, abs=0.5) and estimate.alike and params.min_separability == 0.58
+    # alike by comparison: 0.7 is less than half the specks' spread of 1.6, and more than half of 1.2
+    params, estimate, _ = _on_map(monkeypatch, _specks_and_particles({**alike, "spread": 0.7}))
+    assert params.scale == pytest.approx(40, abs=0.5) and estimate.alike
+    params, estimate, _ = _on_map(monkeypatch, _specks_and_particles({**alike, "spread": 0.7}, {"spread": 1.2}))
+    assert params.scale == 6.0 and not estimate.alike
     for other in (
-        {**alike, "spread": 0.6},  # not alike enough
+        {**alike, "spread": 0.9},  # not alike enough: more than half the specks' spread
         {**alike, "lowest": 0.5},  # one image separates too little
         {**alike, "segments": 4},  # too few segments
     ):

@@ -140,6 +140,64 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
         for index, box in char_boxes.items():
             chars[index] |= any(_beside(box, bar) for bar in bars)
         mask |= chars[labels]
+    mask |= _soft_bars(grey, mask)
     if mask.any():
         mask = ndi.binary_dilation(mask, iterations=2)
     return mask
+
+
+# A figure averaged down, resampled or saved as JPEG no longer draws its scale bar in pure white or black (EMPS
+# ec2cc16d2a: a white bar peaks at 0.92, its label too): such a bar is taken within SOFT_LEVEL of either end, where
+# it is drawn as a bar is and no particle is: solid and straight.
+SOFT_LEVEL = 0.15
+SOFT_FILL = 0.9  # of its box
+SOFT_EVEN = 0.9  # share of the bar's length over which its width is its median width, +-1 px
+
+
+def _soft_bars(grey: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """Scale bars within SOFT_LEVEL of black or white that `annotation_mask`'s pure levels missed, and the
+    characters of their grey beside them (`_beside`). A bar here must look drawn: long and thin as a bar
+    (`annotation_mask`), filling SOFT_FILL of its box, of one width (+-1 px) over SOFT_EVEN of its length, within
+    EDGE_BAND of an edge and not along the border: at this level an elongated particle may be bright or dark enough,
+    but it is not a solid strip of constant width aligned with the image."""
+    h, w = grey.shape
+    short = min(h, w)
+    out = np.zeros((h, w), bool)
+    for candidates in (grey <= SOFT_LEVEL, grey >= 1 - SOFT_LEVEL):
+        if candidates.mean() > 0.5:
+            continue
+        labels, n = ndi.label(candidates, structure=np.ones((3, 3)))
+        boxes = ndi.find_objects(labels)
+        bars = []
+        for index, box in enumerate(boxes, start=1):
+            rows, cols = box
+            bh, bw = rows.stop - rows.start, cols.stop - cols.start
+            long_, narrow = max(bh, bw), min(bh, bw)
+            edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop)
+            if not (
+                long_ >= 4 * narrow
+                and long_ >= 0.04 * short
+                and narrow <= 0.06 * short
+                and 0 < edge <= EDGE_BAND * short
+            ):
+                continue
+            own = labels[box] == index
+            if found[box][own].mean() >= 0.5 or own.mean() < SOFT_FILL:
+                continue
+            widths = own.sum(axis=0 if bw >= bh else 1)
+            if np.mean(np.abs(widths - np.median(widths)) <= 1) >= SOFT_EVEN:
+                out[box] |= own
+                bars.append(box)
+        if not bars:
+            continue
+        thickness = ndi.distance_transform_edt(candidates)
+        for index, box in enumerate(boxes, start=1):
+            rows, cols = box
+            long_ = max(rows.stop - rows.start, cols.stop - cols.start)
+            own = labels[box] == index
+            if long_ < 3 or long_ > 0.15 * short or own.sum() < 3:
+                continue
+            thick = 2.0 * float(thickness[box][own].max())
+            if thick <= max(2.5, 0.45 * long_) and any(_beside(box, bar) for bar in bars):
+                out[box] |= own
+    return out

@@ -482,9 +482,15 @@ SPREAD_UNKNOWN = 3.0
 # 0.55-0.65 (below min_separability), while the texture cut into specks separates at 0.72-0.79. A fixed point below
 # min_separability is a candidate where it separates at least ALIKE_SEPARABILITY on every image and its segments
 # are alike (spread at most ALIKE_SPREAD) and at least ALIKE_SEGMENTS; where the default min_separability is kept
-# (a value set by hand is kept as given).
+# (a value set by hand is kept as given). Alike: a spread of at most ALIKE_SPREAD, or at most ALIKE_SHARE of the
+# spread of the candidate separating min_separability that would be chosen without it. Specks of every size spread
+# 1.4-1.8 (the wrong fixed points' median 1.63), particles 0.03-0.77 (the right ones' median 0.38): half lies at the
+# geometric middle of the two. Absolute alone, 0.5 cut into the particles' range (EMPS ce41e4e56d's spheres: 0.77,
+# against texture specks' 1.70), and smoothed noise alone on a film spreads 0.94: with no candidate to be more alike
+# than, only ALIKE_SPREAD counts.
 ALIKE_SEPARABILITY = 0.55
 ALIKE_SPREAD = 0.5
+ALIKE_SHARE = 0.5
 ALIKE_SEGMENTS = 5
 
 
@@ -580,12 +586,13 @@ def search_scale(
     for weighted in (False, True):
         fixed = [f for depth in depths for f in fixed_points([p for p in points if p.depth == depth], weighted)]
         found += fixed
-        candidates = [c for c in (_candidate(f, params) for f in fixed) if c is not None]
+        alike = _alike_spread([f for f in fixed if f.separability >= params.min_separability])
+        candidates = [c for c in (_candidate(f, params, alike) for f in fixed) if c is not None]
         if candidates:
             best = max(candidates, key=lambda f: (f.evidence, f.separability))
             if best.depth != 0.0 and params.neck_depth is None:
-                best = _plain_unless_more_alike(best, candidates, points, params, weighted)
-            return refine(prepared, params, best, weighted), found, points
+                best = _plain_unless_more_alike(best, candidates, points, params, weighted, alike)
+            return refine(prepared, params, best, weighted, alike), found, points
     plateau = _plateau([p for p in points if p.depth == 0.0], params)
     if plateau is not None:
         found.append(plateau)
@@ -620,7 +627,12 @@ def _plateau(row: Sequence[Point], params: SegmentParams) -> Fixed | None:
 
 
 def _plain_unless_more_alike(
-    best: Fixed, candidates: list[Fixed], points: list[Point], params: SegmentParams, weighted: bool
+    best: Fixed,
+    candidates: list[Fixed],
+    points: list[Point],
+    params: SegmentParams,
+    weighted: bool,
+    alike: float = ALIKE_SPREAD,
 ) -> Fixed:
     """``best`` (seeds at necks only) where it makes the segments more alike than every maximum seeding does near
     its scale (size spread at most NECK_SPREAD of that), else the plain segmentation: its best candidate within
@@ -640,7 +652,7 @@ def _plain_unless_more_alike(
         size = at.size(weighted)
         if not (math.isfinite(size) and abs(math.log(size / at.scale)) < 2 * CONSISTENT):
             return best
-        plain = _candidate(_as_fixed(at, size, _basin(row, size, weighted)), params)
+        plain = _candidate(_as_fixed(at, size, _basin(row, size, weighted)), params, alike)
         if plain is None:
             return best
     return best if _more_alike(best, plain) else plain
@@ -720,21 +732,37 @@ def _basin(points: Sequence[Point], size: float, weighted: bool) -> int:
         return int(np.sum(np.abs(np.log(sizes / size)) < CONSISTENT))
 
 
-def _candidate(f: Fixed, params: SegmentParams) -> Fixed | None:
-    """``f`` where it may be chosen: separating at least min_separability, or alike (ALIKE_*) where that is the
-    default; None otherwise."""
+def _alike_spread(plain: Sequence[Fixed]) -> float:
+    """The size spread below which a fixed point under min_separability is alike: ALIKE_SPREAD, or ALIKE_SHARE of
+    the spread of the one of ``plain`` (fixed points separating min_separability) the search would choose, where
+    that is more."""
+    if not plain:
+        return ALIKE_SPREAD
+    chosen = max(plain, key=lambda f: (f.evidence, f.separability))
+    return max(ALIKE_SPREAD, ALIKE_SHARE * (SPREAD_UNKNOWN if math.isnan(chosen.spread) else chosen.spread))
+
+
+def _candidate(f: Fixed, params: SegmentParams, alike_spread: float = ALIKE_SPREAD) -> Fixed | None:
+    """``f`` where it may be chosen: separating at least min_separability, or alike (ALIKE_*; spread at most
+    ``alike_spread``, `_alike_spread`) where that is the default; None otherwise."""
     if f.separability >= params.min_separability:
         return f
     alike = (
         params.min_separability == MIN_SEPARABILITY
         and f.lowest >= ALIKE_SEPARABILITY  # on every image: one image separating nothing lowers nothing
         and f.segments >= ALIKE_SEGMENTS
-        and f.spread <= ALIKE_SPREAD  # NaN (fewer than two segments): never
+        and f.spread <= alike_spread  # NaN (fewer than two segments): never
     )
     return f._replace(alike=True) if alike else None
 
 
-def refine(prepared: Sequence[Prepared], params: SegmentParams, f: Fixed, weighted: bool = False) -> Fixed:
+def refine(
+    prepared: Sequence[Prepared],
+    params: SegmentParams,
+    f: Fixed,
+    weighted: bool = False,
+    alike: float = ALIKE_SPREAD,
+) -> Fixed:
     """``f`` moved to its segments' own (area-weighted) median while that lies 10 % or more from its scale
     (REFINE_ROUNDS at most), as long as the segmentation there still agrees with its scale, is still a candidate and
     still segments to within CONSISTENT of ``f``'s size; else where it last did. The scale returned is one segmented
@@ -747,7 +775,7 @@ def refine(prepared: Sequence[Prepared], params: SegmentParams, f: Fixed, weight
         size = point.size(weighted)
         if not point.agrees(weighted) or abs(math.log(size / f.median)) >= CONSISTENT:
             break
-        moved = _candidate(_as_fixed(point, size, f.basin), params)
+        moved = _candidate(_as_fixed(point, size, f.basin), params, alike)
         if moved is None:
             break
         current = moved
