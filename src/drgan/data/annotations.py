@@ -76,7 +76,8 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
     dense packing), or right above or below a solid bar of their grey, over its span (`_beside`: a scale bar's
     label is text, however dense the image's own marks of that grey). Boxes and bands are masked whole, with their
     frame (FRAME_SHARE). Particles are blobs (their thickness is their size) and are not drawn in exactly one grey,
-    so they stay. The mask is grown by 2 px (anti-aliased edges)."""
+    so they stay. A scale bar that resampling softened out of those levels is found within SOFT_LEVEL, with its label
+    (`_soft_bars`). The mask is grown by 2 px (anti-aliased edges)."""
     grey = np.asarray(grey, np.float32)
     h, w = grey.shape
     short = min(h, w)

@@ -7,8 +7,9 @@ every length follows from the particles' own scale, measured first.
 1. **Grey**: 8/16-bit, float and RGB(A) arrays become one grey channel in [0, 1]; dark particles are turned bright
    (``1 - grey``), so everything below looks for bright particles.
 2. **Annotations** (`annotation_mask`): scale bars, their text, panel letters and label boxes are drawn in pure black
-   or white; they are found by shape (long thin solid bars, solid boxes, character-sized thin strokes near an edge)
-   and filled from their surroundings, so that they are neither particles nor background.
+   or white (a bar softened by resampling: nearly, and solid and straight); they are found by shape (long thin solid
+   bars, solid boxes, character-sized thin strokes near an edge) and filled from their surroundings, so that they
+   are neither particles nor background.
 3. **Scale** (`estimate_scale`): the scale-normalised Laplacian of Gaussian, ``-s^2 LoG_s``, peaks at
    ``s = d / (2 sqrt 2)`` on a disc of diameter ``d`` whatever its contrast (Lindeberg's scale selection). Its
    maxima over position and scale, from 3 px to half the image, are the image's blobs; the strong ones (well above
