@@ -587,13 +587,13 @@ def search_scale(
     for weighted in (False, True):
         fixed = [f for depth in depths for f in fixed_points([p for p in points if p.depth == depth], weighted)]
         found += fixed
-        alike = _alike_spread([f for f in fixed if f.separability >= params.min_separability])
-        candidates = [c for c in (_candidate(f, params, alike) for f in fixed) if c is not None]
+        alike_spread = _alike_spread([f for f in fixed if f.separability >= params.min_separability])
+        candidates = [c for c in (_candidate(f, params, alike_spread) for f in fixed) if c is not None]
         if candidates:
             best = max(candidates, key=lambda f: (f.evidence, f.separability))
             if best.depth != 0.0 and params.neck_depth is None:
-                best = _plain_unless_more_alike(best, candidates, points, params, weighted, alike)
-            return refine(prepared, params, best, weighted, alike), found, points
+                best = _plain_unless_more_alike(best, candidates, points, params, weighted, alike_spread)
+            return refine(prepared, params, best, weighted, alike_spread), found, points
     plateau = _plateau([p for p in points if p.depth == 0.0], params)
     if plateau is not None:
         found.append(plateau)
@@ -633,7 +633,7 @@ def _plain_unless_more_alike(
     points: list[Point],
     params: SegmentParams,
     weighted: bool,
-    alike: float = ALIKE_SPREAD,
+    alike_spread: float,
 ) -> Fixed:
     """``best`` (seeds at necks only) where it makes the segments more alike than every maximum seeding does near
     its scale (size spread at most NECK_SPREAD of that), else the plain segmentation: its best candidate within
@@ -653,7 +653,7 @@ def _plain_unless_more_alike(
         size = at.size(weighted)
         if not (math.isfinite(size) and abs(math.log(size / at.scale)) < 2 * CONSISTENT):
             return best
-        plain = _candidate(_as_fixed(at, size, _basin(row, size, weighted)), params, alike)
+        plain = _candidate(_as_fixed(at, size, _basin(row, size, weighted)), params, alike_spread)
         if plain is None:
             return best
     return best if _more_alike(best, plain) else plain
@@ -743,7 +743,7 @@ def _alike_spread(plain: Sequence[Fixed]) -> float:
     return max(ALIKE_SPREAD, ALIKE_SHARE * (SPREAD_UNKNOWN if math.isnan(chosen.spread) else chosen.spread))
 
 
-def _candidate(f: Fixed, params: SegmentParams, alike_spread: float = ALIKE_SPREAD) -> Fixed | None:
+def _candidate(f: Fixed, params: SegmentParams, alike_spread: float) -> Fixed | None:
     """``f`` where it may be chosen: separating at least min_separability, or alike (ALIKE_*; spread at most
     ``alike_spread``, `_alike_spread`) where that is the default; None otherwise."""
     if f.separability >= params.min_separability:
@@ -761,13 +761,14 @@ def refine(
     prepared: Sequence[Prepared],
     params: SegmentParams,
     f: Fixed,
-    weighted: bool = False,
-    alike: float = ALIKE_SPREAD,
+    weighted: bool,
+    alike_spread: float,
 ) -> Fixed:
     """``f`` moved to its segments' own (area-weighted) median while that lies 10 % or more from its scale
     (REFINE_ROUNDS at most), as long as the segmentation there still agrees with its scale, is still a candidate and
     still segments to within CONSISTENT of ``f``'s size; else where it last did. The scale returned is one segmented
-    with, so that the final segmentation separates as the search saw it."""
+    with, so that the final segmentation separates as the search saw it. ``alike_spread``: the search's
+    (`_alike_spread`)."""
     current = f
     for _ in range(REFINE_ROUNDS):
         if abs(math.log(current.median / current.scale)) < 0.1:
@@ -776,7 +777,7 @@ def refine(
         size = point.size(weighted)
         if not point.agrees(weighted) or abs(math.log(size / f.median)) >= CONSISTENT:
             break
-        moved = _candidate(_as_fixed(point, size, f.basin), params, alike)
+        moved = _candidate(_as_fixed(point, size, f.basin), params, alike_spread)
         if moved is None:
             break
         current = moved
