@@ -57,6 +57,18 @@ def _beside(char: tuple[slice, slice], bar: tuple[slice, slice]) -> bool:
     return gap <= BAR_LABEL_GAP * height and cc.start >= bc.start - margin and cc.stop <= bc.stop + margin
 
 
+def _bar_shaped(long_: int, narrow: int, short: int) -> bool:
+    """A group's box (its long and narrow side, px) is a scale bar's: long, thin, and both against the image's
+    shorter side ``short``."""
+    return long_ >= 4 * narrow and long_ >= 0.04 * short and narrow <= 0.06 * short
+
+
+def _char_shaped(long_: int, thick: float, short: int) -> bool:
+    """A group is a character's: its box's long side ``long_`` of character size against ``short``, drawn with
+    strokes (widest inscribed disc ``thick``) much thinner than it."""
+    return 3 <= long_ <= 0.15 * short and thick <= max(2.5, 0.45 * long_)
+
+
 # Annotations are drawn in (nearly) pure black or white: pixels within this of 0 or 1 are candidates.
 ANNOTATION_LEVEL = 0.06
 EDGE_BAND = 0.2  # text and panel letters lie within this share of the image size from an edge
@@ -107,10 +119,10 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
             edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop)  # px to the nearest border
             near_edge = edge <= band
             long_, narrow = max(bh, bw), min(bh, bw)
-            bar = long_ >= 4 * narrow and long_ >= 0.04 * short and fill >= 0.75 and narrow <= 0.06 * short
+            bar = _bar_shaped(long_, narrow, short) and fill >= 0.75
             filled = ndi.binary_fill_holes(own).mean()
             box_ = near_edge and filled >= 0.92 and narrow >= 0.03 * short and long_ <= 0.5 * short
-            char = long_ <= 0.15 * short and thick <= max(2.5, 0.45 * long_) and long_ >= 3
+            char = _char_shaped(long_, thick, short)
             # an info band: a microscope's data bar kept in a figure (JPEG grey, so not found by read_grey's exact
             # black/white rows): across most of the width, along the top or bottom, its text inside
             band_ = bw >= 0.6 * w and bh <= 0.3 * h and (rows.start <= band or h - rows.stop <= band) and filled >= 0.8
@@ -175,12 +187,7 @@ def _soft_bars(grey: np.ndarray, found: np.ndarray) -> np.ndarray:
             bh, bw = rows.stop - rows.start, cols.stop - cols.start
             long_, narrow = max(bh, bw), min(bh, bw)
             edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop)
-            if not (
-                long_ >= 4 * narrow
-                and long_ >= 0.04 * short
-                and narrow <= 0.06 * short
-                and 0 < edge <= EDGE_BAND * short
-            ):
+            if not (_bar_shaped(long_, narrow, short) and 0 < edge <= EDGE_BAND * short):
                 continue
             own = labels[box] == index
             if found[box][own].mean() >= 0.5 or own.mean() < SOFT_FILL:
@@ -196,9 +203,9 @@ def _soft_bars(grey: np.ndarray, found: np.ndarray) -> np.ndarray:
             rows, cols = box
             long_ = max(rows.stop - rows.start, cols.stop - cols.start)
             own = labels[box] == index
-            if long_ < 3 or long_ > 0.15 * short or own.sum() < 3:
+            if own.sum() < 3:
                 continue
             thick = 2.0 * float(thickness[box][own].max())
-            if thick <= max(2.5, 0.45 * long_) and any(_beside(box, bar) for bar in bars):
+            if _char_shaped(long_, thick, short) and any(_beside(box, bar) for bar in bars):
                 out[box] |= own
     return out
