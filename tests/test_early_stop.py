@@ -86,7 +86,12 @@ def test_a_run_whose_fid_only_rises_stops_after_patience_and_says_why(images, tm
     train_one_batch_epochs(
         images,
         out,
-        [f"logger.mlflow.tracking_uri={uri}", "trainer.max_epochs=6", "callbacks.early_stopping.patience=2"],
+        [
+            f"logger.mlflow.tracking_uri={uri}",
+            "trainer.max_epochs=6",
+            "callbacks.early_stopping.patience=2",
+            "callbacks.best_epoch.brightness_range=[0.01,100]",  # every epoch's grey in range: patience alone decides
+        ],
         logger="mlflow",
     )
     done = json.loads((out / "metrics.json").read_text())
@@ -96,6 +101,25 @@ def test_a_run_whose_fid_only_rises_stops_after_patience_and_says_why(images, tm
     assert best["epoch"] == 0 and [h["epoch"] for h in best["history"]] == [0, 1, 2]
     run = mlflow.MlflowClient(tracking_uri=uri).get_run((out / "mlflow_run_id.txt").read_text())
     assert run.data.tags["stop_reason"] == "patience" and "patience 2" in run.data.tags["stop_message"]
+
+
+def test_patience_waits_while_no_epoch_has_the_real_grey(images, tmp_path, monkeypatch):  # noqa: F811
+    rising_fid(monkeypatch)
+    common = ["trainer.max_epochs=4", "callbacks.early_stopping.patience=1"]
+    # A range no tiny render meets: patience would stop after epoch 1, but there is nothing usable to choose yet.
+    out = tmp_path / "waits"
+    train_one_batch_epochs(images, out, [*common, "callbacks.best_epoch.brightness_range=[0.999,1.001]"])
+    done = json.loads((out / "metrics.json").read_text())
+    assert done["stop_reason"] == "max_epochs" and done["epoch"] == 4
+    # The same run with the wait switched off stops by patience after its second evaluation.
+    out = tmp_path / "stops"
+    train_one_batch_epochs(
+        images,
+        out,
+        [*common, "callbacks.best_epoch.brightness_range=[0.999,1.001]", "callbacks.early_stopping.wait_for_grey=false"],
+    )
+    done = json.loads((out / "metrics.json").read_text())
+    assert done["stop_reason"] == "patience" and done["epoch"] == 2, done
 
 
 @pytest.mark.slow  # four epochs of training: ~20 s on 2 cores (the default run's longest)

@@ -58,6 +58,7 @@ CALLBACK_OVERRIDES = [
     "callbacks.histograms.n_phi=20",
     "callbacks.sample_grid.n=2",
     "callbacks.progress_bar.refresh_rate=0",
+    "~callbacks.grey_start",  # ~5 s of renders per run; tested on its own (test_grey_start_moves_the_renders_to_the_real_grey)
 ]
 
 
@@ -128,6 +129,39 @@ def test_datamodule_mines_caches_and_augments(images, tmp_path):
     again = datamodule(images, tmp_path)
     again.setup("fit")
     np.testing.assert_array_equal(again.real_patches, dm.real_patches)
+
+
+def test_an_epoch_is_steps_per_epoch_steps_whatever_the_number_of_patches(images, tmp_path):
+    dm = datamodule(images, tmp_path, batch_size=2)
+    dm.setup("fit")
+    n = len(dm.real_patches)
+    for steps in (3, n + 5, 3 * n):  # fewer steps than patches, and passes over them several times
+        dm.steps_per_epoch = steps
+        batches = list(dm.train_dataloader())
+        assert len(batches) == steps and all(b.shape[0] == 2 for b in batches)
+    # Every patch comes once per pass: 3 n steps of 2 patches are six permutations, each patch seen 6 times.
+    torch.manual_seed(0)
+    indices = list(dm.train_dataloader().sampler)
+    assert np.bincount(indices, minlength=n).tolist() == [6] * n
+    dm.steps_per_epoch = None  # one pass over the patches (the paper's epoch)
+    assert len(list(dm.train_dataloader())) == n // 2
+    with pytest.raises(ConfigError, match="steps_per_epoch"):
+        datamodule(images, tmp_path, steps_per_epoch=0)
+
+
+def test_grey_start_moves_the_renders_to_the_real_grey(images, tmp_path):
+    """The discs are grey 0.8 on a 0.15 film; the fresh FCN renders the middle of the limits. A few Adam steps on the
+    output biases bring particle and background grey to the real patches' (their classical segmentation alike)."""
+    out = tmp_path / "run"
+    extra = ["trainer.max_epochs=1", "trainer.limit_train_batches=1", "+callbacks.grey_start._target_=drgan.callbacks.GreyStart",
+             "+callbacks.grey_start.steps=25", "+callbacks.grey_start.spp=4"]  # fmt: skip
+    run_train(tiny_overrides(images, out, extra=extra))
+    record = json.loads((out / "grey_start.json").read_text())
+    real, first, last = record["real"], record["first"], record["last"]
+    for key in ("particle", "background"):
+        assert abs(last[key] - real[key]) < 0.5 * abs(first[key] - real[key]), (key, record)
+    assert abs(last["particle"] - real["particle"]) < 0.1 and abs(last["background"] - real["background"]) < 0.05
+    assert record["bias_after"] != record["bias_before"]
 
 
 def test_real_patches_cover_the_view_at_any_render_resolution(images, tmp_path):

@@ -3,6 +3,7 @@
 from drgan.callbacks.best_epoch import BestEpochCallback, parameter_spread, select_best
 from drgan.callbacks.early_stop import FIDEarlyStopping, should_stop, stop_reason
 from drgan.callbacks.fid import FIDCallback, RandomProjectionFeatures
+from drgan.callbacks.grey_start import GreyStart
 from drgan.callbacks.progress import TrainingProgressBar
 from drgan.callbacks.resume import ResumeCheckpoint
 from drgan.callbacks.visuals import ParameterHistogramCallback, SampleGridCallback
@@ -10,6 +11,7 @@ from drgan.callbacks.visuals import ParameterHistogramCallback, SampleGridCallba
 __all__ = [
     "FIDCallback",
     "FIDEarlyStopping",
+    "GreyStart",
     "should_stop",
     "stop_reason",
     "ResumeCheckpoint",

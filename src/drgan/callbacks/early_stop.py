@@ -13,6 +13,11 @@ stops at an epoch's end when the next epoch, FID pass included, would not fit (i
 so far), so the run ends inside the budget with an evaluated last epoch. Lightning's ``trainer.max_time`` is a
 hard limit instead: it stops mid-epoch, and the FID of that epoch still runs after it.
 
+``wait_for_grey`` (default true): patience does not stop a run while no evaluated epoch has its particles and
+background within the real patches' grey (the best-epoch rule's brightness range, drgan.callbacks.best_epoch):
+such a run has nothing usable to choose yet, and on a small, unfamiliar set its FID can settle before the grey does.
+It trains on to its budget (or max_epochs), and stops by patience as soon as an epoch in range exists.
+
 ``stop_reason(trainer)`` names what ended a run (``patience``, ``budget``, ``max_time``, ``max_epochs``,
 ``max_steps``, ``interrupted``); drgan.train logs it, writes it to metrics.json and tags the MLflow run with it.
 
@@ -28,6 +33,7 @@ import time
 from lightning.pytorch import Callback, LightningModule, Trainer
 from lightning.pytorch.callbacks import Timer
 
+from drgan.callbacks.best_epoch import BestEpochCallback, within_brightness
 from drgan.callbacks.fid import FIDCallback
 from drgan.errors import ConfigError
 
@@ -66,7 +72,8 @@ class FIDEarlyStopping(Callback):
     """patience: evaluations without improvement before the run stops (None: not by count); patience_steps:
     training steps since the lowest FID (None: not by steps); min_delta: FID points an evaluation must gain to
     count as an improvement (the score's own spread at ~130 images is ~2, experiments/tio2_sem/README.md);
-    max_minutes: the wall-clock budget of the module docstring (None: none)."""
+    max_minutes: the wall-clock budget of the module docstring (None: none); wait_for_grey: no stop by patience
+    while no evaluated epoch is within the real grey (module docstring)."""
 
     def __init__(
         self,
@@ -74,6 +81,7 @@ class FIDEarlyStopping(Callback):
         patience_steps: int | None = None,
         min_delta: float = 0.0,
         max_minutes: float | None = None,
+        wait_for_grey: bool = True,
     ):
         for name, value in (("patience", patience), ("patience_steps", patience_steps)):
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
@@ -90,6 +98,7 @@ class FIDEarlyStopping(Callback):
         self.patience = patience
         self.patience_steps = patience_steps
         self.min_delta = float(min_delta)
+        self.wait_for_grey = bool(wait_for_grey)
         self.max_seconds = None if max_minutes is None else 60.0 * float(max_minutes)
         self.reason: str | None = None
         self.kind: str | None = None
@@ -123,6 +132,18 @@ class FIDEarlyStopping(Callback):
                 "patience",
                 should_stop(fid_callback.history, self.patience, self.patience_steps, self.min_delta),
             )
+            if reason is not None and self.wait_for_grey and not self._any_in_range(trainer):
+                if trainer.is_global_zero:
+                    log.warning(
+                        "epoch %d: %s, but no evaluated epoch has its particle and background grey within the real "
+                        "range yet (best_epoch.json): training on%s",
+                        trainer.current_epoch,
+                        reason,
+                        f" until one does or the budget (max_minutes={self.max_seconds / 60:g}) ends"
+                        if self.max_seconds is not None
+                        else " until one does (or trainer.max_epochs)",
+                    )
+                kind, reason = None, None
         if reason is None and self.max_seconds is not None and now + self.slowest_epoch > self.max_seconds:
             kind, reason = (
                 "budget",
@@ -136,6 +157,15 @@ class FIDEarlyStopping(Callback):
             trainer.should_stop = True
             if trainer.is_global_zero:
                 log.info("early stop after epoch %d: %s", trainer.current_epoch, reason)
+
+    @staticmethod
+    def _any_in_range(trainer: Trainer) -> bool:
+        """Whether an evaluated epoch of the best-epoch rule's history is within its brightness range (True without
+        that callback, or before its range is known: nothing to wait for)."""
+        best = next((c for c in trainer.callbacks if isinstance(c, BestEpochCallback)), None)
+        if best is None or best.brightness_range is None:
+            return True
+        return any(within_brightness(entry, best.brightness_range) for entry in best.history)
 
     def state_dict(self) -> dict:
         return {

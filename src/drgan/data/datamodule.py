@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from lightning.pytorch import LightningDataModule
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from drgan.data.images import list_images, read_grey, read_split
 from drgan.data.particles import ScaleEstimate, resolve_params
@@ -84,6 +84,7 @@ class RealPatchDataModule(LightningDataModule):
         batch_size: int = 1,
         num_workers: int = 0,
         augment: bool = True,
+        steps_per_epoch: int | None = None,
         cache_dir: str | None = None,
         resolution: int | None = None,
         polarity: str = "auto",
@@ -131,6 +132,10 @@ class RealPatchDataModule(LightningDataModule):
         self.cache_dir = Path(cache_dir) if cache_dir else None
         if self.batch_size < 1:
             raise ConfigError(f"data.batch_size={batch_size}: expected >= 1")
+        if steps_per_epoch is not None and (not isinstance(steps_per_epoch, int) or isinstance(steps_per_epoch, bool)
+                                            or steps_per_epoch < 1):  # fmt: skip
+            raise ConfigError(f"data.steps_per_epoch={steps_per_epoch!r}: expected an integer >= 1 or null")
+        self.steps_per_epoch = None if steps_per_epoch is None else int(steps_per_epoch)
         if resolution is not None and int(resolution) != self.patch_size:
             raise ConfigError(
                 f"data.patch_size={self.patch_size} but renderer.resolution={resolution}: the discriminator compares "
@@ -331,10 +336,18 @@ class RealPatchDataModule(LightningDataModule):
         return len(self.real_patches)
 
     def train_dataloader(self) -> DataLoader:
+        """Shuffled patches. With ``steps_per_epoch``, an epoch (one evaluation) is that many steps whatever the
+        number of patches: fewer steps than patches take the first ones of a permutation (as Lightning's
+        ``limit_train_batches`` would), more steps run through several permutations, each patch once per pass."""
+        patches = AugmentedPatches(self.real_patches, self.augment)
+        sampler = None
+        if self.steps_per_epoch is not None:
+            sampler = RandomSampler(patches, num_samples=self.steps_per_epoch * self.batch_size)
         return DataLoader(
-            AugmentedPatches(self.real_patches, self.augment),
+            patches,
             batch_size=self.batch_size,
-            shuffle=True,
+            shuffle=sampler is None,
+            sampler=sampler,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             drop_last=len(self.real_patches) >= self.batch_size,

@@ -178,6 +178,7 @@ class GANModule(LightningModule):
         self.phi_rng = torch.Generator().manual_seed(self.seed)
         self.skipped_steps = 0
         self.consecutive_nonfinite = 0
+        self.weights_loaded = False  # True after load_weights (init_from): its FCN is not re-started at the real grey
 
     @classmethod
     def from_config(
@@ -454,6 +455,7 @@ class GANModule(LightningModule):
         with torch.no_grad():
             for key, value in target.items():
                 value.copy_(source[key])
+        self.weights_loaded = True
         return len(target)
 
     # --- checkpoint state beyond the weights --------------------------------------------------------------
