@@ -116,7 +116,11 @@ def test_patience_waits_while_no_epoch_has_the_real_grey(images, tmp_path, monke
     train_one_batch_epochs(
         images,
         out,
-        [*common, "callbacks.best_epoch.brightness_range=[0.999,1.001]", "callbacks.early_stopping.wait_for_grey=false"],
+        [
+            *common,
+            "callbacks.best_epoch.brightness_range=[0.999,1.001]",
+            "callbacks.early_stopping.wait_for_grey=false",
+        ],
     )
     done = json.loads((out / "metrics.json").read_text())
     assert done["stop_reason"] == "patience" and done["epoch"] == 2, done
