@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from drgan.data import profile as est
-from drgan.data.images import list_images, read_grey, read_split
+from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particles import (
     CONSISTENT,
     MIN_SEPARABILITY,
@@ -87,7 +87,7 @@ def resolve_split(folder: Path, split) -> Path | None:
     if split is None or str(split) in ("", "none", "null"):
         return None
     if str(split) == "auto":
-        return next((p for p in (folder / "split.json", folder.parent / "split.json") if p.is_file()), None)
+        return default_split(folder)
     path = Path(str(split)).expanduser()
     if not path.is_file():
         raise ConfigError(f"profile: data.split={split}: no such file (expected a split.json, auto or null)")

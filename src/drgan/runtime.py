@@ -35,9 +35,17 @@ def instantiate_callbacks(cfg: DictConfig | None) -> list:
     return sorted(callbacks, key=lambda c: not isinstance(c, ResumeCheckpoint))  # stable: the rest keep their order
 
 
-def instantiate_loggers(cfg: DictConfig | None, output_dir: Path, resume: bool, tags: dict) -> list:
+MLFLOW_PARENT_TAG = "mlflow.parentRunId"  # MLflow's own tag: the UI nests a run under this one
+
+
+def instantiate_loggers(
+    cfg: DictConfig | None, output_dir: Path, resume: bool, tags: dict, parent_run: str | None = None
+) -> list:
     """Loggers of the `logger` group, built without contacting a tracking store (see ``start_loggers``). An MLflow
-    logger keeps its run id in the run folder: a resumed run continues its own MLflow run."""
+    logger keeps its run id in the run folder: a resumed run continues its own MLflow run. ``parent_run``: the MLflow
+    run (e.g. a drgan.pipeline run) this run is a stage of; the UI shows it nested there."""
+    if parent_run:
+        tags = {**tags, MLFLOW_PARENT_TAG: str(parent_run)}
     from hydra.utils import instantiate
 
     from drgan.loggers import MLFlowLogger, store_lock

@@ -162,7 +162,9 @@ def segment(cfg: DictConfig) -> dict:
 
     ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
     tags = {"name": str(cfg.name), "output_dir": str(out), **{str(t): "1" for t in cfg.get("tags") or []}}
-    loggers = instantiate_loggers(cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags)
+    loggers = instantiate_loggers(
+        cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags, parent_run=cfg.get("parent_run")
+    )
     # last.ckpt at every epoch end (ResumeCheckpoint), before validation-free epoch-end work; ModelCheckpoint keeps
     # the latest epoch's file.
     checkpoint = ModelCheckpoint(

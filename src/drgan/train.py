@@ -86,7 +86,9 @@ def train(cfg: DictConfig) -> dict:
         )
     tags = {"material": str(cfg.material.name), "output_dir": str(output_dir)}
     tags.update({str(t): "1" for t in cfg.get("tags") or []})
-    loggers = instantiate_loggers(cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags)
+    loggers = instantiate_loggers(
+        cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags, parent_run=cfg.get("parent_run")
+    )
     callbacks = instantiate_callbacks(cfg.get("callbacks"))
     for callback in callbacks:  # e.g. the FID network's file and hash: before mining, not at the first FID
         getattr(callback, "check_ready", lambda: None)()

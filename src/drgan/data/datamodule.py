@@ -18,7 +18,7 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
-from drgan.data.images import list_images, read_grey, read_split
+from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particles import ScaleEstimate, resolve_params
 from drgan.data.patches import (
     PatchSet,
@@ -152,10 +152,7 @@ class RealPatchDataModule(LightningDataModule):
         if self.split is None or self.split in ("", "none", "null"):
             return None
         if self.split == "auto":
-            for candidate in (self.dir / "split.json", self.dir.parent / "split.json"):
-                if candidate.is_file():
-                    return candidate
-            return None
+            return default_split(self.dir)
         return Path(self.split)
 
     def resolve_ids(self) -> tuple[list[Path], list[str], list[str]]:

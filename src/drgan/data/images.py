@@ -228,6 +228,16 @@ def list_images(folder: str | Path, ids: Sequence[str] | None = None) -> list[Pa
     return [by_stem[s][0] for s in stems]
 
 
+SPLIT_FILE = "split.json"
+
+
+def default_split(folder: str | Path) -> Path | None:
+    """The split file of an image folder found by ``split: auto``: ``folder/split.json``, else one beside the folder
+    (``folder/../split.json``, as in DATASET/images + DATASET/split.json), else None (every image trains)."""
+    folder = Path(folder)
+    return next((p for p in (folder / SPLIT_FILE, folder.parent / SPLIT_FILE) if p.is_file()), None)
+
+
 def read_split(path: str | Path) -> dict[str, list[str]]:
     """A split file: a JSON object mapping split names to lists of image ids (strings).
 

@@ -6,10 +6,11 @@ drgan.segmentation.module):
 - generated data (`python -m drgan.generate`): the items DIR/manifest.json lists, images/ID.png + masks/ID.png
   (classes; 255 on the particles of partial backgrounds), read through drgan.dataset; a folder of such pairs
   without a manifest (made by hand) is paired by file name, and a folder that is neither is refused, naming it;
-- real annotated data: DATASET/images/ID.<ext> and binary masks (0/255, or 0/1) DATASET/masks/ID<suffix>.<ext>
-  (suffix "_m" as in the TiO2 SEM set, or none as in TSEM; `mask_suffix`); a mask has its image's size, or
-  the size left after the image's info bar is cropped (TSEM publishes its masks so). Instances are the
-  4-connected components, turned into classes with `class_mask(labels, contour_px)`.
+- real annotated data: DATASET/images/ID.<ext> and binary masks (0/255, or 0/1) or instance maps (0 background,
+  one id per particle, e.g. 16-bit) DATASET/masks/ID<suffix>.<ext> (suffix "_m" as in the TiO2 SEM set, or none as
+  in TSEM; `mask_suffix`); a mask has its image's size, or the size left after the image's info bar is cropped
+  (TSEM publishes its masks so). Instances are a binary mask's 4-connected components or an instance map's ids,
+  turned into classes with `class_mask(labels, contour_px)`.
 Every pair is checked (sizes, mask values) before any training or evaluation starts.
 """
 
@@ -108,7 +109,10 @@ def binary_mask(raw: np.ndarray, path: Path) -> np.ndarray:
     allowed = {0, 255} if values.max(initial=0) > 1 else {0, 1}
     bad = sorted(set(values.tolist()) - allowed)
     if bad:
-        raise DataError(f"mask {path}: unexpected values {bad[:5]} (expected a binary mask of 0 and 255, or 0 and 1)")
+        raise DataError(
+            f"mask {path}: unexpected values {bad[:5]} (expected a binary mask of 0 and 255, or 0 and 1; an instance "
+            "map with one id per particle is read from a 16-bit image)"
+        )
     return raw > 0
 
 
@@ -116,6 +120,30 @@ def instance_labels(particle: np.ndarray) -> np.ndarray:
     """4-connected components of a binary mask (int32, 0 = background)."""
     labels, _ = ndimage.label(particle, structure=_FOUR_CONNECTED)
     return labels.astype(np.int32)
+
+
+def is_instance_map(raw: np.ndarray) -> bool:
+    """Whether an annotation holds one id per particle (0 background, 1..N; a 16- or 32-bit label image, as Cellpose,
+    CVAT or the EMPS set write them) rather than a binary mask. An 8-bit file is always read as a binary mask: grey
+    values there are more often a resampled or compressed binary mask's edges than particle ids."""
+    raw = np.asarray(raw)
+    if raw.dtype == bool or raw.dtype.itemsize < 2:
+        return False
+    values = set(np.unique(raw).tolist())
+    return not (values <= {0, 255} or values <= {0, 1})
+
+
+def mask_instances(raw: np.ndarray, path: Path) -> np.ndarray:
+    """Instance labels (int32, 0 background, 1..N) of an annotation: a binary mask (0/255 or 0/1) as its
+    4-connected components (touching particles drawn apart), an instance map as its own ids, renumbered 1..N
+    (touching particles stay apart however they touch)."""
+    if not is_instance_map(raw):
+        return instance_labels(binary_mask(raw, path))
+    if raw.min() < 0:
+        raise DataError(f"mask {path}: negative values (expected 0 background and one positive id per particle)")
+    ids, labels = np.unique(raw, return_inverse=True)
+    labels = labels.reshape(raw.shape).astype(np.int32)
+    return labels if ids[0] == 0 else labels + 1  # id 0 (background) first when present
 
 
 MASK_SUFFIXES = ("_m", "")  # mask_suffix=auto tries these, in order
@@ -136,9 +164,12 @@ def real_mask_path(masks_dir: Path, image_id: str, mask_suffix: str | None = "au
 
 
 def real_ids(data_dir: Path, split: str | Path | None, subset: str, setting: str = "real") -> list[str]:
-    """Ids of one subset ('train' or 'test') of a real dataset folder (images/, masks/, split.json).
-    setting: the command-line key that named the folder, for the message when it is missing."""
+    """Ids of one subset ('train' or 'test') of a real dataset folder (images/, masks/, split.json), or of every
+    image in images/ (subset 'all': no split file needed). setting: the command-line key that named the folder,
+    for the message when it is missing."""
     data_dir = check_dataset_folder(data_dir, setting, REAL_DATASET)
+    if subset == "all":
+        return [p.stem for p in list_images(data_dir / "images")]
     split_path = Path(split) if split else data_dir / "split.json"
     ids = read_split(split_path)
     if subset not in ids:
@@ -208,7 +239,7 @@ def load_real_items(
                 item.file_shape, raw.shape, image_path, mask_path, cropped=item.image.shape if item.rows else None
             )
             raw = drop_mask_rows(raw, item.rows, mask_path)
-        out.append((item, instance_labels(binary_mask(raw, mask_path))))
+        out.append((item, mask_instances(raw, mask_path)))
     return out
 
 

@@ -1,0 +1,266 @@
+"""What a drgan.pipeline run chose and found, read back from the files its stages wrote: one summary per stage
+(``stage_summary``: a line for the console, numbers for MLflow, the rest for the report) and ``report.md``
+(``write_report``), which links every stage's figures and says what each stage chose and why."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+
+from drgan.io import write_bytes
+
+
+def _json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text()) if path.is_file() else {}
+    except json.JSONDecodeError:
+        return {}
+
+
+def _number(value, fmt: str = "{:.3f}") -> str:
+    return fmt.format(value) if isinstance(value, (int, float)) and math.isfinite(value) else "n/a"
+
+
+def _profile(folder: Path) -> dict:
+    p = _json(folder / "profile.json")
+    if not p:
+        return {}
+    sizes, polarity, material = p.get("sizes", {}), p.get("polarity", {}), p.get("material", {})
+    pixel = p.get("pixel_size") or {}
+    return {
+        "line": f"{polarity.get('value')} particles, median diameter {_number(sizes.get('median_diameter_px'), '{:.1f}')}"
+        f" px ({sizes.get('chosen')}), material from {material.get('parent')}",
+        "metrics": {
+            "profile/median_diameter_px": sizes.get("median_diameter_px"),
+            "profile/particles": (p.get("segmentation") or {}).get("particles"),
+        },
+        "polarity": polarity.get("value"),
+        "median_diameter_px": sizes.get("median_diameter_px"),
+        "size_model": sizes.get("chosen"),
+        "parent": material.get("parent"),
+        "scale_px": (p.get("segmentation") or {}).get("scale_px"),
+        "nm_per_px": pixel.get("nm_per_px"),
+        "pixel_size_source": pixel.get("source"),
+        "images": (p.get("data") or {}).get("images"),
+    }
+
+
+def _train(folder: Path) -> dict:
+    metrics, best = _json(folder / "metrics.json"), _json(folder / "checkpoints" / "best_epoch.json")
+    grey = _json(folder / "grey_start.json")
+    if not metrics:
+        return {}
+    ok = best.get("brightness_ok")
+    line = (
+        f"stopped ({metrics.get('stop_reason')}) after epoch {metrics.get('epoch', 0) - 1}; best epoch "
+        f"{best.get('epoch')}, FID {_number(best.get('fid'), '{:.1f}')}, grey "
+        + ("in range" if ok else "OUT of the real range" if ok is not None else "unchecked")
+    )
+    return {
+        "line": line,
+        "metrics": {"train/best_fid": best.get("fid"), "train/best_epoch": best.get("epoch")},
+        "stop_reason": metrics.get("stop_reason"),
+        "stop_message": metrics.get("stop_message"),
+        "epochs": metrics.get("epoch"),
+        "steps": metrics.get("global_step"),
+        "best_epoch": best.get("epoch"),
+        "fid": best.get("fid"),
+        "brightness_ok": ok,
+        "particle_brightness": best.get("particle_brightness"),
+        "background_brightness": best.get("background_brightness"),
+        "grey_start": {k: grey.get(k) for k in ("real", "first", "last", "steps")} if grey else None,
+    }
+
+
+def _generate(folder: Path) -> dict:
+    manifest = _json(folder / "manifest.json")
+    counts = manifest.get("counts") or {}
+    if not counts:
+        return {}
+    config = manifest.get("config") or {}
+    return {
+        "line": f"{counts.get('synthetic')} pairs ({counts.get('dropped')} dropped), {counts.get('background')} "
+        f"background + {counts.get('partial_background')} partial background windows",
+        "metrics": {"generate/pairs": counts.get("synthetic"), "generate/dropped": counts.get("dropped")},
+        "counts": counts,
+        "grey_spread": config.get("grey_spread"),
+        "spp": config.get("spp"),
+    }
+
+
+def _segment(folder: Path) -> dict:
+    metrics = _json(folder / "metrics.json")
+    if not metrics:
+        return {}
+    calibration = metrics.get("split_calibration") or {}
+    return {
+        "line": f"{metrics.get('epoch')} epochs ({metrics.get('stop_reason')}), val DSC "
+        f"{_number(metrics.get('val/dsc'))}, split depth {calibration.get('split_depth')} core "
+        f"{calibration.get('split_core')}",
+        "metrics": {"segment/val_dsc": metrics.get("val/dsc"), "segment/epochs": metrics.get("epoch")},
+        "val_dsc": metrics.get("val/dsc"),
+        "stop_reason": metrics.get("stop_reason"),
+        "settled": metrics.get("settled"),
+        "split": {k: calibration.get(k) for k in ("split_depth", "split_core", "ap50")} if calibration else None,
+    }
+
+
+def _rows(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def _analyze(folder: Path) -> dict:
+    rows = _rows(folder / "particles.csv")
+    if not (folder / "particles.csv").is_file():
+        return {}
+    diameters = sorted(float(r["equivalent_diameter_px"]) for r in rows if r.get("equivalent_diameter_px"))
+    median = diameters[len(diameters) // 2] if diameters else math.nan
+    images = len({r["image"] for r in rows})
+    nm = [float(r["equivalent_diameter_nm"]) for r in rows if r.get("equivalent_diameter_nm")]
+    median_nm = sorted(nm)[len(nm) // 2] if nm else None
+    return {
+        "line": f"{len(rows)} particles in {images} images, median diameter {_number(median, '{:.1f}')} px"
+        + (f" ({median_nm:.1f} nm)" if median_nm else ""),
+        "metrics": {"analyze/particles": len(rows), "analyze/median_diameter_px": median},
+        "particles": len(rows),
+        "median_diameter_px": median,
+        "median_diameter_nm": median_nm,
+    }
+
+
+def _evaluate(folder: Path) -> dict:
+    means = [r for r in _rows(folder / "results.csv") if r.get("image") == "mean"]
+    if not means:
+        return {}
+    scores = {k: float(means[0][k]) for k in ("dsc", "ap50", "pq") if means[0].get(k)}
+    stats = {r["statistic"]: float(r["value"]) for r in _rows(folder / "statistics.csv") if r.get("run") == "run0"}
+    line = f"DSC {_number(scores.get('dsc'))}, AP50 {_number(scores.get('ap50'))}, PQ {_number(scores.get('pq'))}"
+    if "median_error" in stats:
+        line += f"; median diameter {100 * stats['median_error']:+.1f} %, count {100 * stats['count_error']:+.1f} %"
+    return {
+        "line": line,
+        "metrics": {f"evaluate/{k}": v for k, v in scores.items()}
+        | {f"evaluate/{k}": stats[k] for k in ("median_error", "count_error") if k in stats},
+        "scores": scores,
+        "statistics": {k: stats[k] for k in ("median_error", "count_error", "ks", "w1") if k in stats},
+    }
+
+
+SUMMARIES = {"profile": _profile, "train": _train, "generate": _generate, "segment": _segment,
+             "analyze": _analyze, "evaluate": _evaluate}  # fmt: skip
+
+
+def stage_summary(stage: str, folder: Path, settings=None) -> dict:
+    """What one finished stage wrote, read back: {"line": ..., "metrics": {...}, ...} ({} when nothing is there)."""
+    return SUMMARIES[stage](Path(folder))
+
+
+# --- report.md ---------------------------------------------------------------------------------------------
+
+LINKS = {
+    "profile": [("report", "report.md"), ("outlines found", "particles.png"), ("sizes", "sizes.png"),
+                ("scale search", "scale_search.png"), ("edge profile", "edge_profile.png")],
+    "train": [("real patches", "patches/contact_sheet.png"), ("FID per evaluation", "plots/fid.png"),
+              ("best epoch and why", "checkpoints/best_epoch.json"), ("grey start", "grey_start.json")],
+    "generate": [("manifest (kept, dropped, why)", "manifest.json"), ("images", "images"), ("masks", "masks")],
+    "segment": [("metrics and split calibration", "metrics.json"), ("log", "segment.log")],
+    "analyze": [("particles", "particles.csv"), ("size distribution", "histograms.png"), ("overlays", "overlays")],
+    "evaluate": [("scores", "results.md"), ("statistics", "statistics.md"), ("sizes", "sizes.png"),
+                 ("overlays", "overlays")],
+}  # fmt: skip
+
+WHAT = {
+    "profile": "reads the images (train ids only), detects the polarity, segments the particles classically and writes "
+    "the material: sizes, particles per patch, placement, noise, the edge",
+    "train": "trains the GAN with that material; an evaluation (FID, grey levels) every 67 steps; the best epoch is "
+    "the broadest among the lowest FIDs whose grey matches the real patches'",
+    "generate": "renders annotated pairs from the best epoch, each image's grey levels those of one real patch "
+    "(grey_spread), and adds real background windows",
+    "segment": "trains the segmenter on the pairs and chooses its touching-particle split on held-out pairs",
+    "analyze": "segments every image of the folder and measures each particle",
+    "evaluate": "scores the segmenter on the annotated images (never used for anything else)",
+}
+
+
+def _relative(path: Path, root: Path) -> str:
+    return os.path.relpath(path, root)
+
+
+def _train_details(summary: dict) -> list[str]:
+    lines = []
+    if summary.get("stop_message"):
+        lines.append(f"- why it stopped: {summary['stop_message']}")
+    if summary.get("particle_brightness") is not None:
+        lines.append(
+            f"- the chosen epoch's grey / the real patches': particles {_number(summary['particle_brightness'])} x, "
+            f"background {_number(summary['background_brightness'])} x"
+            + ("" if summary.get("brightness_ok") else " (outside the range the real patches span: see the log)")
+        )
+    grey = summary.get("grey_start")
+    if grey and grey.get("real"):
+        lines.append(
+            "- grey start: "
+            + ", ".join(
+                f"{k} {_number((grey.get('first') or {}).get(k))} -> {_number((grey.get('last') or {}).get(k))} "
+                f"(real {_number(grey['real'].get(k))})"
+                for k in ("particle", "background", "noise")
+            )
+            + f" in {grey.get('steps')} steps"
+        )
+    return lines
+
+
+def write_report(settings, state: dict, stages) -> None:
+    """report.md of the pipeline folder: per stage what it does, its state, time, result line, links, command."""
+    out = settings.out
+    lines = [
+        f"# drgan pipeline `{settings.name}`",
+        "",
+        f"Images: `{settings.data_dir}` ({(state.get('inputs') or {}).get('images')} images, "
+        f"{(state.get('inputs') or {}).get('training_images')} of them train the profile and the GAN)"
+        + (f"; scored against `{settings.annotated}`" if settings.annotated else "")
+        + ".",
+        "",
+        "Rerun the same command to resume; `redo=STAGE` runs a stage and the later ones again. Each stage's folder is "
+        "what its own command writes (`python -m drgan.STAGE`, the command below), so any stage can be rerun by hand.",
+        "",
+        "| stage | state | time | result |",
+        "|---|---|---|---|",
+    ]
+    for stage in stages:
+        record = (state.get("stages") or {}).get(stage.name, {})
+        summary = record.get("summary") or {}
+        seconds = record.get("seconds")
+        time_text = "" if seconds is None else (f"{seconds / 60:.1f} min" if seconds >= 120 else f"{seconds:.0f} s")
+        lines.append(
+            f"| [{stage.name}](#{stage.name}) | {record.get('state', 'to do')} | {time_text} | {summary.get('line', '')} |"
+        )
+    for stage in stages:
+        record = (state.get("stages") or {}).get(stage.name, {})
+        summary = record.get("summary") or {}
+        lines += ["", f"## {stage.name}", "", WHAT[stage.name] + "."]
+        if summary.get("line"):
+            lines += ["", f"**{summary['line']}**"]
+        if stage.name == "train":
+            lines += [""] + _train_details(summary) if _train_details(summary) else []
+        if stage.name == "profile" and summary.get("parent"):
+            lines += [
+                "",
+                f"- the material: `{_relative(out / 'drgan_conf' / 'material' / (settings.name + '.yaml'), out)}` "
+                f"(inherits `{summary['parent']}`; every measured key says why it was set)",
+                f"- pixel size: {summary.get('nm_per_px') or 'unknown'} nm/px ({summary.get('pixel_size_source')})",
+            ]
+        links = [
+            f"[{label}]({_relative(stage.folder / rel, out)})" for label, rel in LINKS[stage.name]
+            if (stage.folder / rel).exists()
+        ]  # fmt: skip
+        if links:
+            lines += ["", "Look at: " + ", ".join(links) + "."]
+        lines += ["", "```", f"python -m {stage.module} " + " ".join(stage.recorded()), "```"]
+    write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode())
