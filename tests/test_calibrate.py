@@ -103,7 +103,11 @@ def test_auto_settings_come_from_the_checkpoint_or_the_uncalibrated_defaults(tmp
         "calibrated on 7 validation pairs",
     )
     settings, note = resolve_auto(inference, None, "model=old.ckpt")
-    assert settings == {"tile": 32, **UNCALIBRATED} and note == "uncalibrated defaults"
+    assert settings == {"tile": 32, "split_depth": 1.0, "split_core": 0.95} and note == "uncalibrated defaults"
+    # the instance-aware segmenter's seed level: its calibration's, else 0.5
+    centres = {"split": "centres", "seed_level": 0.4, "split_depth": 1.0, "split_core": 0.95, "n_pairs": 3}
+    assert resolve_auto({"seed_level": "auto"}, centres)[0] == {"seed_level": 0.4}
+    assert resolve_auto({"seed_level": "auto"}, calibration)[0] == {"seed_level": UNCALIBRATED["seed_level"]}
     assert "model=old.ckpt" in caplog.text and "no split calibration" in caplog.text
     fixed = {"split_depth": 3.0, "split_core": None}
     assert resolve_auto(fixed, calibration) == (fixed, "")  # numbers given are kept

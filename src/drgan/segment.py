@@ -62,9 +62,10 @@ def loader_settings(cfg: DictConfig) -> dict:
     }
 
 
-def dataloaders(cfg: DictConfig, pairs, normalize: str = "none"):
+def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool = False):
     """Train and validation loaders of the pairs; ``normalize``: the segmenter's input normalisation, which its
-    training crops get as its inference will (``input_normalization``)."""
+    training crops get as its inference will (``input_normalization``); ``centres``: the crops carry centre-map
+    targets too (an instance-aware segmenter, ``needs_centres``)."""
     from torch.utils.data import DataLoader
 
     from drgan.segmentation.data import CropDataset, crops_by_area, split_pairs
@@ -82,6 +83,7 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none"):
         contrast=ld["contrast"],
         seed=ld["seed"],
         normalize=normalize,
+        centres=centres,
     )
     crops = CropDataset(train_pairs, augment=True, samples_per_pair=per_pair, **kw)
     train = DataLoader(
@@ -156,7 +158,7 @@ def segment(cfg: DictConfig) -> dict:
     model = build_segmenter(cfg.model, "model")
     pairs = load_training_pairs(cfg)
     train_loader, val_loader, n_train, n_val = dataloaders(
-        cfg, pairs, str(getattr(model, "input_normalization", "none"))
+        cfg, pairs, str(getattr(model, "input_normalization", "none")), bool(getattr(model, "needs_centres", False))
     )
     out.mkdir(parents=True, exist_ok=True)
 
@@ -253,11 +255,15 @@ def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) 
         log.warning("split calibration skipped: %s", error)
         return None
     add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
+    chosen = (
+        f"seed_level {calibration['seed_level']}"
+        if calibration.get("split") == "centres"
+        else f"split_depth {calibration['split_depth']}, split_core {calibration['split_core']}"
+    )
     log.info(
-        "split chosen on %d validation pairs: split_depth %s, split_core %s (AP50 %.3f); stored in %s\n%s",
+        "split chosen on %d validation pairs: %s (AP50 %.3f); stored in %s\n%s",
         calibration["n_pairs"],
-        calibration["split_depth"],
-        calibration["split_core"],
+        chosen,
         calibration["ap50"],
         last,
         markdown_table(calibration),

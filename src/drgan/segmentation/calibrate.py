@@ -27,8 +27,13 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_KEY = "drgan_split"
 # the defaults of evaluate/analyze for a checkpoint that has no calibration (chosen on TiO2 SEM train images)
-UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95}
-GRID_DEFAULTS = {"cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98], "depths": [1.0, 2.0], "max_pairs": 100}
+UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95, "seed_level": 0.5}
+GRID_DEFAULTS = {
+    "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
+    "depths": [1.0, 2.0],
+    "levels": [0.3, 0.4, 0.5, 0.6, 0.7],  # the instance-aware segmenter's seed levels (drgan.segmentation.instances)
+    "max_pairs": 100,
+}
 TIE = 0.002  # AP50 differences below this are ties: the earlier (more lenient) grid setting wins
 
 
@@ -41,8 +46,14 @@ def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | 
         raise ConfigError(f"{name}: unknown key(s) {sorted(unknown)}; expected {sorted(GRID_DEFAULTS)}")
     settings = {**GRID_DEFAULTS, **dict(grid)}
     cores, depths = list(settings["cores"] or []), list(settings["depths"] or [])
-    if not cores or not depths:
-        raise ConfigError(f"{name}: cores and depths need at least one value each (got {cores}, {depths})")
+    levels = list(settings["levels"] or [])
+    if not cores or not depths or not levels:
+        raise ConfigError(
+            f"{name}: cores, depths and levels need at least one value each (got {cores}, {depths}, {levels})"
+        )
+    for level in levels:
+        if isinstance(level, bool) or not (isinstance(level, (int, float)) and 0.0 < level < 1.0):
+            raise ConfigError(f"{name}.levels: {level!r} is not a centre-map level in (0, 1)")
     for core in cores:
         if core is not None and not (isinstance(core, (int, float)) and 0.0 < core < 1.0):
             raise ConfigError(f"{name}.cores: {core!r} is not a particle probability in (0, 1) or null (the argmax)")
@@ -55,6 +66,7 @@ def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | 
     return {
         "cores": [None if c is None else float(c) for c in cores],
         "depths": [float(d) for d in depths],
+        "levels": [float(v) for v in levels],
         "max_pairs": max_pairs,
     }
 
@@ -62,10 +74,12 @@ def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | 
 def calibrate_split(
     model, pairs: Sequence, grid: Mapping | None = None, split_smooth: float = 1.0, progress: bool = False, **predict_kw
 ) -> dict:
-    """Score every (depth, core) of ``grid`` on ``pairs`` (images with their class masks); return the best setting
-    with its pooled AP50 and the whole table. The network runs once per pair; only the split is repeated."""
+    """Score every (depth, core) of ``grid`` on ``pairs`` (images with their class masks), or every seed level for
+    the instance-aware segmenter (its split "centres"); return the best setting with its pooled AP50 and the whole
+    table. The network runs once per pair; only the split is repeated."""
     from drgan.metrics.segmentation import binarize_and_label, match_instances
-    from drgan.segmentation.inference import predict_probs, split_touching
+    from drgan.segmentation.inference import predict_probs, split_of, split_touching
+    from drgan.segmentation.instances import split_by_centres
 
     settings = check_grid(grid if grid is not None else {})
     if not pairs:
@@ -80,23 +94,38 @@ def calibrate_split(
     for pair in iterator:
         probs.append(predict_probs(model, pair.image, **predict_kw))
         truths.append(binarize_and_label(pair.mask))  # the particle class's 4-connected components
+    centres = split_of(model) == "centres"
+    if centres:
+        candidates = [
+            ({"seed_level": level}, lambda p, v=level: split_by_centres(p, v)) for level in settings["levels"]
+        ]
+    else:
+        candidates = [
+            (
+                {"split_depth": depth, "split_core": core},
+                lambda p, d=depth, c=core: split_touching(p, d, split_smooth, c),
+            )
+            for depth in settings["depths"]
+            for core in settings["cores"]
+        ]
     table = []
-    for depth in settings["depths"]:
-        for core in settings["cores"]:
-            tp = fp = fn = 0
-            for p, truth in zip(probs, truths):
-                match = match_instances(binarize_and_label(split_touching(p, depth, split_smooth, core)), truth)
-                tp, fp, fn = tp + match.tp, fp + match.fp, fn + match.fn
-            ap50 = tp / (tp + fp + fn) if tp + fp + fn else math.nan
-            table.append({"split_depth": depth, "split_core": core, "ap50": ap50, "tp": tp, "fp": fp, "fn": fn})
+    for setting, split in candidates:
+        tp = fp = fn = 0
+        for p, truth in zip(probs, truths):
+            match = match_instances(binarize_and_label(split(p)), truth)
+            tp, fp, fn = tp + match.tp, fp + match.fp, fn + match.fn
+        ap50 = tp / (tp + fp + fn) if tp + fp + fn else math.nan
+        table.append({**setting, "ap50": ap50, "tp": tp, "fp": fp, "fn": fn})
     scored = [row for row in table if not math.isnan(row["ap50"])]
     if not scored:
         raise ValueError("calibrate_split: the validation pairs hold no particles and no prediction found any")
     top = max(row["ap50"] for row in scored)
     best = next(row for row in scored if row["ap50"] >= top - TIE)
+    chosen_setting = {"split": "centres", "seed_level": best["seed_level"]} if centres else {"split": "watershed"}
     return {
-        "split_depth": best["split_depth"],
-        "split_core": best["split_core"],
+        **chosen_setting,
+        "split_depth": best.get("split_depth", UNCALIBRATED["split_depth"]),
+        "split_core": best.get("split_core", UNCALIBRATED["split_core"]),
         "split_smooth": float(split_smooth),
         "ap50": best["ap50"],
         "n_pairs": len(chosen),
@@ -118,6 +147,9 @@ def stored_split(checkpoint: Mapping, source: str = "checkpoint") -> dict | None
             entry.get("split_core") is None or (isinstance(entry["split_core"], float) and 0 < entry["split_core"] < 1)
         )
     )
+    level = entry.get("seed_level") if isinstance(entry, Mapping) else None
+    if level is not None and not (isinstance(level, float) and 0 < level < 1):
+        ok = False
     if not ok:
         log.warning("%s: its %s entry is not a split calibration; ignored", source, CHECKPOINT_KEY)
         return None
@@ -133,7 +165,7 @@ def resolve_auto(inference: Mapping, calibration: Mapping | None, source: str = 
         return settings, ""
     if calibration is not None:
         for key in auto:
-            settings[key] = calibration[key]
+            settings[key] = calibration.get(key, UNCALIBRATED[key])
         return settings, f"calibrated on {calibration.get('n_pairs', '?')} validation pairs"
     log.warning(
         "%s: inference %s=auto but the checkpoint holds no split calibration (trained before drgan.segment chose "
@@ -149,8 +181,19 @@ def resolve_auto(inference: Mapping, calibration: Mapping | None, source: str = 
 
 
 def markdown_table(calibration: Mapping) -> str:
-    """The calibration grid as a markdown table (depth rows, core columns, AP50)."""
+    """The calibration grid as a markdown table (depth rows, core columns, AP50; a seed level row for the
+    instance-aware segmenter)."""
     rows = calibration["table"]
+    if calibration.get("split") == "centres":
+        levels = [row["seed_level"] for row in rows]
+        cells = [
+            f"**{row['ap50']:.3f}**" if row["seed_level"] == calibration["seed_level"] else f"{row['ap50']:.3f}"
+            for row in rows
+        ]
+        return "\n".join(
+            ["| seed level | " + " | ".join(f"{v:g}" for v in levels) + " |", "|" + "---|" * (len(levels) + 1),
+             "| AP50 | " + " | ".join(cells) + " |"]
+        )  # fmt: skip
     cores = list(dict.fromkeys(row["split_core"] for row in rows))
     depths = list(dict.fromkeys(row["split_depth"] for row in rows))
     head = "| depth \\ core | " + " | ".join("argmax" if c is None else f"{c:g}" for c in cores) + " |"

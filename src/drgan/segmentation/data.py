@@ -27,7 +27,7 @@ from torch.utils.data import Dataset
 from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split, resolve_crop_rows
 from drgan.dataset.manifest import image_mask_pairs
 from drgan.errors import ConfigError, DataError
-from drgan.scene.labels import BACKGROUND, CONTOUR, IGNORE, PARTICLE, class_mask
+from drgan.scene.labels import BACKGROUND, CONTOUR, IGNORE, PARTICLE, centre_distance, class_mask
 
 _FOUR_CONNECTED = ndimage.generate_binary_structure(2, 1)
 
@@ -56,6 +56,15 @@ class Pair:
     id: str
     image: np.ndarray  # float32 (H, W) in [0, 1]
     mask: np.ndarray  # uint8 (H, W) classes {0, 1, 2}, and IGNORE (255) where no class is known
+    labels: np.ndarray | None = (
+        None  # int (H, W) instance ids (0 background) where known: generated labels/, real masks
+    )
+
+    def instances(self) -> np.ndarray:
+        """Instance ids: ``labels``, else the particle class's 4-connected components (a hand-made pair)."""
+        if self.labels is not None:
+            return self.labels
+        return instance_labels(self.mask == PARTICLE)
 
 
 def read_raw_mask(path: Path, crop_rows=None) -> np.ndarray:
@@ -256,7 +265,7 @@ def load_real_pairs(
     data_dir, ids, contour_px: int, crop_rows="auto", mask_suffix: str | None = "auto", masks: str = "masks"
 ) -> list[Pair]:
     return [
-        Pair(i, img, class_mask(lab, contour_px))
+        Pair(i, img, class_mask(lab, contour_px), lab)
         for i, img, lab in load_real(data_dir, ids, crop_rows, mask_suffix, masks)
     ]
 
@@ -279,7 +288,11 @@ def load_generated_pairs(data_dir, setting: str = "data") -> list[Pair]:
                 f"mask {mask_path}: unexpected values {bad[:5]} (expected classes 0 background, 1 particle, "
                 f"2 contour, or {IGNORE} ignore)"
             )
-        pairs.append(Pair(item, image, mask.astype(np.uint8)))
+        labels_path = mask_path.parent.parent / "labels" / mask_path.name  # a generated set's exact instances
+        labels = read_raw_mask(labels_path).astype(np.int32) if labels_path.is_file() else None
+        if labels is not None and labels.shape != mask.shape:
+            raise DataError(f"labels {labels_path}: size {labels.shape} differs from its mask's {mask.shape}")
+        pairs.append(Pair(item, image, mask.astype(np.uint8), labels))
     return pairs
 
 
@@ -293,6 +306,11 @@ def split_pairs(pairs: list[Pair], val_fraction: float, seed: int) -> tuple[list
     order = np.random.default_rng(seed).permutation(len(pairs))
     val = {int(i) for i in order[:n_val]}
     return [p for k, p in enumerate(pairs) if k not in val], [p for k, p in enumerate(pairs) if k in val]
+
+
+def centre_map(pair: Pair) -> np.ndarray:
+    """The centre-map target of a pair (drgan.segmentation.instances.centre_distance of its instances), float16."""
+    return centre_distance(pair.instances()).astype(np.float16)
 
 
 def crops_by_area(pairs: list[Pair], crop: int) -> list[int]:
@@ -324,6 +342,7 @@ class CropDataset(Dataset):
         contrast: float = 0.1,
         seed: int = 0,
         normalize: str = "none",
+        centres: bool = False,
     ):
         if not pairs:
             raise DataError("segmentation dataset: no image/mask pairs")
@@ -337,6 +356,8 @@ class CropDataset(Dataset):
         self.brightness, self.contrast, self.seed = brightness, contrast, seed
         mode = check_normalize(normalize, "loader normalize")
         self.stats = [normalization(p.image, mode) for p in pairs]  # (shift, scale) of each whole image
+        # centre-map targets of whole images (their particles' extents), cut like the masks (an instance-aware segmenter)
+        self.centres = [centre_map(p) for p in pairs] if centres else None
 
     def __len__(self) -> int:
         return len(self.owner)
@@ -346,27 +367,33 @@ class CropDataset(Dataset):
         pair, (shift, scale) = self.pairs[owner], self.stats[owner]
         rng = np.random.default_rng() if self.augment else np.random.default_rng((self.seed, index))
         image, mask = pair.image, pair.mask
+        maps = [image, mask] + ([self.centres[owner]] if self.centres is not None else [])
         c = self.crop
         h, w = image.shape
         if h < c or w < c:
             pad = ((0, max(c - h, 0)), (0, max(c - w, 0)))
-            image, mask = np.pad(image, pad, mode="reflect"), np.pad(mask, pad, mode="reflect")
-            h, w = image.shape
+            maps = [np.pad(m, pad, mode="reflect") for m in maps]
+            h, w = maps[0].shape
         if self.augment:
             y, x = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
         else:
             y, x = (h - c) // 2, (w - c) // 2
-        image, mask = image[y : y + c, x : x + c], mask[y : y + c, x : x + c]
+        maps = [m[y : y + c, x : x + c] for m in maps]
         if self.augment:
             k = int(rng.integers(0, 8))
-            image, mask = np.rot90(image, k % 4), np.rot90(mask, k % 4)
+            maps = [np.rot90(m, k % 4) for m in maps]
             if k >= 4:
-                image, mask = image[:, ::-1], mask[:, ::-1]
+                maps = [m[:, ::-1] for m in maps]
+        image, mask = maps[0], maps[1]
+        if self.augment:
             mean = float(image.mean())
             c = rng.uniform(1 - self.contrast, 1 + self.contrast)
             image = np.clip((image - mean) * c + mean + rng.uniform(-self.brightness, self.brightness), 0.0, 1.0)
         image = (image - shift) / scale
-        return (
+        sample = (
             torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None],
             torch.from_numpy(np.ascontiguousarray(mask).astype(np.int64)),
         )
+        if self.centres is None:
+            return sample
+        return (*sample, torch.from_numpy(np.ascontiguousarray(maps[2], dtype=np.float32)))

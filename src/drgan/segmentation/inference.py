@@ -28,7 +28,7 @@ import torch
 from drgan.errors import ConfigError, DataError, check_keys
 from drgan.segmentation.data import normalization
 
-SPLITS = ("watershed", "none")
+SPLITS = ("auto", "watershed", "centres", "none")  # auto: the segmenter's own (`split_of`)
 
 
 def gaussian_weight(tile: int, sigma_fraction: float = 0.125) -> torch.Tensor:
@@ -76,13 +76,23 @@ def predict_probs(
     for k in range(0, len(corners), batch_size):
         chunk = corners[k : k + batch_size]
         batch = torch.stack([src[y : y + tile, x : x + tile] for y, x in chunk])[:, None]
-        probs = model(batch).softmax(dim=1)
+        output = model(batch)
+        probs = model.probabilities(output) if hasattr(model, "probabilities") else output.softmax(dim=1)
         if acc is None:
             acc = torch.zeros(probs.shape[1], ph, pw)
         for (y, x), p in zip(chunk, probs):
             acc[:, y : y + tile, x : x + tile] += p * weight
             norm[y : y + tile, x : x + tile] += weight
     return (acc / norm)[:, :h, :w].numpy()
+
+
+def split_of(model, split: str = "auto") -> str:
+    """The split a segmenter's class maps get: ``split`` as given, or for "auto" the model's own
+    (``instance_split``: "centres" for the instance-aware segmenter, drgan.segmentation.instances), else the
+    distance-transform watershed."""
+    if split != "auto":
+        return split
+    return getattr(model, "instance_split", "watershed")
 
 
 def check_split(split: str, split_depth: float, split_smooth: float, split_core: float | None = None) -> None:
@@ -150,20 +160,33 @@ def split_touching(
 def predict(
     model: torch.nn.Module,
     image: np.ndarray,
-    split: str = "watershed",
+    split: str = "auto",
     split_depth: float = 2.0,
     split_smooth: float = 1.0,
     split_core: float | None = None,
+    seed_level: float = 0.5,
     **kw,
 ) -> np.ndarray:
     """(H, W) image -> (H, W) uint8 class map (0 background, 1 particle, 2 contour).
 
-    split="watershed": touching particles cut apart (``split_touching``); "none": the network's argmax."""
+    split="watershed": touching particles cut apart (``split_touching``); "centres": seeded by the instance-aware
+    segmenter's centre map above ``seed_level`` (drgan.segmentation.instances.split_by_centres); "none": the
+    network's argmax; "auto": the model's own (`split_of`)."""
     check_split(split, split_depth, split_smooth, split_core)
+    split = split_of(model, split)
     probs = predict_probs(model, image, **kw)
+    if split == "centres":
+        from drgan.segmentation.instances import split_by_centres
+
+        if probs.shape[0] != 4:
+            raise ConfigError(
+                "inference.split=centres: this segmenter has no centre map (only drgan.segmentation.instances."
+                "CentreSegmenterModule has); use split=watershed or auto"
+            )
+        return split_by_centres(probs, seed_level)
     if split == "none":
-        return probs.argmax(axis=0).astype(np.uint8)
-    return split_touching(probs, split_depth, split_smooth, split_core)
+        return probs[:3].argmax(axis=0).astype(np.uint8)
+    return split_touching(probs[:3], split_depth, split_smooth, split_core)
 
 
 def make_predictor(model: torch.nn.Module, inference: dict):

@@ -141,6 +141,11 @@ class SegmenterModule(L.LightningModule):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
 
+    @staticmethod
+    def probabilities(output: torch.Tensor) -> torch.Tensor:
+        """Network output (B, 3, H, W) -> class probabilities (what `predict_probs` blends over tiles)."""
+        return output.softmax(dim=1)
+
     def _losses(self, batch):
         image, mask = batch
         logits = self(image)

@@ -46,7 +46,7 @@ __all__ = [
 
 ENTRY_POINT_GROUP = "drgan.segmenters"
 # Modules whose import registers drgan's own segmenters; a lookup imports them (constant names, never a file's).
-BUILTIN_MODULES = ("drgan.segmentation.module",)
+BUILTIN_MODULES = ("drgan.segmentation.module", "drgan.segmentation.instances")
 EXPECTED = "a segmenter checkpoint written by `python -m drgan.segment`"
 
 _REGISTRY: dict[str, type] = {}

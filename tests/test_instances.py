@@ -1,0 +1,177 @@
+"""The instance-aware segmenter (drgan.segmentation.instances): its centre-map targets from hand-made instance maps,
+exactly against a brute-force distance; its split on hand-made probabilities; a few training steps through
+drgan.segment, drgan.evaluate and drgan.analyze; instance maps as annotations."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import compose
+from PIL import Image
+from test_segment import disc_image, disc_labels, eval_cfg, make_real, tiny_segment_overrides
+
+from drgan.errors import ConfigError
+from drgan.scene.labels import centre_distance, class_mask
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def brute_centre_distance(labels: np.ndarray) -> np.ndarray:
+    """The target by definition: per particle pixel, the distance to the nearest pixel of another id, where the
+    image is extended past its border by repeating its edge (a cut particle goes on); over the particle's maximum."""
+    h, w = labels.shape
+    pad = max(h, w)
+    extended = np.pad(labels, pad, mode="edge")
+    ys, xs = np.mgrid[: extended.shape[0], : extended.shape[1]]
+    out = np.zeros(labels.shape)
+    for k in np.unique(labels[labels > 0]):
+        other_y, other_x = ys[extended != k], xs[extended != k]
+        py, px = np.nonzero(labels == k)
+        d = np.sqrt((py[:, None] + pad - other_y[None]) ** 2 + (px[:, None] + pad - other_x[None]) ** 2).min(axis=1)
+        out[py, px] = d / d.max()
+    return out
+
+
+def touching_pair() -> np.ndarray:
+    labels = np.zeros((14, 22), np.int32)
+    yy, xx = np.mgrid[:14, :22]
+    labels[(yy - 7) ** 2 + (xx - 6) ** 2 <= 25] = 1
+    labels[((yy - 7) ** 2 + (xx - 14) ** 2 <= 25) & (labels == 0)] = 2  # they touch along column 10-11
+    return labels
+
+
+def ring() -> np.ndarray:
+    yy, xx = np.mgrid[:21, :21]
+    r2 = (yy - 10) ** 2 + (xx - 10) ** 2
+    return ((r2 <= 64) & (r2 > 16)).astype(np.int32)
+
+
+def cut_by_the_border() -> np.ndarray:
+    labels = np.zeros((12, 16), np.int32)
+    yy, xx = np.mgrid[:12, :16]
+    labels[(yy - 0) ** 2 + (xx - 8) ** 2 <= 36] = 1  # a disc whose centre lies on the top row: its lower half
+    return labels
+
+
+@pytest.mark.parametrize("make", [touching_pair, ring, cut_by_the_border])
+def test_centre_targets_equal_their_definition_on_hand_made_instance_maps(make):
+    labels = make()
+    np.testing.assert_allclose(centre_distance(labels), brute_centre_distance(labels), atol=1e-6)
+
+
+def test_centre_targets_fall_to_the_contact_line_and_peak_on_each_core():
+    labels = touching_pair()
+    target = centre_distance(labels)
+    assert target[labels == 1].max() == 1.0 and target[labels == 2].max() == 1.0 and target[6, 6] > 0.8  # cores
+    row = target[7]
+    contact = int(np.argmin(row[7:15])) + 7
+    assert row[contact] <= 0.25 and 9 <= contact <= 11  # the valley where they touch
+    assert row[6] > 3 * row[contact] and row[14] > 3 * row[contact]
+    ring_target = centre_distance(ring())
+    across = ring_target[10, 2:6]  # radius 8 (outer edge) to 5 (inner edge)
+    assert ring_target[10, 10] == 0 and across.argmax() in (1, 2) and across.max() >= 2 * max(across[0], across[-1])
+    cut = centre_distance(cut_by_the_border())
+    assert cut[0, 8] == 1.0  # the border is no boundary: the core lies on it
+
+
+def _probs(labels: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    particle = labels > 0
+    probs = np.zeros((4, *labels.shape), np.float32)
+    probs[0], probs[1], probs[3] = np.where(particle, 0.05, 0.9), np.where(particle, 0.9, 0.05), centre
+    probs[2] = 1 - probs[0] - probs[1]
+    return probs
+
+
+def test_split_by_centres_separates_touching_particles_the_class_map_merges():
+    from drgan.metrics.segmentation import binarize_and_label, match_instances
+    from drgan.segmentation.instances import split_by_centres
+
+    truth = touching_pair()
+    probs = _probs(truth, centre_distance(truth))  # the classes merge them; the centre map has two cores
+    assert binarize_and_label(probs[:3].argmax(0).astype(np.int64)).max() == 1
+    found = binarize_and_label(split_by_centres(probs, 0.5).astype(np.int64))
+    match = match_instances(found, truth, 0.5)
+    assert (match.tp, match.fp, match.fn) == (2, 0, 0) and match.ious.min() > 0.8
+    flat = _probs(truth, np.where(truth > 0, 0.9, 0.0))  # no valley: one seed, one particle
+    assert binarize_and_label(split_by_centres(flat, 0.5).astype(np.int64)).max() == 1
+    with pytest.raises(ConfigError, match="seed_level"):
+        split_by_centres(probs, 1.5)
+
+
+def make_generated_with_labels(folder: Path, n: int = 6, size: int = 32) -> Path:
+    for d in ("images", "masks", "labels"):
+        (folder / d).mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        labels = disc_labels(size, n=4, seed=i)
+        Image.fromarray((disc_image(labels, i) * 255).astype(np.uint8)).save(folder / "images" / f"{i:03d}.png")
+        Image.fromarray(class_mask(labels, 1)).save(folder / "masks" / f"{i:03d}.png")
+        Image.fromarray(labels.astype(np.uint8)).save(folder / "labels" / f"{i:03d}.png")
+    return folder
+
+
+def test_the_crops_carry_the_centre_targets_of_the_whole_image_cut_and_turned_with_the_mask(tmp_path):
+    from drgan.segmentation.data import CropDataset, load_generated_pairs
+
+    pairs = load_generated_pairs(make_generated_with_labels(tmp_path / "g"))
+    assert pairs[0].labels is not None and pairs[0].labels.max() >= 1
+    crops = CropDataset(pairs, crop=24, augment=True, centres=True, seed=0)
+    image, mask, centre = crops[0]
+    assert image.shape == (1, 24, 24) and mask.shape == centre.shape == (24, 24)
+    # the target is 0 exactly off the particles and positive on them, whatever flip and rotation the crop got
+    assert torch.all((centre > 0) == (mask > 0))
+    plain = CropDataset(pairs, crop=24, augment=False)
+    assert len(plain[0]) == 2  # a U-Net's crops as before
+
+
+def test_a_few_training_steps_through_segment_evaluate_and_analyze(tmp_path):
+    from drgan.analyze import analyze
+    from drgan.evaluate import evaluate
+    from drgan.segment import segment
+    from drgan.segmentation.registry import load_segmenter
+
+    data = make_generated_with_labels(tmp_path / "gen")
+    out = tmp_path / "run"
+    overrides = tiny_segment_overrides(
+        data, tmp_path, out, "logger=none", "trainer.max_epochs=2",
+        "model._target_=drgan.segmentation.instances.CentreSegmenterModule", "+model.distance_weight=5.0",
+    )  # fmt: skip
+    metrics = segment(compose(overrides, config_name="segment"))
+    assert "train/centre_mse" in metrics and np.isfinite(metrics["val/loss"])
+    calibration = json.loads((out / "metrics.json").read_text())["split_calibration"]
+    assert calibration["split"] == "centres" and calibration["seed_level"] in (0.3, 0.4, 0.5, 0.6, 0.7)
+    assert len(calibration["table"]) == 5
+    model = load_segmenter(out / "checkpoints" / "last.ckpt")
+    assert model.instance_split == "centres" and model.split_calibration["seed_level"] == calibration["seed_level"]
+
+    labels = disc_labels(40, n=4, seed=7)
+    real = make_real(tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255},
+                     {"train": [], "test": ["x"]})  # fmt: skip
+    last = out / "checkpoints" / "last.ckpt"
+    result = evaluate(eval_cfg(real, tmp_path / "eval", [f"model={last}", "inference.tile=32"]))
+    assert 0.0 <= result["mean"]["dsc"] <= 1.0
+    assert f"seed_level {calibration['seed_level']}" in (tmp_path / "eval" / "results.md").read_text()
+    rows = analyze(compose([f"images={real / 'images'}", f"out={tmp_path / 'an'}", f"model={last}",
+                            "inference.tile=32"], config_name="analyze"))  # fmt: skip
+    assert (tmp_path / "an" / "particles.csv").is_file() and isinstance(rows, list)
+
+
+def test_an_instance_map_annotation_keeps_touching_particles_apart(tmp_path):
+    import tifffile
+
+    from drgan.segmentation.data import load_real_items
+
+    labels = touching_pair().astype(np.uint16) * 300  # ids 300 and 600: a 16-bit instance map
+    folder = tmp_path / "real"
+    for d in ("images", "masks"):
+        (folder / d).mkdir(parents=True)
+    tifffile.imwrite(folder / "images" / "a.tif", (disc_image(labels > 0) * 255).astype(np.uint8))
+    tifffile.imwrite(folder / "masks" / "a.tif", labels)
+    (item, found), = load_real_items(folder, ["a"])  # fmt: skip
+    assert found.max() == 2 and ((found > 0) == (labels > 0)).all()
+    # the same particles as a binary mask: touching, so one 4-connected component
+    tifffile.imwrite(folder / "masks" / "a.tif", ((labels > 0) * 255).astype(np.uint8))
+    assert load_real_items(folder, ["a"])[0][1].max() == 1

@@ -1,0 +1,266 @@
+"""drgan.pipeline: settings routed to their stage, inputs refused before any stage runs, resuming after a kill between
+and inside stages, and (slow) a tiny real pipeline whose stage outputs equal the single commands'."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from drgan import pipeline
+from drgan.errors import ConfigError, DataError, DrganError
+
+
+def images_folder(folder: Path, n: int = 3, seed: int = 0) -> Path:
+    """Bright discs on a dark film, 64 px: enough for the checks that read images (no stage runs on them here)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        image = (0.2 + 0.02 * rng.standard_normal((64, 64))).clip(0, 1)
+        image[20:30, 20:30] = 0.8
+        Image.fromarray((image * 255).astype(np.uint8)).save(folder / f"im{i}.png")
+    return folder
+
+
+# --- settings ----------------------------------------------------------------------------------------------
+
+
+def test_stage_keys_are_routed_to_their_stage_and_replace_the_configs_defaults(tmp_path):
+    s = pipeline.parse_settings(
+        [
+            f"data.dir={tmp_path}",
+            "name=mine",
+            "train.callbacks.early_stopping.max_minutes=30",  # replaces the pipeline config's 90
+            "segment.model.normalize=none",
+            "+generate.shard=0/2",
+            "~train.callbacks.sample_grid",
+            "annotated=/x/y",
+        ]
+    )
+    assert s.name == "mine" and s.out == (Path("runs/pipeline") / "mine").resolve() and s.annotated == Path("/x/y")
+    assert s.stages["train"] == {"callbacks.early_stopping.max_minutes": "30", "~callbacks.sample_grid": None}
+    assert s.stages["segment"] == {"model.normalize": "none"}
+    assert s.stages["generate"] == {"renderer.spp": "16", "+shard": "0/2"}
+    stages = {st.name: st for st in pipeline.build_stages(s, parent_run="abc")}
+    assert (
+        "model.normalize=none" in stages["segment"].settings and "model.normalize=none" not in stages["train"].settings
+    )
+    assert "~callbacks.sample_grid" in stages["train"].settings and "+shard=0/2" in stages["generate"].settings
+    assert "parent_run=abc" in stages["train"].wired and "parent_run=abc" in stages["segment"].wired
+    assert stages["evaluate"].wired[1] == "data=/x/y" and "subset=all" in stages["evaluate"].wired  # no split.json
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["name=mine"], "give data.dir"),
+        (["data.dir=/d", "name=my run"], "name='my run'"),
+        (["data.dir=/d", "name=m", "trian.seed=1"], "trian.seed: not a setting"),
+        (["data.dir=/d", "name=m", "redo=trian"], "redo='trian'"),
+        (["data.dir=/d", "name=m", "train.hydra.run.dir=/elsewhere"], "train.hydra.run.dir is set by the pipeline"),
+        (["data.dir=/d", "name=m", "segment"], "expected KEY=VALUE"),
+    ],
+)
+def test_bad_settings_are_refused_with_the_key_named(argv, match):
+    with pytest.raises(ConfigError, match=match):
+        pipeline.parse_settings(argv)
+
+
+# --- inputs, before any stage runs --------------------------------------------------------------------------
+
+
+@pytest.fixture
+def no_stage_runs(monkeypatch):
+    calls = []
+    monkeypatch.setattr(pipeline, "run_stage", lambda stage, env=None: calls.append(stage.name) or 0)
+    return calls
+
+
+def settings(tmp_path, *extra):
+    return pipeline.parse_settings(
+        [f"data.dir={tmp_path / 'images'}", "name=t", f"out={tmp_path / 'out'}", "mlflow=false", *extra]
+    )
+
+
+def test_a_bad_folder_is_refused_before_any_stage_runs(tmp_path, no_stage_runs):
+    with pytest.raises(DataError, match="no such folder"):
+        pipeline.run(settings(tmp_path))
+    (tmp_path / "images").mkdir()
+    with pytest.raises(DataError, match="holds no image files"):
+        pipeline.run(settings(tmp_path))
+    assert no_stage_runs == [] and not (tmp_path / "out").exists()
+
+
+def test_a_typo_in_a_stage_key_fails_in_seconds_not_after_the_gan(tmp_path, no_stage_runs):
+    images_folder(tmp_path / "images")
+    with pytest.raises(ConfigError, match="segment settings.*do not fit drgan.segment"):
+        pipeline.run(settings(tmp_path, "segment.modle.lr=0.1"))
+    assert no_stage_runs == []
+
+
+def test_annotated_images_that_train_are_refused(tmp_path, no_stage_runs):
+    images_folder(tmp_path / "images")
+    annotated = tmp_path / "annotated"
+    images_folder(annotated / "images", n=2, seed=7)
+    (annotated / "masks").mkdir()
+    shutil.copy(tmp_path / "images" / "im1.png", annotated / "images" / "copy.png")  # the same file, renamed
+    with pytest.raises(DataError, match="1 of its scored image.*training images too"):
+        pipeline.run(settings(tmp_path, f"annotated={annotated}"))
+    assert no_stage_runs == []
+    # The same folder with a split.json whose train ids leave that image out: it is only scored, never trained on.
+    (tmp_path / "split.json").write_text(json.dumps({"train": ["im0", "im2"], "test": ["im1"]}))
+    assert pipeline.check_inputs(settings(tmp_path, f"annotated={annotated}"))["training_images"] == 2
+
+
+# --- resuming (the stages faked: each writes its done file, or is "killed") -----------------------------------
+
+
+class FakeStages:
+    """Stands in for the stage processes: records each command, writes the stage's done file, and can be told to
+    die in a stage (after writing a last.ckpt, as a killed drgan.train leaves one)."""
+
+    def __init__(self, monkeypatch):
+        self.calls: list[list[str]] = []
+        self.die_in: str | None = None
+        monkeypatch.setattr(pipeline, "run_stage", self)
+        monkeypatch.setattr(pipeline, "check_stage_settings", lambda s: None)
+
+    def __call__(self, stage, env=None):
+        self.calls.append([stage.name, *stage.command()[3:]])
+        if stage.name == self.die_in:
+            (stage.folder / "checkpoints").mkdir(parents=True, exist_ok=True)
+            (stage.folder / "checkpoints" / "last.ckpt").write_bytes(b"x")
+            return -signal.SIGKILL
+        stage.done_file.parent.mkdir(parents=True, exist_ok=True)
+        stage.done_file.write_text("{}")
+        return 0
+
+    def names(self):
+        return [c[0] for c in self.calls]
+
+
+def test_a_rerun_skips_done_stages_and_resumes_the_killed_one(tmp_path, monkeypatch):
+    images_folder(tmp_path / "images")
+    fake = FakeStages(monkeypatch)
+    fake.die_in = "segment"
+    with pytest.raises(DrganError, match="stage segment failed"):
+        pipeline.run(settings(tmp_path), echo=lambda line: None)
+    assert fake.names() == ["profile", "train", "generate", "segment"]
+    state = json.loads((tmp_path / "out" / "pipeline.json").read_text())["stages"]
+    assert [state[s]["state"] for s in ("profile", "train", "generate", "segment")] == ["done"] * 3 + ["failed"]
+
+    fake.calls, fake.die_in = [], None
+    lines = []
+    pipeline.run(settings(tmp_path), echo=lines.append)
+    assert fake.names() == ["segment", "analyze"]  # done stages skipped
+    assert "ckpt_path=last" in fake.calls[0]  # the killed segmenter resumes from its checkpoint
+    assert any("[2/5] train: done" in line and "skipped" in line for line in lines)
+    assert (tmp_path / "out" / "report.md").is_file()
+
+    fake.calls = []
+    pipeline.run(settings(tmp_path), echo=lambda line: None)
+    assert fake.calls == []  # everything done: nothing runs again
+
+
+def test_changed_settings_of_a_done_stage_stop_the_rerun_and_redo_runs_it_again(tmp_path, monkeypatch):
+    images_folder(tmp_path / "images")
+    fake = FakeStages(monkeypatch)
+    pipeline.run(settings(tmp_path), echo=lambda line: None)
+    fake.calls = []
+    with pytest.raises(ConfigError, match=r"stage segment is done with other settings \(now model.normalize=none\)"):
+        pipeline.run(settings(tmp_path, "segment.model.normalize=none"), echo=lambda line: None)
+    assert fake.calls == []
+    pipeline.run(settings(tmp_path, "segment.model.normalize=none", "redo=segment"), echo=lambda line: None)
+    assert fake.names() == ["segment", "analyze"] and "model.normalize=none" in fake.calls[0]
+
+
+def test_two_pipelines_on_one_folder_are_refused(tmp_path):
+    with pipeline.folder_lock(tmp_path / "out"):
+        with pytest.raises(ConfigError, match="another drgan.pipeline is running"):
+            with pipeline.folder_lock(tmp_path / "out"):
+                pass
+
+
+# --- the real thing, tiny (slow) ---------------------------------------------------------------------------
+
+TINY = [
+    "train.renderer.resolution=24", "train.renderer.spp=1", "train.data.view_width=null",
+    "train.material.n_particles=3", "train.material.n_particles_min=1", "train.material.meshes.count=3",
+    "train.data.stride=16", "train.data.min_particles=1", "train.data.n_background=2",
+    "train.callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}",
+    "train.callbacks.fid.n_images=4", "+train.callbacks.fid.kid_subsets=5", "train.callbacks.best_epoch.n_phi=20",
+    "train.callbacks.histograms.n_phi=20", "train.callbacks.sample_grid.n=2", "train.trainer.max_epochs=1",
+    "train.data.steps_per_epoch=2", "train.callbacks.grey_start.steps=2", "train.trainer.accelerator=cpu",
+    "generate.n=60", "generate.n_background=1", "generate.renderer.spp=1", "generate.min_contrast=1.0",
+    "segment.trainer.max_epochs=1", "segment.loader.crop=16", "segment.split_calibration=null",
+    "segment.trainer.enable_progress_bar=false", "analyze.inference.tile=64",
+]  # fmt: skip
+
+
+def _run_pipeline(cwd: Path, argv: list[str], wait: bool = True):
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "drgan.pipeline", *argv]
+    if wait:
+        return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
+    return subprocess.Popen(command, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _images(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted((folder / "images").glob("*.png"))}
+
+
+@pytest.mark.slow  # a whole tiny pipeline (~1 min) plus a killed and resumed generation and one stage by hand
+def test_a_tiny_pipeline_killed_inside_a_stage_resumes_to_the_single_commands_result(tmp_path):
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_profile import synthetic
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    rng = np.random.default_rng(4)
+    for i in range(3):
+        Image.fromarray((synthetic("bright", rng)[0] * 255).round().astype(np.uint8)).save(folder / f"im{i}.png")
+    argv = [f"data.dir={folder}", "name=tiny", f"out={tmp_path / 'run'}", "mlflow=false", *TINY]
+    done = _run_pipeline(tmp_path, argv)
+    assert done.returncode == 0, done.stderr[-3000:]
+    run = tmp_path / "run"
+    state = json.loads((run / "pipeline.json").read_text())
+    assert [state["stages"][s]["state"] for s in pipeline.STAGES[:5]] == ["done"] * 5
+    assert "[5/5] analyze: done" in done.stdout and (run / "analyze" / "particles.csv").is_file()
+    reference = _images(run / "generate")
+
+    # Killed while generating (a SIGKILL of the pipeline takes its stage along), then rerun: the same pairs.
+    process = _run_pipeline(tmp_path, [*argv, "redo=generate"], wait=False)
+    deadline = time.time() + 300
+
+    def generating() -> bool:  # the redo has removed the old pairs and the stage has written some new ones
+        record = json.loads((run / "pipeline.json").read_text())["stages"].get("generate", {})
+        return record.get("state") == "running" and len(list((run / "generate" / "images").glob("syn_*.png"))) >= 3
+
+    while time.time() < deadline and not generating():
+        time.sleep(0.02)
+    process.kill()
+    process.wait()
+    time.sleep(1.0)  # the stage dies with its parent
+    partial = len(list((run / "generate" / "images").glob("syn_*.png")))
+    assert 3 <= partial < len([k for k in reference if k.startswith("syn_")])
+    again = _run_pipeline(tmp_path, argv)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "[3/5] generate: resuming" in again.stdout and "[2/5] train: done" in again.stdout
+    assert _images(run / "generate") == reference
+
+    # The stage's command as the report prints it, run by hand into another folder: the same pairs.
+    generate = json.loads((run / "pipeline.json").read_text())["stages"]["generate"]["args"]
+    by_hand = [a if not a.startswith("out=") else f"out={tmp_path / 'by_hand'}" for a in generate]
+    single = subprocess.run([sys.executable, "-m", "drgan.generate", *by_hand], cwd=tmp_path, capture_output=True,
+                            text=True, timeout=600)  # fmt: skip
+    assert single.returncode == 0, single.stderr[-3000:]
+    assert _images(tmp_path / "by_hand") == reference
