@@ -78,8 +78,7 @@ def calibrate_split(
     the instance-aware segmenter (its split "centres"); return the best setting with its pooled AP50 and the whole
     table. The network runs once per pair; only the split is repeated."""
     from drgan.metrics.segmentation import binarize_and_label, match_instances
-    from drgan.segmentation.inference import predict_probs, split_of, split_touching
-    from drgan.segmentation.instances import split_by_centres
+    from drgan.segmentation.inference import predict_probs, split_by_centres, split_of, split_touching
 
     settings = check_grid(grid if grid is not None else {})
     if not pairs:

@@ -157,6 +157,38 @@ def split_touching(
     return separate_regions(labels)
 
 
+def split_by_centres(probs: np.ndarray, seed_level: float = 0.5, min_seed_px: int = 2) -> np.ndarray:
+    """(4, H, W) probabilities (3 classes, then the instance-aware segmenter's centre map) -> (H, W) uint8 class map
+    whose particle class holds one 4-connected region per particle: the foreground (particle + contour > 0.5) flooded
+    over the negative centre map from its pieces above ``seed_level`` (drgan.segmentation.instances). Seeds smaller
+    than ``min_seed_px`` pixels are noise."""
+    from scipy import ndimage
+    from skimage.segmentation import watershed
+
+    probs = np.asarray(probs)
+    if probs.ndim != 3 or probs.shape[0] != 4:
+        raise DataError(f"split_by_centres: expected (4, H, W) class and centre probabilities, got {probs.shape}")
+    check_seed_level(seed_level)
+    foreground = probs[1] + probs[2] > 0.5
+    centre = probs[3]
+    seeds, n = ndimage.label((centre > seed_level) & foreground)
+    if n == 0:
+        return np.zeros(foreground.shape, np.uint8)
+    sizes = np.bincount(seeds.ravel())
+    small = sizes < min_seed_px
+    small[0] = False
+    if small.any():
+        seeds[small[seeds]] = 0
+    labels = watershed(-centre, seeds, mask=foreground)
+    return separate_regions(labels)
+
+
+def check_seed_level(seed_level) -> float:
+    if isinstance(seed_level, bool) or not isinstance(seed_level, (int, float)) or not 0.0 < seed_level < 1.0:
+        raise ConfigError(f"inference.seed_level={seed_level!r}: expected a centre-map level in (0, 1)")
+    return float(seed_level)
+
+
 def predict(
     model: torch.nn.Module,
     image: np.ndarray,
@@ -176,8 +208,6 @@ def predict(
     split = split_of(model, split)
     probs = predict_probs(model, image, **kw)
     if split == "centres":
-        from drgan.segmentation.instances import split_by_centres
-
         if probs.shape[0] != 4:
             raise ConfigError(
                 "inference.split=centres: this segmenter has no centre map (only drgan.segmentation.instances."

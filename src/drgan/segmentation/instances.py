@@ -16,7 +16,7 @@ is no boundary (as in drgan.scene.labels' contour class). drgan's generated pair
 U-Net's Dice + cross-entropy on the classes, plus ``distance_weight`` x the mean squared error of the sigmoid centre
 map, over the pixels whose mask is not IGNORE.
 
-**Inference** (`split_by_centres`): the foreground is where particle and contour probabilities sum over 0.5; the
+**Inference** (`drgan.segmentation.inference.split_by_centres`): the foreground is where particle and contour probabilities sum over 0.5; the
 seeds are the connected pieces of the predicted centre map above ``seed_level`` (inside the foreground); the
 foreground is flooded from them over the negative centre map (watershed), and neighbouring regions are separated by a
 1-px contour line (`drgan.segmentation.inference.separate_regions`), so that drgan.evaluate and drgan.analyze read its
@@ -26,50 +26,17 @@ validation pairs (drgan.segmentation.calibrate), as the U-Net's split is.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
-from scipy import ndimage
 
-from drgan.errors import ConfigError, DataError
+from drgan.errors import ConfigError
 from drgan.scene.labels import IGNORE, centre_distance
 from drgan.segmentation.module import SegmenterModule, contact_pixels, cross_entropy, soft_dice_loss
 from drgan.segmentation.registry import register_segmenter
 from drgan.segmentation.unet import UNet
 
-__all__ = ["CentreSegmenterModule", "centre_distance", "split_by_centres"]
+__all__ = ["CentreSegmenterModule", "centre_distance"]
 
 SPLIT = "centres"  # the module's own split (inference.split: auto picks it)
-
-
-def split_by_centres(probs: np.ndarray, seed_level: float = 0.5, min_seed_px: int = 2) -> np.ndarray:
-    """(4, H, W) probabilities (3 classes, then the centre map) -> (H, W) uint8 class map whose particle class holds
-    one 4-connected region per particle (module docstring). Seeds smaller than ``min_seed_px`` pixels are noise."""
-    from skimage.segmentation import watershed
-
-    from drgan.segmentation.inference import separate_regions
-
-    probs = np.asarray(probs)
-    if probs.ndim != 3 or probs.shape[0] != 4:
-        raise DataError(f"split_by_centres: expected (4, H, W) class and centre probabilities, got {probs.shape}")
-    check_seed_level(seed_level)
-    foreground = probs[1] + probs[2] > 0.5
-    centre = probs[3]
-    seeds, n = ndimage.label((centre > seed_level) & foreground)
-    if n == 0:
-        return np.zeros(foreground.shape, np.uint8)
-    sizes = np.bincount(seeds.ravel())
-    small = sizes < min_seed_px
-    small[0] = False
-    if small.any():
-        seeds[small[seeds]] = 0
-    labels = watershed(-centre, seeds, mask=foreground)
-    return separate_regions(labels)
-
-
-def check_seed_level(seed_level) -> float:
-    if isinstance(seed_level, bool) or not isinstance(seed_level, (int, float)) or not 0.0 < seed_level < 1.0:
-        raise ConfigError(f"inference.seed_level={seed_level!r}: expected a centre-map level in (0, 1)")
-    return float(seed_level)
 
 
 @register_segmenter
