@@ -1,15 +1,29 @@
-"""`python -m drgan.analyze model=CKPT images=DIR out=DIR [nm_per_px=...] [wires=true]`: particle statistics.
+"""`python -m drgan.analyze model=CKPT images=DIR out=DIR`: the particle statistics a paper reports.
 
 ``model``: a segmenter checkpoint, or a folder of predicted masks named like the images (e.g. nnU-Net's output
-folder; drgan.segmentation.predictors). Each image -> class map (a checkpoint: sliding windows) -> particle class (contour separates touching particles) ->
-4-connected instances. Writes:
-- particles.csv: one row per particle: id, image, area_px, equivalent_diameter_px (diameter of the disk of
-  equal area, 2 sqrt(area / pi)), centroid_y/x, bbox (min_row, min_col, max_row, max_col; max exclusive),
-  touches_border, and area_nm2 / equivalent_diameter_nm when nm_per_px is given;
-- histograms.png: area and equivalent diameter;
-- wires=true: thickness/ID.png (local-thickness map over the image) and thickness_histogram.png.
-  Local thickness of a pixel = diameter of the largest disk inside the particle (particle + contour class)
-  that contains the pixel, computed with the `localthickness` package (its output is a radius, doubled here).
+folder; drgan.segmentation.predictors). Each image -> class map (a checkpoint: sliding windows and the segmenter's
+own split of touching particles) -> particle class -> 4-connected instances, measured exactly as drgan.evaluate
+measures a prediction (drgan.metrics.statistics): components under ``min_area_px`` are specks (neither counted nor
+sized); particles cut by the image border are counted but not sized (a cut particle's area is not its size).
+
+The pixel size: ``nm_per_px`` when given, else read from each image's metadata (a TIFF's microscope or resolution
+tags, drgan.data.profile.pixel_size_nm); images without one are measured in px (the log says which key to set
+before anything is predicted).
+
+Writes, in ``out``:
+- particles.csv: one row per particle: id, image, area_px, equivalent_diameter_px (2 sqrt(area / pi)),
+  axis_ratio, centroid_y/x, bbox (min_row, min_col, max_row, max_col; max exclusive), touches_border, sized (not cut
+  by the border), and area_nm2 / equivalent_diameter_nm with a pixel size;
+- statistics.md and summary.json: counts (total, per image, per area), median and mean diameter, the size
+  distribution's model (normal / lognormal / two-lognormal mixture by BIC, as the profile fits it) and its
+  parameters, each with a 95 % percentile bootstrap interval over images (images are the independent samples);
+- sizes.png: histogram of the sized particles with the fitted density, and the cumulative distribution;
+  histograms.png: area and diameter histograms;
+- overlays/ID.png: every image with each particle's outline (cut particles in another colour) and its id, to check
+  the outlines against the image;
+- wires=true: thickness/ID.png (local-thickness map) and thickness_histogram.png. Local thickness of a pixel =
+  diameter of the largest disk inside the particle (particle + contour class) that contains the pixel (the
+  `localthickness` package; its radius doubled).
 """
 
 from __future__ import annotations
@@ -17,7 +31,9 @@ from __future__ import annotations
 import csv
 import io
 import logging
+import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import hydra
@@ -25,19 +41,28 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.errors import ConfigError
-from drgan.io import figure_png, write_bytes
+from drgan.io import figure_png, write_bytes, write_json
 from drgan.metrics.segmentation import binarize_and_label
+from drgan.metrics.statistics import Particles, particles
 
 log = logging.getLogger(__name__)
+
+LEVEL = 0.95  # of the bootstrap intervals
+SAME_PIXEL = 0.01  # images whose metadata pixel sizes differ by less than this (relative) share one
+
+
+# --- particles -----------------------------------------------------------------------------------------------
 
 
 def particle_rows(
     image_id: str,
     labels: np.ndarray,
     nm_per_px: float | None = None,
-    min_area_px: int = 0,
+    min_area_px: float = 0,
     exclude_border: bool = False,
 ) -> list[dict]:
+    """One row per particle of an instance label image: the particles drgan.metrics.statistics counts (area >=
+    ``min_area_px``), in id order; ``exclude_border`` leaves cut particles out of the rows altogether."""
     from skimage.measure import regionprops
 
     h, w = labels.shape
@@ -48,11 +73,13 @@ def particle_rows(
         border = r0 == 0 or c0 == 0 or r1 == h or c1 == w
         if area < min_area_px or (exclude_border and border):
             continue
+        major, minor = float(region.axis_major_length), float(region.axis_minor_length)
         row = {
             "id": int(region.label),
             "image": image_id,
             "area_px": area,
             "equivalent_diameter_px": 2.0 * np.sqrt(area / np.pi),
+            "axis_ratio": major / minor if minor > 0 else math.inf,
             "centroid_y": float(region.centroid[0]),
             "centroid_x": float(region.centroid[1]),
             "bbox_min_row": r0,
@@ -60,11 +87,197 @@ def particle_rows(
             "bbox_max_row": r1,
             "bbox_max_col": c1,
             "touches_border": border,
+            "sized": not border,
         }
         if nm_per_px:
             row["area_nm2"] = area * nm_per_px**2
             row["equivalent_diameter_nm"] = row["equivalent_diameter_px"] * nm_per_px
         rows.append(row)
+    return rows
+
+
+def pixel_sizes(paths: Sequence[Path], given: float | None) -> tuple[list[float | None], str]:
+    """Per image its pixel size in nm (None: unknown) and where it came from: ``nm_per_px`` for all when given,
+    else each image's metadata; metadata sizes within SAME_PIXEL of their median are taken as that median."""
+    from drgan.data.profile import pixel_size_nm
+
+    if given is not None:
+        return [float(given)] * len(paths), f"nm_per_px={given} (given)"
+    found = [pixel_size_nm(p) for p in paths]
+    sizes = [s for s, _ in found]
+    known = [s for s in sizes if s is not None]
+    if not known:
+        return sizes, "unknown: no pixel size in the images' metadata (set nm_per_px=... for sizes in nm)"
+    median = float(np.median(known))
+    sizes = [median if s is not None and abs(s / median - 1) < SAME_PIXEL else s for s in sizes]
+    source = next(how for s, how in found if s is not None)
+    missing = sum(s is None for s in sizes)
+    note = f"{median:.4g} nm/px from the images' metadata ({source})"
+    if missing:
+        note += f"; {missing} image(s) without one are measured in px only (nm_per_px=... sets one for all)"
+    return sizes, note
+
+
+# --- statistics ------------------------------------------------------------------------------------------------
+
+
+def _sizes(images: Sequence[Particles], scales: Sequence[float]) -> np.ndarray:
+    return np.concatenate([p.whole().diameter * s for p, s in zip(images, scales)] or [np.zeros(0)])
+
+
+def _point(images: Sequence[Particles], scales: Sequence[float], areas: Sequence[float]) -> dict[str, float]:
+    d = _sizes(images, scales)
+    counts = np.array([p.count for p in images], float)
+    nan = math.nan
+    logd = np.log(d[d > 0])
+    return {
+        "count": float(counts.sum()),
+        "count_per_image": float(counts.mean()) if len(counts) else nan,
+        "count_per_area": float(counts.sum() / sum(areas)) if sum(areas) else nan,
+        "sized": float(len(d)),
+        "median_diameter": float(np.median(d)) if len(d) else nan,
+        "mean_diameter": float(np.mean(d)) if len(d) else nan,
+        "normal_mean": float(np.mean(d)) if len(d) else nan,
+        "normal_std": float(np.std(d)) if len(d) else nan,
+        "lognormal_median": float(np.exp(logd.mean())) if len(logd) else nan,
+        "lognormal_sigma": float(logd.std()) if len(logd) else nan,
+    }
+
+
+def size_statistics(
+    images: Sequence[Particles], scales: Sequence[float], areas: Sequence[float], n_boot: int = 1000, seed: int = 0
+) -> dict:
+    """Counts, median and mean diameter, normal and lognormal parameters (in the unit ``scales`` converts px to) of
+    the particles of ``images``, each {"value", "low", "high"} with a percentile bootstrap interval over images;
+    ``areas``: each image's area in the unit of the count per area. Plus the model the sizes fit best (BIC)."""
+    from drgan.data.profile import fit_sizes
+
+    value = _point(images, scales, areas)
+    result = {k: {"value": v, "low": math.nan, "high": math.nan} for k, v in value.items()}
+    if n_boot > 0 and len(images) > 1:
+        rng = np.random.default_rng(seed)
+        draws = {k: [] for k in value}
+        for _ in range(int(n_boot)):
+            pick = rng.integers(len(images), size=len(images))
+            for k, v in _point([images[i] for i in pick], [scales[i] for i in pick], [areas[i] for i in pick]).items():
+                draws[k].append(v)
+        tail = 100.0 * (1.0 - LEVEL) / 2.0
+        for k, values in draws.items():
+            values = np.asarray(values, float)
+            values = values[np.isfinite(values)]
+            if len(values):
+                result[k]["low"], result[k]["high"] = (float(x) for x in np.percentile(values, [tail, 100 - tail]))
+    d = _sizes(images, scales)
+    if len(d) >= 2:
+        fits, chosen = fit_sizes(d)
+        result["model"] = {"chosen": chosen.kind, "fits": [f.as_dict() for f in fits]}
+    else:
+        result["model"] = None
+    return result
+
+
+# --- the command ---------------------------------------------------------------------------------------------
+
+
+def _settings(cfg: DictConfig) -> tuple[float | None, float, int, int]:
+    if not cfg.get("images"):
+        raise ConfigError("analyze: give images=DIR (a folder of images)")
+    nm = cfg.get("nm_per_px")
+    if nm is not None and not (isinstance(nm, (int, float)) and not isinstance(nm, bool) and nm > 0):
+        raise ConfigError(f"analyze: nm_per_px={nm}: expected a positive pixel size")
+    min_area = cfg.get("min_area_px", 8)
+    if isinstance(min_area, bool) or not isinstance(min_area, (int, float)) or min_area < 0:
+        raise ConfigError(f"analyze: min_area_px={min_area!r}: expected an area in px^2 >= 0")
+    n_boot = cfg.get("bootstrap", 1000)
+    if isinstance(n_boot, bool) or not isinstance(n_boot, int) or n_boot < 0:
+        raise ConfigError(f"analyze: bootstrap={n_boot!r}: expected a number of resamples >= 0 (0: no intervals)")
+    bins = cfg.get("bins", 30)
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+        raise ConfigError(f"analyze: bins={bins!r}: expected a positive integer")
+    return (float(nm) if nm is not None else None), float(min_area), n_boot, bins
+
+
+def analyze(cfg: DictConfig, predictor=None) -> list[dict]:
+    """Analyse every image of cfg.images; returns the particle rows.
+    predictor: a Predictor or a function image -> class map, instead of cfg.model (tests)."""
+    from drgan.data.images import list_images
+    from drgan.segmentation.data import read_image_item
+    from drgan.segmentation.predictors import as_predictor, load_predictor
+
+    nm, min_area, n_boot, bins = _settings(cfg)
+    paths = list_images(cfg.images)
+    if predictor is None:
+        if not cfg.get("model"):
+            raise ConfigError(
+                "analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment) or a folder of "
+                "predicted masks named like the images"
+            )
+        predictor = load_predictor(cfg.model, cfg.inference)
+    else:
+        predictor = as_predictor(predictor, "predictor")
+    scales, pixel_note = pixel_sizes(paths, nm)
+    log.info("pixel size: %s", pixel_note)
+    crop = cfg.get("crop_rows")
+    crop = crop if crop is None or isinstance(crop, str) else tuple(crop)
+    items = [read_image_item(p, p.stem, crop) for p in paths]  # all read (and checked) before predicting
+    predictor.check(items)
+
+    out = Path(cfg.out)
+    rows, found, thickness_values = [], [], []
+    for item, scale in zip(items, scales):
+        class_map = np.asarray(predictor(item))
+        labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
+        mine = particles(labels).at_least(min_area)  # what drgan.evaluate counts and sizes
+        found.append(mine)
+        image_rows = particle_rows(item.id, labels, scale, min_area, bool(cfg.get("exclude_border", False)))
+        rows += image_rows
+        write_bytes(out / "overlays" / f"{item.id}.png", _overlay_png(item.image, labels, image_rows))
+        if cfg.get("wires"):
+            thick = local_thickness(class_map > 0)
+            thickness_values.append(thick[class_map > 0] * (scale or 1.0))
+            png = figure_png(lambda plt, im=item.image, t=thick, s=scale: _thickness_map(plt, im, t, s))
+            write_bytes(out / "thickness" / f"{item.id}.png", png)
+        log.info("%s: %d particles (%d cut by the border)", item.id, mine.count, int(mine.border.sum()))
+
+    in_nm = all(s is not None for s in scales)
+    unit = "nm" if in_nm else "px"
+    factors = [s if in_nm else 1.0 for s in scales]
+    area_unit = "µm²" if in_nm else "Mpx"
+    areas = [item.image.size * (f * f * 1e-6 if in_nm else 1e-6) for item, f in zip(items, factors)]
+    stats = size_statistics(found, factors, areas, n_boot, int(cfg.get("seed", 0)))
+    summary = {
+        "images": len(items),
+        "unit": unit,
+        "area_unit": area_unit,
+        "pixel_size": pixel_note,
+        "min_area_px": min_area,
+        "model": predictor.source,
+        "inference": predictor.how,
+        "statistics": stats,
+        "per_image": [
+            {"image": item.id, "count": p.count, "cut_by_border": int(p.border.sum()), "nm_per_px": s}
+            for item, p, s in zip(items, found, scales)
+        ],
+    }
+    write_bytes(out / "particles.csv", _csv(rows).encode())
+    write_json(out / "summary.json", summary)
+    write_bytes(out / "statistics.md", statistics_markdown(summary).encode())
+    write_bytes(out / "sizes.png", figure_png(lambda plt: _size_figure(plt, _sizes(found, factors), stats, unit, bins)))
+    write_bytes(out / "histograms.png", figure_png(lambda plt: _histograms(plt, rows, in_nm, bins)))
+    if cfg.get("wires"):
+        values = np.concatenate(thickness_values) if thickness_values else np.zeros(0)
+        write_bytes(
+            out / "thickness_histogram.png",
+            figure_png(lambda plt: _thickness_histogram(plt, values, in_nm, bins)),
+        )
+    log.info(
+        "wrote %s: %d particles in %d images, median diameter %s %s",
+        out / "particles.csv",
+        len(rows),
+        len(items),
+        _fmt(stats["median_diameter"]["value"]),
+        unit,
+    )
     return rows
 
 
@@ -81,79 +294,143 @@ def local_thickness(particle: np.ndarray) -> np.ndarray:
     return 2.0 * radius * particle
 
 
-def analyze(cfg: DictConfig, predictor=None) -> list[dict]:
-    """Analyse every image of cfg.images; returns the particle rows.
-    predictor: a Predictor or a function image -> class map, instead of cfg.model (tests)."""
-    from drgan.data.images import list_images
-    from drgan.segmentation.data import read_image_item
-    from drgan.segmentation.predictors import as_predictor, load_predictor
+# --- outputs -----------------------------------------------------------------------------------------------
 
-    if not cfg.get("images"):
-        raise ConfigError("analyze: give images=DIR (a folder of images)")
-    nm = cfg.get("nm_per_px")
-    if nm is not None and not float(nm) > 0:
-        raise ConfigError(f"analyze: nm_per_px={nm}: expected a positive pixel size")
-    paths = list_images(cfg.images)
-    if predictor is None:
-        if not cfg.get("model"):
-            raise ConfigError(
-                "analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment) or a folder of "
-                "predicted masks named like the images"
-            )
-        predictor = load_predictor(cfg.model, cfg.inference)
-    else:
-        predictor = as_predictor(predictor, "predictor")
-    crop = cfg.get("crop_rows")
-    crop = crop if crop is None or isinstance(crop, str) else tuple(crop)
-    items = [read_image_item(p, p.stem, crop) for p in paths]  # all read (and checked) before predicting
-    predictor.check(items)
 
-    out = Path(cfg.out)
-    rows, thickness_values = [], []
-    for item in items:
-        image_id, image = item.id, item.image
-        class_map = np.asarray(predictor(item))
-        labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
-        rows += particle_rows(
-            image_id, labels, float(nm) if nm else None, int(cfg.min_area_px), bool(cfg.exclude_border)
-        )
-        if cfg.get("wires"):
-            thick = local_thickness(class_map > 0)
-            thickness_values.append(thick[class_map > 0] * (float(nm) if nm else 1.0))
-            png = figure_png(lambda plt, im=image, t=thick: _thickness_map(plt, im, t, nm))
-            write_bytes(out / "thickness" / f"{image_id}.png", png)
-        log.info("%s: %d particles", image_id, sum(r["image"] == image_id for r in rows))
-
-    fields = list(rows[0]) if rows else ["id", "image", "area_px", "equivalent_diameter_px"]
+def _csv(rows: list[dict]) -> str:
+    fields = list(rows[0]) if rows else ["id", "image", "area_px", "equivalent_diameter_px", "touches_border", "sized"]
+    for row in rows:  # images with and without a pixel size: every column once
+        fields += [k for k in row if k not in fields]
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n", restval="")
     writer.writeheader()
     writer.writerows(rows)
-    write_bytes(out / "particles.csv", buf.getvalue().encode())
-    write_bytes(out / "histograms.png", figure_png(lambda plt: _histograms(plt, rows, nm, int(cfg.bins))))
-    if cfg.get("wires"):
-        values = np.concatenate(thickness_values) if thickness_values else np.zeros(0)
-        write_bytes(
-            out / "thickness_histogram.png",
-            figure_png(lambda plt: _thickness_histogram(plt, values, nm, int(cfg.bins))),
+    return buf.getvalue()
+
+
+def _fmt(value, digits: int = 3) -> str:
+    return f"{value:.{digits}g}" if isinstance(value, (int, float)) and math.isfinite(value) else "n/a"
+
+
+def _interval(cell: dict, digits: int = 3) -> str:
+    text = _fmt(cell["value"], digits)
+    if math.isfinite(cell.get("low", math.nan)):
+        text += f" [{_fmt(cell['low'], digits)}, {_fmt(cell['high'], digits)}]"
+    return text
+
+
+def statistics_markdown(summary: dict) -> str:
+    s, unit, area_unit = summary["statistics"], summary["unit"], summary["area_unit"]
+    model = s.get("model")
+    lines = [
+        "# Particle statistics",
+        "",
+        f"{summary['images']} images; segmenter `{summary['model']}` ({summary['inference'] or 'as given'}). Pixel size: "
+        f"{summary['pixel_size']}. Components under {summary['min_area_px']:g} px² are specks (not counted); particles "
+        "cut by the image border are counted but not sized. Intervals: 95 % percentile bootstrap over images.",
+        "",
+        "| statistic | value [95 % interval] |",
+        "|---|---|",
+        f"| particles counted | {_fmt(s['count']['value'], 6)} ({_fmt(s['sized']['value'], 6)} sized) |",
+        f"| particles per image | {_interval(s['count_per_image'])} |",
+        f"| particles per {area_unit} | {_interval(s['count_per_area'])} |",
+        f"| median diameter ({unit}) | {_interval(s['median_diameter'])} |",
+        f"| mean diameter ({unit}) | {_interval(s['mean_diameter'])} |",
+        f"| normal fit: mean, std ({unit}) | {_interval(s['normal_mean'])}, {_interval(s['normal_std'])} |",
+        f"| lognormal fit: median ({unit}), sigma | {_interval(s['lognormal_median'])}, "
+        f"{_interval(s['lognormal_sigma'])} |",
+    ]
+    if model:
+        bics = ", ".join(f"{f['kind']} {f['bic']:.1f}" for f in model["fits"])
+        lines += ["", f"The sizes fit a **{model['chosen']}** distribution best (lowest BIC: {bics})."]
+    lines += ["", "| image | particles | cut by the border |", "|---|---|---|"]
+    lines += [f"| {r['image']} | {r['count']} | {r['cut_by_border']} |" for r in summary["per_image"]]
+    return "\n".join(lines) + "\n"
+
+
+def _density(model: dict | None, x: np.ndarray) -> tuple[np.ndarray, str] | None:
+    if not model:
+        return None
+    fit = next(f for f in model["fits"] if f["kind"] == model["chosen"])
+    p = fit["params"]
+
+    def lognormal(median, sigma):
+        return np.exp(-0.5 * ((np.log(x) - np.log(median)) / sigma) ** 2) / (x * sigma * np.sqrt(2 * np.pi))
+
+    if fit["kind"] == "normal":
+        y = np.exp(-0.5 * ((x - p["mean"]) / p["std"]) ** 2) / (p["std"] * np.sqrt(2 * np.pi))
+    elif fit["kind"] == "lognormal":
+        y = lognormal(p["median"], p["sigma"])
+    else:
+        y = p["weight1"] * lognormal(p["median1"], p["sigma1"]) + (1 - p["weight1"]) * lognormal(
+            p["median2"], p["sigma2"]
         )
-    log.info("wrote %s: %d particles in %d images", out / "particles.csv", len(rows), len(items))
-    return rows
+    return y, fit["kind"]
 
 
-def _histograms(plt, rows, nm, bins):
-    unit = "nm" if nm else "px"
+def _size_figure(plt, diameters: np.ndarray, stats: dict, unit: str, bins: int):
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
+    if len(diameters):
+        left.hist(diameters, bins=bins, density=True, color="0.75", label=f"{len(diameters)} sized particles")
+        x = np.linspace(max(diameters.min() * 0.8, 1e-6), diameters.max() * 1.1, 400)
+        fitted = _density(stats.get("model"), x)
+        if fitted is not None:
+            left.plot(x, fitted[0], "C3", label=f"{fitted[1]} fit")
+        median = stats["median_diameter"]
+        left.axvline(median["value"], color="C0", ls="--", label=f"median {_fmt(median['value'])} {unit}")
+        if math.isfinite(median["low"]):
+            left.axvspan(median["low"], median["high"], color="C0", alpha=0.15, label="95 % interval")
+        ordered = np.sort(diameters)
+        right.step(ordered, np.arange(1, len(ordered) + 1) / len(ordered), where="post", color="k")
+    left.set_xlabel(f"equivalent diameter ({unit})")
+    left.set_ylabel("density")
+    left.legend(fontsize=8)
+    right.set_xlabel(f"equivalent diameter ({unit})")
+    right.set_ylabel("cumulative fraction")
+    right.set_ylim(0, 1)
+    fig.tight_layout()
+    return fig
+
+
+def _histograms(plt, rows, in_nm, bins):
+    unit = "nm" if in_nm else "px"
+    sized = [r for r in rows if r["sized"]]
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
-    area = [r["area_nm2" if nm else "area_px"] for r in rows]
-    diam = [r["equivalent_diameter_nm" if nm else "equivalent_diameter_px"] for r in rows]
-    axes[0].hist(area, bins=bins)
+    axes[0].hist([r["area_nm2" if in_nm else "area_px"] for r in sized], bins=bins)
     axes[0].set_xlabel(f"area ({unit}²)")
-    axes[1].hist(diam, bins=bins)
+    axes[1].hist([r["equivalent_diameter_nm" if in_nm else "equivalent_diameter_px"] for r in sized], bins=bins)
     axes[1].set_xlabel(f"equivalent diameter ({unit})")
     for ax in axes:
         ax.set_ylabel("particles")
-    fig.suptitle(f"{len(rows)} particles")
+    fig.suptitle(f"{len(sized)} sized particles ({len(rows) - len(sized)} cut by the border, counted only)")
     return fig
+
+
+OUTLINE, CUT = (255, 200, 0), (0, 170, 255)  # sized particles' outlines, and those of particles cut by the border
+
+
+def _overlay_png(image: np.ndarray, labels: np.ndarray, rows: list[dict]) -> bytes:
+    """The image in grey with each counted particle's outline (cut ones in another colour) and its id."""
+    from PIL import Image, ImageDraw
+    from skimage.segmentation import find_boundaries
+
+    grey = (np.clip(np.asarray(image, float), 0, 1) * 255).astype(np.uint8)
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    counted = np.zeros(int(labels.max()) + 1, bool)
+    cut = np.zeros_like(counted)
+    for row in rows:
+        counted[row["id"]] = True
+        cut[row["id"]] = row["touches_border"]
+    edge = find_boundaries(labels, mode="inner") & counted[labels]
+    rgb[edge & ~cut[labels]] = OUTLINE
+    rgb[edge & cut[labels]] = CUT
+    picture = Image.fromarray(rgb)
+    draw = ImageDraw.Draw(picture)
+    for row in rows:
+        draw.text((row["centroid_x"] - 4, row["centroid_y"] - 5), str(row["id"]), fill=(255, 60, 60))
+    buf = io.BytesIO()
+    picture.save(buf, format="PNG")
+    return buf.getvalue()
 
 
 def _thickness_map(plt, image, thick, nm):
@@ -166,10 +443,10 @@ def _thickness_map(plt, image, thick, nm):
     return fig
 
 
-def _thickness_histogram(plt, values, nm, bins):
+def _thickness_histogram(plt, values, in_nm, bins):
     fig, ax = plt.subplots(figsize=(5, 3.5))
     ax.hist(values, bins=bins)
-    ax.set_xlabel(f"local thickness ({'nm' if nm else 'px'})")
+    ax.set_xlabel(f"local thickness ({'nm' if in_nm else 'px'})")
     ax.set_ylabel("pixels")
     return fig
 

@@ -116,21 +116,24 @@ def _rows(path: Path) -> list[dict]:
 
 
 def _analyze(folder: Path) -> dict:
-    rows = _rows(folder / "particles.csv")
-    if not (folder / "particles.csv").is_file():
+    summary = _json(folder / "summary.json")
+    if not summary:
         return {}
-    diameters = sorted(float(r["equivalent_diameter_px"]) for r in rows if r.get("equivalent_diameter_px"))
-    median = diameters[len(diameters) // 2] if diameters else math.nan
-    images = len({r["image"] for r in rows})
-    nm = [float(r["equivalent_diameter_nm"]) for r in rows if r.get("equivalent_diameter_nm")]
-    median_nm = sorted(nm)[len(nm) // 2] if nm else None
+    stats, unit = summary.get("statistics") or {}, summary.get("unit", "px")
+    count, median = (stats.get(k, {}).get("value") for k in ("count", "median_diameter"))
+    low, high = stats.get("median_diameter", {}).get("low"), stats.get("median_diameter", {}).get("high")
+    model = (stats.get("model") or {}).get("chosen")
+    interval = (
+        f" [{_number(low, '{:.1f}')}, {_number(high, '{:.1f}')}]" if isinstance(low, float) and low == low else ""
+    )
     return {
-        "line": f"{len(rows)} particles in {images} images, median diameter {_number(median, '{:.1f}')} px"
-        + (f" ({median_nm:.1f} nm)" if median_nm else ""),
-        "metrics": {"analyze/particles": len(rows), "analyze/median_diameter_px": median},
-        "particles": len(rows),
-        "median_diameter_px": median,
-        "median_diameter_nm": median_nm,
+        "line": f"{_number(count, '{:.0f}')} particles in {summary.get('images')} images, median diameter "
+        f"{_number(median, '{:.1f}')}{interval} {unit}" + (f", {model}" if model else ""),
+        "metrics": {"analyze/particles": count, f"analyze/median_diameter_{unit}": median},
+        "particles": count,
+        "median_diameter": median,
+        "unit": unit,
+        "size_model": model,
     }
 
 
@@ -170,7 +173,8 @@ LINKS = {
               ("best epoch and why", "checkpoints/best_epoch.json"), ("grey start", "grey_start.json")],
     "generate": [("manifest (kept, dropped, why)", "manifest.json"), ("images", "images"), ("masks", "masks")],
     "segment": [("metrics and split calibration", "metrics.json"), ("log", "segment.log")],
-    "analyze": [("particles", "particles.csv"), ("size distribution", "histograms.png"), ("overlays", "overlays")],
+    "analyze": [("statistics", "statistics.md"), ("size distribution", "sizes.png"), ("particles", "particles.csv"),
+                ("overlays", "overlays")],
     "evaluate": [("scores", "results.md"), ("statistics", "statistics.md"), ("sizes", "sizes.png"),
                  ("overlays", "overlays")],
 }  # fmt: skip
