@@ -242,4 +242,6 @@ def test_errors_before_compute(tmp_path, monkeypatch):
         profile(compose([f"data.dir={folder}", "data.crop_rows=[300,400]", "name=x"], config_name="profile"))
     with pytest.raises(ConfigError, match="name"):
         profile(compose([f"data.dir={folder}"], config_name="profile"))
+    with pytest.raises(ConfigError, match="name=tio2_tsem: a material drgan ships has that name"):
+        profile(compose([f"data.dir={folder}", "name=tio2_tsem"], config_name="profile"))  # would shadow the shipped one
     assert not (tmp_path / "drgan_conf").exists()

@@ -140,6 +140,12 @@ def setup() -> None:
 ROOTS = ("gan", "segmentation")
 
 
+def shipped_materials() -> list[str]:
+    """The names of the materials drgan ships (conf/gan/material/NAME.yaml): a user's material of the same name would
+    be shadowed by, or shadow, the shipped one on Hydra's search path, so no user material may take one."""
+    return sorted(p.stem for p in (CONF_DIR / "gan" / "material").glob("*.yaml"))
+
+
 def conf_dir(root: str = "gan") -> Path:
     """The config root ``root`` (one of `ROOTS`); a clear error when the package was installed without its configs."""
     if root not in ROOTS:

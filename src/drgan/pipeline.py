@@ -132,6 +132,13 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     name = own["name"]
     if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
         raise ConfigError(f"pipeline: name={name!r}: expected a name of letters, digits, _ or - (e.g. name=my_tem)")
+    from drgan.configs import shipped_materials
+
+    if str(name) in shipped_materials():
+        raise ConfigError(
+            f"pipeline: name={name}: the run's material takes its name, and a material drgan ships has it "
+            f"({', '.join(shipped_materials())}); choose another name, e.g. name={name}_mine"
+        )
     redo = own["redo"]
     if redo in ("null", "None", ""):
         redo = None

@@ -61,6 +61,13 @@ def _check_settings(cfg: DictConfig) -> tuple[Path, tuple[int, int] | None, str,
             f"profile: name={name!r}: expected a material name of letters, digits, _ or - "
             "(the config is written as drgan_conf/material/NAME.yaml)"
         )
+    from drgan.configs import shipped_materials
+
+    if str(name) in shipped_materials():
+        raise ConfigError(
+            f"profile: name={name}: a material drgan ships has that name ({', '.join(shipped_materials())}); yours "
+            f"would be confused with it on the config search path. Choose another name, e.g. name={name}_mine"
+        )
     folder = Path(str(cfg.data.dir)).expanduser()
     if not folder.is_dir():
         raise ConfigError(f"profile: data.dir={folder}: no such folder (expected a folder of images)")
