@@ -243,5 +243,7 @@ def test_errors_before_compute(tmp_path, monkeypatch):
     with pytest.raises(ConfigError, match="name"):
         profile(compose([f"data.dir={folder}"], config_name="profile"))
     with pytest.raises(ConfigError, match="name=tio2_tsem: a material drgan ships has that name"):
-        profile(compose([f"data.dir={folder}", "name=tio2_tsem"], config_name="profile"))  # would shadow the shipped one
+        profile(
+            compose([f"data.dir={folder}", "name=tio2_tsem"], config_name="profile")
+        )  # would shadow the shipped one
     assert not (tmp_path / "drgan_conf").exists()
