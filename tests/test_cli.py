@@ -20,7 +20,7 @@ def test_a_stage_help_says_what_it_does_and_lists_its_keys_with_comments(capsys)
     assert cli.main(["generate", "--help"]) == 0
     text = capsys.readouterr().out
     assert "a synthetic segmentation training set" in text  # the module's docstring
-    assert "grey_spread: true" in text and "# each image takes the background and particle grey" in text
+    assert "grey_spread: auto" in text and "# each image takes the background and particle grey" in text
     assert cli.main(["pipeline", "-h"]) == 0
     assert "redo:" in capsys.readouterr().out
 

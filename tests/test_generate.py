@@ -615,4 +615,5 @@ def test_grey_spread_gives_each_image_a_real_patchs_grey_levels(tiny_run, tmp_pa
         assert grey_levels(image, particle)[0] == pytest.approx(meta["target"][0], abs=0.01)
     assert json.loads((out / "config.json").read_text())["fixed"]["grey_spread"] is True
     with pytest.raises(ConfigError, match="grey_spread"):  # a folder keeps its settings: resuming without it is refused
-        run_generate(tiny_run, out, n_background=0)
+        run_generate(tiny_run, out, "grey_spread=false", n_background=0)
+    run_generate(tiny_run, out, n_background=0)  # the default (auto) is on where the run has its real patches

@@ -9,6 +9,7 @@ they existed still resume (and then fill up with the default partial backgrounds
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -19,6 +20,8 @@ from drgan.dataset.shards import Shard
 from drgan.dataset.source import checkpoint_config, effective_renderer, generator_checkpoint
 from drgan.errors import ConfigError
 from drgan.scene.config import typed_material
+
+log = logging.getLogger(__name__)
 
 FIXED_SETTINGS = (
     "ckpt",
@@ -119,8 +122,12 @@ def settings_from(cfg: DictConfig) -> dict:
             "background patches, and it has no run folder with patches/; give backgrounds=PATCHSET_FOLDER"
         )
     grey_spread = cfg.get("grey_spread", False)
+    if grey_spread == "auto":  # on wherever real train patches are at hand (every drgan.train run has them)
+        grey_spread = backgrounds is not None
+        if not grey_spread:
+            log.info("grey_spread=auto: off, the checkpoint has no run folder with real patches (backgrounds=...)")
     if not isinstance(grey_spread, bool):
-        raise ConfigError(f"grey_spread={grey_spread!r}: expected true or false")
+        raise ConfigError(f"grey_spread={grey_spread!r}: expected auto, true or false")
     if grey_spread and backgrounds is None:
         raise ConfigError(
             "grey_spread=true draws each image's grey levels from the real train patches, and the checkpoint has no "
