@@ -136,7 +136,7 @@ class GreyStart(Callback):
                     loss.backward()
                 measured = {k: float(v.detach()) for k, v in synthetic.items()}
                 first = first or measured
-                history.append({"step": step, **measured, "loss": float(loss)})
+                history.append({"step": step, **measured, "loss": float(loss.detach())})
                 if bias.grad is not None and torch.isfinite(bias.grad).all():
                     optimizer.step()
                 calm = calm + 1 if self._reached(measured, targets) else 0
