@@ -1,5 +1,6 @@
 """EMPS paper groups as annotated datasets for drgan.pipeline: OUT/<group>/images, masks (symlinks to the shared
-images and instance maps: nothing copied, nothing in the repository) and split.json.
+images and instance maps: nothing copied, nothing in the repository) and split.json. Also OUT/tsem4: a small
+dark-particle set, the first 4 train ids of tio2_tsem (its 8 test ids to score), for the GAN on few patches.
 
     python experiments/pipeline/emps_groups.py [--out /work/data/emps]
 
@@ -43,6 +44,17 @@ def main() -> None:
                     os.symlink(EMPS / source / f"{i}.png", link)
         (folder / "split.json").write_text(json.dumps({"train": train, "test": test}, indent=1))
         print(f"{name}: {len(train)} train, {len(test)} test {test}")
+    tsem = EMPS.parent / "tio2_tsem"
+    split = json.loads((tsem / "split.json").read_text())
+    folder, train = args.out / "tsem4", split["train"][:4]
+    for sub in ("images", "masks"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+        for i in train + split["test"]:
+            link = folder / sub / f"{i}.tif"
+            if not link.exists():
+                os.symlink(tsem / sub / f"{i}.tif", link)
+    (folder / "split.json").write_text(json.dumps({"train": train, "test": split["test"]}, indent=1))
+    print(f"tsem4: {len(train)} train, {len(split['test'])} test")
 
 
 if __name__ == "__main__":
