@@ -34,3 +34,16 @@ def test_a_subcommand_runs_the_stage_as_its_module_does():
     """`drgan pipeline` with a bad setting fails as `python -m drgan.pipeline` does: its message, exit code 1."""
     done = subprocess.run([sys.executable, "-m", "drgan.cli", "pipeline", "name=x"], capture_output=True, text=True)
     assert done.returncode == 1 and "give data.dir" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_a_users_mistake_prints_its_message_and_no_traceback(tmp_path):
+    """The issue's own example: a paper material without its images. Its message, exit code 1, nothing of Hydra's."""
+    done = subprocess.run(
+        [sys.executable, "-m", "drgan.train", "material=sio2_him", "placement=poisson", f"hydra.run.dir={tmp_path}"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    output = done.stdout + done.stderr
+    assert done.returncode == 1 and "data.dir is not set: material=sio2_him" in output
+    assert "Traceback" not in output and "Error executing job" not in output

@@ -32,11 +32,9 @@ import csv
 import io
 import logging
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
@@ -44,6 +42,7 @@ from drgan.errors import ConfigError
 from drgan.io import figure_png, write_bytes, write_json
 from drgan.metrics.segmentation import binarize_and_label
 from drgan.metrics.statistics import Particles, particles
+from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 
@@ -451,14 +450,10 @@ def _thickness_histogram(plt, values, in_nm, bins):
     return fig
 
 
-@hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="analyze")
+@stage_main("conf/segmentation", "analyze")
 def main(cfg: DictConfig):
     analyze(cfg)
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

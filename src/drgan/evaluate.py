@@ -39,10 +39,8 @@ from __future__ import annotations
 import csv
 import io
 import logging
-import os
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
@@ -56,6 +54,7 @@ from drgan.metrics.segmentation import (
     segmentation_scores,
 )
 from drgan.metrics.statistics import compare_sizes, count_errors, particles, pooled
+from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 
@@ -397,14 +396,10 @@ def size_figure(found: dict, truth: list, nm: float | None) -> bytes:
     return figure_png(draw)
 
 
-@hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="evaluate")
+@stage_main("conf/segmentation", "evaluate")
 def main(cfg: DictConfig):
     evaluate(cfg)
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

@@ -22,11 +22,9 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import re
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
@@ -34,6 +32,7 @@ from drgan import io
 from drgan.dataset.layout import IGNORE
 from drgan.dataset.manifest import check_files, manifest_entries, read_manifest
 from drgan.errors import ConfigError, DataError
+from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 
@@ -205,14 +204,10 @@ def compose_config(overrides=()) -> DictConfig:
     return compose(overrides, config_name="export_nnunet")
 
 
-@hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="export_nnunet")
+@stage_main("conf/segmentation", "export_nnunet")
 def main(cfg: DictConfig) -> None:
     export(cfg)
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

@@ -37,13 +37,11 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
@@ -56,6 +54,7 @@ from drgan.dataset.settings import fixed_settings, settings_from
 from drgan.dataset.shards import Shard, kept_below, owned_by
 from drgan.dataset.source import checkpoint_config, load_module, use_parameters  # noqa: F401  (checkpoint_config: imported from here)
 from drgan.errors import DataError
+from drgan.runtime import stage_main, start
 from drgan.scene.labels import class_mask
 
 log = logging.getLogger(__name__)
@@ -307,14 +306,10 @@ def _progress(cfg: DictConfig, total: int):
     return tqdm(total=total, desc="kept", unit="img", disable=not cfg.get("progress", True), dynamic_ncols=True)
 
 
-@hydra.main(version_base="1.3", config_path="conf/gan", config_name="generate")
+@stage_main("conf/gan", "generate")
 def main(cfg: DictConfig) -> None:
     generate(cfg)
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

@@ -27,13 +27,11 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import re
 import shutil
 from collections import Counter
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -41,6 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 from drgan import io
 from drgan.checkpoint_io import refusing_unsafe
 from drgan.errors import ConfigError, check_keys
+from drgan.runtime import stage_main, start
 from drgan.scene import meshes as mesh_files
 
 log = logging.getLogger(__name__)
@@ -450,7 +449,7 @@ def write_material_file(out: Path, cfg: dict) -> Path:
     return path
 
 
-@hydra.main(version_base="1.3", config_path="conf/gan", config_name="import_official")
+@stage_main("conf/gan", "import_official")
 def main(cfg: DictConfig) -> None:
     target = import_experiment(
         Path(str(cfg.official)), Path(str(cfg.out)), epoch=cfg.epoch, meshes=cfg.meshes, scene=cfg.scene,
@@ -461,8 +460,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

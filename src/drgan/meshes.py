@@ -10,10 +10,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from drgan.runtime import stage_main, start
 from drgan.scene.meshes import generator_parameters, iter_meshes, save_mesh_set
 
 log = logging.getLogger(__name__)
@@ -31,7 +31,7 @@ def write_mesh_library(kind: str, count: int, seed: int, out: str | Path, params
     return save_mesh_set(meshes, out, manifest)
 
 
-@hydra.main(version_base="1.3", config_path="conf/gan", config_name="meshes")
+@stage_main("conf/gan", "meshes")
 def main(cfg: DictConfig) -> None:
     params = OmegaConf.to_container(cfg.params, resolve=True)
     manifest_path = write_mesh_library(cfg.kind, cfg.count, cfg.seed, Path(cfg.out), params)
@@ -39,7 +39,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

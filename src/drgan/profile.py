@@ -15,11 +15,9 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import os
 import re
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
@@ -41,6 +39,7 @@ from drgan.data.patches import scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.io import figure_png, write_bytes, write_json
+from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 
@@ -829,15 +828,11 @@ def _outline_figure(out: Path, images, labels, polarity: str) -> None:
     write_bytes(out / "particles.png", figure_png(outlines))
 
 
-@hydra.main(version_base="1.3", config_path="conf/gan", config_name="profile")
+@stage_main("conf/gan", "profile")
 def main(cfg: DictConfig):
     OmegaConf.resolve(cfg)
     profile(cfg)
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

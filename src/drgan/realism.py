@@ -25,16 +25,15 @@ of real patches: keep it out of repositories).
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from drgan.errors import ConfigError, DataError, check_keys, setting_int
 from drgan.io import write_bytes, write_json
 from drgan.metrics.two_sample import ClassifierSettings, two_sample_test
+from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 
@@ -327,14 +326,10 @@ def markdown_line(label: str, result: dict) -> str:
     )
 
 
-@hydra.main(version_base="1.3", config_path="conf/gan", config_name="realism")
+@stage_main("conf/gan", "realism")
 def main(cfg: DictConfig):
     realism(cfg)
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

@@ -11,12 +11,12 @@ import logging
 import time
 from pathlib import Path
 
-import hydra
 from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
 
 from drgan import io
 from drgan.models import build
+from drgan.runtime import stage_main, start
 from drgan.scene.labels import class_mask
 
 log = logging.getLogger(__name__)
@@ -47,7 +47,7 @@ def render_to_folder(cfg: DictConfig, out: Path, base_dir: Path | None = None) -
     return record
 
 
-@hydra.main(version_base="1.3", config_path="conf/gan", config_name="render")
+@stage_main("conf/gan", "render")
 def main(cfg: DictConfig) -> None:
     base = Path(get_original_cwd())
     out = Path(cfg.out)
@@ -57,7 +57,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

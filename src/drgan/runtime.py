@@ -1,20 +1,65 @@
-"""What the training CLIs share: loggers bound to a run folder, the checkpoint a run resumes from, the composed
-config as flat MLflow parameters, callbacks built from a config group. Used by drgan.train and drgan.segment
-(the runtime layer: above models, data and callbacks, below the command-line entry points)."""
+"""What the command-line stages share: one way to start a stage as a Hydra app (`stage_main`, `start`: a user's
+mistake prints its message, a traceback is for drgan's own bugs), and for the training stages loggers bound to a run
+folder, the checkpoint a run resumes from, the composed config as flat MLflow parameters, callbacks built from a config
+group (the runtime layer: above models, data and callbacks, below the command-line entry points)."""
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
+import os
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, DrganError
 
 log = logging.getLogger(__name__)
 
 MLFLOW_RUN_ID_FILE = "mlflow_run_id.txt"
+
+
+def stage_main(config_path: str, config_name: str):
+    """Decorator: ``task(cfg)`` becomes the Hydra app of a stage (``config_path`` relative to the task's module,
+    as hydra.main takes it). A user's mistake (a DrganError: a bad setting, path or image) prints its message alone
+    on stderr (and into the stage's log file), and the process exits with 1: no "Error executing job" and no
+    traceback, which are for drgan's own bugs."""
+    import hydra
+
+    def decorate(task):
+        @functools.wraps(task)
+        def job(cfg):
+            try:
+                return task(cfg)
+            except DrganError as error:
+                report_user_error(error, f"drgan.{config_name}")
+                raise SystemExit(1) from None
+
+        return hydra.main(version_base="1.3", config_path=config_path, config_name=config_name)(job)
+
+    return decorate
+
+
+def report_user_error(error: Exception, logger: str) -> None:
+    """``error``'s message on stderr, and as an ERROR record in the log files of the root logger (the stage's log)."""
+    import sys
+
+    print(f"error: {error}", file=sys.stderr)
+    record = logging.LogRecord(logger, logging.ERROR, __file__, 0, "%s", (error,), None)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)
+
+
+def start(main) -> None:
+    """Run a stage's Hydra app from its ``__main__``: Hydra's own errors short (HYDRA_FULL_ERROR=0 unless set),
+    drgan's config resolvers and schemas registered first."""
+    from drgan.configs import setup
+
+    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    setup()
+    main()
 
 
 def _targets(group) -> list:

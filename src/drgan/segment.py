@@ -12,15 +12,14 @@ Resume: same `out` and `ckpt_path=last` (no checkpoint yet: a fresh start).
 from __future__ import annotations
 
 import logging
-import os
 import time
 from pathlib import Path
 
-import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from drgan.errors import ConfigError, check_keys, setting_float, setting_int
 from drgan.io import write_json
+from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 
@@ -271,14 +270,10 @@ def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) 
     return calibration
 
 
-@hydra.main(version_base="1.3", config_path="conf/segmentation", config_name="segment")
+@stage_main("conf/segmentation", "segment")
 def main(cfg: DictConfig):
     return segment(cfg)
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)

@@ -16,11 +16,9 @@ one command serves a first start and every restart (e.g. a preempted cluster job
 from __future__ import annotations
 
 import logging
-import os
 import time
 from pathlib import Path
 
-import hydra
 from omegaconf import DictConfig, open_dict
 
 from drgan.errors import ConfigError
@@ -30,6 +28,8 @@ from drgan.runtime import (
     instantiate_callbacks,
     instantiate_loggers,
     resolve_checkpoint,
+    stage_main,
+    start,
     start_loggers,
 )
 
@@ -148,7 +148,7 @@ def train(cfg: DictConfig) -> dict:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="conf/gan", config_name="train")
+@stage_main("conf/gan", "train")
 def main(cfg: DictConfig):
     metrics = train(cfg)
     # Hydra sweepers (e.g. Optuna) optimise the value returned: `optimized_metric=val/fid`.
@@ -161,8 +161,4 @@ def main(cfg: DictConfig):
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    from drgan.configs import setup
-
-    setup()
-    main()
+    start(main)
