@@ -5,8 +5,7 @@
 #   VARIANTS="unet centres" SEEDS="0 1 2" bash experiments/pipeline/segmenters.sh runs/pipeline/bam_tio2_tsem
 #
 # Variants (synthetic-trained on RUN/generate; real_* on the annotated set's train ids, its split.json):
-#   unet        drgan.segment's defaults (the U-Net; seed 0 is the pipeline's own segment/)
-#   unet_z      the same with model.normalize=zscore
+#   unet        drgan.segment's defaults (the U-Net)          unet_z      the same with model.normalize=zscore
 #   centres     the instance-aware CentreSegmenterModule      centres_z   the same with model.normalize=zscore
 #   real_unet / real_centres   trained on the real annotated train images instead (contour 1 px, area-based epochs)
 # Each variant's 3 seeds are scored together on the annotated test ids (drgan.evaluate models=[...]), and once the
@@ -34,10 +33,6 @@ for variant in $VARIANTS; do
   ckpts=()
   for seed in $SEEDS; do
     run=$OUT/${variant}_$seed
-    if [ "$variant" = unet ] && [ "$seed" = 0 ]; then  # the pipeline's own segmenter: drgan.segment's defaults, seed 0
-      ckpts+=("$RUN/segment/checkpoints/last.ckpt")
-      continue
-    fi
     ckpts+=("$run/checkpoints/last.ckpt")
     [ -f "$run/metrics.json" ] && continue
     resume=(); [ -f "$run/checkpoints/last.ckpt" ] && resume=(ckpt_path=last)
