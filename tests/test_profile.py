@@ -247,3 +247,28 @@ def test_errors_before_compute(tmp_path, monkeypatch):
             compose([f"data.dir={folder}", "name=tio2_tsem"], config_name="profile")
         )  # would shadow the shipped one
     assert not (tmp_path / "drgan_conf").exists()
+
+
+def test_a_bright_stage_beyond_the_parents_reach_widens_its_limit_enough():
+    """The paper SEM/HIM materials render their stage at most ~0.15 grey; an SEM image with a mid-grey stage (EMPS cej:
+    0.43) gets a stage limit under which a render reaches that grey. Dark (transmission) parents have no lit stage."""
+    import torch
+
+    from drgan.configs import compose
+    from drgan.models.gan_module import GANModule
+    from drgan.profile import parent_stage_reach, stage_limits
+
+    limit, grey = parent_stage_reach("tio2_him")
+    assert limit == 0.3 and 0.05 < grey < 0.3
+    assert stage_limits("tio2_him", 0.5 * grey) is None and stage_limits("tio2_tsem", 0.8) is None
+    widened, why = stage_limits("tio2_him", 0.43)
+    assert limit < widened["max"] <= 5.0 and "0.430 grey" in why
+    cfg = compose(["material=tio2_him", f"material.imaging.stage_bsdf.base_color.max={widened['max']}",
+                   "renderer.spp=16", "renderer.resolution=64"], config_name="train")  # fmt: skip
+    module = GANModule.from_config(cfg)
+    learned = module.generator.learned
+    values = torch.tensor([p.high if p.key == "stage.base_color" else 0.5 * (p.low + p.high) for p in learned])
+    phi = torch.as_tensor(module.sample_phi(1, seed=0)[0], dtype=torch.float32)
+    with torch.no_grad():
+        image = module.generator.render_one(phi, values, seed=1)[0].numpy()
+    assert image[module.generator.scene.instance_labels() == 0].mean() > 0.43

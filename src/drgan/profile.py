@@ -423,6 +423,10 @@ def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict,
             f"lag-1 autocorrelation {background['lag1_autocorrelation']:.3f} of the background's high-pass residual"
         )
         notes["noise_sigma.max"] = f"{NOISE_LIMIT_FACTOR} x the background's noise sigma"
+    stage = stage_limits(parent, background["background_grey"])
+    if stage is not None:
+        material["imaging"] = {"stage_bsdf": {"base_color": stage[0]}}
+        notes["imaging.stage_bsdf.base_color"] = stage[1]
     if parent_renders_fringe(parent):
         fringe, why_fringe = fringe_settings(result.get("edge"))
         if fringe is not None:  # only a measured fringe: without one the material renders none
@@ -486,6 +490,52 @@ def fringe_settings(edge: dict | None) -> tuple[dict | None, str]:
     return fringe, (
         f"{seen}; fitted amplitude {amplitude:+.3f}, width {width:.2f} px (edge blur {fit['edge_blur_px']:.2f} "
         f"px); amplitude learned within 0..{FRINGE_LIMIT_FACTOR:g} x the fit"
+    )
+
+
+STAGE_REACH = 0.8  # the stage's limit widens when the images' background needs more than this of what it renders
+STAGE_MARGIN = 4.0  # x the linear estimate of the stage value the background needs (the render saturates above it)
+STAGE_CEILING = 5.0  # the particles' own limit in every paper material
+
+
+@functools.cache
+def parent_stage_reach(parent: str) -> tuple[float, float] | None:
+    """(the parent material's stage base_color limit, the stage's grey rendered at it), or None for a scene without a
+    lit stage (transmission). One render at spp 16 with the other learned values at the middle of their limits."""
+    import torch
+
+    from drgan.configs import compose
+    from drgan.models.gan_module import GANModule
+
+    cfg = compose([f"material={parent}", "renderer.spp=16", "renderer.resolution=128"], config_name="train")
+    module = GANModule.from_config(cfg)
+    learned = module.generator.learned
+    stage = [p for p in learned if p.key == "stage.base_color"]
+    if not stage:
+        return None
+    values = torch.tensor([p.high if p is stage[0] else 0.5 * (p.low + p.high) for p in learned], dtype=torch.float32)
+    phi = torch.as_tensor(module.sample_phi(1, seed=0)[0], dtype=torch.float32)
+    with torch.no_grad():
+        image = module.generator.render_one(phi, values, seed=1)[0].numpy()
+    labels = module.generator.scene.instance_labels()
+    return float(stage[0].high), float(image[labels == 0].mean())
+
+
+def stage_limits(parent: str, background_grey: float) -> tuple[dict, str] | None:
+    """``material.imaging.stage_bsdf.base_color`` limits wide enough for the images' background grey, with why; None
+    when the parent's own limits reach it (or its scene has no lit stage). The paper SEM/HIM materials render their
+    stage at most ~0.15 grey; SEM images with a mid-grey stage (EMPS cej: 0.43) need a larger base colour, which the
+    grey start (drgan.callbacks.grey_start) then finds within the widened limits."""
+    reach = parent_stage_reach(parent)
+    if reach is None:
+        return None
+    limit, grey = reach
+    if background_grey <= STAGE_REACH * grey:
+        return None
+    high = round(min(STAGE_CEILING, limit * STAGE_MARGIN * background_grey / grey), 3)
+    return {"min": 0.01, "max": high}, (
+        f"0.01-{high}: the background is {background_grey:.3f} grey and {parent}'s stage renders at most {grey:.3f} "
+        f"(limit {limit:g}); widened to {STAGE_MARGIN:g} x the linear estimate of the base colour the background needs"
     )
 
 
