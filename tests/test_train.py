@@ -154,13 +154,16 @@ def test_grey_start_moves_the_renders_to_the_real_grey(images, tmp_path):
     output biases bring particle and background grey to the real patches' (their classical segmentation alike)."""
     out = tmp_path / "run"
     extra = ["trainer.max_epochs=1", "trainer.limit_train_batches=1", "+callbacks.grey_start._target_=drgan.callbacks.GreyStart",
-             "+callbacks.grey_start.steps=25", "+callbacks.grey_start.spp=4"]  # fmt: skip
+             "+callbacks.grey_start.steps=12", "+callbacks.grey_start.spp=4", "+callbacks.grey_start.images=4"]  # fmt: skip
     run_train(tiny_overrides(images, out, extra=extra))
     record = json.loads((out / "grey_start.json").read_text())
-    real, first, last = record["real"], record["first"], record["last"]
+    real, first = record["real"], record["first"]
+    # each step measures a new sample of renders (3 particles of 24 px: the particle grey varies by ~0.1 between
+    # samples), so the last steps' mean says where the biases have settled
+    late = {k: np.mean([h[k] for h in record["history"][-5:]]) for k in ("particle", "background")}
     for key in ("particle", "background"):
-        assert abs(last[key] - real[key]) < 0.5 * abs(first[key] - real[key]), (key, record)
-    assert abs(last["particle"] - real["particle"]) < 0.1 and abs(last["background"] - real["background"]) < 0.05
+        assert abs(late[key] - real[key]) < 0.5 * abs(first[key] - real[key]), (key, record)
+    assert abs(late["particle"] - real["particle"]) < 0.12 and abs(late["background"] - real["background"]) < 0.03
     assert record["bias_after"] != record["bias_before"]
 
 
