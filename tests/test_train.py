@@ -149,6 +149,20 @@ def test_an_epoch_is_steps_per_epoch_steps_whatever_the_number_of_patches(images
         datamodule(images, tmp_path, steps_per_epoch=0)
 
 
+def test_the_grey_start_step_is_the_least_change_that_zeroes_the_differences():
+    from drgan.callbacks.grey_start import gauss_newton_step
+
+    jacobian = torch.tensor([[1.0, 0.0, 0.0, 1e-6], [0.0, 2.0, 1.0, 0.0]])  # 2 numbers, 4 biases
+    residual = torch.tensor([0.3, -0.5])
+    step = gauss_newton_step(jacobian, residual, max_step=10.0)
+    np.testing.assert_allclose(jacobian @ step, -residual, atol=1e-3)  # zeroed to first order
+    np.testing.assert_allclose(step, [-0.3, 0.2, 0.1, 0.0], atol=1e-3)  # the least-norm change: a bias that
+    # hardly changes the numbers (the 4th) hardly moves, and the 2nd number's change is shared 2:1 by its biases
+    assert gauss_newton_step(jacobian, residual, max_step=0.05).abs().max() == pytest.approx(0.05)  # the trust region
+    assert gauss_newton_step(torch.zeros(2, 4), residual, 1.0) is None
+
+
+@pytest.mark.slow  # a tiny training's grey start: 12 steps of 4 renders with 3 adjoint passes each (~17 s on 2 cores)
 def test_grey_start_moves_the_renders_to_the_real_grey(images, tmp_path):
     """The discs are grey 0.8 on a 0.15 film; the fresh FCN renders the middle of the limits. A few Adam steps on the
     output biases bring particle and background grey to the real patches' (their classical segmentation alike)."""

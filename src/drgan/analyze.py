@@ -383,7 +383,8 @@ def _size_figure(plt, diameters: np.ndarray, stats: dict, unit: str, bins: int):
         right.step(ordered, np.arange(1, len(ordered) + 1) / len(ordered), where="post", color="k")
     left.set_xlabel(f"equivalent diameter ({unit})")
     left.set_ylabel("density")
-    left.legend(fontsize=8)
+    if len(diameters):
+        left.legend(fontsize=8)
     right.set_xlabel(f"equivalent diameter ({unit})")
     right.set_ylabel("cumulative fraction")
     right.set_ylim(0, 1)
