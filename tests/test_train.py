@@ -162,6 +162,32 @@ def test_the_grey_start_step_is_the_least_change_that_zeroes_the_differences():
     assert gauss_newton_step(torch.zeros(2, 4), residual, 1.0) is None
 
 
+def test_the_grey_anchor_is_zero_inside_the_real_range_and_pulls_back_from_outside():
+    from drgan.callbacks.grey_start import GreyAnchor
+
+    def segment(images):  # particles: the left half of each image
+        masks = np.zeros(images.shape, bool)
+        masks[:, :, :8] = True
+        return masks
+
+    def batch(particle, background):
+        image = torch.full((1, 1, 16, 16), float(background))
+        image[..., :8] = particle
+        return image.requires_grad_(True)
+
+    ranges = {"particle": [0.8, 1.2], "background": [0.9, 1.1]}
+    bright = GreyAnchor(segment, "bright", {"particle": 0.6, "background": 0.2}, ranges, weight=10.0)
+    assert float(bright(batch(0.6, 0.2))) == 0.0 and float(bright(batch(0.7, 0.21))) == 0.0  # inside: nothing
+    images = batch(0.3, 0.2)  # particles at half the real grey: 0.3 below the range's 0.8
+    penalty = bright(images)
+    assert float(penalty) == pytest.approx(10.0 * 0.3**2)
+    penalty.backward()
+    assert float(images.grad[..., :8].sum()) < 0  # descending the penalty brightens the particles
+    dark = GreyAnchor(segment, "dark", {"particle": 0.1, "background": 0.8}, ranges, weight=1.0)
+    # dark particles: ratios of the negatives; a film at 0.9 is (1 - 0.9) / (1 - 0.8) = 0.5 x, 0.4 below 0.9
+    assert float(dark(batch(0.1, 0.9))) == pytest.approx(0.4**2)
+
+
 @pytest.mark.slow  # a tiny training's grey start: 12 steps of 4 renders with 3 adjoint passes each (~17 s on 2 cores)
 def test_grey_start_moves_the_renders_to_the_real_grey(images, tmp_path):
     """The discs are grey 0.8 on a 0.15 film; the fresh FCN renders the middle of the limits. A few Adam steps on the

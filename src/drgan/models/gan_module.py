@@ -179,6 +179,9 @@ class GANModule(LightningModule):
         self.skipped_steps = 0
         self.consecutive_nonfinite = 0
         self.weights_loaded = False  # True after load_weights (init_from): its FCN is not re-started at the real grey
+        # images (B, 1, H, W) -> a penalty added to the generator's loss (drgan.callbacks.grey_start.GreyAnchor gives
+        # one: it keeps the renders' grey within the range the real patches span); None: the adversarial loss alone
+        self.grey_anchor = None
 
     @classmethod
     def from_config(
@@ -348,10 +351,17 @@ class GANModule(LightningModule):
 
         ok, d_loss = self._optimise(opt_d, self.discriminator, d_loss_of)
         g_loss = torch.tensor(float("nan"))
+        anchored = {}
+
+        def g_loss_of():
+            loss = self.adversarial_loss(self.discriminator(fake), True)
+            if self.grey_anchor is not None:
+                anchored["penalty"] = self.grey_anchor(fake)
+                loss = loss + anchored["penalty"]
+            return loss
+
         if ok:  # a failed D step skips the whole step: G would learn against a broken verdict
-            ok, g_loss = self._optimise(
-                opt_g, self.generator, lambda: self.adversarial_loss(self.discriminator(fake), True)
-            )
+            ok, g_loss = self._optimise(opt_g, self.generator, g_loss_of)
         if not ok:
             _restore(self.discriminator, opt_d, d_before)
         self._count(ok, d_loss, g_loss)
@@ -373,6 +383,8 @@ class GANModule(LightningModule):
                 "train/d_fake": self.score(logits["fake"].detach()),
             })  # fmt: skip
             scalars.update({f"params/{k}": v for k, v in zip(self.learned_keys, values.detach().mean(0).tolist())})
+            if "penalty" in anchored:
+                scalars["train/grey_penalty"] = anchored["penalty"].detach()
         scalars["time/step_s"] = time.perf_counter() - start
         self.log_scalars(scalars, real.shape[0])
 
