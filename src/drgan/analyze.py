@@ -41,7 +41,7 @@ from omegaconf import DictConfig
 from drgan.errors import ConfigError
 from drgan.io import figure_png, write_bytes, write_json
 from drgan.metrics.segmentation import binarize_and_label
-from drgan.metrics.statistics import Particles, particles
+from drgan.metrics.statistics import Particles, bootstrap, particles
 from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
@@ -151,21 +151,13 @@ def size_statistics(
     ``areas``: each image's area in the unit of the count per area. Plus the model the sizes fit best (BIC)."""
     from drgan.data.profile import fit_sizes
 
-    value = _point(images, scales, areas)
-    result = {k: {"value": v, "low": math.nan, "high": math.nan} for k, v in value.items()}
-    if n_boot > 0 and len(images) > 1:
-        rng = np.random.default_rng(seed)
-        draws = {k: [] for k in value}
-        for _ in range(int(n_boot)):
-            pick = rng.integers(len(images), size=len(images))
-            for k, v in _point([images[i] for i in pick], [scales[i] for i in pick], [areas[i] for i in pick]).items():
-                draws[k].append(v)
-        tail = 100.0 * (1.0 - LEVEL) / 2.0
-        for k, values in draws.items():
-            values = np.asarray(values, float)
-            values = values[np.isfinite(values)]
-            if len(values):
-                result[k]["low"], result[k]["high"] = (float(x) for x in np.percentile(values, [tail, 100 - tail]))
+    result = bootstrap(
+        len(images),
+        lambda pick: _point([images[i] for i in pick], [scales[i] for i in pick], [areas[i] for i in pick]),
+        n_boot if len(images) > 1 else 0,
+        seed,
+        LEVEL,
+    )
     d = _sizes(images, scales)
     if len(d) >= 2:
         fits, chosen = fit_sizes(d)

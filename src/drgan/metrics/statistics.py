@@ -127,21 +127,18 @@ def _point(pred: Sequence[Particles], true: Sequence[Particles]) -> dict[str, fl
     }
 
 
-def compare_sizes(
-    pred: Sequence[Particles], true: Sequence[Particles], n_boot: int = 1000, seed: int = 0, level: float = 0.95
+def bootstrap(
+    n_images: int, statistic, n_boot: int = 1000, seed: int = 0, level: float = 0.95
 ) -> dict[str, dict[str, float]]:
-    """{statistic: {"value", "low", "high"}}: the statistics of the predicted particles against the true ones over
-    all images, with percentile bootstrap intervals (``level``) over images (``n_boot`` resamples; 0: none)."""
-    if len(pred) != len(true) or not len(true):
-        raise ConfigError(f"compare_sizes: expected the same images on both sides, got {len(pred)} and {len(true)}")
-    value = _point(pred, true)
+    """{key: {"value", "low", "high"}}: ``statistic(indices)`` -> {key: number} of the images 0 .. n_images - 1, with
+    percentile intervals (``level``) over ``n_boot`` resamples of the images with replacement (0: no intervals)."""
+    value = statistic(np.arange(n_images))
     result = {key: {"value": v, "low": float("nan"), "high": float("nan")} for key, v in value.items()}
     if n_boot > 0:
         rng = np.random.default_rng(seed)
         draws = {key: [] for key in value}
         for _ in range(int(n_boot)):
-            pick = rng.integers(len(true), size=len(true))
-            for key, v in _point([pred[i] for i in pick], [true[i] for i in pick]).items():
+            for key, v in statistic(rng.integers(n_images, size=n_images)).items():
                 draws[key].append(v)
         tail = 100.0 * (1.0 - level) / 2.0
         for key, values in draws.items():
@@ -150,6 +147,18 @@ def compare_sizes(
             if len(values):
                 result[key]["low"], result[key]["high"] = (float(x) for x in np.percentile(values, [tail, 100 - tail]))
     return result
+
+
+def compare_sizes(
+    pred: Sequence[Particles], true: Sequence[Particles], n_boot: int = 1000, seed: int = 0, level: float = 0.95
+) -> dict[str, dict[str, float]]:
+    """{statistic: {"value", "low", "high"}}: the statistics of the predicted particles against the true ones over
+    all images, with percentile bootstrap intervals (``level``) over images (``n_boot`` resamples; 0: none)."""
+    if len(pred) != len(true) or not len(true):
+        raise ConfigError(f"compare_sizes: expected the same images on both sides, got {len(pred)} and {len(true)}")
+    return bootstrap(
+        len(true), lambda pick: _point([pred[i] for i in pick], [true[i] for i in pick]), n_boot, seed, level
+    )
 
 
 def count_errors(pred: Sequence[Particles], true: Sequence[Particles]) -> np.ndarray:

@@ -47,24 +47,12 @@ class CentreSegmenterModule(SegmenterModule):
     instance_split = SPLIT
     needs_centres = True  # its training pairs carry centre_distance targets (drgan.segmentation.data)
 
-    def __init__(
-        self,
-        depth: int = 4,
-        base: int = 16,
-        n_classes: int = 3,
-        lr: float = 1e-3,
-        dice_weight: float = 1.0,
-        ce_weight: float = 1.0,
-        normalize: str = "none",
-        contact_weight: float = 0.0,
-        contact_reach: int = 3,
-        distance_weight: float = 5.0,
-    ):
-        super().__init__(depth, base, n_classes, lr, dice_weight, ce_weight, normalize, contact_weight, contact_reach)
+    def __init__(self, distance_weight: float = 5.0, **unet):
+        super().__init__(**unet)  # the U-Net's keywords (SegmenterModule), all recorded with distance_weight
         if isinstance(distance_weight, bool) or not isinstance(distance_weight, (int, float)) or distance_weight < 0:
             raise ConfigError(f"model.distance_weight={distance_weight!r}: expected a number >= 0")
         self.save_hyperparameters()
-        self.net = UNet(1, n_classes + 1, depth, base)  # the classes' logits, then the centre map's
+        self.net = UNet(1, self.hparams.n_classes + 1, self.hparams.depth, self.hparams.base)  # classes, then centre
 
     @staticmethod
     def probabilities(output: torch.Tensor) -> torch.Tensor:
