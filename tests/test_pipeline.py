@@ -18,6 +18,7 @@ from PIL import Image
 
 from drgan import pipeline
 from drgan.errors import ConfigError, DataError, DrganError
+from drgan.pipeline import runner, stages, tracking
 
 
 def images_folder(folder: Path, n: int = 3, seed: int = 0) -> Path:
@@ -50,13 +51,13 @@ def test_stage_keys_are_routed_to_their_stage_and_replace_the_configs_defaults(t
     assert s.stages["train"] == {"callbacks.early_stopping.max_minutes": "30", "~callbacks.sample_grid": None}
     assert s.stages["segment"] == {"model.normalize": "none"}
     assert s.stages["generate"] == {"renderer.spp": "16", "+shard": "0/2"}
-    stages = {st.name: st for st in pipeline.build_stages(s, parent_run="abc")}
+    built = {st.name: st for st in stages.build_stages(s, parent_run="abc")}
     assert (
-        "model.normalize=none" in stages["segment"].settings and "model.normalize=none" not in stages["train"].settings
+        "model.normalize=none" in built["segment"].settings and "model.normalize=none" not in built["train"].settings
     )
-    assert "~callbacks.sample_grid" in stages["train"].settings and "+shard=0/2" in stages["generate"].settings
-    assert "parent_run=abc" in stages["train"].wired and "parent_run=abc" in stages["segment"].wired
-    assert stages["evaluate"].wired[1] == "data=/x/y" and "subset=all" in stages["evaluate"].wired  # no split.json
+    assert "~callbacks.sample_grid" in built["train"].settings and "+shard=0/2" in built["generate"].settings
+    assert "parent_run=abc" in built["train"].wired and "parent_run=abc" in built["segment"].wired
+    assert built["evaluate"].wired[1] == "data=/x/y" and "subset=all" in built["evaluate"].wired  # no split.json
 
 
 @pytest.mark.parametrize(
@@ -82,7 +83,7 @@ def test_bad_settings_are_refused_with_the_key_named(argv, match):
 @pytest.fixture
 def no_stage_runs(monkeypatch):
     calls = []
-    monkeypatch.setattr(pipeline, "run_stage", lambda stage, env=None: calls.append(stage.name) or 0)
+    monkeypatch.setattr(runner, "run_stage", lambda stage, env=None: calls.append(stage.name) or 0)
     return calls
 
 
@@ -119,7 +120,7 @@ def test_annotated_images_that_train_are_refused(tmp_path, no_stage_runs):
     assert no_stage_runs == []
     # The same folder with a split.json whose train ids leave that image out: it is only scored, never trained on.
     (tmp_path / "split.json").write_text(json.dumps({"train": ["im0", "im2"], "test": ["im1"]}))
-    assert pipeline.check_inputs(settings(tmp_path, f"annotated={annotated}"))["training_images"] == 2
+    assert stages.check_inputs(settings(tmp_path, f"annotated={annotated}"))["training_images"] == 2
 
 
 # --- resuming (the stages faked: each writes its done file, or is "killed") -----------------------------------
@@ -132,8 +133,8 @@ class FakeStages:
     def __init__(self, monkeypatch):
         self.calls: list[list[str]] = []
         self.die_in: str | None = None
-        monkeypatch.setattr(pipeline, "run_stage", self)
-        monkeypatch.setattr(pipeline, "check_stage_settings", lambda s: None)
+        monkeypatch.setattr(runner, "run_stage", self)
+        monkeypatch.setattr(runner, "check_stage_settings", lambda s: None)
 
     def __call__(self, stage, env=None):
         self.calls.append([stage.name, *stage.command()[3:]])
@@ -185,9 +186,9 @@ def test_changed_settings_of_a_done_stage_stop_the_rerun_and_redo_runs_it_again(
 
 
 def test_two_pipelines_on_one_folder_are_refused(tmp_path):
-    with pipeline.folder_lock(tmp_path / "out"):
+    with tracking.folder_lock(tmp_path / "out"):
         with pytest.raises(ConfigError, match="another drgan.pipeline is running"):
-            with pipeline.folder_lock(tmp_path / "out"):
+            with tracking.folder_lock(tmp_path / "out"):
                 pass
 
 

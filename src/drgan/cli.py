@@ -48,7 +48,8 @@ COMMANDS = {
 
 def _docstring(module: str) -> str:
     """A module's docstring, read without importing it (the help stays instant)."""
-    path = PACKAGE / (module.removeprefix("drgan.").replace(".", "/") + ".py")
+    stem = PACKAGE / module.removeprefix("drgan.").replace(".", "/")
+    path = stem / "__init__.py" if stem.is_dir() else stem.with_suffix(".py")
     return ast.get_docstring(ast.parse(path.read_text())) or ""
 
 

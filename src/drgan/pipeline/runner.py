@@ -1,0 +1,180 @@
+"""Running a pipeline: each stage as a child process, in order, resumed where it stopped; and the command line."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+from drgan.errors import ConfigError, DrganError
+from drgan.pipeline.report import stage_summary, write_report
+from drgan.pipeline.settings import CONFIG, REPORT_FILE, STATE_FILE, Settings, parse_settings
+from drgan.pipeline.stages import Stage, build_stages, check_inputs, check_stage_settings
+from drgan.pipeline.tracking import State, Tracker, folder_lock
+
+log = logging.getLogger("drgan.pipeline")
+
+# --- running ---------------------------------------------------------------------------------------------
+
+
+def _die_with_parent() -> None:
+    """In the child, before exec: a SIGKILL of the pipeline kills the stage too (Linux), so that a rerun never
+    finds the old stage still writing into its folder."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
+def run_stage(stage: Stage, env: Mapping[str, str] | None = None) -> int:
+    """Run one stage's command, its output on this console; the exit code."""
+    process = subprocess.Popen(stage.command(), env=dict(env or os.environ), preexec_fn=_die_with_parent)
+    try:
+        return process.wait()
+    except KeyboardInterrupt:  # the stage got the same Ctrl-C (one process group): let it stop cleanly
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            process.kill()
+        raise
+
+
+def stale_difference(recorded: Sequence[str], current: Sequence[str]) -> str:
+    old, new = set(recorded), set(current)
+    parts = [f"now {a}" for a in current if a not in old] + [f"was {a}" for a in recorded if a not in new]
+    return "; ".join(parts)
+
+
+def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
+    """Run (or resume) the pipeline of ``s``; returns pipeline.json's content."""
+
+    inputs = check_inputs(s)
+    check_stage_settings(s)
+    with folder_lock(s.out):
+        state = State(s.out / STATE_FILE)
+        state.data.update({"data_dir": str(s.data_dir), "name": s.name, "inputs": inputs,
+                           "annotated": str(s.annotated) if s.annotated else None})  # fmt: skip
+        tracker = Tracker(s)
+        stages = build_stages(s, tracker.parent)
+        if s.redo is not None:
+            for stage in stages[[st.name for st in stages].index(s.redo) :]:
+                if stage.folder.exists():
+                    shutil.rmtree(stage.folder)
+                if stage.name == "profile":
+                    stage.done_file.unlink(missing_ok=True)
+                state.forget(stage.name)
+        total, started = len(stages), time.perf_counter()
+        status = "FAILED"
+        try:
+            for number, stage in enumerate(stages, 1):
+                if stage.name == "analyze":  # the pixel size the profile read from the images' metadata
+                    stage = build_stages(s, tracker.parent, _profiled_pixel_size(s.out))[number - 1]
+                record = state.stage(stage.name)
+                if record.get("state") == "done" and stage.done_file.is_file():
+                    if record.get("args") != stage.recorded():
+                        raise ConfigError(
+                            f"pipeline: stage {stage.name} is done with other settings "
+                            f"({stale_difference(record.get('args') or [], stage.recorded())}); run it and the "
+                            f"stages after it again with redo={stage.name}, or keep it and drop the new settings"
+                        )
+                    echo(f"[{number}/{total}] {stage.name}: done ({_minutes(record.get('seconds'))}), skipped")
+                    continue
+                resumed = bool(record) or bool(stage.resume())
+                echo(f"[{number}/{total}] {stage.name}: {'resuming' if resumed else 'starting'} "
+                     f"(folder {stage.folder})")  # fmt: skip
+                state.update(stage.name, state="running", args=stage.recorded(), started=time.time())
+                begin = time.perf_counter()
+                code = run_stage(stage)
+                seconds = time.perf_counter() - begin + float(record.get("seconds_before") or 0.0)
+                if code != 0:
+                    state.update(stage.name, state="failed", exit_code=code, seconds_before=seconds)
+                    raise DrganError(
+                        f"pipeline: stage {stage.name} failed (exit code {code}; its message is above, its log in "
+                        f"{stage.folder}); fix what it says and run the same command again to resume"
+                    )
+                if not stage.done_file.is_file():
+                    state.update(stage.name, state="failed", exit_code=code, seconds_before=seconds)
+                    raise DrganError(f"pipeline: stage {stage.name} exited 0 but wrote no {stage.done_file}")
+                summary = stage_summary(stage.name, stage.folder, s)
+                state.update(stage.name, state="done", seconds=seconds, seconds_before=None, finished=time.time(),
+                             summary=summary)  # fmt: skip
+                if stage.name not in ("train", "segment"):  # those two log MLflow runs of their own
+                    tracker.child(stage, seconds, _numbers(summary), _artifacts(stage))
+                echo(f"[{number}/{total}] {stage.name}: done in {_minutes(seconds)}"
+                     + (f": {summary['line']}" if summary.get("line") else ""))  # fmt: skip
+                write_report(s, state.data, stages)
+            status = "FINISHED"
+        except KeyboardInterrupt:
+            status = "KILLED"
+            echo("pipeline: interrupted; run the same command again to resume")
+            raise
+        finally:
+            write_report(s, state.data, stages)
+            tracker.finish(status, {"time/wall_s": time.perf_counter() - started})
+        echo(f"pipeline {s.name}: done; the report: {s.out / REPORT_FILE}")
+        return state.data
+
+
+def _profiled_pixel_size(out: Path) -> float | None:
+    path = out / "profile" / "profile.json"
+    if not path.is_file():
+        return None
+    size = (json.loads(path.read_text()).get("pixel_size") or {}).get("nm_per_px")
+    return float(size) if size else None
+
+
+def _numbers(summary: dict) -> dict[str, float]:
+    return {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
+
+
+def _artifacts(stage: Stage) -> list[Path]:
+    names = {"profile": ["report.md", "profile.json"], "generate": ["manifest.json"],
+             "analyze": ["particles.csv", "histograms.png"], "evaluate": ["results.md", "statistics.md"]}  # fmt: skip
+    return [stage.folder / n for n in names.get(stage.name, [])]
+
+
+def _minutes(seconds) -> str:
+    if not isinstance(seconds, (int, float)):
+        return "time unknown"
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
+
+
+# --- command line ---------------------------------------------------------------------------------------------
+
+
+def help_text() -> str:
+    import drgan.pipeline
+
+    return (
+        f"{drgan.pipeline.__doc__.strip()}\n\nSettings (conf/pipeline/pipeline.yaml):\n\n{CONFIG.read_text()}\n"
+        "Each stage's own keys: python -m drgan.STAGE --help (e.g. python -m drgan.train --help)."
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if any(a in ("-h", "--help") for a in argv):
+        with contextlib.suppress(BrokenPipeError):  # `... --help | head`: the reader left
+            print(help_text(), flush=True)
+        return 0
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
+    try:
+        run(parse_settings(argv))
+    except DrganError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

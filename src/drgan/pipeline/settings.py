@@ -1,0 +1,140 @@
+"""The pipeline's settings: its own keys, and each stage's STAGE.KEY=VALUE routed to that stage."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from drgan.errors import ConfigError
+
+CONFIG = Path(__file__).parent.parent / "conf" / "pipeline" / "pipeline.yaml"
+STAGES = ("profile", "train", "generate", "segment", "analyze", "evaluate")
+OWN_KEYS = ("data.dir", "name", "annotated", "out", "redo", "mlflow")
+STATE_FILE = "pipeline.json"
+REPORT_FILE = "report.md"
+LOCK_FILE = ".pipeline.lock"
+RESUME_KEY = "ckpt_path"  # the resume flag a stage gets when it has a checkpoint; not a setting
+
+
+# --- settings ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Settings:
+    data_dir: Path
+    name: str
+    annotated: Path | None
+    out: Path
+    redo: str | None
+    mlflow: bool
+    stages: dict[str, dict[str, str]]  # stage -> {override key (with +/++/~ prefix): value}, in order
+
+
+def _value_text(value) -> str:
+    """A YAML default as the text of a Hydra override value."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_value_text(v) for v in value) + "]"
+    return str(value)
+
+
+def _split_override(text: str) -> tuple[str, str | None]:
+    """``key=value`` -> (key, value); ``~key`` (a deletion) -> (``~key``, None)."""
+    if text.startswith("~") and "=" not in text:
+        return text, None
+    if "=" not in text:
+        raise ConfigError(f"pipeline: {text!r}: expected KEY=VALUE (e.g. data.dir=/path/to/images or train.seed=1)")
+    key, value = text.split("=", 1)
+    return key, value
+
+
+def _stage_key(key: str) -> tuple[str, str] | None:
+    """(stage, the key as that stage's command takes it) for ``[+|++|~]STAGE.KEY``; None for the pipeline's own."""
+    prefix = re.match(r"^(\+\+|\+|~)?", key).group(0)
+    rest = key[len(prefix) :]
+    stage, dot, inner = rest.partition(".")
+    if dot and stage in STAGES:
+        if not inner:
+            raise ConfigError(f"pipeline: {key!r}: expected {stage}.KEY=VALUE")
+        return stage, prefix + inner
+    return None
+
+
+def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
+    """The pipeline's settings from its YAML and the command line (``KEY=VALUE`` words); checks names, not files."""
+    base = yaml.safe_load(config_path.read_text())
+    own = {"data.dir": base["data"]["dir"], **{k: base[k] for k in OWN_KEYS if k != "data.dir"}}
+    stages: dict[str, dict[str, str]] = {
+        s: {str(k): _value_text(v) for k, v in (base["stages"].get(s) or {}).items()} for s in STAGES
+    }
+    for word in argv:
+        key, value = _split_override(word)
+        routed = _stage_key(key)
+        if routed is not None:
+            stage, inner = routed
+            stages[stage].pop(inner.lstrip("+~"), None)  # one value per key: the command line's replaces the YAML's
+            stages[stage][inner] = value
+        elif key in OWN_KEYS:
+            own[key] = value
+        else:
+            raise ConfigError(
+                f"pipeline: {key}: not a setting of the pipeline ({', '.join(OWN_KEYS)}) nor a stage's key "
+                f"(STAGE.KEY=VALUE with STAGE one of {', '.join(STAGES)}; e.g. train.seed=1)"
+            )
+    if not own["data.dir"]:
+        raise ConfigError("pipeline: give data.dir=DIR (the folder of your images)")
+    name = own["name"]
+    if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
+        raise ConfigError(f"pipeline: name={name!r}: expected a name of letters, digits, _ or - (e.g. name=my_tem)")
+    from drgan.configs import shipped_materials
+
+    if str(name) in shipped_materials():
+        raise ConfigError(
+            f"pipeline: name={name}: the run's material takes its name, and a material drgan ships has it "
+            f"({', '.join(shipped_materials())}); choose another name, e.g. name={name}_mine"
+        )
+    redo = own["redo"]
+    if redo in ("null", "None", ""):
+        redo = None
+    if redo is not None and redo not in STAGES:
+        raise ConfigError(f"pipeline: redo={redo!r}: expected a stage, one of {', '.join(STAGES)}")
+    annotated = own["annotated"]
+    annotated = None if annotated in (None, "null", "None", "") else Path(str(annotated)).expanduser()
+    out = own["out"]
+    out = Path("runs/pipeline") / str(name) if out in (None, "null", "None", "") else Path(str(out)).expanduser()
+    mlflow = own["mlflow"]
+    mlflow = mlflow if isinstance(mlflow, bool) else str(mlflow).lower() in ("true", "1", "yes")
+    for stage, keys in stages.items():
+        fixed = sorted(set(k.lstrip("+~") for k in keys) & set(PIPELINE_KEYS[stage]))
+        if fixed:
+            raise ConfigError(
+                f"pipeline: {stage}.{fixed[0]} is set by the pipeline (it wires the stages' folders together); "
+                f"set out= for another folder, or run python -m drgan.{stage} by hand"
+            )
+    return Settings(
+        data_dir=Path(str(own["data.dir"])).expanduser().resolve(),
+        name=str(name),
+        annotated=annotated.resolve() if annotated else None,
+        out=out.resolve(),
+        redo=redo,
+        mlflow=mlflow,
+        stages=stages,
+    )
+
+
+# The keys the pipeline sets itself (each stage's folders and links); a user's STAGE.KEY for one of them is refused.
+PIPELINE_KEYS = {
+    "profile": ("data.dir", "name", "out", "conf_dir", "overwrite"),
+    "train": ("material", "run_name", "hydra.run.dir", "hydra.searchpath", "parent_run", RESUME_KEY),
+    "generate": ("ckpt", "out"),
+    "segment": ("data", "real", "out", "name", "run_name", "parent_run", RESUME_KEY),
+    "analyze": ("model", "images", "out"),
+    "evaluate": ("model", "models", "data", "out"),
+}

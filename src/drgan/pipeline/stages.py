@@ -1,0 +1,178 @@
+"""The stages of a pipeline run (each its command, folder and done file), and the checks of the inputs and of each
+stage's settings that run before any stage."""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from drgan.errors import ConfigError, DataError
+from drgan.pipeline.settings import RESUME_KEY, STAGES, Settings
+
+# --- the stages ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Stage:
+    """One stage: its command's module, its folder, the arguments the pipeline gives it, and the file whose
+    presence (with a clean exit) says it is done."""
+
+    name: str
+    folder: Path
+    wired: list[str]  # the pipeline's own arguments (folders, links)
+    settings: list[str]  # defaults of the pipeline's config and the user's STAGE.KEY=VALUE
+    done_file: Path
+    resume: Callable[[], list[str]] = field(default=lambda: [])  # extra arguments of a resumed run
+
+    @property
+    def module(self) -> str:
+        return f"drgan.{self.name}"
+
+    def command(self) -> list[str]:
+        return [sys.executable, "-m", self.module, *self.wired, *self.settings, *self.resume()]
+
+    def recorded(self) -> list[str]:
+        """What decides the stage's result: its arguments without the resume flag."""
+        return [*self.wired, *self.settings]
+
+
+def _last_checkpoint(folder: Path) -> Callable[[], list[str]]:
+    return lambda: [f"{RESUME_KEY}=last"] if (folder / "checkpoints" / "last.ckpt").is_file() else []
+
+
+def build_stages(s: Settings, parent_run: str | None, nm_per_px: float | None = None) -> list[Stage]:
+    """The stages of a pipeline run, in order (evaluate only with ``annotated``)."""
+    out, name = s.out, s.name
+    conf = out / "drgan_conf"
+    experiment = f"pipeline_{name}"
+    links = [f"parent_run={parent_run}"] if parent_run else []
+    logged = [f"logger.mlflow.experiment_name={experiment}", *links] if s.mlflow else ["logger=none"]
+
+    def settings(stage: str) -> list[str]:
+        return [key if value is None else f"{key}={value}" for key, value in s.stages[stage].items()]
+
+    folders = {stage: out / stage for stage in STAGES}
+    model = folders["segment"] / "checkpoints" / "last.ckpt"
+    stages = [
+        Stage(
+            "profile",
+            folders["profile"],
+            [f"data.dir={s.data_dir}", f"name={name}", f"out={folders['profile']}", f"conf_dir={conf}",
+             "overwrite=true"],
+            settings("profile"),
+            conf / "material" / f"{name}.yaml",
+        ),
+        Stage(
+            "train",
+            folders["train"],
+            [f"material={name}", f"run_name={name}", f"hydra.run.dir={folders['train']}",
+             f"hydra.searchpath=[file://{conf}]", *logged],
+            settings("train"),
+            folders["train"] / "metrics.json",
+            _last_checkpoint(folders["train"]),
+        ),
+        Stage(
+            "generate",
+            folders["generate"],
+            [f"ckpt={folders['train']}", f"out={folders['generate']}"],
+            settings("generate"),
+            folders["generate"] / "manifest.json",
+        ),
+        Stage(
+            "segment",
+            folders["segment"],
+            [f"data={folders['generate']}", f"out={folders['segment']}", f"name={name}", f"run_name={name}", *logged],
+            settings("segment"),
+            folders["segment"] / "metrics.json",
+            _last_checkpoint(folders["segment"]),
+        ),
+        Stage(
+            "analyze",
+            folders["analyze"],
+            [f"model={model}", f"images={s.data_dir}", f"out={folders['analyze']}",
+             *([f"nm_per_px={nm_per_px}"] if nm_per_px and "nm_per_px" not in s.stages["analyze"] else [])],
+            settings("analyze"),
+            folders["analyze"] / "particles.csv",
+        ),
+    ]  # fmt: skip
+    if s.annotated is not None:
+        subset = [] if (s.annotated / "split.json").is_file() else ["subset=all"]
+        stages.append(
+            Stage(
+                "evaluate",
+                folders["evaluate"],
+                [f"model={model}", f"data={s.annotated}", f"out={folders['evaluate']}", *subset],
+                settings("evaluate"),
+                folders["evaluate"] / "results.md",
+            )
+        )
+    return stages
+
+
+CONFIG_NAMES = {"profile": "profile", "train": "train", "generate": "generate", "segment": "segment",
+                "analyze": "analyze", "evaluate": "evaluate"}  # fmt: skip
+
+
+def check_stage_settings(s: Settings) -> None:
+    """Compose each stage's config with the user's keys for it: an unknown key or a wrong type fails now."""
+    from drgan.configs import compose
+
+    for stage, keys in s.stages.items():
+        if not keys:
+            continue
+        overrides = [key if value is None else f"{key}={value}" for key, value in keys.items()]
+        try:
+            compose(overrides, config_name=CONFIG_NAMES[stage])
+        except Exception as error:  # noqa: BLE001  (Hydra's errors come in several types; all mean a bad key)
+            first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+            raise ConfigError(f"pipeline: the {stage} settings {overrides} do not fit drgan.{stage}: {first}") from None
+
+
+# --- inputs -----------------------------------------------------------------------------------------------
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha1(path.read_bytes()).hexdigest()
+
+
+def training_images(data_dir: Path) -> list[Path]:
+    """The images training reads: the split's train ids (split.json beside or above the folder), else all."""
+    from drgan.data.images import default_split, list_images, read_split
+
+    split = default_split(data_dir)
+    return list_images(data_dir, read_split(split)["train"]) if split else list_images(data_dir)
+
+
+def check_inputs(s: Settings) -> dict:
+    """Everything about the inputs that can fail, before any stage runs; returns a summary for the report."""
+    from drgan.data.images import list_images, read_split
+
+    if not s.data_dir.is_dir():
+        raise DataError(f"pipeline: data.dir={s.data_dir}: no such folder (expected a folder of images)")
+    images = list_images(s.data_dir)  # a folder without images is named here
+    train = training_images(s.data_dir)
+    summary = {"images": len(images), "training_images": len(train)}
+    if s.annotated is not None:
+        if not (s.annotated / "images").is_dir() or not (s.annotated / "masks").is_dir():
+            raise DataError(
+                f"pipeline: annotated={s.annotated}: expected an annotated dataset folder with images/ and masks/ "
+                "(and split.json: its test ids are scored; without it, every image)"
+            )
+        split = s.annotated / "split.json"
+        ids = read_split(split)["test"] if split.is_file() else None
+        scored = list_images(s.annotated / "images", ids)
+        if not scored:
+            raise DataError(f"pipeline: annotated={s.annotated}: no image to score (its split's test list is empty)")
+        seen = {_digest(p): p for p in train}
+        shared = [(p, seen[d]) for p in scored if (d := _digest(p)) in seen]
+        if shared:
+            raise DataError(
+                f"pipeline: annotated={s.annotated}: {len(shared)} of its scored image(s) are training images too "
+                f"(e.g. {shared[0][0]} = {shared[0][1]}); images scored at the end must never train anything: give "
+                "data.dir a split.json whose test ids they are, or other images"
+            )
+        summary["annotated_images"] = len(scored)
+    return summary

@@ -1,0 +1,124 @@
+"""What a pipeline run keeps beside its stages: pipeline.json (State), the folder's lock, and its MLflow runs
+(Tracker)."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from drgan.errors import ConfigError
+from drgan.io import write_bytes, write_json
+from drgan.pipeline.settings import LOCK_FILE, Settings
+from drgan.pipeline.stages import Stage
+
+log = logging.getLogger("drgan.pipeline")
+
+# --- state, lock, MLflow ----------------------------------------------------------------------------------
+
+
+class State:
+    """pipeline.json: per stage its recorded arguments, state (running / done / failed), times."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.data = json.loads(path.read_text()) if path.is_file() else {"stages": {}}
+
+    def stage(self, name: str) -> dict:
+        return self.data["stages"].get(name, {})
+
+    def update(self, name: str, **values) -> None:
+        self.data["stages"].setdefault(name, {}).update(values)
+        write_json(self.path, self.data)
+
+    def forget(self, name: str) -> None:
+        self.data["stages"].pop(name, None)
+        write_json(self.path, self.data)
+
+
+@contextlib.contextmanager
+def folder_lock(out: Path):
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / LOCK_FILE, "w") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(
+                f"pipeline: another drgan.pipeline is running on {out} (its lock {out / LOCK_FILE} is held); "
+                "wait for it, or give this one another name="
+            ) from None
+        yield
+
+
+class Tracker:
+    """The MLflow parent run of a pipeline (its id kept in out/mlflow_parent_run_id.txt, so a resumed pipeline
+    continues it) and the child runs of the stages that log nothing themselves. Any store error only warns."""
+
+    ID_FILE = "mlflow_parent_run_id.txt"
+
+    def __init__(self, s: Settings):
+        self.client = self.parent = None
+        if not s.mlflow:
+            return
+        try:
+            import mlflow
+
+            from drgan.loggers import store_lock, tracking_store
+
+            uri, _ = tracking_store([f"hydra.searchpath=[file://{s.out / 'drgan_conf'}]"])
+            self.client = mlflow.MlflowClient(tracking_uri=uri)
+            with store_lock(uri):
+                experiment = self.client.get_experiment_by_name(f"pipeline_{s.name}")
+                experiment_id = (
+                    experiment.experiment_id if experiment else self.client.create_experiment(f"pipeline_{s.name}")
+                )
+            id_file = s.out / self.ID_FILE
+            previous = id_file.read_text().strip() if id_file.is_file() else None
+            if previous:
+                self.client.update_run(previous, status="RUNNING")
+                self.parent = previous
+            else:
+                run = self.client.create_run(
+                    experiment_id, run_name=s.name, tags={"data_dir": str(s.data_dir), "output_dir": str(s.out)}
+                )
+                self.parent = run.info.run_id
+                write_bytes(id_file, self.parent.encode())
+            self.experiment_id = experiment_id
+        except Exception as error:  # noqa: BLE001  (a tracking store must never stop the pipeline)
+            log.warning("MLflow: no parent run (%s); the stages run without it", str(error).splitlines()[0])
+            self.client = self.parent = None
+
+    def child(self, stage: Stage, seconds: float, metrics: Mapping[str, float], artifacts: Sequence[Path]) -> None:
+        """A finished child run for a stage that has no MLflow run of its own."""
+        if self.client is None:
+            return
+        try:
+            run = self.client.create_run(
+                self.experiment_id,
+                run_name=stage.name,
+                tags={"mlflow.parentRunId": self.parent, "stage": stage.name, "output_dir": str(stage.folder)},
+            )
+            rid = run.info.run_id
+            self.client.log_param(rid, "command", " ".join(stage.recorded())[:6000])
+            self.client.log_metric(rid, "time/wall_s", seconds)
+            for key, value in metrics.items():
+                self.client.log_metric(rid, key, float(value))
+            for path in artifacts:
+                if path.is_file():
+                    self.client.log_artifact(rid, str(path))
+            self.client.set_terminated(rid, "FINISHED")
+        except Exception as error:  # noqa: BLE001
+            log.warning("MLflow: stage %s not logged (%s)", stage.name, str(error).splitlines()[0])
+
+    def finish(self, status: str, metrics: Mapping[str, float] = {}) -> None:
+        if self.client is None:
+            return
+        try:
+            for key, value in metrics.items():
+                self.client.log_metric(self.parent, key, float(value))
+            self.client.set_terminated(self.parent, status)
+        except Exception as error:  # noqa: BLE001
+            log.warning("MLflow: parent run not closed (%s)", str(error).splitlines()[0])
