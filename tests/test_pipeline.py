@@ -52,9 +52,7 @@ def test_stage_keys_are_routed_to_their_stage_and_replace_the_configs_defaults(t
     assert s.stages["segment"] == {"model.normalize": "none"}
     assert s.stages["generate"] == {"renderer.spp": "16", "+shard": "0/2"}
     built = {st.name: st for st in stages.build_stages(s, parent_run="abc")}
-    assert (
-        "model.normalize=none" in built["segment"].settings and "model.normalize=none" not in built["train"].settings
-    )
+    assert "model.normalize=none" in built["segment"].settings and "model.normalize=none" not in built["train"].settings
     assert "~callbacks.sample_grid" in built["train"].settings and "+shard=0/2" in built["generate"].settings
     assert "parent_run=abc" in built["train"].wired and "parent_run=abc" in built["segment"].wired
     assert built["evaluate"].wired[1] == "data=/x/y" and "subset=all" in built["evaluate"].wired  # no split.json
