@@ -1,29 +1,5 @@
-"""`python -m drgan.pipeline data.dir=DIR name=NAME [annotated=DATASET]`: from a folder of images to particle numbers.
-
-Runs the stages a user would run by hand, each as its own command (``python -m drgan.STAGE``, a child process) into
-its own folder under ``out`` (default runs/pipeline/NAME):
-
-    profile/    drgan.profile   the images' polarity, sizes, noise ...; the material in drgan_conf/material/NAME.yaml
-    train/      drgan.train     the GAN with that material (material=NAME, found on the pipeline's search path)
-    generate/   drgan.generate  1,000 annotated pairs and real background patches from the best epoch
-    segment/    drgan.segment   the segmenter trained on them
-    analyze/    drgan.analyze   particles.csv, histograms, overlays of every image of DIR
-    evaluate/   drgan.evaluate  (annotated=DATASET only) scores and statistics against its masks
-
-and writes ``report.md`` (what each stage chose and why, with links to its figures) and ``pipeline.json`` (each
-stage's command, times and state). The settings a stage gets are its own defaults (the best measured; the pipeline's
-config adds a few, conf/pipeline/pipeline.yaml) plus what the command line gives it as ``STAGE.KEY=VALUE``.
-
-Resuming: run the same command again. A stage is done when its process exited 0 (recorded in pipeline.json) and its
-main output exists; done stages are skipped, the first that is not resumes (drgan.train and drgan.segment from their
-``last.ckpt``, drgan.generate from the pairs already written), so a kill at any moment loses at most the step in
-progress. A done stage whose settings have changed since is not rerun silently: the pipeline stops and names the
-difference; ``redo=STAGE`` runs that stage and every later one again. Two pipelines on one folder are refused.
-
-Before any stage runs, the inputs are checked: the folder holds images, the name is usable, every STAGE key names a
-stage and composes with that stage's config (a typo fails in seconds, not after the GAN), and the annotated images
-are none of the images training reads (compared by content).
-"""
+"""The pipeline command, from a folder of images to particle numbers: its overview is drgan.pipeline.runner's
+(`python -m drgan.pipeline --help` prints it)."""
 
 from drgan.pipeline.runner import main, run
 from drgan.pipeline.settings import STAGES, Settings, parse_settings
