@@ -255,7 +255,7 @@ def disc_patch(centres, seed: int) -> tuple[np.ndarray, np.ndarray]:
 def partial_patchset(root: Path) -> tuple[Path, list[np.ndarray]]:
     """A PatchSet folder of 32 px patches with one background patch and the TRAIN_DISCS training patches, mined
     (as its params say) with the resolved segmentation of these discs; returns it and the discs of each patch."""
-    from drgan.data.particles import SegmentParams
+    from drgan.data.classical import SegmentParams
     from drgan.data.patches import PatchSet
 
     patches, discs = zip(*(disc_patch(c, seed) for seed, c in enumerate(TRAIN_DISCS)))

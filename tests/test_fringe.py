@@ -259,7 +259,8 @@ def measure_edge(images):
     the discs with drawn rings: the edge is measured here; the scale search, with a fringe too, is the profile
     test's (below) and test_particles'."""
     from drgan.data import profile as est
-    from drgan.data.particles import SegmentParams, annotation_mask, resolve_params
+    from drgan.data.annotations import annotation_mask
+    from drgan.data.classical import SegmentParams, resolve_params
 
     params, _ = resolve_params(images, SegmentParams(scale=24.0), "dark")
     samples = []

@@ -564,7 +564,7 @@ def _ramped_discs(background: float, core: float, seed: int) -> tuple[np.ndarray
 
 
 def test_grey_spread_measures_generated_images_as_it_measured_the_real_ones():
-    from drgan.data.particles import particle_foreground
+    from drgan.data.classical import particle_foreground
     from drgan.dataset.grey_spread import GreySpread, grey_levels, match_grey
 
     # The classical outline (an Otsu threshold) of a particle with a dim edge lies inside the true one, so the

@@ -1,4 +1,4 @@
-"""drgan.data.particles: the scale-adaptive segmentation on small generated images (grain, scale bars and text,
+"""drgan.data.classical: the scale-adaptive segmentation on small generated images (grain, scale bars and text,
 touching particles, an empty field, 16-bit and RGB input)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from PIL import Image, ImageDraw, ImageFont
 from scipy import ndimage as ndi
 
 from drgan.data import annotations
-from drgan.data import particles as P
+from drgan.data import classical as P
 from drgan.errors import ConfigError, DataError
 
 
@@ -69,7 +69,7 @@ def test_scale_bar_and_text_are_not_particles():
     pen.text((160, 214), "200 nm", fill=255, font=ImageFont.load_default(size=14))
     pen.text((4, 4), "(a)", fill=255, font=ImageFont.load_default(size=18))
     image = np.asarray(canvas, np.float32) / 255
-    mask = P.annotation_mask(image)
+    mask = annotations.annotation_mask(image)
     assert mask[236:242, 150:241].all() and mask[:24, :30].any() and mask[210:232, 158:215].any()
     params, labels, d = measured(image, "bright")
     assert not (labels > 0)[mask].any()  # nothing segmented on the bar, its text or the panel letter
@@ -90,8 +90,8 @@ def test_a_scale_bar_softened_by_resampling_is_found_and_a_rod_is_not():
     pen.rectangle((150, 236, 240, 241), fill=235)  # a scale bar, bottom right
     pen.text((160, 214), "200 nm", fill=235, font=ImageFont.load_default(size=16))
     image = ndi.gaussian_filter(np.asarray(canvas, np.float32) / 255, 0.5)
-    assert image.max() < 1 - P.ANNOTATION_LEVEL  # nothing is drawn in white
-    mask = P.annotation_mask(image)
+    assert image.max() < 1 - annotations.ANNOTATION_LEVEL  # nothing is drawn in white
+    mask = annotations.annotation_mask(image)
     assert mask[237:241, 152:239].all()  # the bar
     text = (image >= 1 - annotations.SOFT_LEVEL) & (yy < 232) & (xx >= 150)
     assert text.sum() > 30 and mask[text].mean() > 0.9  # its label
@@ -146,7 +146,7 @@ def figure_crop(polarity: str) -> tuple[np.ndarray, float]:
 @pytest.mark.parametrize("polarity", ["bright", "dark"])
 def test_a_data_bar_and_a_label_box_with_frames_are_not_particles(polarity):
     image, diameter = figure_crop(polarity)
-    mask = P.annotation_mask(image)
+    mask = annotations.annotation_mask(image)
     assert mask[282:, :].mean() > 0.95 and mask[6:53, 6:53].mean() > 0.95  # bar and box with their frames
     assert mask[60:270, 60:310].mean() < 0.01  # the field itself is left alone
     params, labels, d = measured(image, polarity)
@@ -202,8 +202,8 @@ def test_the_neck_caps_are_those_of_one_reconstruction_over_the_image():
             peaks = np.zeros(field.shape, bool)
             peaks[tuple(found.T)] = True
             for depth in (0.1, 0.2, 0.5):
-                expected = P._caps(distance, depth, peaks)
-                np.testing.assert_array_equal(P._neck_caps(distance, depth, peaks, components), expected)
+                expected = P.watershed._caps(distance, depth, peaks)
+                np.testing.assert_array_equal(P.watershed._neck_caps(distance, depth, peaks, components), expected)
         assert ndi.label(expected)[1] < peaks.sum()  # the deepest caps merge seeds: the comparison is not idle
 
 
@@ -289,7 +289,7 @@ def test_user_settings_are_kept_exactly():
     assert (params.sigma, params.min_distance, params.min_area, params.max_area) == (2.0, 9, 50, 900)
     assert estimate is not None  # the scale (for the illumination and blobs) was still measured
     fixed = P.SegmentParams(scale=24.0).resolved()
-    assert fixed.scale == 24.0 and fixed.min_distance == round(P.MIN_DISTANCE_PER_DIAMETER * 24)
+    assert fixed.scale == 24.0 and fixed.min_distance == round(P.CALIBRATION.min_distance_per_diameter * 24)
     with pytest.raises(Exception, match="unknown key"):
         P.SegmentParams.from_config({"sigmaa": 1.0})
 
@@ -348,7 +348,7 @@ def _on_map(monkeypatch, at, given=None, size=256):
         v.setdefault("lowest", v["separability"])
         return P.Point(round(scale, 2), depth, **v)
 
-    monkeypatch.setattr(P, "_point", point)
+    monkeypatch.setattr(P.search, "_point", point)
     image = np.zeros((size, size), np.float32)
     params, estimate = P.resolve_params([image], P.SegmentParams(**(given or {})), "bright")
     return params, estimate, asked
@@ -374,7 +374,7 @@ def test_the_scale_that_persists_wins_over_one_that_separates_better(monkeypatch
     # the former rule (separability + 0.05 per doubling) chose the specks: 0.9 + 0.05 log2 6 > 0.75 + 0.05 log2 40
     params, estimate, asked = _on_map(monkeypatch, _specks_and_particles({"separability": 0.75}))
     assert params.scale == pytest.approx(40, abs=0.5) and params.neck_depth == 0.0 and not estimate.alike
-    assert params.min_separability == P.MIN_SEPARABILITY
+    assert params.min_separability == P.CALIBRATION.min_separability
     scales = {f.scale: f for f in estimate.candidates if f.depth == 0.0}
     assert scales[6.0].basin <= 2 and scales[40.36].basin >= 12  # the specks and the particles
     assert estimate.grid and len({s for s, _ in asked}) >= len(P.scale_grid((256, 256)))
@@ -447,7 +447,7 @@ def test_fixed_points_the_grid_steps_over_and_above_its_top_are_found(monkeypatc
 @pytest.mark.parametrize(
     "deep, expected",
     [
-        ({"spread": 0.1}, P.NECK_DEPTH),  # merged at necks, far more alike: rods whole
+        ({"spread": 0.1}, P.CALIBRATION.neck_depth),  # merged at necks, far more alike: rods whole
         ({"spread": 0.7}, 0.0),  # merged, no more alike: touching particles merged
     ],
 )
@@ -481,7 +481,9 @@ def _small_on_noise(plateau_until: float):
 
 def test_particles_separating_only_when_smoothed_more_are_a_plateau(monkeypatch):
     params, estimate, _ = _on_map(monkeypatch, _small_on_noise(plateau_until=30))
-    assert params.scale == 12.0 and params.min_separability == P.MIN_SEPARABILITY  # the least smoothing separating
+    assert (
+        params.scale == 12.0 and params.min_separability == P.CALIBRATION.min_separability
+    )  # the least smoothing separating
     plateau = [f for f in estimate.candidates if f.scale == 12.0]
     assert plateau and plateau[0].median == pytest.approx(7.2) and plateau[0].basin == 6  # 12 to 28.5 px
     # a size held over fewer than PLATEAU_SCALES (12 to 20 px: four) is no plateau: noise's specks do that
@@ -513,7 +515,7 @@ def test_the_search_reports_the_separability_of_the_scale_it_returns():
     chosen, fixed, _ = P.search_scale(prepared, P.SegmentParams())
     assert len(fixed) >= 2
     for f in [chosen, *fixed]:
-        at_scale = P._foreground(prepared[0], replace(P.SegmentParams(), min_separability=0.0).resolved(f.scale))
+        at_scale = P.cut_foreground(prepared[0], replace(P.SegmentParams(), min_separability=0.0).resolved(f.scale))
         assert f.separability == pytest.approx(at_scale.separability, abs=1e-9), f
 
 
@@ -559,14 +561,16 @@ def test_a_few_particles_on_grain_are_found_and_grain_specks_are_not(seed):
     image, _, centres = discs(size=256, diameter=24, n=6, noise=0.08, grain=2.5, seed=seed, gap=30)
     bright = P.prepare(image, "bright", True).bright
     smooth = ndi.gaussian_filter(bright, params.sigma, mode="reflect")
-    plain = P._threshold(smooth, P.blob_centres(bright, params.scale), np.zeros(image.shape, bool), params.scale)
+    plain = P.foreground._threshold(
+        smooth, P.blob_centres(bright, params.scale), np.zeros(image.shape, bool), params.scale
+    )
     assert plain[1] < params.min_separability  # around every LoG maximum: the grain's threshold
-    foreground, separability = P._foreground(P.prepare(image, "bright", True), params)[:2]
+    foreground, separability = P.cut_foreground(P.prepare(image, "bright", True), params)[:2]
     assert separability >= params.min_separability and ndi.label(foreground)[1] == 6
     assert all(foreground[int(c[0]), int(c[1])] for c in centres)
 
     image = _with_specks(image, centres, radius=3.5, contrast=0.3)
-    foreground = P._foreground(P.prepare(image, "bright", True), params).foreground
+    foreground = P.cut_foreground(P.prepare(image, "bright", True), params).foreground
     assert all(foreground[int(c[0]), int(c[1])] for c in centres) and ndi.label(foreground)[1] <= 7
 
 
@@ -598,8 +602,8 @@ def test_the_black_gaps_of_a_dense_packing_are_not_text():
     canvas = Image.fromarray((_packing() * 255).astype(np.uint8))
     ImageDraw.Draw(canvas).text((4, 4), "(a)", fill=255, font=ImageFont.load_default(size=18))
     image = np.asarray(canvas, np.float32) / 255
-    gaps = image <= P.ANNOTATION_LEVEL
-    mask = P.annotation_mask(image)
+    gaps = image <= annotations.ANNOTATION_LEVEL
+    mask = annotations.annotation_mask(image)
     # the gaps inside the image hold character-shaped black groups as densely as the edges: the image's own, and
     # filling them from the spheres around would join the spheres (before: 14 % of the gap pixels masked)
     assert (mask & gaps).sum() < 0.01 * gaps.sum()
@@ -622,10 +626,10 @@ def test_a_scale_bars_label_is_text_among_black_specks_of_the_image():
     pen.rectangle((150, 240, 240, 244), fill=0)  # the scale bar, bottom right
     pen.text((160, 218), "200 nm", fill=0, font=ImageFont.load_default(size=14))
     image = np.asarray(canvas, np.float32) / 255
-    black = image <= P.ANNOTATION_LEVEL
+    black = image <= annotations.ANNOTATION_LEVEL
     ink = np.zeros(image.shape, bool)
     ink[205:238, 155:240] = black[205:238, 155:240]
-    mask = P.annotation_mask(image)
+    mask = annotations.annotation_mask(image)
     assert mask[240:245, 150:241].all()  # the bar
     assert ink.sum() > 30 and mask[ink].all()  # its label (before: none of it)
     assert mask[:190][black[:190]].mean() < 0.05  # the specks in the particles stay the image's
@@ -664,7 +668,7 @@ def test_only_round_holes_are_filled():
     ring = disc(50, 50, 20) & ~disc(50, 50, 13)
     three = disc(150, 40, 20) | disc(150, 80, 20) | disc(150 - 34.64, 60, 20)  # touching: a concave gap between
     four = disc(40, 130, 20) | disc(40, 170, 20) | disc(80, 130, 20) | disc(80, 170, 20)  # a concave square gap
-    filled = P._fill_holes(ring | three | four, params, np.zeros(ring.shape, bool))  # no marks
+    filled = P.foreground._fill_holes(ring | three | four, params, np.zeros(ring.shape, bool))  # no marks
     assert filled[50, 50] and filled[disc(50, 50, 12)].all()  # the ring's centre is its particle's
     assert not filled[138, 60] and not filled[60, 150]  # the gaps among touching particles stay background
     assert (filled & ~(ring | three | four)).sum() == (disc(50, 50, 13) & ~ring).sum()
@@ -675,7 +679,7 @@ def test_no_blob_standing_out_is_no_proof_of_no_particles(monkeypatch):
     # out of it: the search still runs from its fixed starts (before: "no blob stood out", an error)
     image, _, _ = discs(size=192, diameter=24, n=14, seed=4)
     nothing = P.ScaleEstimate(None, 0, 0.0, (3.0, 96.0))
-    monkeypatch.setattr(P, "estimate_scale", lambda *args, **kwargs: nothing)
+    monkeypatch.setattr(P.search, "estimate_scale", lambda *args, **kwargs: nothing)
     params, estimate = P.resolve_params([image], None, "bright")
     assert abs(params.scale / 24 - 1) < 0.15 and estimate.diameter_px is None and estimate.refined_px is not None
     with pytest.raises(P.NoParticles, match="no blob stood out.*no consistent particle size"):
@@ -689,13 +693,13 @@ def test_a_retry_that_separates_worse_is_not_kept(monkeypatch):
     image, _, _ = discs(size=160, diameter=24, n=12, seed=2)
     params = P.SegmentParams(scale=24, min_separability=0.0).resolved()
     prepared = P.prepare(image, "bright")
-    first = P._foreground(prepared, params)  # min_separability 0: never retried
+    first = P.cut_foreground(prepared, params)  # min_separability 0: never retried
     assert first.separability > 0.7 and first.foreground.any()
-    monkeypatch.setattr(P, "_out_of_film_noise", lambda bright, response, centres: np.zeros_like(centres))
-    retried = P._foreground(prepared, params, retry_below=0.99)  # retried, and the retry finds no blob
+    monkeypatch.setattr(P.foreground, "out_of_film_noise", lambda bright, response, centres: np.zeros_like(centres))
+    retried = P.cut_foreground(prepared, params, retry_below=0.99)  # retried, and the retry finds no blob
     assert retried.separability == first.separability
     np.testing.assert_array_equal(retried.foreground, first.foreground)
-    assert P._point([prepared], P.SegmentParams(min_separability=0.99), 24.0, 0.0).separability > 0.7
+    assert P.search._point([prepared], P.SegmentParams(min_separability=0.99), 24.0, 0.0).separability > 0.7
 
 
 @pytest.mark.parametrize("min_separability", [0.58, 0.5, 0.66, 0.7])
@@ -711,15 +715,15 @@ def test_a_lowered_threshold_retries_where_the_scale_search_did(monkeypatch, min
         cut = real(smooth, centres, annotations, scale)
         return cut._replace(separability=0.62 if len(seen) == 1 else 0.64)
 
-    real = P._threshold
-    monkeypatch.setattr(P, "_threshold", threshold)
-    monkeypatch.setattr(P, "_out_of_film_noise", lambda bright, response, centres: centres)
+    real = P.foreground._threshold
+    monkeypatch.setattr(P.foreground, "_threshold", threshold)
+    monkeypatch.setattr(P.foreground, "out_of_film_noise", lambda bright, response, centres: centres)
     params = P.SegmentParams(scale=24, background=0, min_separability=min_separability).resolved()
-    cut = P._foreground(prepared, params)
+    cut = P.cut_foreground(prepared, params)
     assert len(seen) == 2 and cut.separability == 0.64
-    assert P.retry_separability(params) == max(min_separability, P.MIN_SEPARABILITY)
+    assert P.retry_separability(params) == max(min_separability, P.CALIBRATION.min_separability)
     seen.clear()  # the search's measurement: min_separability 0, retried as the final segmentation will be
-    measured = P._measure(
+    measured = P.search._measure(
         P.prepare(image, "bright"), replace(params, min_separability=0.0), P.retry_separability(params)
     )
     assert measured.separability == cut.separability
@@ -762,10 +766,13 @@ def test_the_neck_depth_is_chosen_by_how_alike_the_sizes_come_out(kind):
     image, n = _rods_and_pairs(kind)
     params, estimate = P.resolve_params([image], None, "bright")
     labels, _ = P.segment_particles(image, params, "bright")
-    assert params.neck_depth == (P.NECK_DEPTH if kind == "rods" else 0.0), estimate.candidates
+    assert params.neck_depth == (P.CALIBRATION.neck_depth if kind == "rods" else 0.0), estimate.candidates
     assert estimate.depth == params.neck_depth
     assert labels.max() == n, (kind, labels.max(), n)
-    assert {f.depth for f in estimate.candidates} == {0.0, P.NECK_DEPTH}  # both depths found a particle size
+    assert {f.depth for f in estimate.candidates} == {
+        0.0,
+        P.CALIBRATION.neck_depth,
+    }  # both depths found a particle size
     given = P.resolve_params([image], P.SegmentParams(neck_depth=0.0), "bright")[0]
     assert given.neck_depth == 0.0  # a depth given is kept
 
@@ -795,7 +802,7 @@ def test_outlines_lie_at_the_particles_steepest_edge(seed):
         image = _spheres(edge, seed=seed)
         params, _ = P.resolve_params([image], None, "dark")
         labels, foreground = P.segment_particles(image, params, "dark")
-        cut = P._foreground(P.prepare(image, "dark"), params)
+        cut = P.cut_foreground(P.prepare(image, "dark"), params)
         otsu = P.segment_diameters(P.split_touching(cut.foreground, params), params)
         grown = P.segment_diameters(labels, params)
         assert len(grown) == len(otsu) == 10  # grown, none merged, none added
@@ -810,7 +817,7 @@ def test_outlines_not_grown_when_told():
     image = _spheres("dome")
     params = replace(P.resolve_params([image], None, "dark")[0], grow_outlines=False)
     labels, foreground = P.segment_particles(image, params, "dark")
-    cut = P._foreground(P.prepare(image, "dark"), params)
+    cut = P.cut_foreground(P.prepare(image, "dark"), params)
     assert (foreground == cut.foreground).all() and (labels == P.split_touching(cut.foreground, params)).all()
     assert (P.particle_foreground(image, params, "dark") == cut.foreground).all()
     with pytest.raises(ConfigError, match="grow_outlines"):

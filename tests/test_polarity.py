@@ -8,8 +8,8 @@ from scipy import ndimage as ndi
 from test_data import SHAPE, SIZE, STRIDE, disc_image, lattice_centres
 
 from drgan.data import mine_patches
+from drgan.data.classical import NoParticles
 from drgan.data.datamodule import RealPatchDataModule
-from drgan.data.particles import NoParticles
 from drgan.data.polarity import detect_polarity, image_vote, isophote_convexity, resolve_polarity, to_bright
 from drgan.errors import ConfigError, DataError
 

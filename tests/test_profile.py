@@ -12,7 +12,7 @@ from PIL import Image
 from scipy import ndimage as ndi
 
 from drgan.data import profile as est
-from drgan.data.particles import SegmentParams, resolve_params
+from drgan.data.classical import SegmentParams, resolve_params
 from drgan.errors import ConfigError, DataError
 
 GREY = {"bright": 0.25, "dark": 0.75}  # background grey level

@@ -3,7 +3,7 @@
     PYTHONPATH=src OMP_NUM_THREADS=1 python experiments/profile/scale_map.py --csv F [--jobs 2] [--half all|dev|held]
 
 The particle scale is searched as a fixed point of s -> median diameter of the segments made with the settings of s
-(`drgan.data.particles.search_scale`). Following that map from a few starts lands in one of several basins on
+(`drgan.data.classical.search_scale`). Following that map from a few starts lands in one of several basins on
 textured images, and a small change anywhere moves which. This script segments each image at every scale of a
 quarter-octave grid (6 px to half the image's shorter side), with both neck depths, and writes what the search's
 choice could rest on (one row per image, depth and scale): the segments' median and area-weighted median, how many
@@ -26,29 +26,27 @@ from scipy import ndimage as ndi
 from skimage.measure import regionprops
 from skimage.segmentation import find_boundaries
 
-from drgan.data.images import read_grey
-from drgan.data.particles import (
-    MIN_SCALE,
-    NECK_DEPTH,
-    SCALE_STEP,
+from drgan.data.classical import (
+    CALIBRATION,
     SegmentParams,
-    _foreground,
+    cut_foreground,
     estimate_scale,
     prepare,
     retry_separability,
     size_spread,
     split_touching,
 )
+from drgan.data.images import read_grey
 from drgan.data.polarity import resolve_polarity
 
 ROOT = Path("/work/shared/datasets/emps_train")
 
 
 def grid(shape: tuple[int, int]) -> np.ndarray:
-    """MIN_SCALE to half the shorter side, SCALE_STEP apart."""
-    top = 0.5 * min(shape)
-    n = int(math.floor(math.log(top / MIN_SCALE) / math.log(SCALE_STEP) + 1e-9)) + 1
-    return MIN_SCALE * SCALE_STEP ** np.arange(n)
+    """CALIBRATION.min_scale to half the shorter side, CALIBRATION.scale_step apart."""
+    top, low, step = 0.5 * min(shape), CALIBRATION.min_scale, CALIBRATION.scale_step
+    n = int(math.floor(math.log(top / low) / math.log(step) + 1e-9)) + 1
+    return low * step ** np.arange(n)
 
 
 def segment_rows(labels: np.ndarray, params: SegmentParams, bright: np.ndarray, gradient: np.ndarray) -> dict:
@@ -98,9 +96,9 @@ def map_one(job: tuple[str, Path]) -> list[dict]:
     start = time.perf_counter()
     for scale in grid(prepared.bright.shape):
         resolved = replace(base, min_separability=0.0).resolved(float(scale))
-        cut = _foreground(prepared, resolved, retry_below=retry_separability(base))
+        cut = cut_foreground(prepared, resolved, retry_below=retry_separability(base))
         gradient = ndi.gaussian_gradient_magnitude(prepared.bright, max(1.0, resolved.sigma))
-        for depth in (0.0, NECK_DEPTH):
+        for depth in (0.0, CALIBRATION.neck_depth):
             labels = split_touching(cut.foreground, replace(resolved, neck_depth=depth))
             rows.append({
                 "id": image_id, "polarity": polarity, "log_px": log, "depth": depth, "scale": round(float(scale), 3),

@@ -6,7 +6,7 @@ bar and its text drawn in; the median equivalent diameter found against the draw
 Per image: discs of one diameter (lognormal spread 0.1) placed without overlap on ~20 % of a size x size field,
 contrast 0.35 on a background of 0.3 (bright) or 0.7 (dark), Gaussian noise of std `noise` blurred by `grain` px
 (scaled back to that std), a white or black scale bar (6 px x 20 % of the width) with its label ("200 nm") in the
-bottom-right corner and a panel letter "(a)" top-left. The image goes through drgan.data.particles as the profile
+bottom-right corner and a panel letter "(a)" top-left. The image goes through drgan.data.classical as the profile
 uses it (resolve_params on the image, then segment_particles); the measured median is that of the segments not
 touching the border, the truth that of the drawn discs not touching it. Target: within 10 % everywhere.
 """
@@ -23,7 +23,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 from scipy import ndimage as ndi
 
-from drgan.data.particles import resolve_params, segment_diameters, segment_particles
+from drgan.data.classical import resolve_params, segment_diameters, segment_particles
 
 BACKGROUND = {"bright": 0.3, "dark": 0.7}
 CONTRAST = {"bright": 0.35, "dark": -0.35}

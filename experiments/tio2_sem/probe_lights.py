@@ -24,7 +24,8 @@ import numpy as np
 import torch
 
 from drgan.configs import compose
-from drgan.data.patches import PatchSet, segment_particles
+from drgan.data.classical import segment_particles
+from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 from drgan.models.build import build_scene, sample_phi
 from drgan.models.generator import add_noise

@@ -20,7 +20,8 @@ import numpy as np
 from PIL import Image
 from scipy import ndimage as ndi
 
-from drgan.data.patches import PatchSet, segment_particles
+from drgan.data.classical import segment_particles
+from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 
 

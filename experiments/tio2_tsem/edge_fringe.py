@@ -18,7 +18,8 @@ import torch
 
 from drgan.configs import compose
 from drgan.data import profile as est
-from drgan.data.particles import annotation_mask, resolve_params
+from drgan.data.annotations import annotation_mask
+from drgan.data.classical import resolve_params
 from drgan.models import build
 from drgan.models.generator import add_noise
 

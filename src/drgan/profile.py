@@ -23,18 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from drgan.data import profile as est
+from drgan.data.annotations import annotation_mask, as_grey
+from drgan.data.classical import CALIBRATION, Fixed, NoParticles, SegmentParams, resolve_params
 from drgan.data.images import default_split, list_images, read_grey, read_split
-from drgan.data.particles import (
-    CONSISTENT,
-    MIN_SEPARABILITY,
-    NECK_DEPTH,
-    Fixed,
-    NoParticles,
-    SegmentParams,
-    annotation_mask,
-    as_grey,
-    resolve_params,
-)
 from drgan.data.patches import scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.errors import ConfigError, DataError
@@ -344,10 +335,10 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     }
     notes["data.segment.neck_depth"] = _neck_note(seg["params"]["neck_depth"], "neck_depth" in given, estimate)
     lowered = seg["params"]["min_separability"]
-    if lowered != MIN_SEPARABILITY and "min_separability" not in given:
+    if lowered != CALIBRATION.min_separability and "min_separability" not in given:
         data["segment"]["min_separability"] = lowered
         notes["data.segment.min_separability"] = (
-            f"{lowered} (default {MIN_SEPARABILITY}): the particles' scale separates less than a "
+            f"{lowered} (default {CALIBRATION.min_separability}): the particles' scale separates less than a "
             "finer one, but its segments are far more alike in size (a dense packing of textured particles: narrow "
             "gaps, texture cut into specks of every size at the finer scale); to decide, set data.segment.scale "
             "and data.segment.min_separability together"
@@ -598,11 +589,11 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
 
 
 def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
-    """Why the watershed's seeds have the neck depth they have (`drgan.data.particles.search_scale`)."""
+    """Why the watershed's seeds have the neck depth they have (`drgan.data.classical.search_scale`)."""
     if given:
         return f"{depth}, set by hand"
     if estimate is None:
-        return f"{depth}: the more alike segment sizes at the scale given (`drgan.data.particles.search_scale`)"
+        return f"{depth}: the more alike segment sizes at the scale given (`drgan.data.classical.search_scale`)"
     fixed = [Fixed.from_list(c) for c in estimate.get("candidates", [])]
 
     def says(f: Fixed) -> str:
@@ -612,7 +603,7 @@ def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
     def best_of(d: float) -> Fixed | None:
         return max((f for f in fixed if f.depth == d), key=lambda f: f.evidence, default=None)
 
-    mine, other = best_of(depth), best_of(NECK_DEPTH if depth == 0.0 else 0.0)
+    mine, other = best_of(depth), best_of(CALIBRATION.neck_depth if depth == 0.0 else 0.0)
     what = "seeds at necks only" if depth else "every maximum seeding"
     head = f"{depth} ({what}): chosen with the scale"
     if mine is None:
@@ -629,7 +620,7 @@ def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
 
 
 def _outline_note(seg: dict, images: int) -> str:
-    """What the outlines' growth to the particles' edges did (`drgan.data.particles.grow_to_edges`)."""
+    """What the outlines' growth to the particles' edges did (`drgan.data.classical.grow_to_edges`)."""
     if not seg["params"].get("grow_outlines", True):
         return "false (set by hand): Otsu's outlines"
     grown = seg.get("outlines_grown") or {"images": 0}
@@ -736,7 +727,7 @@ Material config: `{r["material"]["config"]}` (parent `{r["material"]["parent"]}`
 | pixel size | {px["nm_per_px"]} nm ({px["source"]}) |
 
 Particles per patch: {c["definition"]}.
-## Segmentation (drgan.data.particles; written to the material's `data` keys, so training mines alike)
+## Segmentation (drgan.data.classical; written to the material's `data` keys, so training mines alike)
 
 {seg_table}
 
@@ -750,8 +741,8 @@ Particles per patch: {c["definition"]}.
 
 def _scale_figure(out: Path, search: dict) -> None:
     """scale_search.png: the segments' median diameter at each scale segmented, per neck depth, against the diagonal
-    where a segmentation agrees with its own scale (band: CONSISTENT); the fixed points found, marked by how many
-    scales segment to their size (the basin), and the one chosen (`drgan.data.particles.search_scale`)."""
+    where a segmentation agrees with its own scale (band: Calibration.consistent); the fixed points found, marked by how many
+    scales segment to their size (the basin), and the one chosen (`drgan.data.classical.search_scale`)."""
     grid = np.array([[s, d, np.nan if m is None else m] for s, d, m, _ in search["grid"]], dtype=float)
     fixed = [Fixed.from_list(c) for c in search["candidates"]]
 
@@ -760,10 +751,14 @@ def _scale_figure(out: Path, search: dict) -> None:
         lo, hi = np.nanmin(grid[:, :1]) / 1.5, np.nanmax(grid[:, [0, 2]]) * 1.5
         x = np.geomspace(lo, hi, 50)
         ax.fill_between(
-            x, x * math.exp(-CONSISTENT), x * math.exp(CONSISTENT), color="0.9", label="agrees with its scale"
+            x,
+            x * math.exp(-CALIBRATION.consistent),
+            x * math.exp(CALIBRATION.consistent),
+            color="0.9",
+            label="agrees with its scale",
         )
         ax.plot(x, x, color="0.6", lw=0.8)
-        for depth, colour in ((0.0, "C0"), (NECK_DEPTH, "C1")):
+        for depth, colour in ((0.0, "C0"), (CALIBRATION.neck_depth, "C1")):
             row = grid[grid[:, 1] == depth]
             row = row[np.argsort(row[:, 0])]
             what = "every maximum seeds" if depth == 0 else f"seeds at necks ({depth})"

@@ -184,7 +184,7 @@ def level_sums(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
 def classical_masks(trainer: Trainer, images: np.ndarray) -> np.ndarray:
     """Particle pixels (len, H, W) bool of ``images`` as the datamodule's patch mining sees them: its classical
     segmentation (``data.segment``) in its polarity. Applied alike to real and synthetic images."""
-    from drgan.data.patches import particle_foreground
+    from drgan.data.classical import particle_foreground
 
     datamodule = getattr(trainer, "datamodule", None)
     polarity, segment = getattr(datamodule, "polarity", None) or "bright", getattr(datamodule, "segment", None)

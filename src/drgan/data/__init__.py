@@ -1,15 +1,8 @@
 """Real images: reading, splits, and mining of training and background patches."""
 
+from drgan.data.classical import SegmentParams, segment_particles
 from drgan.data.images import list_images, read_grey, read_split
-from drgan.data.patches import (
-    PatchSet,
-    SegmentParams,
-    contact_sheet,
-    count_particles,
-    dihedral_augment,
-    mine_patches,
-    segment_particles,
-)
+from drgan.data.patches import PatchSet, contact_sheet, count_particles, dihedral_augment, mine_patches
 
 __all__ = [
     "PatchSet",

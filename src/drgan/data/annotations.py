@@ -1,7 +1,7 @@
 """Grey images and figure annotations: any micrograph as float grey in [0, 1], and the scale bars, their text, panel
 letters and label boxes burnt into it (``annotation_mask``), which are not particles.
 
-A leaf of drgan.data: drgan.data.polarity and drgan.data.particles both read images through it.
+A leaf of drgan.data: drgan.data.polarity and drgan.data.classical both read images through it.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from drgan.data.particles import SegmentParams, resolve_params, segment_diameters, segment_particles
+from drgan.data.classical import SegmentParams, resolve_params, segment_diameters, segment_particles
 from drgan.errors import ConfigError, DataError
 from drgan.scene.config import Material
 

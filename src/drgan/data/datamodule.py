@@ -18,11 +18,10 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
+from drgan.data.classical import ScaleEstimate, SegmentParams, resolve_params
 from drgan.data.images import default_split, list_images, read_grey, read_split
-from drgan.data.particles import ScaleEstimate, resolve_params
 from drgan.data.patches import (
     PatchSet,
-    SegmentParams,
     check_image_sizes,
     contact_sheet,
     dihedral_augment,

@@ -3,7 +3,7 @@
 The discriminator sees real square patches (256 x 256 in the paper). The paper's authors picked them by
 hand: patches showing at least three fully displayed particles. drgan picks them automatically:
 
-1. segment each whole image classically (drgan.data.particles: the particle scale estimated once for the set,
+1. segment each whole image classically (drgan.data.classical: the particle scale estimated once for the set,
    smoothing, Otsu threshold, watershed of the distance transform to split touching particles; scale bars
    and text left out); segments of plausible area are particles;
 2. slide a window over the image (a grid with the given stride, centred so both margins are equal);
@@ -30,9 +30,8 @@ import numpy as np
 from scipy import ndimage as ndi
 from tqdm import tqdm
 
-from drgan.data.particles import (
+from drgan.data.classical import (
     SegmentParams,
-    particle_foreground,
     prepare,
     resolve_params,
     segment_diameters,
@@ -45,15 +44,12 @@ from drgan.io import write_with
 log = logging.getLogger(__name__)
 
 
-# --- classical segmentation (drgan.data.particles) ---------------------------------------------------------
-
-
-__all__ = ["SegmentParams", "particle_foreground", "segment_particles"]  # the segmentation, for this module's callers
+# --- classical segmentation (drgan.data.classical) ---------------------------------------------------------
 
 
 def particle_boxes(labels: np.ndarray, params: SegmentParams) -> np.ndarray:
     """Bounding boxes (K, 4) int: (row0, col0, row1, col1), ends exclusive, of segments of plausible area
-    (``params`` resolved: drgan.data.particles.resolve_params)."""
+    (``params`` resolved: drgan.data.classical.resolve_params)."""
     areas = np.bincount(labels.ravel())
     boxes = []
     for index, slices in enumerate(ndi.find_objects(labels), start=1):
@@ -345,7 +341,7 @@ def mine_patches(
     area), or correlation with any kept patch above 1 - min_corr_distance. Training patches are taken
     best first (most particles); background patches only from windows free of particles, scale bars and
     text: if fewer than n_background such windows exist, fewer are taken (zero allowed) and a warning says
-    so (also in PatchSet.params["background_report"]). ``segment``: drgan.data.particles.SegmentParams;
+    so (also in PatchSet.params["background_report"]). ``segment``: drgan.data.classical.SegmentParams;
     lengths not set follow from the particle scale, estimated once on up to SCALE_IMAGES of the images.
     """
     check_polarity(polarity, "mine_patches polarity")

@@ -3,7 +3,7 @@
 Every estimator works on grey images in [0, 1] (drgan.data.images.read_grey) and the particles' polarity
 (drgan.data.polarity). The pieces, in the order `python -m drgan.profile` runs them:
 
-- `segment_image`: drgan.data.particles (the particle scale measured first, every length set from it), keeping the
+- `segment_image`: drgan.data.classical (the particle scale measured first, every length set from it), keeping the
   segments of plausible area;
 - `particle_table`: equivalent diameter, centroid, axis ratio, border contact, contact with another segment;
 - `background_noise`: background grey (median of background pixels), noise sigma (robust MAD of the
@@ -30,7 +30,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from drgan.data.particles import Segmentation, SegmentParams, segment_with_report
+from drgan.data.classical import Segmentation, SegmentParams, segment_with_report
 from drgan.errors import DataError
 
 # The high-pass that isolates noise from the background's slow shading: image minus its Gaussian blur.
@@ -42,7 +42,7 @@ BACKGROUND_MARGIN = 6  # px
 
 
 def segment_image(image: np.ndarray, params: SegmentParams, polarity: str) -> Segmentation:
-    """drgan.data.particles' segmentation with resolved ``params`` (`Segmentation`), keeping only segments of
+    """drgan.data.classical's segmentation with resolved ``params`` (`Segmentation`), keeping only segments of
     plausible area."""
     found = segment_with_report(image, params, polarity)
     areas = np.bincount(found.labels.ravel())

@@ -6,7 +6,7 @@ learns what the real substrate looks like:
 - **partial backgrounds** ``pbg_0000`` ..: when the PatchSet holds fewer such windows than ``n_background`` (dense
   images: on TEM agglomerates there may be none), real windows *with* particles fill up the rest: the PatchSet's
   training patches, their particles found again with the classical segmentation the patches were mined with
-  (drgan.data.particles, the PatchSet's own resolved settings and polarity). Their masks are 0 (background) except
+  (drgan.data.classical, the PatchSet's own resolved settings and polarity). Their masks are 0 (background) except
   on the particles, grown by a margin, and on scale bars and text, which are ``IGNORE`` (255): a segmenter's loss
   leaves those pixels out, so the window teaches background without claiming anything about its particles.
 
@@ -138,7 +138,7 @@ def patchset_segmentation(patches, fallback_polarity: str):
     """(SegmentParams at the patches' px, polarity) the PatchSet was mined with (its params "segment", "polarity");
     a PatchSet resampled from windows of W px to S px gets its lengths scaled by S / W. Unresolved or missing
     settings: each patch's particle scale is estimated on the patch."""
-    from drgan.data.particles import SegmentParams
+    from drgan.data.classical import SegmentParams
 
     params = SegmentParams.from_config(patches.params.get("segment") or {})
     window, size = patches.params.get("window"), patches.patch_size
@@ -149,10 +149,10 @@ def patchset_segmentation(patches, fallback_polarity: str):
 
 def ignore_mask(patch: np.ndarray, params, polarity: str, margin_px: int) -> tuple[np.ndarray, bool]:
     """(bool ignore mask, whether any particle was found) of one real patch: its particle foreground (the classical
-    segmentation, drgan.data.particles) grown by ``margin_px``, and its scale bars and text (also grown)."""
+    segmentation, drgan.data.classical) grown by ``margin_px``, and its scale bars and text (also grown)."""
     from scipy import ndimage
 
-    from drgan.data.particles import particle_foreground, prepare
+    from drgan.data.classical import particle_foreground, prepare
     from drgan.scene.labels import disk
 
     foreground = particle_foreground(patch, params, polarity)

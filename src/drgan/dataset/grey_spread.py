@@ -33,7 +33,7 @@ import numpy as np
 from drgan.errors import DataError
 
 if TYPE_CHECKING:
-    from drgan.data.particles import SegmentParams
+    from drgan.data.classical import SegmentParams
 
 MIN_SHARE = 0.02  # a patch counts only when particles and background each cover at least this share of it
 EDGE_MARGIN = 2  # px: edges (blur, SEM edge brightening, a classical outline's offset) are left out of both levels
@@ -58,7 +58,7 @@ def grey_levels(image: np.ndarray, particle: np.ndarray, margin: int = EDGE_MARG
 def classical_particles(image: np.ndarray, segment, polarity: str) -> np.ndarray | None:
     """bool: the particles drgan's classical segmentation (``segment``: SegmentParams or a data.segment mapping)
     finds in ``image``, or None unless particles and background each cover at least MIN_SHARE of it."""
-    from drgan.data.particles import particle_foreground
+    from drgan.data.classical import particle_foreground
 
     particle = particle_foreground(image, segment, polarity)
     return particle if MIN_SHARE <= particle.mean() <= 1 - MIN_SHARE else None
@@ -66,7 +66,7 @@ def classical_particles(image: np.ndarray, segment, polarity: str) -> np.ndarray
 
 def patch_grey_levels(patches: np.ndarray, segment, polarity: str) -> np.ndarray:
     """(N, 2) (background, particle) grey (`grey_levels`) of each patch in which both are shown (others left out)."""
-    from drgan.data.particles import SegmentParams
+    from drgan.data.classical import SegmentParams
 
     params = SegmentParams.from_config(segment)
     levels = []
@@ -115,7 +115,7 @@ class GreySpread:
         not grown): the settings scaled to generated images of ``resolution`` px. Settings not resolved (a patch set
         older than a key, or made by hand) are resolved once on the patches, so that every patch and every generated
         image is segmented alike (not each at a scale of its own)."""
-        from drgan.data.particles import resolve_params
+        from drgan.data.classical import resolve_params
 
         params, _ = resolve_params(list(np.asarray(patches, dtype=np.float32)), segment, polarity)
         # The threshold's own outline, not grown to the edges (`grow_to_edges`): a level is a core's median, and the

@@ -11,7 +11,7 @@ What a user gives is either
   (nnU-Net's dataset.json, plans.json, predict_from_raw_data_args.json) are ignored.
 
 - ``classical``: no training at all, the baseline a materials scientist runs in ImageJ/Fiji (threshold + distance
-  transform watershed): drgan's own classical segmentation (drgan.data.patches.segment_particles), the polarity
+  transform watershed): drgan's own classical segmentation (drgan.data.classical.segment_particles), the polarity
   detected from the evaluated images themselves.
 
 Each becomes a ``Predictor``: ``check(items)`` compares it with every image before anything is computed (for a
@@ -189,7 +189,7 @@ class ClassicalPredictor:
     def __call__(self, item: ImageItem) -> np.ndarray:
         from skimage.segmentation import find_boundaries
 
-        from drgan.data.patches import segment_particles
+        from drgan.data.classical import segment_particles
 
         if self.polarity is None:
             self.check([item])
