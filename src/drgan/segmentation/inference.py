@@ -135,9 +135,7 @@ def split_touching(
     particles (module docstring). ``split_core``: the particle core whose distance transform seeds the split is
     where the particle probability exceeds it (a stricter core opens the necks between touching particles);
     None: where the particle class wins the argmax."""
-    from scipy import ndimage as ndi
-    from skimage.morphology import h_maxima
-    from skimage.segmentation import watershed
+    from drgan.data.classical.watershed import distance_watershed
 
     check_split("watershed", split_depth, split_smooth, split_core)
     probs = np.asarray(probs)
@@ -147,13 +145,9 @@ def split_touching(
     core = probs.argmax(axis=0) == 1 if split_core is None else probs[1] > split_core
     if not core.any():
         return np.zeros(core.shape, np.uint8)
-    distance = ndi.distance_transform_edt(core)
-    if split_smooth > 0:
-        distance = ndi.gaussian_filter(distance, split_smooth)
-    seeds, _ = ndi.label(h_maxima(distance, split_depth))
-    # foreground pieces without a seed (no particle-class core) are dropped by the watershed: they are
-    # stray contour pixels, not particles
-    labels = watershed(-distance, seeds, mask=foreground)
+    # the classical segmentation's watershed, seeded at the h-maxima of the core's smoothed distance transform;
+    # foreground pieces without a seed (no particle-class core) stay 0: they are stray contour pixels, not particles
+    labels = distance_watershed(core, foreground, smooth=split_smooth, depth=split_depth)
     return separate_regions(labels)
 
 
