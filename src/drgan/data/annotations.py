@@ -159,9 +159,9 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
     return mask
 
 
-# A figure averaged down, resampled or saved as JPEG no longer draws its scale bar in pure white or black (EMPS
-# ec2cc16d2a: a white bar peaks at 0.92, its label too): such a bar is taken within SOFT_LEVEL of either end, where
-# it is drawn as a bar is and no particle is: solid and straight.
+# A figure averaged down, resampled or saved as JPEG no longer draws its scale bar in pure white or black (a white
+# bar and its label may peak at 0.92): such a bar is taken within SOFT_LEVEL of either end, where it is drawn as a
+# bar is and no particle is: solid and straight.
 SOFT_LEVEL = 0.15
 SOFT_FILL = 0.9  # of its box
 SOFT_EVEN = 0.9  # share of the bar's length over which its width is its median width, +-1 px
