@@ -158,14 +158,13 @@ def test_background_patches_hold_no_particle(synthetic, caplog):
     image, mask, _ = synthetic
     ps = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, n_background=3, progress=False)
     assert len(ps.background) == 3
-    for (r, c), f in zip(ps.background_positions, ps.background_fractions):
-        assert f == 0
+    for r, c in ps.background_positions:
         assert not mask[r : r + SIZE, c : c + SIZE].any()
     # Asking for more than exist: only particle-free windows are taken (fewer than asked), and the shortfall is said.
     with caplog.at_level(logging.WARNING, logger="drgan.data.patches"):
         many = mine_patches([image], ["syn"], size=SIZE, stride=STRIDE, n_background=40, progress=False)
     report = many.params["background_report"]
-    assert report["found"] == len(many.background) < 40 and not many.background_fractions.any()
+    assert report["found"] == len(many.background) < 40 and report["max_foreground_fraction"] == 0.0
     for r, c in many.background_positions:
         assert not mask[r : r + SIZE, c : c + SIZE].any()
     assert "free of particles" in caplog.text
@@ -211,6 +210,13 @@ def test_patchset_save_load_and_contact_sheet(synthetic, tmp_path):
     assert Image.open(sheet).size[0] > 0
     with pytest.raises(DataError, match="patches.npz"):
         PatchSet.load(tmp_path)
+    # a cache written when patches.npz still carried background_fractions (all 0) loads as before
+    with np.load(tmp_path / "set" / "patches.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    np.savez_compressed(tmp_path / "set" / "patches.npz", **arrays, background_fractions=np.zeros(2))
+    old = PatchSet.load(tmp_path / "set")
+    np.testing.assert_array_equal(old.background, ps.background)
+    assert old.summary() == ps.summary()
 
 
 # --- reading ------------------------------------------------------------------------------------------------

@@ -269,7 +269,6 @@ def partial_patchset(root: Path) -> tuple[Path, list[np.ndarray]]:
         background=background,
         background_ids=["img9"],
         background_positions=np.array([(0, 0)]),
-        background_fractions=np.zeros(1),
         params={"size": PATCH, "segment": segment.as_dict(), "polarity": "bright"},
     ).save(root)
     return root, list(discs)

@@ -138,7 +138,6 @@ def test_dark_particles_mine_the_same_patches_as_their_bright_twin(field):
     np.testing.assert_array_equal(dark.train_positions, bright.train_positions)
     np.testing.assert_array_equal(dark.train_counts, bright.train_counts)
     np.testing.assert_array_equal(dark.background_positions, bright.background_positions)
-    assert np.all(dark.background_fractions == 0)
     # the patches keep the image's own values: dark particles stay dark
     r, c = dark.train_positions[0]
     np.testing.assert_array_equal(dark.train[0], dark_twin(image)[r : r + SIZE, c : c + SIZE])
@@ -182,7 +181,6 @@ def test_the_datamodule_detects_and_records_dark_particles(tmp_path, field):
     dm.setup()
     assert dm.polarity == "dark" and dm.polarity_estimate["dark_votes"] == 3
     assert dm.patches.params["polarity"] == "dark"
-    assert np.all(dm.patches.background_fractions == 0)
     # the cache remembers the detected polarity
     again = RealPatchDataModule(
         str(folder),

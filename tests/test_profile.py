@@ -13,6 +13,7 @@ from scipy import ndimage as ndi
 
 from drgan.data import profile as est
 from drgan.data.classical import SegmentParams, resolve_params
+from drgan.data.patches import window_starts
 from drgan.errors import ConfigError, DataError
 
 GREY = {"bright": 0.25, "dark": 0.75}  # background grey level
@@ -93,7 +94,7 @@ def test_the_fit_picks_lognormal_for_lognormal_data_and_bimodal_for_two_sizes():
 
 
 def test_particles_per_patch_count_centroids_inside_windows():
-    assert list(est.window_starts(712, 256, 128)) == [36, 164, 292, 420]
+    assert list(window_starts(712, 256, 128)) == [36, 164, 292, 420]
     counts = est.patch_counts(np.array([10.0, 300.0, 300.0]), np.array([10.0, 10.0, 200.0]), (512, 512), 256)
     assert counts.reshape(3, 3).tolist() == [[1, 0, 0], [2, 1, 0], [2, 1, 0]]
 

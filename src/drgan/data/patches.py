@@ -34,7 +34,6 @@ from drgan.data.classical import (
     SegmentParams,
     prepare,
     resolve_params,
-    segment_diameters,
     segment_particles,
 )
 from drgan.data.polarity import check_polarity
@@ -68,16 +67,6 @@ def full_particle_counts(boxes: np.ndarray, rows: np.ndarray, cols: np.ndarray, 
     inside_rows = (boxes[:, 0] > rows) & (boxes[:, 2] < rows + height)  # (R, K)
     inside_cols = (boxes[:, 1] > cols) & (boxes[:, 3] < cols + width)  # (C, K)
     return inside_rows.astype(np.int64) @ inside_cols.T.astype(np.int64)
-
-
-def particle_diameters(image: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> np.ndarray:
-    """Equivalent diameters (px) of the segments of plausible area (min_area..max_area) that touch no border."""
-    try:
-        params, _ = resolve_params([image], params, polarity)
-    except DataError:  # no particle stands out
-        return np.zeros(0)
-    labels, _ = segment_particles(image, params, polarity)
-    return segment_diameters(labels, params)
 
 
 def count_particles(patch: np.ndarray, params: SegmentParams | None = None, polarity: str = "bright") -> int:
@@ -127,17 +116,17 @@ class PatchSet:
     train_counts: np.ndarray  # (N,) int: fully displayed particles found in each
     background: np.ndarray  # (M, S, S) float32 in [0, 1]
     background_ids: list[str]
-    background_positions: np.ndarray  # (M, 2) int
-    background_fractions: np.ndarray  # (M,) float: foreground fraction of each (0 = no particle pixel)
+    background_positions: np.ndarray  # (M, 2) int: every one free of particles, scale bars and text
     params: dict = field(default_factory=dict)  # how the set was mined, and the background report
 
     def __post_init__(self) -> None:
         for name, n in (("train", len(self.train)), ("background", len(self.background))):
             lengths = {len(getattr(self, f"{name}{suffix}")) for suffix in ("_ids", "_positions")}
-            extra = self.train_counts if name == "train" else self.background_fractions
-            if lengths | {len(extra)} != {n}:
+            if name == "train":
+                lengths.add(len(self.train_counts))
+            if lengths != {n}:
                 raise DataError(
-                    f"PatchSet {name}: {n} patches but ids/positions/{'counts' if name == 'train' else 'fractions'} of other lengths"
+                    f"PatchSet {name}: {n} patches but ids/positions{'/counts' if name == 'train' else ''} of other lengths"
                 )
 
     @property
@@ -164,10 +153,9 @@ class PatchSet:
                 if counts.size
                 else {}
             ),
-            "background_empty": int(np.sum(np.asarray(self.background_fractions) == 0)),
-            "background_max_fraction": float(np.max(self.background_fractions))
-            if len(self.background_fractions)
-            else 0.0,
+            # mining takes only windows free of particles: every background patch is empty
+            "background_empty": len(self.background),
+            "background_max_fraction": 0.0,
         }
 
     def save(self, directory: str | Path) -> Path:
@@ -180,7 +168,6 @@ class PatchSet:
             "train_counts": self.train_counts,
             "background": self.background,
             "background_positions": self.background_positions,
-            "background_fractions": self.background_fractions,
         }
         write_with(directory / _ARRAYS_FILE, lambda f: np.savez_compressed(f, **arrays))
         meta = {
@@ -209,8 +196,7 @@ class PatchSet:
                 train_counts=arrays["train_counts"],
                 background=arrays["background"],
                 background_ids=list(meta["background_ids"]),
-                background_positions=arrays["background_positions"],
-                background_fractions=arrays["background_fractions"],
+                background_positions=arrays["background_positions"],  # a cache's background_fractions (all 0): unread
                 params=meta.get("params", {}),
             )
         except DataError:
@@ -226,19 +212,22 @@ SCALE_IMAGES = 8  # images the particle scale of a set is estimated on
 
 
 def window_starts(length: int, size: int, stride: int) -> np.ndarray:
-    """Start offsets of windows of `size` every `stride` pixels, the grid centred in `length`."""
+    """Window starts along one axis: windows of ``size`` every ``stride`` px, the grid centred so both margins are
+    equal; none where ``length`` < ``size``."""
+    if length < size:
+        return np.zeros(0, np.int64)
     n = (length - size) // stride + 1
-    offset = (length - size - (n - 1) * stride) // 2
-    return offset + stride * np.arange(n)
+    margin = (length - size - (n - 1) * stride) // 2
+    return margin + stride * np.arange(n, dtype=np.int64)
 
 
 @dataclass
 class _Candidate:
-    score: float  # higher is better: particle count (train) or minus foreground fraction (background)
+    score: float  # higher is better: particle count (train); 0 (background: every one is empty)
     image: int
     row: int
     col: int
-    value: float  # particle count or foreground fraction
+    value: float  # particle count (train); 0 (background)
 
 
 class _DuplicateFilter:
@@ -465,7 +454,6 @@ def mine_patches(
         background=stack(background),
         background_ids=[str(ids[k.image]) for k in background],
         background_positions=positions(background),
-        background_fractions=np.array([k.value for k in background], dtype=np.float64),
         params=params,
     )
 
@@ -484,16 +472,13 @@ def contact_sheet(
     max_background: int = 64,
 ) -> Path:
     """Write a PNG grid of patches: a PatchSet's training patches (captioned id, position, particle
-    count) and up to max_background of its background patches, sampled evenly by foreground fraction
-    (captioned f); or a plain (N, H, W) array with optional captions."""
+    count) and up to max_background of its background patches, sampled evenly over them (captioned id, position);
+    or a plain (N, H, W) array with optional captions."""
     from PIL import Image, ImageDraw, ImageFont
 
     if isinstance(patches, PatchSet):
-        # Background: an even sample over the foreground fraction, so the least empty ones are shown too.
-        by_fraction = np.argsort(patches.background_fractions, kind="stable")
-        shown = by_fraction[
-            np.unique(np.linspace(0, len(by_fraction) - 1, min(max_background, len(by_fraction))).round().astype(int))
-        ]
+        n = len(patches.background)
+        shown = np.unique(np.linspace(0, n - 1, min(max_background, n)).round().astype(int))
         sections = [
             (
                 f"selected: {len(patches.train)} patches",
@@ -504,10 +489,10 @@ def contact_sheet(
                 ],
             ),
             (
-                f"background: {len(patches.background)} patches (showing {len(shown)}, by foreground fraction f)",
+                f"background: {len(patches.background)} patches (showing {len(shown)})",
                 patches.background[shown],
                 [
-                    f"{patches.background_ids[k]} {patches.background_positions[k][0]},{patches.background_positions[k][1]} f={patches.background_fractions[k]:.3f}"
+                    f"{patches.background_ids[k]} {patches.background_positions[k][0]},{patches.background_positions[k][1]}"
                     for k in shown
                 ],
             ),

@@ -31,6 +31,7 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from drgan.data.classical import Segmentation, SegmentParams, segment_with_report
+from drgan.data.patches import window_starts
 from drgan.errors import DataError
 
 # The high-pass that isolates noise from the background's slow shading: image minus its Gaussian blur.
@@ -89,15 +90,6 @@ def component_table(mask: np.ndarray, min_area: int = 1, max_area: int | None = 
 
 
 # --- particles per window ---------------------------------------------------------------------------------
-
-
-def window_starts(length: int, size: int, stride: int) -> np.ndarray:
-    """Window starts along one axis: a grid with the given stride, centred so both margins are equal."""
-    if length < size:
-        return np.zeros(0, np.int64)
-    n = (length - size) // stride + 1
-    margin = (length - size - (n - 1) * stride) // 2
-    return margin + stride * np.arange(n, dtype=np.int64)
 
 
 def patch_counts(

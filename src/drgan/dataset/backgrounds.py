@@ -100,7 +100,7 @@ def _backgrounds(patches, path: Path, n: int, resolution: int, partial: bool) ->
             "patchset": str(path),
             "image_id": patches.background_ids[k],
             "position": [int(v) for v in patches.background_positions[k]],
-            "foreground_fraction": float(patches.background_fractions[k]),
+            "foreground_fraction": 0.0,  # a mined background patch holds no particle pixel
             "patch_size": int(patches.background[k].shape[-1]),
         })  # fmt: skip
     return images, sources

@@ -31,8 +31,6 @@ import numpy as np
 
 from drgan.errors import ConfigError
 
-SIZE_STATISTICS = ("median_diameter", "mean_diameter", "median_error", "mean_error", "count_error", "ks", "w1")
-
 
 @dataclass(frozen=True)
 class Particles:
