@@ -24,7 +24,9 @@ import torch
 
 from drgan.scene import layout, meshes
 from drgan.scene.config import SecondaryImaging
+from drgan.scene.placements import PoissonAgglomerates
 from drgan.scene.scene import GRAD_SEEDS, INTEGRATORS, ParticleScene, RenderSettings, SceneSpec
+from drgan.scene.sizes import LognormalSize
 
 PARTICLE = {name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")}
 STAGE = {"base_color": {"min": 0.01, "max": 0.4}}
@@ -59,9 +61,7 @@ def main():
     args = parser.parse_args()
 
     meshes_ = meshes.generate_meshes("cube", 40, seed=0)
-    phi = layout.sample_layouts(
-        1, args.particles, layout.LognormalSize(24.0, 0.25), layout.PoissonAgglomerates(), seed=1
-    )[0]
+    phi = layout.sample_layouts(1, args.particles, LognormalSize(24.0, 0.25), PoissonAgglomerates(), seed=1)[0]
     weight = torch.rand(args.resolution, args.resolution, generator=torch.Generator().manual_seed(0))
     print(f"command: python {' '.join(sys.argv)}")
     for grad_seed in args.grad_seed:

@@ -24,6 +24,7 @@ import torch
 
 from drgan.scene import layout, meshes
 from drgan.scene.config import SecondaryImaging
+from drgan.scene.placements import PoissonAgglomerates
 from drgan.scene.scene import (
     ParticleScene,
     RenderSettings,
@@ -31,6 +32,7 @@ from drgan.scene.scene import (
     TopLight,
     TorusLight,
 )
+from drgan.scene.sizes import LognormalSize
 
 PARTICLE = {name: {"min": 0.01, "max": 5.0} for name in ("roughness", "base_color", "sheen", "sheen_tint", "spec_tint")}
 STAGE = {"base_color": {"min": 0.01, "max": 0.4}}
@@ -54,7 +56,7 @@ def make_scene(n, resolution, spp, integrator, variant, cube_meshes, **elements)
 
 
 def time_scene(scene, n, repeats, seed=0):
-    sizes, placement = layout.LognormalSize(24.0, 0.25), layout.PoissonAgglomerates()
+    sizes, placement = LognormalSize(24.0, 0.25), PoissonAgglomerates()
     phis = layout.sample_layouts(2 * repeats + 2, n, sizes, placement, view_width=256.0, seed=seed)
     values = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6][: len(scene.learned)])
     forward, both = [], []
@@ -114,7 +116,7 @@ def noise(args, cube_meshes):
     """Noise of the image a discriminator sees: std of (render(seed 1) - render(seed 2)) / sqrt(2) over the
     particle pixels (and the stage pixels) of one 40-particle layout, and the forward time. --roughness picks
     the particles' roughness (the learned range's limits 0.01 and 5.0 are where light or BSDF sampling fail)."""
-    sizes, placement = layout.LognormalSize(30.0, 0.4), layout.PoissonAgglomerates()
+    sizes, placement = LognormalSize(30.0, 0.4), PoissonAgglomerates()
     phi = layout.sample_layouts(1, args.particles[-1], sizes, placement, view_width=256.0, seed=3)[0]
     lights = {
         "torus": {"torus_light": TorusLight(shape="torus")},

@@ -201,3 +201,23 @@ def test_real_checkpoints_load_at_every_site(tiny_run, segmenter_run, tmp_path):
     assert resolve_checkpoint("last", tiny_run) == str(last)
     segmenter = load_segmenter(segmenter_run / "checkpoints" / "last.ckpt")
     assert not segmenter.training
+
+
+def test_a_checkpoint_naming_the_former_layout_classes_still_loads(tiny_run, tmp_path):  # noqa: F811
+    """Checkpoints saved while the size distributions and placements were classes of drgan.scene.layout name them
+    there (size._target_, placement._target_ of the saved config): they load, with the same classes and the same
+    constellations, as the same checkpoint naming drgan.scene.sizes and drgan.scene.placements."""
+    best = tiny_run / "checkpoints" / "best.ckpt"
+    checkpoint = torch.load(best, map_location="cpu", weights_only=True)
+    cfg = checkpoint["hyper_parameters"]["cfg"]
+    assert cfg["size"]["_target_"].startswith("drgan.scene.sizes.")
+    assert cfg["placement"]["_target_"].startswith("drgan.scene.placements.")
+    for group in ("size", "placement"):
+        cfg[group]["_target_"] = "drgan.scene.layout." + cfg[group]["_target_"].rsplit(".", 1)[1]
+    old = tmp_path / "old.ckpt"
+    torch.save(checkpoint, old)
+    saved = checkpoint_config(old)
+    assert saved["placement"]["_target_"] == "drgan.scene.layout.PoissonAgglomerates"
+    then, now = load_module(old, saved), load_module(best, checkpoint_config(best))
+    assert then.layouts == now.layouts
+    assert torch.equal(then.phi_bank, now.phi_bank) and (then.layouts(4, seed=1) == now.layouts(4, seed=1)).all()

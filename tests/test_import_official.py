@@ -153,19 +153,19 @@ def test_unknown_keys_are_errors_naming_them(tmp_path):
 
 
 def test_official_placement_keeps_particles_apart_and_splits_agglomerates():
-    from drgan.scene import layout
+    from drgan.scene.placements import OfficialPlacement
 
     rng = np.random.default_rng(0)
     sizes = rng.lognormal(0.0, 0.2, 40)
     for position3d in (False, True):
-        placement = layout.OfficialPlacement("poisson", limit=10.0, position3d=position3d, max_agglomerates=5)
+        placement = OfficialPlacement("poisson", limit=10.0, position3d=position3d, max_agglomerates=5)
         centres = placement.sample(rng, sizes, 256.0)
         gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) - (sizes[:, None] + sizes[None])
         assert (gaps[~np.eye(40, dtype=bool)] > -1e-9).all()
         assert position3d or (centres[:, 2] == 0).all()
-    random = layout.OfficialPlacement("random", limit=4.0).sample(rng, sizes[:10], 256.0)
+    random = OfficialPlacement("random", limit=4.0).sample(rng, sizes[:10], 256.0)
     assert (np.abs(random[:, :2]) <= 4.0).all() and (random[:, 2] == 0).all()
     with pytest.raises(ConfigError, match="max_agglomerates"):
-        layout.OfficialPlacement("poisson", max_agglomerates=3).sample(rng, sizes[:10], 256.0)
+        OfficialPlacement("poisson", max_agglomerates=3).sample(rng, sizes[:10], 256.0)
     with pytest.raises(ConfigError, match="algorithm"):
-        layout.OfficialPlacement("grid")
+        OfficialPlacement("grid")

@@ -14,18 +14,9 @@ from omegaconf import OmegaConf
 from scipy.sparse.csgraph import connected_components
 
 from drgan.errors import ConfigError
-from drgan.scene.layout import (
-    BimodalSize,
-    LognormalSize,
-    NormalSize,
-    PoissonAgglomerates,
-    Random2D,
-    Random3D,
-    particle_counts,
-    placement_from_config,
-    sample_layouts,
-    size_from_config,
-)
+from drgan.scene.layout import particle_counts, placement_from_config, sample_layouts, size_from_config
+from drgan.scene.placements import PoissonAgglomerates, Random2D, Random3D
+from drgan.scene.sizes import BimodalSize, LognormalSize, NormalSize
 
 CONF = Path(__file__).resolve().parents[1] / "src" / "drgan" / "conf" / "gan"
 DRAWS = 20_000  # size samples per statistical check
@@ -336,16 +327,28 @@ def test_config_target_must_name_a_known_class():
 
 def test_config_unknown_field_lists_valid_fields():
     with pytest.raises(ConfigError, match=r"stdev.*expected some of.*mean.*std.*min_size"):
-        size_from_config({"_target_": "drgan.scene.layout.NormalSize", "mean": 24.0, "stdev": 3.0})
+        size_from_config({"_target_": "drgan.scene.sizes.NormalSize", "mean": 24.0, "stdev": 3.0})
     with pytest.raises(ConfigError, match=r"radius.*expected some of.*cluster_radius"):
-        placement_from_config({"_target_": "drgan.scene.layout.PoissonAgglomerates", "radius": 10.0})
+        placement_from_config({"_target_": "drgan.scene.placements.PoissonAgglomerates", "radius": 10.0})
 
 
 def test_config_missing_field_raises_config_error():
     with pytest.raises(ConfigError, match="sigma"):
-        size_from_config({"_target_": "drgan.scene.layout.LognormalSize", "median": 24.0})
+        size_from_config({"_target_": "drgan.scene.sizes.LognormalSize", "median": 24.0})
 
 
 def test_config_values_are_validated():
     with pytest.raises(ConfigError, match="sigma"):
-        size_from_config({"_target_": "drgan.scene.layout.LognormalSize", "median": 24.0, "sigma": -1.0})
+        size_from_config({"_target_": "drgan.scene.sizes.LognormalSize", "median": 24.0, "sigma": -1.0})
+
+
+def test_the_former_import_paths_of_sizes_and_placements_build_the_same_classes():
+    """Checkpoints saved before the classes left drgan.scene.layout name them there; anything else stays refused."""
+    size = size_from_config({"_target_": "drgan.scene.layout.LognormalSize", "median": 24.0, "sigma": 0.2})
+    assert size == LognormalSize(median=24.0, sigma=0.2)
+    placement = placement_from_config({"_target_": "drgan.scene.layout.PoissonAgglomerates", "max_clusters": 2})
+    assert placement == PoissonAgglomerates(max_clusters=2)
+    with pytest.raises(ConfigError, match=r"size\._target_ must be one of"):
+        size_from_config({"_target_": "drgan.scene.layout.Random2D"})
+    with pytest.raises(ConfigError, match=r"placement\._target_ must be one of"):
+        placement_from_config({"_target_": "drgan.scene.layout.sample_layouts"})

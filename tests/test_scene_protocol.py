@@ -264,10 +264,10 @@ def test_configs_name_only_allowed_classes_wherever_they_build_objects():
         )
     with pytest.raises(ConfigError, match=r"size\.median\._target_: a value here cannot name a class"):
         size_from_config(
-            {"_target_": "drgan.scene.layout.LognormalSize", "median": {"_target_": "os.system"}, "sigma": 0.2}
+            {"_target_": "drgan.scene.sizes.LognormalSize", "median": {"_target_": "os.system"}, "sigma": 0.2}
         )
     with pytest.raises(ConfigError, match=r"LognormalSize\.sigma must be > 0"):
-        size_from_config({"_target_": "drgan.scene.layout.LognormalSize", "median": 20.0, "sigma": -1.0})
+        size_from_config({"_target_": "drgan.scene.sizes.LognormalSize", "median": 20.0, "sigma": -1.0})
 
 
 def test_parameter_limits_are_checked_before_anything_is_built_and_may_come_from_the_command_line():

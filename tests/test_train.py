@@ -304,7 +304,7 @@ def test_patchgan_shape_and_init():
 
 def test_compose_defaults_and_experiments():
     cfg = compose(config_name="train")
-    assert cfg.material.name == "tio2_sem" and cfg.placement._target_ == "drgan.scene.layout.PoissonAgglomerates"
+    assert cfg.material.name == "tio2_sem" and cfg.placement._target_ == "drgan.scene.placements.PoissonAgglomerates"
     assert cfg.model.loss == "lsgan" and cfg.model.lr_g == 2e-4 and cfg.model.lr_d == 1e-4
     assert list(cfg.model.betas) == [0.5, 0.999] and cfg.data.batch_size == 1 and cfg.trainer.max_epochs == 50
     assert cfg.data.patch_size == cfg.renderer.resolution == 256
@@ -313,7 +313,7 @@ def test_compose_defaults_and_experiments():
         exp = compose([f"experiment={material}"], config_name="train")
         assert exp.material.name == material
     agnw = compose(["experiment=agnw_sem"], config_name="train")
-    assert agnw.placement._target_ == "drgan.scene.layout.Random2D"
+    assert agnw.placement._target_ == "drgan.scene.placements.Random2D"
     fast = compose(["debug=fast"], config_name="train")
     assert fast.renderer.spp == 1 and "mlflow" not in (fast.logger or {})
 

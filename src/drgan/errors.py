@@ -1,6 +1,7 @@
 """Errors a user can cause. Each message names the input and what was expected."""
 
 import math
+import numbers
 
 
 class DrganError(ValueError):
@@ -77,3 +78,28 @@ def check_spp(spp, name: str = "spp") -> int:
             f"{name}={spp}: the stratified sampler needs a perfect square; use {root * root} or {(root + 1) ** 2}"
         )
     return int(spp)
+
+
+# The checks of a dataclass field ``owner.name`` (a size distribution's, a placement's), run at construction.
+
+
+def finite_field(owner: str, name: str, value: object) -> float:
+    """``value`` as a float, or a ConfigError naming ``owner.name``: booleans, non-numbers, inf and nan fail."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(float(value)):
+        raise ConfigError(f"{owner}.{name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def check_positive(owner: str, name: str, value: object) -> None:
+    if finite_field(owner, name, value) <= 0.0:
+        raise ConfigError(f"{owner}.{name} must be > 0, got {value!r}")
+
+
+def check_non_negative(owner: str, name: str, value: object) -> None:
+    if finite_field(owner, name, value) < 0.0:
+        raise ConfigError(f"{owner}.{name} must be >= 0, got {value!r}")
+
+
+def check_int_at_least(owner: str, name: str, value: object, lowest: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < lowest:
+        raise ConfigError(f"{owner}.{name} must be an integer >= {lowest}, got {value!r}")

@@ -7,7 +7,7 @@ An official experiment folder holds ``<tag>.json`` (its ``mesh_dict`` and ``scen
 - meshes: every file of the JSON's ``mesh_path`` is one particle (the official folders hold copies); each distinct
   mesh is read with drgan's validated loader and copied to ``RUN/meshes/``, its file frame kept in the material
   (`drgan.scene.official`);
-- layouts: the size distribution with its parameters and the placement (`drgan.scene.layout.OfficialPlacement`:
+- layouts: the size distribution with its parameters and the placement (`drgan.scene.placements.OfficialPlacement`:
   units, 2-D/3-D, agglomerates, random or Poisson);
 - the scene: the official stage and light meshes (copied to ``RUN/scene/``), emissions, camera, ``direct_projective``,
   the Gaussian filter of ``gaussdev``, ``spp`` (`drgan.scene.official.OfficialScene`);
@@ -63,7 +63,7 @@ SIZE_PARAMS = {
     "bimodal": ("bimodal_params", ("mean1", "stddev1", "p", "mean2", "stddev2")),
     "gaussian": ("gaussian_params", ("mean", "stddev")),
 }
-SIZE_GROUPS = {f"drgan.scene.layout.{cls}Size": group for cls, group in (("Lognormal", "lognormal"), ("Normal", "normal"), ("Bimodal", "bimodal"))}  # fmt: skip
+SIZE_GROUPS = {f"drgan.scene.sizes.{cls}Size": group for cls, group in (("Lognormal", "lognormal"), ("Normal", "normal"), ("Bimodal", "bimodal"))}  # fmt: skip
 LAYERS = ("fc1", "fc2", "fc3", "fc4", "output_layer.0")
 SCENE_FILES = {"stage_mesh": "stage.ply", "ring_light_mesh": "light_source.ply", "top_light_mesh": "light_source2.ply"}
 # The paper's cases by official tag: drgan's material names.
@@ -226,21 +226,21 @@ def size_config(mesh: dict) -> dict:
     params = mesh[SIZE_PARAMS[kind][0]]
     if kind == "lognormal":
         return {
-            "_target_": "drgan.scene.layout.LognormalSize",
+            "_target_": "drgan.scene.sizes.LognormalSize",
             "median": math.exp(params["mu"]),
             "sigma": params["sigma"],
         }
     tiny = 1e-6  # drgan truncates normals at a positive size; the official draws are never near 0
     if kind == "gaussian":
         return {
-            "_target_": "drgan.scene.layout.NormalSize",
+            "_target_": "drgan.scene.sizes.NormalSize",
             "mean": params["mean"],
             "std": params["stddev"],
             "min_size": tiny,
         }
     # The official bimodal draws its mode 2 with probability p.
     return {
-        "_target_": "drgan.scene.layout.BimodalSize",
+        "_target_": "drgan.scene.sizes.BimodalSize",
         "mean1": params["mean1"], "std1": params["stddev1"], "mean2": params["mean2"], "std2": params["stddev2"],
         "weight1": 1.0 - params["p"], "min_size": tiny,
     }  # fmt: skip
@@ -248,7 +248,7 @@ def size_config(mesh: dict) -> dict:
 
 def placement_config(mesh: dict) -> dict:
     return {
-        "_target_": "drgan.scene.layout.OfficialPlacement",
+        "_target_": "drgan.scene.placements.OfficialPlacement",
         "algorithm": mesh["particle_placement"],
         "limit": float(mesh["mesh_base_sample_limit"]) / float(mesh["mesh_unit"]),
         "position3d": bool(mesh["mesh_position3d"]),

@@ -20,6 +20,8 @@ from drgan import targets
 from drgan.errors import ConfigError, MeshError, check_keys
 from drgan.scene import layout, meshes
 from drgan.scene.config import Material, MeshSource, scene_class, typed_material
+from drgan.scene.placements import Placement
+from drgan.scene.sizes import SizeDistribution
 
 if TYPE_CHECKING:
     from drgan.models.generator import BackgroundTexture
@@ -107,8 +109,8 @@ class LayoutSampler:
     """Constellations Phi for a material: ``sampler(m, seed)`` -> (m, n, 4) with the size distribution and
     placement of the config; with ``n_min`` each constellation shows n_min..n of its n particles."""
 
-    size: layout.SizeDistribution
-    placement: layout.Placement
+    size: SizeDistribution
+    placement: Placement
     n: int
     view_width: float
     n_min: int | None = None

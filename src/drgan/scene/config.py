@@ -186,7 +186,7 @@ class OfficialImaging(ImagingConfig):
     """``material.imaging`` of the official DiffRenderGAN scene (`drgan.scene.official.OfficialScene`), as
     `drgan.import_official` writes it from an official experiment: the official stage and light meshes, its camera
     (perspective, 40 degrees, 6 units above the particles' plane) and its units. A constellation row is
-    (x, y, z, r) in layout units (`drgan.scene.layout.OfficialPlacement`): the particle's file mesh, scaled by
+    (x, y, z, r) in layout units (`drgan.scene.placements.OfficialPlacement`): the particle's file mesh, scaled by
     r x ``mesh_scale`` about the file's origin, sits at (x, y, z) x ``mesh_unit`` (z up, towards the camera)."""
 
     _target_: str = "drgan.scene.official.OfficialScene"

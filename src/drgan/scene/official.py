@@ -8,7 +8,7 @@ above the camera (``light_source2.ply``); Mitsuba's ``direct_projective`` integr
 Gaussian reconstruction filter (``material.filter_stddev``). Lengths are the official scene's units (the camera's
 view is 4.37 units wide at the particles' plane: 58.6 px per unit there), y up, as in its XML.
 
-A constellation row is (x, y, z, r) in the official layout units (`drgan.scene.layout.OfficialPlacement`): the
+A constellation row is (x, y, z, r) in the official layout units (`drgan.scene.placements.OfficialPlacement`): the
 particle is its file mesh scaled by r x mesh_scale^2 about the file's origin and moved to (x, z, y) x mesh_unit.
 The square is the official code's: its shapes load with ``to_world = scale(mesh_scale)`` and every layout then
 scales the loaded vertices by r x mesh_scale again.
