@@ -14,7 +14,7 @@ from PIL import Image
 
 from drgan import io
 from drgan.dataset import manifest as mf
-from drgan.dataset.layout import DatasetFolder, bg_id, syn_id, syn_index
+from drgan.dataset.folder import DatasetFolder, bg_id, syn_id, syn_index
 from drgan.dataset.settings import FIXED_SETTINGS, fixed_settings
 from drgan.dataset.shards import Shard, owned_by
 from drgan.errors import ConfigError, DataError
@@ -278,7 +278,7 @@ def test_partial_backgrounds_fill_up_n_background_with_their_particles_ignored(t
     from scipy import ndimage
 
     from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
-    from drgan.dataset.layout import IGNORE, pbg_id
+    from drgan.dataset.folder import IGNORE, pbg_id
     from drgan.segmentation.data import load_generated_pairs
 
     path, discs = partial_patchset(tmp_path / "patches")
@@ -331,7 +331,7 @@ def test_partial_backgrounds_fill_up_n_background_with_their_particles_ignored(t
 
 def test_partial_backgrounds_at_a_lower_resolution_and_without_them(tmp_path):
     from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
-    from drgan.dataset.layout import IGNORE, pbg_id
+    from drgan.dataset.folder import IGNORE, pbg_id
 
     path, discs = partial_patchset(tmp_path / "patches")
     folder = DatasetFolder(tmp_path / "half")
@@ -355,7 +355,7 @@ def test_partial_backgrounds_at_a_lower_resolution_and_without_them(tmp_path):
 
 def test_partial_settings_are_fixed_only_when_not_the_defaults_and_shard_0_writes_them(tmp_path):
     from drgan.dataset.backgrounds import patchset_segmentation
-    from drgan.dataset.layout import pbg_id
+    from drgan.dataset.folder import pbg_id
 
     folder = DatasetFolder(tmp_path / "data")
     folder.check_settings(fixed_settings(settings(3)))  # a folder made before partial backgrounds existed ...

@@ -29,7 +29,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from drgan import io
-from drgan.dataset.layout import IGNORE
+from drgan.dataset.folder import IGNORE
 from drgan.dataset.manifest import check_files, manifest_entries, read_manifest
 from drgan.errors import ConfigError, DataError
 from drgan.runtime import stage_main, start

@@ -10,7 +10,7 @@ hold particles: their masks are 0 on the background and IGNORE (255) on the part
 segmentation, grown by a margin, which a segmenter's loss leaves out (drgan.dataset.backgrounds: the margin, and
 the windows skipped because they ignore more than ``partial_max_ignored`` of their pixels).
 
-The folder DIR, its items and manifest.json are drgan.dataset's (layout, manifest, shards); this module is the
+The folder DIR, its items and manifest.json are drgan.dataset's (folder, manifest, shards); this module is the
 render loop and its command line. IDs: ``syn_000123`` (123 = the index; dropped indices leave gaps), ``bg_0000``,
 ``pbg_0000`` (partial backgrounds).
 
@@ -47,8 +47,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from drgan.data.polarity import check_polarity
 from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
+from drgan.dataset.folder import DatasetFolder, syn_id
 from drgan.dataset.grey_spread import GreySpread
-from drgan.dataset.layout import DatasetFolder, syn_id
 from drgan.dataset.manifest import write_manifest, write_shard_manifest
 from drgan.dataset.settings import fixed_settings, settings_from
 from drgan.dataset.shards import Shard, kept_below, owned_by

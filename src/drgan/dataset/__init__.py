@@ -1,7 +1,7 @@
 """A synthetic segmentation dataset on disk: written by drgan.generate, read by drgan.export_nnunet and
 drgan.segment. The one place that knows the folder layout.
 
-- ``layout``: item ids (``syn_000123``, ``bg_0000``), their files (images/, masks/, labels/, meta/, dropped/),
+- ``folder``: item ids (``syn_000123``, ``bg_0000``), their files (images/, masks/, labels/, meta/, dropped/),
   the record that marks an item done, clean-up after an interrupted run, config.json (the fixed settings);
 - ``manifest``: manifest.json (and a shard's manifest_shard_I.json) written atomically once the dataset is
   complete; ``read_manifest`` checks a folder and names it when it is not a drgan dataset;
@@ -11,7 +11,7 @@ drgan.segment. The one place that knows the folder layout.
   windows with particles, masked ``IGNORE`` = 255) that fill up when there are too few.
 """
 
-from drgan.dataset.layout import (
+from drgan.dataset.folder import (
     BACKGROUND,
     IGNORE,
     PARTIAL_BACKGROUND,

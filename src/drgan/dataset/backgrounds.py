@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from drgan import io
-from drgan.dataset.layout import BACKGROUND, IGNORE, PARTIAL_BACKGROUND, PARTIAL_RECORD, DatasetFolder, bg_id, pbg_id
+from drgan.dataset.folder import BACKGROUND, IGNORE, PARTIAL_BACKGROUND, PARTIAL_RECORD, DatasetFolder, bg_id, pbg_id
 from drgan.errors import ConfigError, DataError
 
 log = logging.getLogger(__name__)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from drgan import io
 from drgan.dataset.backgrounds import PartialSettings, backgrounds_exhausted, partial_exhausted
-from drgan.dataset.layout import (
+from drgan.dataset.folder import (
     CONFIG,
     FILE_KINDS,
     KINDS,

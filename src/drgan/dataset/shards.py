@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drgan.dataset.layout import BG, PARTIAL_RECORD, PBG, syn_index
+from drgan.dataset.folder import BG, PARTIAL_RECORD, PBG, syn_index
 from drgan.errors import ConfigError
 
 
