@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from drgan.data.patches import PatchSet
-from drgan.dataset.settings import parameter_source
+from drgan.dataset.generation_settings import parameter_source
 from drgan.dataset.source import checkpoint_config, use_parameters
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 from drgan.models.gan_module import GANModule

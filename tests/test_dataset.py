@@ -15,7 +15,7 @@ from PIL import Image
 from drgan import io
 from drgan.dataset import manifest as mf
 from drgan.dataset.folder import DatasetFolder, bg_id, syn_id, syn_index
-from drgan.dataset.settings import FIXED_SETTINGS, fixed_settings
+from drgan.dataset.generation_settings import FIXED_SETTINGS, fixed_settings
 from drgan.dataset.shards import Shard, owned_by
 from drgan.errors import ConfigError, DataError
 
@@ -23,7 +23,7 @@ SIZE = 12
 
 
 def settings(n: int, n_background: int = 1) -> dict:
-    """What drgan.dataset.settings.settings_from returns, in its key order (no checkpoint needed here)."""
+    """What drgan.dataset.generation_settings.settings_from returns, in its key order (no checkpoint needed here)."""
     return {
         "ckpt": "/runs/x/checkpoints/best.ckpt", "material": "tio2_sem", "n": n, "n_background": n_background,
         "seed": 0, "contour_px": 1, "min_contrast": 0.0, "min_background": 0.05, "polarity": "bright",

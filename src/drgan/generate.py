@@ -48,9 +48,9 @@ from omegaconf import DictConfig, OmegaConf
 from drgan.data.polarity import check_polarity
 from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
 from drgan.dataset.folder import DatasetFolder, syn_id
+from drgan.dataset.generation_settings import fixed_settings, settings_from
 from drgan.dataset.grey_spread import GreySpread
 from drgan.dataset.manifest import write_manifest, write_shard_manifest
-from drgan.dataset.settings import fixed_settings, settings_from
 from drgan.dataset.shards import Shard, kept_below, owned_by
 from drgan.dataset.source import checkpoint_config, load_module, use_parameters  # noqa: F401  (checkpoint_config: imported from here)
 from drgan.errors import DataError

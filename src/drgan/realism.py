@@ -157,11 +157,12 @@ def checkpoint_renders(
 ) -> tuple[np.ndarray, dict]:
     """n renders of a generator checkpoint with the FID callback's render_samples; (images, what rendered them).
     size: the real patches' size, which the checkpoint's resolution must equal (checked before rendering);
-    parameters: the scene values (`drgan.dataset.settings.parameter_source`: trained, initial, middle, a mapping)."""
+    parameters: the scene values (`drgan.dataset.generation_settings.parameter_source`: trained, initial, middle,
+    a mapping)."""
     import torch
 
     from drgan.callbacks.fid import render_samples
-    from drgan.dataset.settings import parameter_source
+    from drgan.dataset.generation_settings import parameter_source
     from drgan.dataset.source import checkpoint_config, generator_checkpoint, load_module, use_parameters
 
     parameters = parameter_source(parameters)

@@ -6,7 +6,7 @@ drgan.segment. The one place that knows the folder layout.
 - ``manifest``: manifest.json (and a shard's manifest_shard_I.json) written atomically once the dataset is
   complete; ``read_manifest`` checks a folder and names it when it is not a drgan dataset;
 - ``shards``: which shard writes which item, and when the first n kept indices are all done;
-- ``settings``: a generation run's settings, checked against the checkpoint; ``source``: that checkpoint;
+- ``generation_settings``: a generation run's settings, checked against the checkpoint; ``source``: that checkpoint;
 - ``backgrounds``: the real background patches added with all-zero masks, and the partial backgrounds (real
   windows with particles, masked ``IGNORE`` = 255) that fill up when there are too few.
 """

@@ -120,7 +120,7 @@ class PartialSettings:
 
     @classmethod
     def from_settings(cls, settings: dict) -> PartialSettings:
-        """From a generation run's settings (drgan.dataset.settings; keys absent: the defaults)."""
+        """From a generation run's settings (drgan.dataset.generation_settings; keys absent: the defaults)."""
         return cls(
             bool(settings.get("partial_background", True)),
             float(settings.get("partial_max_ignored", PARTIAL_MAX_IGNORED)),
