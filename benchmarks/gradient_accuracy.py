@@ -22,7 +22,7 @@ import sys
 import numpy as np
 import torch
 
-from drgan.scene import layout, meshes
+from drgan.scene import layout, particle_meshes
 from drgan.scene.config import SecondaryImaging
 from drgan.scene.placements import PoissonAgglomerates
 from drgan.scene.scene import GRAD_SEEDS, INTEGRATORS, ParticleScene, RenderSettings, SceneSpec
@@ -60,7 +60,7 @@ def main():
     )
     args = parser.parse_args()
 
-    meshes_ = meshes.generate_meshes("cube", 40, seed=0)
+    meshes_ = particle_meshes.generate_meshes("cube", 40, seed=0)
     phi = layout.sample_layouts(1, args.particles, LognormalSize(24.0, 0.25), PoissonAgglomerates(), seed=1)[0]
     weight = torch.rand(args.resolution, args.resolution, generator=torch.Generator().manual_seed(0))
     print(f"command: python {' '.join(sys.argv)}")

@@ -22,7 +22,7 @@ import time
 import numpy as np
 import torch
 
-from drgan.scene import layout, meshes
+from drgan.scene import layout, particle_meshes
 from drgan.scene.config import SecondaryImaging
 from drgan.scene.placements import PoissonAgglomerates
 from drgan.scene.scene import (
@@ -162,7 +162,7 @@ def main():
     parser.add_argument("--roughness", type=float, nargs="+", default=[0.5], help="--noise: particle roughness")
     args = parser.parse_args()
 
-    cube_meshes = meshes.generate_meshes("cube", 40, seed=0)
+    cube_meshes = particle_meshes.generate_meshes("cube", 40, seed=0)
     print(
         f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}"
     )

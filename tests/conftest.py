@@ -27,7 +27,7 @@ TINY_PHI = np.array(
 def make_scene(
     resolution=16, spp=4, n=4, integrator="prb_basic", particle=None, stage=PAPER_STAGE, sigma=PAPER_SIGMA, **spec_kw
 ):
-    from drgan.scene import meshes
+    from drgan.scene import particle_meshes
     from drgan.scene.config import SecondaryImaging
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
@@ -43,7 +43,7 @@ def make_scene(
         stage=stage is not None,
         **spec_kw,
     )
-    return ParticleScene([meshes.sphere(2)], n, spec, variant=TEST_VARIANT)
+    return ParticleScene([particle_meshes.sphere(2)], n, spec, variant=TEST_VARIANT)
 
 
 @pytest.fixture

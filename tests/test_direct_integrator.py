@@ -17,13 +17,15 @@ STEPS = [0.01, 0.1, 0.01, 0.01, 0.01, 0.01]
 
 
 def scene_with(integrator, resolution=16, spp=4, grad_seed="independent", stage=PAPER_STAGE):
-    from drgan.scene import meshes
+    from drgan.scene import particle_meshes
     from drgan.scene.config import SecondaryImaging
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
     params = SecondaryImaging(particle_bsdf=PAPER_PARTICLE, stage_bsdf=stage).material_parameters(PAPER_SIGMA)
     render = RenderSettings(resolution=resolution, spp=spp, integrator=integrator, grad_seed=grad_seed)
-    scene = ParticleScene([meshes.sphere(2)], 4, SceneSpec(params, render, view_width=64.0), variant=TEST_VARIANT)
+    scene = ParticleScene(
+        [particle_meshes.sphere(2)], 4, SceneSpec(params, render, view_width=64.0), variant=TEST_VARIANT
+    )
     scene.set_layout(TINY_PHI)
     return scene
 

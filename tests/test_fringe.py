@@ -24,7 +24,7 @@ VIEW = 64.0
 
 def make_scene(fringe=None, n=4, resolution=16, spp=4, meshes=None, transmission=None):
     """A transmission scene; ``fringe`` (amplitude spec, width in px of the real image) or None."""
-    from drgan.scene import meshes as procedural
+    from drgan.scene import particle_meshes as procedural
     from drgan.scene.config import TransmissionImaging
     from drgan.scene.scene import RenderSettings
     from drgan.scene.transmission import TransmissionScene, TransmissionSpec

@@ -21,7 +21,7 @@ THETA = torch.tensor([0.2, 0.5])  # stage.base_color, particle.base_color
 
 
 def grad_scene(grad_seed: str, integrator: str = "prb"):
-    from drgan.scene import meshes
+    from drgan.scene import particle_meshes
     from drgan.scene.config import SecondaryImaging
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
@@ -31,7 +31,7 @@ def grad_scene(grad_seed: str, integrator: str = "prb"):
     spec = SceneSpec(
         params, RenderSettings(resolution=16, spp=4, integrator=integrator, grad_seed=grad_seed), view_width=64.0
     )
-    scene = ParticleScene([meshes.sphere(2)], len(TINY_PHI), spec, variant=TEST_VARIANT)
+    scene = ParticleScene([particle_meshes.sphere(2)], len(TINY_PHI), spec, variant=TEST_VARIANT)
     scene.set_layout(TINY_PHI)
     assert [p.key for p in scene.learned] == ["stage.base_color", "particle.base_color"]
     return scene

@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from drgan.errors import ConfigError, MeshError
-from drgan.scene.meshes import (
+from drgan.scene.particle_meshes import (
     KINDS,
     bent_rod,
     deformed_cube,

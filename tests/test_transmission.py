@@ -29,7 +29,7 @@ def transmission_parameters(limits, sigma=SIGMA):
 
 
 def make_scene(meshes=None, n=4, resolution=16, spp=4, transmission=None, filter_stddev=0.5):
-    from drgan.scene import meshes as procedural
+    from drgan.scene import particle_meshes as procedural
     from drgan.scene.scene import RenderSettings
     from drgan.scene.transmission import TransmissionScene, TransmissionSpec
 
@@ -62,9 +62,9 @@ def test_sphere_path_length_is_its_chord():
     """Seen from above, a sphere of radius r has path length 2 sqrt(r^2 - d^2) at distance d from its centre.
     The icosphere lies between its inscribed sphere (radius of the nearest face plane) and its vertices' sphere,
     so every chord lies between the two spheres' chords."""
-    from drgan.scene import meshes
+    from drgan.scene import particle_meshes
 
-    mesh, scale, size = meshes.sphere(3), 40.0, 32
+    mesh, scale, size = particle_meshes.sphere(3), 40.0, 32
     scene = make_scene([mesh], n=1, resolution=size, spp=1)
     scene.set_layout(np.array([[0.0, 0.0, 0.0, scale]], np.float32))
     t = scene.thickness().reshape(size, size).numpy()

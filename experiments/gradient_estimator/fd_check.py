@@ -35,7 +35,7 @@ import time
 import numpy as np
 import torch
 
-from drgan.scene import meshes
+from drgan.scene import particle_meshes
 from drgan.scene.config import SecondaryImaging
 from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec, TopLight, TorusLight
 
@@ -75,7 +75,7 @@ def make_scene(resolution: int, integrator: str, grad_seed: str) -> ParticleScen
         torus_light=TorusLight(radiance=4.0, major_radius=1.0, minor_radius=0.08, height=0.1),
         top_light=TopLight(radiance=0.3),
     )
-    scene = ParticleScene([meshes.sphere(3)], len(PHI), spec)
+    scene = ParticleScene([particle_meshes.sphere(3)], len(PHI), spec)
     scene.set_layout(PHI)
     return scene
 

@@ -18,7 +18,7 @@ import numpy as np
 from drgan.data.patches import PatchSet
 from drgan.metrics.fid import FeatureStats, InceptionFeatures
 from drgan.models.gan_module import GANModule
-from drgan.scene import meshes
+from drgan.scene import particle_meshes
 from drgan.scene.scene import ParticleScene
 
 
@@ -36,15 +36,15 @@ def main(ckpt: Path) -> None:
         images = np.stack([generator.sample(phis[i], seed=10_000 + i).image for i in range(len(real))])
         return FeatureStats.from_features(extractor.features(images)).fid(real_stats)
 
-    cubes = meshes.generate_meshes("cube", n, 0)
+    cubes = particle_meshes.generate_meshes("cube", n, 0)
     sparse = module.phi_bank.clone()
     sparse[:, n // 2 :, :2] += 10_000  # half of the particles far outside the view
     rows = {
         "deformed cubes (as trained)": fid(cubes, module.phi_bank),
         "rounder cubes (displacement 0.2, 60 smoothing passes)": fid(
-            meshes.generate_meshes("cube", n, 0, displacement=0.2, smoothing_iterations=60), module.phi_bank
+            particle_meshes.generate_meshes("cube", n, 0, displacement=0.2, smoothing_iterations=60), module.phi_bank
         ),
-        "spheres": fid(meshes.generate_meshes("sphere", n, 0), module.phi_bank),
+        "spheres": fid(particle_meshes.generate_meshes("sphere", n, 0), module.phi_bank),
         f"deformed cubes, {n - n // 2} of {n} particles in view": fid(cubes, sparse),
     }
     print("| content | FID |\n|---|---|")

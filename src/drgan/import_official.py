@@ -40,7 +40,7 @@ from drgan import io
 from drgan.checkpoint_io import refusing_unsafe
 from drgan.errors import ConfigError, check_keys
 from drgan.runtime import stage_main, start
-from drgan.scene import meshes as mesh_files
+from drgan.scene import particle_meshes as mesh_files
 
 log = logging.getLogger(__name__)
 

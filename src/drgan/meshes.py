@@ -1,6 +1,6 @@
 """Write a mesh library folder: `python -m drgan.meshes kind=cube count=40 seed=0 out=meshes/tio2_cubes`.
 
-Writes out/mesh_000.ply, ... (binary PLY, unit convention of drgan.scene.meshes) and out/manifest.json
+Writes out/mesh_000.ply, ... (binary PLY, unit convention of drgan.scene.particle_meshes) and out/manifest.json
 (kind, count, seed, effective generator parameters, per-mesh vertex and face counts).
 Generator parameters: `+params.NAME=VALUE`, e.g. `+params.displacement=0.15`.
 """
@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from drgan.runtime import stage_main, start
-from drgan.scene.meshes import generator_parameters, iter_meshes, save_mesh_set
+from drgan.scene.particle_meshes import generator_parameters, iter_meshes, save_mesh_set
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from drgan import targets
 from drgan.errors import ConfigError, MeshError, check_keys
-from drgan.scene import layout, meshes
+from drgan.scene import layout, particle_meshes
 from drgan.scene.config import Material, MeshSource, scene_class, typed_material
 from drgan.scene.placements import Placement
 from drgan.scene.sizes import SizeDistribution
@@ -42,8 +42,8 @@ def load_particle_meshes(source: MeshSource, base_dir: str | Path | None = None)
             path = Path(base_dir) / path
         if not path.exists():
             raise MeshError(f"material.meshes.dir={source.dir}: no such folder or mesh file ({path})")
-        return meshes.load_mesh_set(path)
-    return meshes.generate_meshes(source.kind, source.count, source.seed, **source.params)
+        return particle_meshes.load_mesh_set(path)
+    return particle_meshes.generate_meshes(source.kind, source.count, source.seed, **source.params)
 
 
 def render_settings(material: Material, renderer: Mapping):

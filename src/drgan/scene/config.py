@@ -65,7 +65,7 @@ class ParameterRange:
 @dataclass
 class MeshSource:
     """``material.meshes``: a folder of PLY/OBJ/STL meshes (``dir``), else ``count`` procedural meshes of ``kind``
-    (`drgan.scene.meshes.generate_meshes`, keywords in ``params``)."""
+    (`drgan.scene.particle_meshes.generate_meshes`, keywords in ``params``)."""
 
     kind: str = "sphere"
     count: int = 20
@@ -193,7 +193,8 @@ class OfficialImaging(ImagingConfig):
     mesh_unit: float = MISSING  # scene length of one layout unit (official mesh_unit)
     mesh_scale: float = MISSING  # a mesh file's scale at r = 1 (official mesh_scale)
     # Per mesh of material.meshes.dir (sorted by file name): the centre of its file's bounding box (x, y, z) and its
-    # largest extent, in file units (`drgan.scene.meshes.mesh_frame`): the loader normalises meshes, this undoes it.
+    # largest extent, in file units (`drgan.scene.particle_meshes.mesh_frame`): the loader normalises meshes, this
+    # undoes it.
     mesh_frames: List[List[float]] = MISSING  # noqa: UP006
     stage_mesh: str = MISSING  # the official stage.ply (its placement is the official scene's)
     ring_light_mesh: str = MISSING  # light_source.ply: the ring light around the scene
