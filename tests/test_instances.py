@@ -87,7 +87,7 @@ def _probs(labels: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 
 def test_split_by_centres_separates_touching_particles_the_class_map_merges():
-    from drgan.metrics.segmentation import binarize_and_label, match_instances
+    from drgan.metrics.instance_scores import binarize_and_label, match_instances
     from drgan.segmentation.inference import split_by_centres
 
     truth = touching_pair()

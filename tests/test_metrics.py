@@ -1,4 +1,4 @@
-"""FID / KID (drgan.metrics.fid) and instance segmentation scores (drgan.metrics.segmentation)."""
+"""FID / KID (drgan.metrics.fid) and instance segmentation scores (drgan.metrics.instance_scores)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from drgan.metrics.fid import (
     frechet_distance,
     kid,
 )
-from drgan.metrics.segmentation import (
+from drgan.metrics.instance_scores import (
     ap50,
     binarize_and_label,
     class_averaged_pq,

@@ -336,7 +336,7 @@ def _probs_of(particle: np.ndarray, contour: np.ndarray | None = None) -> np.nda
 
 
 def test_separate_regions_gives_one_4_connected_instance_per_region():
-    from drgan.metrics.segmentation import binarize_and_label
+    from drgan.metrics.instance_scores import binarize_and_label
     from drgan.segmentation.inference import separate_regions
 
     labels = np.zeros((6, 8), np.int32)
@@ -352,7 +352,7 @@ def test_separate_regions_gives_one_4_connected_instance_per_region():
 
 
 def test_split_touching_separates_a_merged_pair_and_keeps_single_particles():
-    from drgan.metrics.segmentation import binarize_and_label, match_instances
+    from drgan.metrics.instance_scores import binarize_and_label, match_instances
     from drgan.segmentation.inference import split_touching
 
     truth = _two_touching_discs()
@@ -789,7 +789,7 @@ def test_a_validation_score_has_settled_only_when_the_last_epochs_stopped_raisin
 
 
 def test_split_core_opens_a_wide_neck_the_network_is_unsure_of():
-    from drgan.metrics.segmentation import binarize_and_label, match_instances
+    from drgan.metrics.instance_scores import binarize_and_label, match_instances
     from drgan.segmentation.inference import split_touching
 
     truth = _two_touching_discs(r=10.0, gap=7.0)  # a neck almost as wide as the discs

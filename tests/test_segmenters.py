@@ -310,7 +310,7 @@ def test_analyze_measures_a_folder_of_predicted_masks(tmp_path):
         config_name="analyze",
     )
     rows = analyze(cfg)
-    from drgan.metrics.segmentation import binarize_and_label
+    from drgan.metrics.instance_scores import binarize_and_label
 
     expected = np.bincount(binarize_and_label((labels > 0).astype(np.int64)).ravel())[1:]
     assert sorted(r["area_px"] for r in rows) == sorted(expected.tolist())

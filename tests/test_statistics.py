@@ -177,7 +177,7 @@ def test_evaluate_leaves_specks_out_of_the_statistics_on_both_sides(tmp_path):
 
 
 def test_error_sources_name_what_became_of_each_true_particle():
-    from drgan.metrics.segmentation import error_sources
+    from drgan.metrics.instance_scores import error_sources
 
     true = squares(40, [(2, 2, 6, 6), (2, 9, 6, 6), (12, 2, 6, 6), (12, 20, 6, 6), (2, 30, 8, 8), (25, 25, 10, 10)])
     pred = squares(40, [(2, 2, 6, 13), (12, 2, 6, 3), (12, 5, 6, 3), (12, 20, 6, 6), (15, 30, 4, 3), (24, 24, 12, 12)])

@@ -10,7 +10,7 @@ number N (the first N train ids). Test ids are never read.
 
 Predicts each image's class probabilities once, then for every split variant prints one markdown row: DSC, AP50,
 median-diameter and count errors against the masks, and the share of true particles matched / merged / split /
-missed / badly outlined, false particles and the boundary offset (drgan.metrics.segmentation.error_sources).
+missed / badly outlined, false particles and the boundary offset (drgan.metrics.instance_scores.error_sources).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.metrics.segmentation import ERROR_SOURCES, binarize_and_label, error_sources, segmentation_scores
+from drgan.metrics.instance_scores import ERROR_SOURCES, binarize_and_label, error_sources, segmentation_scores
 from drgan.metrics.statistics import compare_sizes, particles
 from drgan.segmentation.data import load_real_items, real_ids, split_pairs
 from drgan.segmentation.inference import predict_probs, split_touching

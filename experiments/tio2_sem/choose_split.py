@@ -3,7 +3,7 @@
     python experiments/tio2_sem/choose_split.py SEGMENTER.ckpt [N_IMAGES]
 
 Predicts the first N (default 10) train ids of the shared TiO2 SEM split with one segmenter, then scores
-(DSC, AP50, PQ; drgan.metrics.segmentation) the network's plain argmax and every depth x smoothing pair.
+(DSC, AP50, PQ; drgan.metrics.instance_scores) the network's plain argmax and every depth x smoothing pair.
 Test ids are never read. Prints a markdown table.
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.metrics.segmentation import binarize_and_label, segmentation_scores
+from drgan.metrics.instance_scores import binarize_and_label, segmentation_scores
 from drgan.segmentation.data import load_real, real_ids
 from drgan.segmentation.inference import predict_probs, split_touching
 from drgan.segmentation.module import load_segmenter

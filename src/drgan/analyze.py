@@ -40,7 +40,7 @@ from omegaconf import DictConfig
 
 from drgan.errors import ConfigError
 from drgan.io import figure_png, write_bytes, write_json
-from drgan.metrics.segmentation import binarize_and_label
+from drgan.metrics.instance_scores import binarize_and_label
 from drgan.metrics.statistics import Particles, bootstrap, particles
 from drgan.runtime import stage_main, start
 

@@ -8,14 +8,14 @@ into class maps, and a folder is checked against every test image (missing, extr
 Per test image: the run's class map (a checkpoint: sliding-window prediction, touching particles split,
 ``inference.split``, see drgan.segmentation.inference) -> particle class only (contour and background are both "not
 particle", so the contour separates touching particles) -> 4-connected components -> scores against the
-4-connected components of the true binary mask (drgan.metrics.segmentation):
+4-connected components of the true binary mask (drgan.metrics.instance_scores):
 - DSC: Dice of particle pixels;
 - AP50: TP / (TP + FP + FN) with a match at IoU > 0.5 (the paper's single-threshold "AP", as in the Data
   Science Bowl 2018 / StarDist accuracy; no precision-recall curve);
 - PQ = SQ * RQ of the particle class (the standard, things-only PQ);
 - PQ classes: PQ averaged over background (a stuff class: one segment, PQ = its IoU when > 0.5, else 0) and
   particle; PQ semantic: the same with particle also a stuff class (pixel IoU, instances ignored), the only
-  one of the three that can reach the DiffRenderGAN paper's PQ at its AP50 (drgan.metrics.segmentation).
+  one of the three that can reach the DiffRenderGAN paper's PQ at its AP50 (drgan.metrics.instance_scores).
 Test-set value of a run = the mean over its test images (every image weighs the same, whatever its particle
 count). Over several runs (one checkpoint each): mean +- sample std (ddof = 1) of the runs' test-set values.
 
@@ -30,7 +30,7 @@ bootstrap interval over images (``bootstrap`` resamples); particles cut by the i
 of sizes, on both sides. statistics.md, statistics.csv and sizes.png (histograms and cumulative curves of the
 diameters, masks and every run overlaid). statistics.md also says where each run loses particles: the share of true
 particles matched, merged with a neighbour, split, missed or badly outlined, the false particles, and the median
-boundary offset of matched particles (drgan.metrics.segmentation.error_sources), which is what to fix first.
+boundary offset of matched particles (drgan.metrics.instance_scores.error_sources), which is what to fix first.
 All inputs (checkpoints, predicted mask folders, images, masks, split) are read and checked before any prediction.
 """
 
@@ -46,7 +46,7 @@ from omegaconf import DictConfig
 
 from drgan.errors import ConfigError
 from drgan.io import write_bytes, write_with
-from drgan.metrics.segmentation import (
+from drgan.metrics.instance_scores import (
     ERROR_SOURCES,
     binarize_and_label,
     error_sources,

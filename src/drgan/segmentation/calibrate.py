@@ -77,7 +77,7 @@ def calibrate_split(
     """Score every (depth, core) of ``grid`` on ``pairs`` (images with their class masks), or every seed level for
     the instance-aware segmenter (its split "centres"); return the best setting with its pooled AP50 and the whole
     table. The network runs once per pair; only the split is repeated."""
-    from drgan.metrics.segmentation import binarize_and_label, match_instances
+    from drgan.metrics.instance_scores import binarize_and_label, match_instances
     from drgan.segmentation.inference import predict_probs, split_by_centres, split_of, split_touching
 
     settings = check_grid(grid if grid is not None else {})

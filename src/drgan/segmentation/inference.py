@@ -13,7 +13,7 @@ whole line between two touching particles, so the particle class alone merges ag
 or contour class (probabilities summed > 0.5), seeds = the h-maxima (depth ``split_depth`` px) of the
 smoothed distance transform of the predicted particle class, so the contour pixels the network does draw
 deepen the valleys between particles. Neighbouring watershed regions are then separated by a 1-px line of
-the contour class, so that 4-connected labelling of the particle class (drgan.metrics.segmentation,
+the contour class, so that 4-connected labelling of the particle class (drgan.metrics.instance_scores,
 drgan.analyze) returns one instance per region. Defaults (depth 2 px, smoothing 1 px) were chosen on 10
 real *train* images of TiO2 SEM (experiments/tio2_sem/RESULTS.md), never on test images.
 """
