@@ -26,7 +26,8 @@ import torch
 from drgan.data.patches import PatchSet
 from drgan.dataset.generation_settings import parameter_source
 from drgan.dataset.source import checkpoint_config, use_parameters
-from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.metrics.feature_distances import FeatureStats
+from drgan.metrics.inception import InceptionFeatures
 from drgan.models.gan_module import GANModule
 
 

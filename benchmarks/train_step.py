@@ -162,7 +162,7 @@ def time_parts(module: GANModule, steps: int, warmup: int) -> dict[str, float]:
 
 
 def time_fid_pass(module: GANModule, n_images: int) -> tuple[float, float]:
-    from drgan.metrics.fid import InceptionFeatures
+    from drgan.metrics.inception import InceptionFeatures
 
     extractor = InceptionFeatures(batch_size=16)
     extractor.features(np.zeros((2, 64, 64), np.float32))  # load the network outside the timing

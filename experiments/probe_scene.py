@@ -37,7 +37,8 @@ from drgan.data.patches import PatchSet
 from drgan.dataset.source import checkpoint_config, load_module, use_parameters
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_json, write_png
-from drgan.metrics.fid import FeatureStats, InceptionFeatures, kid
+from drgan.metrics.feature_distances import FeatureStats, kid
+from drgan.metrics.inception import InceptionFeatures
 from drgan.models.gan_module import GANModule
 
 ROOT = Path(__file__).resolve().parents[1]

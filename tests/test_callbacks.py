@@ -247,7 +247,7 @@ def _projected(n, seed, power=1.0):
 
 
 def test_resampled_fid_is_the_fid_on_both_routes():
-    from drgan.metrics.fid import FeatureStats, ResampledFID
+    from drgan.metrics.feature_distances import FeatureStats, ResampledFID
 
     real = FeatureStats.from_features(_projected(300, 0))
     for n in (12, 60):  # fewer rows than the 16 features (the N x N route), more (the r x r route)
@@ -259,7 +259,7 @@ def test_resampled_fid_is_the_fid_on_both_routes():
 
 
 def test_the_bootstrap_fid_std_is_the_fids_spread_and_shrinks_with_more_images():
-    from drgan.metrics.fid import FeatureStats, fid_bootstrap_std
+    from drgan.metrics.feature_distances import FeatureStats, fid_bootstrap_std
 
     real = FeatureStats.from_features(_projected(400, 0))
     small, large = (fid_bootstrap_std(_projected(n, 1, power=2.0), real) for n in (40, 640))
@@ -408,7 +408,8 @@ def test_fid_settings_that_cannot_work_fail_before_the_data_are_mined(tmp_path, 
     overrides = [o for o in tiny_overrides(folder, tmp_path / "run2") if not o.startswith("callbacks.fid.extractor")]
     with pytest.raises(DataError, match="SHA-256"):
         run_train(
-            overrides + [f"callbacks.fid.extractor={{_target_:drgan.metrics.fid.InceptionFeatures,weights_path:{bad}}}"]
+            overrides
+            + [f"callbacks.fid.extractor={{_target_:drgan.metrics.inception.InceptionFeatures,weights_path:{bad}}}"]
         )
 
 

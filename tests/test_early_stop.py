@@ -65,7 +65,7 @@ def test_early_stopping_refuses_settings_that_cannot_work(kwargs, match):
 
 def rising_fid(monkeypatch):
     """Every full FID of the run larger than the one before: the run can only get worse."""
-    from drgan.metrics.fid import FeatureStats
+    from drgan.metrics.feature_distances import FeatureStats
 
     calls = []
 

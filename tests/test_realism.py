@@ -195,10 +195,10 @@ def images(tmp_path_factory) -> Path:
 
 def test_cli_real_vs_real_halves_by_image_and_never_reads_test_ids(images, tmp_path, monkeypatch):
     from drgan.callbacks.fid import RandomProjectionFeatures
-    from drgan.metrics import fid
+    from drgan.metrics import inception
     from drgan.realism import realism
 
-    monkeypatch.setattr(fid, "InceptionFeatures", lambda: RandomProjectionFeatures(dim=8))  # FID beside the test
+    monkeypatch.setattr(inception, "InceptionFeatures", lambda: RandomProjectionFeatures(dim=8))  # FID beside the test
     summary = realism(realism_cfg(images, tmp_path / "out", "real", "fid=true"))
     assert np.isfinite(summary["test"]["fid"]) and summary["test"]["fid"] >= 0 and "kid" in summary["test"]
     assert summary["markdown"].endswith(f" {summary['test']['fid']:.1f} |")

@@ -567,7 +567,7 @@ def test_ddp_on_two_cpu_processes_scores_the_same_fid_images(images, tmp_path):
     equals the FID of the same images rendered in one process from the saved weights."""
     from drgan.callbacks.fid import FID_SEED_BASE, RandomProjectionFeatures, render_samples
     from drgan.data.patches import PatchSet
-    from drgan.metrics.fid import FeatureStats
+    from drgan.metrics.feature_distances import FeatureStats
     from drgan.models.gan_module import GANModule
 
     out = tmp_path / "run"

@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from drgan.callbacks.fid import FID_SEED_BASE, render_samples
-from drgan.metrics.fid import FeatureStats, InceptionFeatures, kid
+from drgan.metrics.feature_distances import FeatureStats, kid
+from drgan.metrics.inception import InceptionFeatures
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -136,7 +136,7 @@ def read_drgan(folder: Path) -> tuple[list[np.ndarray], list[np.ndarray], list[n
 
 
 def inception_scores(ours: list[np.ndarray], theirs: list[np.ndarray], extractor) -> dict:
-    from drgan.metrics.fid import FeatureStats, kid
+    from drgan.metrics.feature_distances import FeatureStats, kid
 
     fa = extractor.features(np.stack(ours) / 255.0)
     fb = extractor.features(np.stack(theirs) / 255.0)
@@ -204,7 +204,7 @@ def main() -> None:
     args = parser.parse_args()
     extractor = None
     if not args.no_inception:
-        from drgan.metrics.fid import InceptionFeatures
+        from drgan.metrics.inception import InceptionFeatures
 
         extractor = InceptionFeatures()
     results, panels = {}, {}

@@ -287,7 +287,7 @@ ROWS = [
             "data.dir={W}/imgs",
             *TINY,
             *TINY_FAST,
-            "callbacks.fid.extractor={_target_:drgan.metrics.fid.InceptionFeatures,weights_path:{W}/inception.pt}",
+            "callbacks.fid.extractor={_target_:drgan.metrics.inception.InceptionFeatures,weights_path:{W}/inception.pt}",
         ],
         fake_inception,
         "before training",

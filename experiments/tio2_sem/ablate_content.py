@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from drgan.data.patches import PatchSet
-from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.metrics.feature_distances import FeatureStats
+from drgan.metrics.inception import InceptionFeatures
 from drgan.models.gan_module import GANModule
 from drgan.scene import particle_meshes
 from drgan.scene.scene import ParticleScene

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from drgan.data.patches import PatchSet
-from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.metrics.feature_distances import FeatureStats
+from drgan.metrics.inception import InceptionFeatures
 
 
 def main(patchset: Path) -> None:

@@ -26,7 +26,8 @@ import torch
 from drgan.configs import compose
 from drgan.data.classical import segment_particles
 from drgan.data.patches import PatchSet
-from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.metrics.feature_distances import FeatureStats
+from drgan.metrics.inception import InceptionFeatures
 from drgan.models.build import build_scene, sample_phi
 from drgan.models.generator import add_noise
 

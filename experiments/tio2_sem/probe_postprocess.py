@@ -22,7 +22,8 @@ from scipy import ndimage as ndi
 
 from drgan.data.classical import segment_particles
 from drgan.data.patches import PatchSet
-from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.metrics.feature_distances import FeatureStats
+from drgan.metrics.inception import InceptionFeatures
 
 
 def region_blur(image: np.ndarray, labels: np.ndarray, sigma: float) -> np.ndarray:

@@ -15,7 +15,8 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from drgan.data.patches import PatchSet
-from drgan.metrics.fid import FeatureStats, InceptionFeatures
+from drgan.metrics.feature_distances import FeatureStats
+from drgan.metrics.inception import InceptionFeatures
 from drgan.models.generator import add_noise
 
 ps = PatchSet.load(

@@ -19,7 +19,7 @@ markdown table:
   train patches, beside FID(test, the same remaining train patches).
 
 FID is biased upward for small samples (by roughly a constant / n): compare only numbers of equal n. KID
-(unbiased, drgan.metrics.fid.kid) is printed beside each FID. Mined patches and features are cached under
+(unbiased, drgan.metrics.feature_distances.kid) is printed beside each FID. Mined patches and features are cached under
 --cache (default /tmp/real_fid/<dataset name>), never in the repository: they show the licensed images.
 """
 
@@ -40,7 +40,8 @@ from drgan.data.images import list_images, read_grey, read_split
 from drgan.data.patches import mine_patches
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_with
-from drgan.metrics.fid import FeatureStats, InceptionFeatures, kid
+from drgan.metrics.feature_distances import FeatureStats, kid
+from drgan.metrics.inception import InceptionFeatures
 
 PATCH_SIZE = 256  # as renderer.resolution in training
 STRIDE = 288  # conf/gan/experiment/tio2_sem.yaml and tio2_tsem.yaml

@@ -308,9 +308,10 @@ def realism(cfg: DictConfig) -> dict:
 
 
 def sample_fid(a: np.ndarray, b: np.ndarray) -> dict:
-    """FID and KID (clean-fid's Inception features, `drgan.metrics.fid`) of the two whole samples of the test:
-    what the training's FID would say about them, beside the classifier's accuracy."""
-    from drgan.metrics.fid import FeatureStats, InceptionFeatures, kid
+    """FID and KID (clean-fid's Inception features, `drgan.metrics.feature_distances`) of the two whole samples of the
+    test: what the training's FID would say about them, beside the classifier's accuracy."""
+    from drgan.metrics.feature_distances import FeatureStats, kid
+    from drgan.metrics.inception import InceptionFeatures
 
     extractor = InceptionFeatures()
     fa, fb = extractor.features(a), extractor.features(b)

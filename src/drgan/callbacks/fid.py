@@ -35,8 +35,8 @@ background 0.70-1.60x for TSEM (126 patches, dark particles, negatives: the bare
 image). The old fixed 0.5-2x let through a background 0.62x real.
 
 **The FID's own spread** (``fid_resamples``, default 10): each full evaluation also records ``fid_std``, the std
-of the FID over bootstrap resamples of the generated features (``drgan.metrics.fid.fid_bootstrap_std``, seeded
-by the epoch; 0.2-0.4 s at 2048 Inception features and ~130 images), which the best-epoch rule weighs FID
+of the FID over bootstrap resamples of the generated features (``drgan.metrics.feature_distances.fid_bootstrap_std``,
+seeded by the epoch; 0.2-0.4 s at 2048 Inception features and ~130 images), which the best-epoch rule weighs FID
 differences against.
 
 Logged: ``val/fid``, ``val/fid_std``, ``val/kid`` (mean over subsets), the brightness values and ``time/fid_s``,
@@ -68,13 +68,8 @@ from lightning.pytorch import Callback, LightningModule, Trainer
 
 from drgan.errors import ConfigError, check_spp
 from drgan.io import write_with
-from drgan.metrics.fid import (
-    FeatureStats,
-    InceptionFeatures,
-    cached_reference_stats,
-    fid_bootstrap_std,
-    kid,
-)
+from drgan.metrics.feature_distances import FeatureStats, cached_reference_stats, fid_bootstrap_std, kid
+from drgan.metrics.inception import InceptionFeatures
 
 log = logging.getLogger(__name__)
 
@@ -280,7 +275,7 @@ class FIDCallback(Callback):
     evaluation (None: as many as real training patches); batch_size: Inception batch size; cache_dir: real
     statistics cache (None: ``<run>/fid_cache``); extractor: an object with ``features(images) -> (N, D)``
     (None: the TF-Inception network); kid_subsets/kid_subset_size: KID's random subsets (size None: half the smaller
-    of the synthetic and real samples, see ``drgan.metrics.fid.kid``); spp: samples per
+    of the synthetic and real samples, see ``drgan.metrics.feature_distances.kid``); spp: samples per
     pixel of the FID renders (None: the training spp; fix it to compare runs trained at different spp);
     screen_images / screen_margin: the KID screen of the module docstring (None: every evaluation is a full FID);
     fid_resamples: bootstrap resamples for ``fid_std`` (0: none, and the best-epoch rule falls back to a fixed
