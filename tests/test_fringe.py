@@ -1,6 +1,6 @@
 """The edge fringe of transmission images (material.imaging.fringe): the scene's term (a Laplacian-of-Gaussian ring
 of the darkening, learned amplitude, exact gradients, off without a fringe) and the profile's measurement of it
-(drgan.data.profile's mean particle edge). Tiny renders and synthetic discs only."""
+(drgan.data.particle_edge's mean particle edge). Tiny renders and synthetic discs only."""
 
 from __future__ import annotations
 
@@ -123,7 +123,7 @@ def test_without_a_fringe_renders_are_identical():
 def test_a_fringe_renders_a_ring_of_its_sign_outside_the_edge_and_labels_stay(amplitude):
     """One opaque disc-like particle: a positive amplitude brightens a ring just outside the edge above the bare
     film (and darkens the particle's rim), a negative one darkens it; the labels are those without a fringe."""
-    from drgan.data.profile import signed_distance
+    from drgan.data.particle_edge import signed_distance
 
     size, background = 32, 0.7
     phi = np.array([[0.0, 0.0, 0.0, 32.0]], np.float32)  # a sphere of 32 px on a 64 px view: 16 render px across
@@ -238,7 +238,7 @@ def disc_coverage(rng, size=256, n=12, radius=(8.0, 14.0), sub=4) -> np.ndarray:
 def disc_image(rng, scene_fringe=None, ring=None, background=0.8, contrast=0.5, noise=0.02, blur=0.5):
     """Dark discs on a bright film: the scene's fringe term (amplitude, width) on the darkening before the blur,
     or a drawn Gaussian ring (height in particle contrast, > 0 brighter than the film; distance; stddev 1 px)."""
-    from drgan.data.profile import signed_distance
+    from drgan.data.particle_edge import signed_distance
     from drgan.scene.scene import reconstruction_blur
     from drgan.scene.transmission import edge_fringe
 
@@ -258,16 +258,17 @@ def measure_edge(images):
     """The mean edge profile of ``images`` (dark discs, 16-28 px), segmented at 24 px, the scale the search finds on
     the discs with drawn rings: the edge is measured here; the scale search, with a fringe too, is the profile
     test's (below) and test_particles'."""
-    from drgan.data import profile as est
+    from drgan.data import particle_edge
     from drgan.data.annotations import annotation_mask
     from drgan.data.classical import SegmentParams, resolve_params
+    from drgan.data.measurements import segment_image
 
     params, _ = resolve_params(images, SegmentParams(scale=24.0), "dark")
     samples = []
     for image in images:
-        labels, foreground = est.segment_image(image, params, "dark")[:2]
-        samples.append(est.edge_samples(image, labels, foreground, annotation_mask(image)))
-    return est.edge_profile(samples)
+        labels, foreground = segment_image(image, params, "dark")[:2]
+        samples.append(particle_edge.edge_samples(image, labels, foreground, annotation_mask(image)))
+    return particle_edge.edge_profile(samples)
 
 
 def test_no_fringe_reads_as_none():
@@ -308,8 +309,9 @@ def test_the_profile_writes_a_measured_fringe_into_a_transmission_material(tmp_p
     report and its figure show the edge profile."""
     from PIL import Image
 
+    from drgan.material_proposal import FRINGE_LIMIT_FACTOR
     from drgan.models import build
-    from drgan.profile import FRINGE_LIMIT_FACTOR, profile
+    from drgan.profile import profile
 
     folder = tmp_path / "images"
     folder.mkdir()

@@ -11,7 +11,7 @@ from conftest import compose
 from PIL import Image
 from scipy import ndimage as ndi
 
-from drgan.data import profile as est
+from drgan.data import measurements as est
 from drgan.data.classical import SegmentParams, resolve_params
 from drgan.data.patches import window_starts
 from drgan.errors import ConfigError, DataError
@@ -155,7 +155,9 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
 
     cfg = compose(["material=my_discs"], config_name="train")
     assert cfg.material.name == "my_discs" and cfg.material.meshes.kind == "sphere"
-    from drgan.profile import EXTENT_PER_DIAMETER  # a material's size is a largest extent, the fit's a diameter
+    from drgan.material_proposal import (
+        EXTENT_PER_DIAMETER,  # a material's size is a largest extent, the fit's a diameter
+    )
 
     median = saved["sizes"]["fits"][1]["params"]["median"]
     assert cfg.material.particle_size_px == pytest.approx(EXTENT_PER_DIAMETER * median, abs=0.1)
@@ -177,7 +179,7 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert 0 <= grown["images"] <= n and "- `data.segment.grow_outlines`: true: " in report
     assert (f"on {grown['images']} of {n} images" if grown["images"] else f"on none of the {n} images") in report
     # A scale chosen below min_separability for its alike segments writes the lowered value, and says why
-    from drgan.profile import data_settings
+    from drgan.material_proposal import data_settings
 
     assert not saved["segmentation"]["scale_estimate"]["alike"]
     assert "min_separability" not in saved["material"]["data"]["segment"]
@@ -221,7 +223,9 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     assert result["edge"]["ring"]["kind"] == "none" and result["material"]["fringe"] is None
     assert cfg.material.imaging.fringe is None and "#   edge fringe: none" in text
     assert cfg.material.noise_grain_px == pytest.approx(result["background"]["grain_px"], abs=0.01)
-    from drgan.profile import NOISE_LIMIT_FACTOR  # the background shows the detector noise: it bounds the learned one
+    from drgan.material_proposal import (
+        NOISE_LIMIT_FACTOR,  # the background shows the detector noise: it bounds the learned one
+    )
 
     measured = result["background"]["noise_sigma"]
     assert cfg.material.noise_sigma.max == pytest.approx(max(0.01, NOISE_LIMIT_FACTOR * measured), abs=1e-4)
@@ -256,8 +260,8 @@ def test_a_bright_stage_beyond_the_parents_reach_widens_its_limit_enough():
     import torch
 
     from drgan.configs import compose
+    from drgan.material_proposal import parent_stage_reach, stage_limits
     from drgan.models.gan_module import GANModule
-    from drgan.profile import parent_stage_reach, stage_limits
 
     limit, grey = parent_stage_reach("tio2_him")
     assert limit == 0.3 and 0.05 < grey < 0.3

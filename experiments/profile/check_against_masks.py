@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from drgan.data import profile as est
+from drgan.data import measurements as est
 from drgan.data.images import read_grey
 from drgan.profile import profile
 

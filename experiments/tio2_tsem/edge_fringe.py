@@ -1,4 +1,4 @@
-"""The edge-fringe measurement (drgan.data.profile.edge_profile) on transmission renders of known fringe.
+"""The edge-fringe measurement (drgan.data.particle_edge.edge_profile) on transmission renders of known fringe.
 
     python experiments/tio2_tsem/edge_fringe.py [--images 6] [--seed 1]
 
@@ -17,9 +17,10 @@ import argparse
 import torch
 
 from drgan.configs import compose
-from drgan.data import profile as est
+from drgan.data import particle_edge
 from drgan.data.annotations import annotation_mask
 from drgan.data.classical import resolve_params
+from drgan.data.measurements import segment_image
 from drgan.models import build
 from drgan.models.generator import add_noise
 
@@ -27,7 +28,7 @@ CASES = [(0.0, 1.0), (0.1, 0.7), (0.15, 1.0), (0.3, 1.5), (0.5, 3.0), (-0.3, 2.0
 KINDS = {"semi-transparent": (0.8, 0.05, 0.1), "nearly opaque": (0.8, 0.15, 0.03)}
 
 
-def measure(amplitude: float, width: float, values: tuple, images: int, seed: int) -> est.EdgeProfile | None:
+def measure(amplitude: float, width: float, values: tuple, images: int, seed: int) -> particle_edge.EdgeProfile | None:
     overrides = [
         "material=tio2_tsem",
         "renderer.resolution=256",
@@ -48,9 +49,9 @@ def measure(amplitude: float, width: float, values: tuple, images: int, seed: in
     params, _ = resolve_params(rendered, None, "dark")
     samples = []
     for image in rendered:
-        labels, foreground = est.segment_image(image, params, "dark")[:2]
-        samples.append(est.edge_samples(image, labels, foreground, annotation_mask(image)))
-    return est.edge_profile(samples)
+        labels, foreground = segment_image(image, params, "dark")[:2]
+        samples.append(particle_edge.edge_samples(image, labels, foreground, annotation_mask(image)))
+    return particle_edge.edge_profile(samples)
 
 
 def main() -> None:

@@ -7,7 +7,7 @@ measures a prediction (drgan.metrics.statistics): components under ``min_area_px
 sized); particles cut by the image border are counted but not sized (a cut particle's area is not its size).
 
 The pixel size: ``nm_per_px`` when given, else read from each image's metadata (a TIFF's microscope or resolution
-tags, drgan.data.profile.pixel_size_nm); images without one are measured in px (the log says which key to set
+tags, drgan.data.measurements.pixel_size_nm); images without one are measured in px (the log says which key to set
 before anything is predicted).
 
 Writes, in ``out``:
@@ -98,7 +98,7 @@ def particle_rows(
 def pixel_sizes(paths: Sequence[Path], given: float | None) -> tuple[list[float | None], str]:
     """Per image its pixel size in nm (None: unknown) and where it came from: ``nm_per_px`` for all when given,
     else each image's metadata; metadata sizes within SAME_PIXEL of their median are taken as that median."""
-    from drgan.data.profile import pixel_size_nm
+    from drgan.data.measurements import pixel_size_nm
 
     if given is not None:
         return [float(given)] * len(paths), f"nm_per_px={given} (given)"
@@ -149,7 +149,7 @@ def size_statistics(
     """Counts, median and mean diameter, normal and lognormal parameters (in the unit ``scales`` converts px to) of
     the particles of ``images``, each {"value", "low", "high"} with a percentile bootstrap interval over images;
     ``areas``: each image's area in the unit of the count per area. Plus the model the sizes fit best (BIC)."""
-    from drgan.data.profile import fit_sizes
+    from drgan.data.measurements import fit_sizes
 
     result = bootstrap(
         len(images),

@@ -1,0 +1,362 @@
+"""The material config `python -m drgan.profile` proposes from what it measured: the closest paper material as
+parent (`choose_parent`), the measured keys over it (`material_settings`), the segmentation and mining settings
+training should use (`data_settings`), a measured edge fringe (`fringe_settings`) and stage limits wide enough for
+the images' background (`stage_limits`), each with why it was set; `material_yaml` writes it as
+drgan_conf/material/NAME.yaml, checked against the typed material first.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+from omegaconf import OmegaConf
+
+from drgan.data import measurements
+from drgan.data.classical import CALIBRATION, Fixed
+from drgan.data.particle_edge import MAX_SATURATED
+
+NOISE_LIMIT_FACTOR, NOISE_LIMIT_FLOOR = 2.2, 0.01  # transmission materials: noise_sigma.max = 2.2 x measured
+EXTENT_PER_DIAMETER = 1.1  # largest extent / equivalent diameter of a particle seen from above (TiO2: 30 / 26.5 px)
+
+PAPER_SIZES = {"tio2_sem": 30.0, "tio2_him": 40.0}
+
+
+def choose_parent(polarity: str, kind: str, median_px: float) -> tuple[str, str]:
+    """(paper material, why): dark particles -> tio2_tsem (transmission); bright rods -> agnw_sem, bright spheres
+    -> sio2_him, other bright shapes -> the TiO2 material of the nearer particle size."""
+    if polarity == "dark":
+        return "tio2_tsem", "dark particles on a bright background: the transmission material"
+    if kind == "rod":
+        return "agnw_sem", "bright, elongated (axis ratio > 2.5): the wire material"
+    if kind == "sphere":
+        return "sio2_him", "bright, round (axis ratio < 1.3): the sphere material"
+    parent = min(PAPER_SIZES, key=lambda k: abs(math.log(median_px / PAPER_SIZES[k])))
+    return parent, f"bright, irregular: the TiO2 material of the nearest size ({PAPER_SIZES[parent]:.0f} px)"
+
+
+def data_settings(result: dict) -> tuple[dict, dict]:
+    """(data keys, notes): the segmentation the profile validated (data.segment, so that training mines with the
+    same lengths) and data.min_particles when too few windows hold the default 3 particles (large particles)."""
+    seg, counts = result["segmentation"], result["particles_per_patch"]
+    given = seg["setting"]
+    # the lengths (from the scale or given), and any other key given by hand (neck_depth, min_separability, ..)
+    data = {"segment": {k: v for k, v in seg["params"].items() if k in SEGMENT_KEYS or k in given}}
+    estimate = seg["scale_estimate"]
+    log_scale = (
+        "no LoG blob stood out (particles fill the image), a diameter searched from 8 px up,"
+        if estimate is None or estimate["diameter_px"] is None
+        else f"LoG blob scale {estimate['diameter_px']} px,"
+    )
+    if "scale" in given:
+        how = "set by hand (data.segment)"
+    elif estimate.get("plateau"):
+        size = result["sizes"]["median_diameter_px"]
+        how = (
+            f"measured: {log_scale} no scale agreed with its segments' size and separated enough; from "
+            f"{estimate['refined_px']} px up the segments keep one size ({size:.1f} px) over an octave and more: "
+            "small particles that separate from a noisy film only when smoothed more than their size asks (the "
+            "scale sets the smoothing; the sizes are the segments')"
+        )
+    else:
+        how = f"measured: {log_scale} refined to the segments' own median ({estimate['refined_px']} px)"
+    notes = {
+        "data.segment.scale": f"particle diameter {seg['scale_px']} px, {how}",
+        "data.segment (sigma, min_distance, min_area, max_area, background)": "from the scale unless set by hand"
+        + (f" ({', '.join(sorted(given))} given)" if given else "")
+        + f"; Otsu separability {seg['separability_median']:.2f} (particles segmented: {seg['particles']})",
+    }
+    notes["data.segment.neck_depth"] = _neck_note(seg["params"]["neck_depth"], "neck_depth" in given, estimate)
+    lowered = seg["params"]["min_separability"]
+    if lowered != CALIBRATION.min_separability and "min_separability" not in given:
+        data["segment"]["min_separability"] = lowered
+        notes["data.segment.min_separability"] = (
+            f"{lowered} (default {CALIBRATION.min_separability}): the particles' scale separates less than a "
+            "finer one, but its segments are far more alike in size (a dense packing of textured particles: narrow "
+            "gaps, texture cut into specks of every size at the finer scale); to decide, set data.segment.scale "
+            "and data.segment.min_separability together"
+        )
+    notes["data.segment.grow_outlines"] = _outline_note(seg, result["data"]["images"])
+    enough = counts["with_3_or_more"]["windows"] / max(1, counts["windows"])
+    if enough < MIN_WINDOW_SHARE:
+        data["min_particles"] = max(1, min(3, int(counts["median"])))
+        notes["data.min_particles"] = (
+            f"{data['min_particles']}: only {100 * enough:.0f} % of the {counts['patch_size']} px windows hold 3 or "
+            f"more particles (median {counts['median']:g})"
+        )
+    return data, notes
+
+
+WHY_SEGMENT = {"scale": "measured", "neck_depth": "chosen by the segment sizes (note below)"}
+SEGMENT_KEYS = ("scale", "sigma", "min_distance", "min_area", "max_area", "background", "neck_depth")
+MIN_WINDOW_SHARE = 0.2  # below this share of windows with >= 3 particles, training mines windows with fewer
+
+
+def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict, dict, dict]:
+    """(parent, why, material, size, notes): what the profile measured, as the keys of a material inheriting the
+    closest paper material (`choose_parent`), the size group's parameters for a bimodal fit (else {}), and per key
+    why it was set."""
+    polarity = result["polarity"]["value"]
+    sizes, counts = result["sizes"], result["particles_per_patch"]
+    kind = result["shape"]["mesh_kind"]
+    parent, why = choose_parent(polarity, kind, sizes["median_diameter_px"])
+    by_kind = {f.kind: f for f in fits}
+    if chosen.kind == "normal":
+        size_px, spread = chosen.params["mean"], chosen.params["std"] / chosen.params["mean"]
+        spread_note = "std / mean of the normal fit"
+    else:
+        lognormal = by_kind["lognormal"].params
+        size_px, spread = lognormal["median"], lognormal["sigma"]
+        spread_note = "sigma of log(diameter), lognormal fit"
+    # A material's sizes are largest extents (a mesh's scale); the profile measures equivalent diameters of
+    # projected areas: ~0.9 x the largest extent for the TiO2 particles (tio2_sem: masks 26.5 px, extent 30 px).
+    size_px *= EXTENT_PER_DIAMETER
+    kept = counts["with_3_or_more"] if counts["with_3_or_more"]["windows"] else counts
+    n_max = max(1, int(math.ceil(kept["p90"])))
+    n_min = max(1, min(n_max, int(math.floor(kept["p10"]))))
+    pol_note = "detected" if result["polarity"]["setting"] == "auto" else "set on the command line"
+    material = {
+        "name": result["name"],
+        "polarity": polarity,
+        "particle_size_px": round(float(size_px), 1),
+        "size_spread": round(float(spread), 3),
+        "n_particles": n_max,
+        "n_particles_min": n_min,
+        "meshes": {"kind": kind},
+    }
+    notes = {
+        "polarity": pol_note,
+        "particle_size_px": f"median equivalent diameter of the segmented particles x {EXTENT_PER_DIAMETER} (a "
+        "material's size is a particle's largest extent)",
+        "size_spread": spread_note,
+        "n_particles": f"p90 of particles per {counts['patch_size']} px patch over the patches with >= 3 (those "
+        f"training keeps; mean over all patches {counts['mean']:.1f})",
+        "n_particles_min": "p10 over the same patches; a constellation draws n_particles_min..n_particles",
+        "meshes.kind": f"median major/minor axis ratio {result['shape']['axis_ratio_median']:.2f}",
+    }
+    background = result["background"]
+    if parent_renders_without_sampling_noise(parent):
+        # Such a render has no Monte Carlo grain: the image's noise is the detector's, which the background shows,
+        # so it bounds the learned noise (tio2_tsem: 0.018 measured; wider limits start far too grainy).
+        material["noise_grain_px"] = round(float(background["grain_px"]), 2)
+        material["noise_sigma"] = {
+            "min": 0.001,
+            "max": round(max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * background["noise_sigma"]), 4),
+        }
+        notes["noise_grain_px"] = (
+            f"lag-1 autocorrelation {background['lag1_autocorrelation']:.3f} of the background's high-pass residual"
+        )
+        notes["noise_sigma.max"] = f"{NOISE_LIMIT_FACTOR} x the background's noise sigma"
+    stage = stage_limits(parent, background["background_grey"])
+    if stage is not None:
+        material["imaging"] = {"stage_bsdf": {"base_color": stage[0]}}
+        notes["imaging.stage_bsdf.base_color"] = stage[1]
+    if parent_renders_fringe(parent):
+        fringe, why_fringe = fringe_settings(result.get("edge"))
+        if fringe is not None:  # only a measured fringe: without one the material renders none
+            material["imaging"] = {"fringe": fringe}
+            notes["imaging.fringe"] = why_fringe
+    size = {}
+    if chosen.kind == "bimodal":
+        p = chosen.params
+        m1, s1 = (EXTENT_PER_DIAMETER * v for v in measurements.lognormal_to_normal(p["median1"], p["sigma1"]))
+        m2, s2 = (EXTENT_PER_DIAMETER * v for v in measurements.lognormal_to_normal(p["median2"], p["sigma2"]))
+        size = {
+            k: round(float(v), 3)
+            for k, v in zip(("mean1", "std1", "mean2", "std2", "weight1"), (m1, s1, m2, s2, p["weight1"]))
+        }
+        notes["size"] = f"the two lognormal components as normals (mean, std, px) x {EXTENT_PER_DIAMETER}"
+    return parent, why, material, size, notes
+
+
+@functools.cache
+def parent_material(parent: str) -> dict:
+    """The paper material ``parent`` as plain values (composed once per process; callers do not modify it)."""
+    from drgan.configs import compose
+
+    return OmegaConf.to_container(compose([f"material={parent}"], config_name="render").material, resolve=True)
+
+
+def parent_renders_fringe(parent: str) -> bool:
+    """Whether the parent material's imaging takes an edge fringe (``material.imaging.fringe``: transmission)."""
+    from drgan.scene.config import typed_material
+
+    return typed_material(parent_material(parent)).imaging.renders_fringe
+
+
+FRINGE_LIMIT_FACTOR = 2.0  # a measured fringe's amplitude is learned within 0..2 x the fitted amplitude
+
+
+def fringe_settings(edge: dict | None) -> tuple[dict | None, str]:
+    """(``material.imaging.fringe`` or None, why): set only when the edge profile shows a ring (the rule of
+    `drgan.data.particle_edge.find_ring`); its amplitude learned between 0 (no fringe) and FRINGE_LIMIT_FACTOR x the
+    scene's fringe fitted to the profile (so training starts near the fit), its width the fit's. A ring the fit
+    could not follow (too many bins saturated) is reported, not written."""
+    if edge is None:
+        return None, "no edge profile (too few isolated particles)"
+    ring, fit = edge["ring"], edge["fringe"]
+    if ring["kind"] == "none":
+        return None, (
+            f"none: the profile's extreme outside the edge, {-ring['height']:+.3f} of the particle contrast "
+            f"(standard error {ring['height_se']:.3f}), is no ring by the rule"
+        )
+    kind = "opposite to" if ring["kind"] == "opposite" else "like"
+    seen = (
+        f"a ring {kind} the particles' grey {ring['distance_px']:.1f} px outside their edge, height "
+        f"{ring['height']:+.3f} of the particle contrast (standard error {ring['height_se']:.3f})"
+    )
+    if fit is None:
+        saturated = sum(share is not None and share > MAX_SATURATED for share in edge["saturated_share"])
+        return None, f"{seen}, but the fringe could not be fitted ({saturated} of the bins saturated)"
+    amplitude, width = fit["amplitude"], fit["width_px"]
+    limit = round(FRINGE_LIMIT_FACTOR * amplitude, 4)
+    fringe = {"amplitude": {"min": min(0.0, limit), "max": max(0.0, limit)}, "width_px": round(float(width), 2)}
+    return fringe, (
+        f"{seen}; fitted amplitude {amplitude:+.3f}, width {width:.2f} px (edge blur {fit['edge_blur_px']:.2f} "
+        f"px); amplitude learned within 0..{FRINGE_LIMIT_FACTOR:g} x the fit"
+    )
+
+
+STAGE_REACH = 0.8  # the stage's limit widens when the images' background needs more than this of what it renders
+STAGE_MARGIN = 4.0  # x the linear estimate of the stage value the background needs (the render saturates above it)
+STAGE_CEILING = 5.0  # the particles' own limit in every paper material
+
+
+@functools.cache
+def parent_stage_reach(parent: str) -> tuple[float, float] | None:
+    """(the parent material's stage base_color limit, the stage's grey rendered at it), or None for a scene without a
+    lit stage (transmission). One render at spp 16 with the other learned values at the middle of their limits."""
+    import torch
+
+    from drgan.configs import compose
+    from drgan.models.gan_module import GANModule
+
+    cfg = compose([f"material={parent}", "renderer.spp=16", "renderer.resolution=128"], config_name="train")
+    module = GANModule.from_config(cfg)
+    learned = module.generator.learned
+    stage = [p for p in learned if p.key == "stage.base_color"]
+    if not stage:
+        return None
+    values = torch.tensor([p.high if p is stage[0] else 0.5 * (p.low + p.high) for p in learned], dtype=torch.float32)
+    phi = torch.as_tensor(module.sample_phi(1, seed=0)[0], dtype=torch.float32)
+    with torch.no_grad():
+        image = module.generator.render_one(phi, values, seed=1)[0].numpy()
+    labels = module.generator.scene.instance_labels()
+    return float(stage[0].high), float(image[labels == 0].mean())
+
+
+def stage_limits(parent: str, background_grey: float) -> tuple[dict, str] | None:
+    """``material.imaging.stage_bsdf.base_color`` limits wide enough for the images' background grey, with why; None
+    when the parent's own limits reach it (or its scene has no lit stage). The paper SEM/HIM materials render their
+    stage at most ~0.15 grey; SEM images with a mid-grey stage (EMPS cej: 0.43) need a larger base colour, which the
+    grey start (drgan.callbacks.grey_start) then finds within the widened limits."""
+    reach = parent_stage_reach(parent)
+    if reach is None:
+        return None
+    limit, grey = reach
+    if background_grey <= STAGE_REACH * grey:
+        return None
+    high = round(min(STAGE_CEILING, limit * STAGE_MARGIN * background_grey / grey), 3)
+    return {"min": 0.01, "max": high}, (
+        f"0.01-{high}: the background is {background_grey:.3f} grey and {parent}'s stage renders at most {grey:.3f} "
+        f"(limit {limit:g}); widened to {STAGE_MARGIN:g} x the linear estimate of the base colour the background needs"
+    )
+
+
+def parent_renders_without_sampling_noise(parent: str) -> bool:
+    """Whether the parent material's scene renders without Monte Carlo grain (its imaging config says so)."""
+    from drgan.scene.config import typed_material
+
+    return typed_material(parent_material(parent)).imaging.noiseless
+
+
+def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
+    """(parent name, the text of drgan_conf/material/NAME.yaml): the measured keys, checked against the typed
+    material (`drgan.scene.config.typed_material`, merged over the parent) and dumped, with why each was set."""
+    from drgan.scene.config import typed_material
+
+    parent, why, material, size, notes = material_settings(result, fits, chosen)
+    typed_material(
+        OmegaConf.merge(parent_material(parent), material)
+    )  # a value the schema refuses fails here, not in training
+    agg, data = result["agglomeration"], result["data"]
+    notes["size group"] = f"{chosen.kind}: lowest BIC of normal / lognormal / bimodal"
+    notes["placement group"] = (
+        f"{agg['placement']}: touching fraction {agg['touching_fraction']:.2f}, Clark-Evans {agg['clark_evans_median']}"
+    )
+    body = {"material": material}
+    if size:
+        body["size"] = size
+    segmentation, data_notes = data_settings(result)
+    notes.update(data_notes)
+    body["data"] = {
+        "dir": data["dir"],
+        "crop_rows": data["crop_rows"],
+        "split": data["split"],
+        "polarity": material["polarity"],
+        **segmentation,
+    }
+    header = [
+        "# @package _global_",
+        f"# Written by `python -m drgan.profile` from {data['images']} image(s) of {data['dir']}",
+        f"# (report: {result['out']}/report.md).",
+        f"# Parent: {parent} ({why}); everything not set here comes from it, unmeasured.",
+        "# Measured:",
+        *(f"#   {key}: {note}" for key, note in notes.items()),
+        f"#   for reference: background grey {result['background']['background_grey']:.3f}, noise sigma "
+        f"{result['background']['noise_sigma']:.4f}",
+        *(
+            [f"#   edge fringe: {fringe_settings(result.get('edge'))[1]}; the material renders none"]
+            if parent_renders_fringe(parent) and "imaging" not in material
+            else []
+        ),
+        "defaults:",
+        f"  - {parent}",
+        f"  - override /size: {chosen.kind}",
+        f"  - override /placement: {agg['placement']}",
+    ]
+    return parent, "\n".join(header) + "\n" + OmegaConf.to_yaml(OmegaConf.create(body))
+
+
+def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
+    """Why the watershed's seeds have the neck depth they have (`drgan.data.classical.search_scale`)."""
+    if given:
+        return f"{depth}, set by hand"
+    if estimate is None:
+        return f"{depth}: the more alike segment sizes at the scale given (`drgan.data.classical.search_scale`)"
+    fixed = [Fixed.from_list(c) for c in estimate.get("candidates", [])]
+
+    def says(f: Fixed) -> str:
+        spread = "one segment" if math.isnan(f.spread) else f"size spread log(q90/q10) {f.spread:.2f}"
+        return f"{f.scale:.1f} px, holding over {f.basin} scales, {spread}"
+
+    def best_of(d: float) -> Fixed | None:
+        return max((f for f in fixed if f.depth == d), key=lambda f: f.evidence, default=None)
+
+    mine, other = best_of(depth), best_of(CALIBRATION.neck_depth if depth == 0.0 else 0.0)
+    what = "seeds at necks only" if depth else "every maximum seeding"
+    head = f"{depth} ({what}): chosen with the scale"
+    if mine is None:
+        return head
+    if other is None:
+        return f"{head} ({says(mine)}); the other depth gave no particle size of its own"
+    if (mine.scale, mine.segments, says(mine)) == (other.scale, other.segments, says(other)):
+        return f"{head} ({says(mine)}); no neck shallow enough to merge: both depths segment alike"
+    return (
+        f"{head}: {says(mine)}, against {says(other)} with the other depth (seeds at necks only where they make the "
+        "sizes more alike than every maximum seeding does: a rod cut along its ridge gives pieces of every length, "
+        "touching particles merged give singles and pairs)"
+    )
+
+
+def _outline_note(seg: dict, images: int) -> str:
+    """What the outlines' growth to the particles' edges did (`drgan.data.classical.grow_to_edges`)."""
+    if not seg["params"].get("grow_outlines", True):
+        return "false (set by hand): Otsu's outlines"
+    grown = seg.get("outlines_grown") or {"images": 0}
+    if not grown["images"]:
+        return f"true: on none of the {images} images did the strongest edges lie below Otsu's threshold"
+    return (
+        f"true: the outlines grew out to the particles' strongest edges, below Otsu's threshold, on {grown['images']} "
+        f"of {images} images (foreground +{100 * grown['foreground_added_median']:.0f} %, median); false keeps Otsu's"
+    )
