@@ -24,11 +24,11 @@ import numpy as np
 import torch
 
 from drgan.data.patches import PatchSet
-from drgan.dataset.generation_settings import parameter_source
-from drgan.dataset.source import checkpoint_config, use_parameters
 from drgan.metrics.feature_distances import FeatureStats
 from drgan.metrics.inception import InceptionFeatures
 from drgan.models.gan_module import GANModule
+from drgan.synthetic.generation_settings import parameter_source
+from drgan.synthetic.source import checkpoint_config, use_parameters
 
 
 def main():

@@ -10,7 +10,7 @@
 The one harness for the scene probes (it replaces the SEM scripts probe_appearance.py and probe_counts.py, which
 copied it; experiments/tio2_sem/README.md says which commit holds them as they ran). A GANModule is built from
 `train experiment=EXPERIMENT` plus the overrides, and every learned parameter is fixed for every image with the
-package's own `drgan.dataset.source.use_parameters` (what `drgan.generate parameters=` does): `--values ckpt`, the
+package's own `drgan.synthetic.source.use_parameters` (what `drgan.generate parameters=` does): `--values ckpt`, the
 medians over a checkpoint's phi bank (default for TSEM: runs/tio2_tsem/tsem_transmission_v3's epoch 2); `middle`,
 the middle of each limit; `--set KEY=VALUE` (repeatable, e.g. `--set particle.roughness=0.5`) replaces single
 values. It renders --n images exactly as the FID callback does (`render_samples`: constellation i of its phi bank,
@@ -34,12 +34,12 @@ import torch
 from drgan.callbacks.fid import FID_SEED_BASE, render_samples
 from drgan.configs import compose
 from drgan.data.patches import PatchSet
-from drgan.dataset.source import checkpoint_config, load_module, use_parameters
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_json, write_png
 from drgan.metrics.feature_distances import FeatureStats, kid
 from drgan.metrics.inception import InceptionFeatures
 from drgan.models.gan_module import GANModule
+from drgan.synthetic.source import checkpoint_config, load_module, use_parameters
 
 ROOT = Path(__file__).resolve().parents[1]
 TSEM_REFERENCE = ROOT / "runs/tio2_tsem/tsem_transmission_v3"

@@ -21,8 +21,8 @@ from test_train import make_images, run_train, tiny_overrides
 
 from drgan import generate as gen
 from drgan.checkpoint_io import load_checkpoint
-from drgan.dataset.source import checkpoint_config, load_module
 from drgan.errors import ConfigError, DataError
+from drgan.synthetic.source import checkpoint_config, load_module
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

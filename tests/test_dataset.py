@@ -1,4 +1,4 @@
-"""drgan.dataset: the folder of a synthetic dataset, written and read without a renderer (hand-made arrays).
+"""drgan.synthetic: the folder of a synthetic dataset, written and read without a renderer (hand-made arrays).
 
 The render loop that fills it (drgan.generate) is tested in tests/test_generate.py and tests/test_faults_generate.py.
 """
@@ -13,17 +13,17 @@ import pytest
 from PIL import Image
 
 from drgan import io
-from drgan.dataset import manifest as mf
-from drgan.dataset.folder import DatasetFolder, bg_id, syn_id, syn_index
-from drgan.dataset.generation_settings import FIXED_SETTINGS, fixed_settings
-from drgan.dataset.shards import Shard, owned_by
 from drgan.errors import ConfigError, DataError
+from drgan.synthetic import manifest as mf
+from drgan.synthetic.folder import DatasetFolder, bg_id, syn_id, syn_index
+from drgan.synthetic.generation_settings import FIXED_SETTINGS, fixed_settings
+from drgan.synthetic.shards import Shard, owned_by
 
 SIZE = 12
 
 
 def settings(n: int, n_background: int = 1) -> dict:
-    """What drgan.dataset.generation_settings.settings_from returns, in its key order (no checkpoint needed here)."""
+    """What drgan.synthetic.generation_settings.settings_from returns, in its key order (no checkpoint needed here)."""
     return {
         "ckpt": "/runs/x/checkpoints/best.ckpt", "material": "tio2_sem", "n": n, "n_background": n_background,
         "seed": 0, "contour_px": 1, "min_contrast": 0.0, "min_background": 0.05, "polarity": "bright",
@@ -277,15 +277,15 @@ def partial_patchset(root: Path) -> tuple[Path, list[np.ndarray]]:
 def test_partial_backgrounds_fill_up_n_background_with_their_particles_ignored(tmp_path, caplog):
     from scipy import ndimage
 
-    from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
-    from drgan.dataset.folder import IGNORE, pbg_id
     from drgan.segmentation.data import load_generated_pairs
+    from drgan.synthetic.backgrounds import PartialSettings, write_backgrounds
+    from drgan.synthetic.folder import IGNORE, pbg_id
 
     path, discs = partial_patchset(tmp_path / "patches")
     s = {**settings(1, n_background=5), "backgrounds": str(path)}
     folder = DatasetFolder(tmp_path / "data")
     write_synthetic(folder, 0)
-    with caplog.at_level("INFO", logger="drgan.dataset.backgrounds"):
+    with caplog.at_level("INFO", logger="drgan.synthetic.backgrounds"):
         counts = write_backgrounds(folder, str(path), 5, PATCH, PartialSettings(), "bright")
     assert counts == {"background": 1, "partial": 3}
     assert "skipped 1 of 5 windows with particles whose ignored fraction exceeds partial_max_ignored=0.6" in caplog.text
@@ -330,8 +330,8 @@ def test_partial_backgrounds_fill_up_n_background_with_their_particles_ignored(t
 
 
 def test_partial_backgrounds_at_a_lower_resolution_and_without_them(tmp_path):
-    from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
-    from drgan.dataset.folder import IGNORE, pbg_id
+    from drgan.synthetic.backgrounds import PartialSettings, write_backgrounds
+    from drgan.synthetic.folder import IGNORE, pbg_id
 
     path, discs = partial_patchset(tmp_path / "patches")
     folder = DatasetFolder(tmp_path / "half")
@@ -354,8 +354,8 @@ def test_partial_backgrounds_at_a_lower_resolution_and_without_them(tmp_path):
 
 
 def test_partial_settings_are_fixed_only_when_not_the_defaults_and_shard_0_writes_them(tmp_path):
-    from drgan.dataset.backgrounds import patchset_segmentation
-    from drgan.dataset.folder import pbg_id
+    from drgan.synthetic.backgrounds import patchset_segmentation
+    from drgan.synthetic.folder import pbg_id
 
     folder = DatasetFolder(tmp_path / "data")
     folder.check_settings(fixed_settings(settings(3)))  # a folder made before partial backgrounds existed ...

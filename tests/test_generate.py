@@ -119,7 +119,7 @@ def test_contrast_check_for_dark_particles_asks_for_a_darker_particle_by_the_sam
 
 
 def test_shard_and_seeds():
-    from drgan.dataset.shards import Shard, dataset_cutoff
+    from drgan.synthetic.shards import Shard, dataset_cutoff
 
     assert Shard.parse("1/3") == Shard(1, 3) and Shard.parse(None) == Shard(0, 1)
     for bad in ("3/2", "2/2", "-1/2", "1/0", "a/b", "1", "1/2/3"):
@@ -435,7 +435,7 @@ def learned_limits(ckpt) -> dict[str, tuple[float, float]]:
 
 
 def _module_args(run):
-    from drgan.dataset.source import checkpoint_config, generator_checkpoint
+    from drgan.synthetic.source import checkpoint_config, generator_checkpoint
 
     ckpt_file, _ = generator_checkpoint(run)
     return ckpt_file, checkpoint_config(ckpt_file)
@@ -470,8 +470,8 @@ def test_parameters_middle_and_a_mapping_fix_every_images_values(tiny_run, tmp_p
 
 
 def test_parameters_initial_gives_the_network_its_weights_before_training(tiny_run):
-    from drgan.dataset.source import use_parameters
     from drgan.models.gan_module import GANModule
+    from drgan.synthetic.source import use_parameters
 
     ckpt_file, cfg = _module_args(tiny_run)
     module = gen.load_module(ckpt_file, cfg)
@@ -485,7 +485,7 @@ def test_parameters_initial_gives_the_network_its_weights_before_training(tiny_r
 
 
 def test_bad_parameters_are_refused_naming_what_is_expected(tiny_run, tmp_path):
-    from drgan.dataset.source import use_parameters
+    from drgan.synthetic.source import use_parameters
 
     limits = learned_limits(tiny_run)
     with pytest.raises(ConfigError, match="parameters='best'.*trained, initial, middle"):
@@ -505,7 +505,7 @@ def test_bad_parameters_are_refused_naming_what_is_expected(tiny_run, tmp_path):
 
 
 def test_match_grey_moves_both_levels_exactly_and_keeps_labels_meaning():
-    from drgan.dataset.grey_spread import draw, match_grey
+    from drgan.synthetic.grey_spread import draw, match_grey
 
     labels = np.zeros((8, 8), np.int32)
     labels[2:5, 2:5] = 1
@@ -523,7 +523,7 @@ def test_match_grey_moves_both_levels_exactly_and_keeps_labels_meaning():
 
 
 def test_grey_levels_leave_edges_out_on_both_sides():
-    from drgan.dataset.grey_spread import grey_levels, match_grey
+    from drgan.synthetic.grey_spread import grey_levels, match_grey
 
     # A 10 x 10 particle of grey 0.8 with a 2-px bright rim (1.0, SEM edge brightening) and a 2-px halo (0.3) on a
     # 0.1 background: the levels are those of the core and of the far background, whatever the rim and halo.
@@ -565,7 +565,7 @@ def _ramped_discs(background: float, core: float, seed: int) -> tuple[np.ndarray
 
 def test_grey_spread_measures_generated_images_as_it_measured_the_real_ones():
     from drgan.data.classical import particle_foreground
-    from drgan.dataset.grey_spread import GreySpread, grey_levels, match_grey
+    from drgan.synthetic.grey_spread import GreySpread, grey_levels, match_grey
 
     # The classical outline (an Otsu threshold) of a particle with a dim edge lies inside the true one, so the
     # real patches' particle grey is that of the bright part. A generated image of the same particles, moved to
@@ -593,7 +593,7 @@ def test_grey_spread_measures_generated_images_as_it_measured_the_real_ones():
 
 def test_grey_spread_gives_each_image_a_real_patchs_grey_levels(tiny_run, tmp_path):
     from drgan.data.patches import PatchSet
-    from drgan.dataset.grey_spread import GreySpread, grey_levels
+    from drgan.synthetic.grey_spread import GreySpread, grey_levels
 
     patches = PatchSet.load(tiny_run / "patches")
     out = tmp_path / "spread"

@@ -96,7 +96,7 @@ def test_import_writes_a_checkpoint_that_generate_uses(tmp_path):
     """The imported SiO2 HIM run: its checkpoint loads as drgan.generate loads it, gives the official values, and
     renders (tiny) images with labels."""
     from drgan import import_official as imp
-    from drgan.dataset.source import checkpoint_config, load_module
+    from drgan.synthetic.source import checkpoint_config, load_module
 
     ckpt = imp.import_experiment(experiment("Mill2021SiO2_paper"), tmp_path / "run")
     assert ckpt == tmp_path / "run" / "checkpoints" / "best.ckpt"

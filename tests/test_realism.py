@@ -214,9 +214,9 @@ def test_cli_real_vs_real_halves_by_image_and_never_reads_test_ids(images, tmp_p
 
 
 def write_dataset(folder: Path, images: np.ndarray, n_background: int = 2) -> Path:
-    """A generated-dataset folder as drgan.dataset reads it: manifest.json listing synthetic and background items."""
-    from drgan.dataset import BACKGROUND, SYNTHETIC, bg_id, item_files, syn_id
+    """A generated-dataset folder as drgan.synthetic reads it: manifest.json listing synthetic and background items."""
     from drgan.io import write_json, write_png
+    from drgan.synthetic import BACKGROUND, SYNTHETIC, bg_id, item_files, syn_id
 
     entries = []
     for i in range(len(images)):

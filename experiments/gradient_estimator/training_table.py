@@ -17,8 +17,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from drgan.dataset.source import checkpoint_config, load_module
 from drgan.models import build
+from drgan.synthetic.source import checkpoint_config, load_module
 
 
 def main():

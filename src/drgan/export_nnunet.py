@@ -1,7 +1,7 @@
 """`python -m drgan.export_nnunet data=DIR out=NNUNET_RAW dataset_id=501 name=TiO2SEM`: nnU-Net v2 raw layout.
 
 Reads the dataset that drgan.generate lists in DIR/manifest.json (synthetic pairs, backgrounds and partial
-backgrounds; read and checked by drgan.dataset.manifest) and writes
+backgrounds; read and checked by drgan.synthetic.manifest) and writes
 
     NNUNET_RAW/Dataset501_TiO2SEM/imagesTr/{case}_0000.png   the grey image (one channel, "SEM")
     NNUNET_RAW/Dataset501_TiO2SEM/labelsTr/{case}.png        the mask: 0 background, 1 particle, 2 contour (3 ignore)
@@ -29,10 +29,10 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from drgan import io
-from drgan.dataset.folder import IGNORE
-from drgan.dataset.manifest import check_files, manifest_entries, read_manifest
 from drgan.errors import ConfigError, DataError
 from drgan.runtime import stage_main, start
+from drgan.synthetic.folder import IGNORE
+from drgan.synthetic.manifest import check_files, manifest_entries, read_manifest
 
 log = logging.getLogger(__name__)
 

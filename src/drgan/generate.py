@@ -7,10 +7,10 @@ particles are not clearly distinguishable are dropped (``contrast_check``); indi
 Then ``n_background`` real background patches are added with all-zero masks. When the PatchSet holds fewer
 windows free of particles (dense images), ``partial_background`` (default true) fills up with real windows that
 hold particles: their masks are 0 on the background and IGNORE (255) on the particles found by the classical
-segmentation, grown by a margin, which a segmenter's loss leaves out (drgan.dataset.backgrounds: the margin, and
+segmentation, grown by a margin, which a segmenter's loss leaves out (drgan.synthetic.backgrounds: the margin, and
 the windows skipped because they ignore more than ``partial_max_ignored`` of their pixels).
 
-The folder DIR, its items and manifest.json are drgan.dataset's (folder, manifest, shards); this module is the
+The folder DIR, its items and manifest.json are drgan.synthetic's (folder, manifest, shards); this module is the
 render loop and its command line. IDs: ``syn_000123`` (123 = the index; dropped indices leave gaps), ``bg_0000``,
 ``pbg_0000`` (partial backgrounds).
 
@@ -46,16 +46,16 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from drgan.data.polarity import check_polarity
-from drgan.dataset.backgrounds import PartialSettings, write_backgrounds
-from drgan.dataset.folder import DatasetFolder, syn_id
-from drgan.dataset.generation_settings import fixed_settings, settings_from
-from drgan.dataset.grey_spread import GreySpread
-from drgan.dataset.manifest import write_manifest, write_shard_manifest
-from drgan.dataset.shards import Shard, kept_below, owned_by
-from drgan.dataset.source import checkpoint_config, load_module, use_parameters  # noqa: F401  (checkpoint_config: imported from here)
 from drgan.errors import DataError
 from drgan.runtime import stage_main, start
 from drgan.scene.labels import class_mask
+from drgan.synthetic.backgrounds import PartialSettings, write_backgrounds
+from drgan.synthetic.folder import DatasetFolder, syn_id
+from drgan.synthetic.generation_settings import fixed_settings, settings_from
+from drgan.synthetic.grey_spread import GreySpread
+from drgan.synthetic.manifest import write_manifest, write_shard_manifest
+from drgan.synthetic.shards import Shard, kept_below, owned_by
+from drgan.synthetic.source import checkpoint_config, load_module, use_parameters  # noqa: F401  (checkpoint_config: imported from here)
 
 log = logging.getLogger(__name__)
 

@@ -87,7 +87,7 @@ def real_patches(cfg: DictConfig):
 
 def source_kind(source) -> str:
     """What ``synthetic=`` names: real, dataset, checkpoint or images (a ConfigError for anything else)."""
-    from drgan.dataset import is_generated
+    from drgan.synthetic import is_generated
 
     if source is None or str(source) in ("", "???", "None", "null"):
         raise ConfigError(
@@ -118,7 +118,7 @@ def source_kind(source) -> str:
 
 def dataset_images(folder: Path, n: int, seed: int) -> tuple[np.ndarray, list[str]]:
     """n synthetic images of a drgan.generate dataset, a seeded random choice (all of them when it has fewer)."""
-    from drgan.dataset import SYNTHETIC, check_files, manifest_entries, read_manifest
+    from drgan.synthetic import SYNTHETIC, check_files, manifest_entries, read_manifest
 
     entries = [e for e in manifest_entries(read_manifest(folder, "synthetic")) if e.kind == SYNTHETIC]
     if not entries:
@@ -157,13 +157,13 @@ def checkpoint_renders(
 ) -> tuple[np.ndarray, dict]:
     """n renders of a generator checkpoint with the FID callback's render_samples; (images, what rendered them).
     size: the real patches' size, which the checkpoint's resolution must equal (checked before rendering);
-    parameters: the scene values (`drgan.dataset.generation_settings.parameter_source`: trained, initial, middle,
+    parameters: the scene values (`drgan.synthetic.generation_settings.parameter_source`: trained, initial, middle,
     a mapping)."""
     import torch
 
     from drgan.callbacks.fid import render_samples
-    from drgan.dataset.generation_settings import parameter_source
-    from drgan.dataset.source import checkpoint_config, generator_checkpoint, load_module, use_parameters
+    from drgan.synthetic.generation_settings import parameter_source
+    from drgan.synthetic.source import checkpoint_config, generator_checkpoint, load_module, use_parameters
 
     parameters = parameter_source(parameters)
     ckpt_file, _ = generator_checkpoint(source)

@@ -154,7 +154,7 @@ class Generator(nn.Module):
         self.register_buffer("render_count", torch.zeros((), dtype=torch.int64))
         self.base_seed = int(seed)
         self.background: BackgroundTexture | None = None  # data, not weights: never in a checkpoint
-        # (k,) values used instead of the network's for every image (ablations: drgan.dataset.source.use_parameters)
+        # (k,) values used instead of the network's for every image (ablations: drgan.synthetic.source.use_parameters)
         self.fixed_values: torch.Tensor | None = None
 
     def set_background(self, texture: BackgroundTexture | None) -> None:

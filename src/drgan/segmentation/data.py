@@ -4,7 +4,7 @@ Two sources, both giving float32 grey images in [0, 1] and uint8 class masks {0 
 2 contour}, and in generated masks also ``IGNORE`` = 255 (no class: the loss and val/dsc leave those pixels out,
 drgan.segmentation.module):
 - generated data (`python -m drgan.generate`): the items DIR/manifest.json lists, images/ID.png + masks/ID.png
-  (classes; 255 on the particles of partial backgrounds), read through drgan.dataset; a folder of such pairs
+  (classes; 255 on the particles of partial backgrounds), read through drgan.synthetic; a folder of such pairs
   without a manifest (made by hand) is paired by file name, and a folder that is neither is refused, naming it;
 - real annotated data: DATASET/images/ID.<ext> and binary masks (0/255, or 0/1) or instance maps (0 background,
   one id per particle, e.g. 16-bit) DATASET/masks/ID<suffix>.<ext> (suffix "_m" as in the TiO2 SEM set, or none as
@@ -25,9 +25,9 @@ from scipy import ndimage
 from torch.utils.data import Dataset
 
 from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split, resolve_crop_rows
-from drgan.dataset.manifest import image_mask_pairs
 from drgan.errors import ConfigError, DataError
 from drgan.scene.labels import BACKGROUND, CONTOUR, IGNORE, PARTICLE, centre_distance, class_mask
+from drgan.synthetic.manifest import image_mask_pairs
 
 _FOUR_CONNECTED = ndimage.generate_binary_structure(2, 1)
 
@@ -274,7 +274,7 @@ GENERATED_MASK_VALUES = (BACKGROUND, PARTICLE, CONTOUR, IGNORE)  # what a genera
 
 
 def load_generated_pairs(data_dir, setting: str = "data") -> list[Pair]:
-    """The items of a generated dataset (drgan.dataset: those its manifest.json lists; a folder of hand-made
+    """The items of a generated dataset (drgan.synthetic: those its manifest.json lists; a folder of hand-made
     images/ID.png + masks/ID.png pairs without manifest: paired by file name), sorted by id; masks are uint8
     classes 0/1/2 and IGNORE (255). Every pair is read and checked before returning."""
     pairs = []

@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from drgan import io
-from drgan.dataset.folder import BACKGROUND, IGNORE, PARTIAL_BACKGROUND, PARTIAL_RECORD, DatasetFolder, bg_id, pbg_id
 from drgan.errors import ConfigError, DataError
+from drgan.synthetic.folder import BACKGROUND, IGNORE, PARTIAL_BACKGROUND, PARTIAL_RECORD, DatasetFolder, bg_id, pbg_id
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +120,7 @@ class PartialSettings:
 
     @classmethod
     def from_settings(cls, settings: dict) -> PartialSettings:
-        """From a generation run's settings (drgan.dataset.generation_settings; keys absent: the defaults)."""
+        """From a generation run's settings (drgan.synthetic.generation_settings; keys absent: the defaults)."""
         return cls(
             bool(settings.get("partial_background", True)),
             float(settings.get("partial_max_ignored", PARTIAL_MAX_IGNORED)),

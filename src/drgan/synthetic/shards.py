@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drgan.dataset.folder import BG, PARTIAL_RECORD, PBG, syn_index
 from drgan.errors import ConfigError
+from drgan.synthetic.folder import BG, PARTIAL_RECORD, PBG, syn_index
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@
                  {"id": "pbg_0000", "kind": "partial_background", "files": {...}}]}
 
 Synthetic entries come first, by index, then the backgrounds, then the partial backgrounds (real windows with
-particles whose masks ignore them: drgan.dataset.backgrounds); counts has each number, and "partial_backgrounds"
+particles whose masks ignore them: drgan.synthetic.backgrounds); counts has each number, and "partial_backgrounds"
 how they were chosen (their mean ignored fraction, windows skipped). A shard writes its own part to
 manifest_shard_I.json; whichever process finds the dataset complete writes manifest.json (atomically).
 ``read_manifest`` checks a folder before anything is done with it and names the folder when it is not a
@@ -21,8 +21,9 @@ from collections import Counter
 from pathlib import Path
 
 from drgan import io
-from drgan.dataset.backgrounds import PartialSettings, backgrounds_exhausted, partial_exhausted
-from drgan.dataset.folder import (
+from drgan.errors import ConfigError, DataError
+from drgan.synthetic.backgrounds import PartialSettings, backgrounds_exhausted, partial_exhausted
+from drgan.synthetic.folder import (
     CONFIG,
     FILE_KINDS,
     KINDS,
@@ -34,8 +35,7 @@ from drgan.dataset.folder import (
     pbg_id,
     syn_id,
 )
-from drgan.dataset.shards import Shard, dataset_cutoff, kept_below, shard_manifest_name
-from drgan.errors import ConfigError, DataError
+from drgan.synthetic.shards import Shard, dataset_cutoff, kept_below, shard_manifest_name
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ drgan.segment. The one place that knows the folder layout.
   windows with particles, masked ``IGNORE`` = 255) that fill up when there are too few.
 """
 
-from drgan.dataset.folder import (
+from drgan.synthetic.folder import (
     BACKGROUND,
     IGNORE,
     PARTIAL_BACKGROUND,
@@ -23,7 +23,7 @@ from drgan.dataset.folder import (
     pbg_id,
     syn_id,
 )
-from drgan.dataset.manifest import (
+from drgan.synthetic.manifest import (
     GENERATED_DATASET,
     check_files,
     is_generated,
@@ -33,7 +33,7 @@ from drgan.dataset.manifest import (
     write_manifest,
     write_shard_manifest,
 )
-from drgan.dataset.shards import Shard, dataset_cutoff, kept_below, owned_by
+from drgan.synthetic.shards import Shard, dataset_cutoff, kept_below, owned_by
 
 __all__ = [
     "BACKGROUND", "GENERATED_DATASET", "IGNORE", "PARTIAL_BACKGROUND", "SYNTHETIC", "DatasetFolder", "Entry", "Shard",

@@ -15,11 +15,11 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from drgan.data.polarity import check_polarity
-from drgan.dataset.backgrounds import PARTIAL_MAX_IGNORED
-from drgan.dataset.shards import Shard
-from drgan.dataset.source import checkpoint_config, effective_renderer, generator_checkpoint
 from drgan.errors import ConfigError
 from drgan.scene.config import typed_material
+from drgan.synthetic.backgrounds import PARTIAL_MAX_IGNORED
+from drgan.synthetic.shards import Shard
+from drgan.synthetic.source import checkpoint_config, effective_renderer, generator_checkpoint
 
 log = logging.getLogger(__name__)
 

@@ -3,8 +3,8 @@
     images/ID.png   8-bit grey           masks/ID.png   uint8 {0 background, 1 particle, 2 contour, 255 ignore}
     labels/ID.png   instance ids (16-bit when > 255)    meta/ID.json   what made the item (written last)
     dropped/ID.json why a synthetic index was dropped    config.json    the settings that fix every index
-    manifest.json   the dataset (drgan.dataset.manifest)    manifest_shard_I.json   one shard's part
-    partial_backgrounds.json   how the partial backgrounds were chosen (drgan.dataset.backgrounds)
+    manifest.json   the dataset (drgan.synthetic.manifest)    manifest_shard_I.json   one shard's part
+    partial_backgrounds.json   how the partial backgrounds were chosen (drgan.synthetic.backgrounds)
 
 Items: ``syn_000123`` synthetic (a render; masks 0/1/2), ``bg_0004`` background (a real window free of particles;
 mask all 0), ``pbg_0002`` partial background (a real window with particles: mask 0 on its background and

@@ -64,7 +64,7 @@ def load_module(ckpt_file: Path, model_cfg: dict):
 
 def use_parameters(module, source, model_cfg: dict, base_dir=None) -> None:
     """Make ``module`` render with the scene values of ``source``
-    (`drgan.dataset.generation_settings.parameter_source`): "trained" leaves it as loaded; "initial" gives its network
+    (`drgan.synthetic.generation_settings.parameter_source`): "trained" leaves it as loaded; "initial" gives its network
     the initial weights (the same seed and config as at the start of training); "middle" or a mapping fixes every
     learned parameter for every image."""
     import torch
