@@ -7,7 +7,9 @@ import math
 import subprocess
 import sys
 import textwrap
+from collections import Counter
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -197,6 +199,20 @@ def test_no_two_modules_import_each_other():
             if imported != module and graph.chain_exists(importer=imported, imported=module):
                 cycles.append((module, imported))
     assert not cycles, cycles
+
+
+def test_every_module_has_a_name_of_its_own_and_none_is_over_600_lines():
+    """A module's file name says which one it is (no scene/layout.py beside a dataset/layout.py, no data/profile.py
+    beside the profile stage): no two modules under src/drgan share a stem (``__init__``/``__main__`` aside); and no
+    file grows past 600 lines (split it by responsibility instead)."""
+    package = Path(__file__).resolve().parents[1] / "src" / "drgan"
+    files = sorted(p for p in package.rglob("*.py") if "__pycache__" not in p.parts)
+    stems = Counter(p.stem for p in files if p.stem not in ("__init__", "__main__"))
+    shared = {s: [p.relative_to(package).as_posix() for p in files if p.stem == s] for s, n in stems.items() if n > 1}
+    assert not shared, shared
+    lines = {p.relative_to(package).as_posix(): len(p.read_text().splitlines()) for p in files}
+    long = {name: n for name, n in lines.items() if n > 600}
+    assert len(lines) > 80 and not long, long
 
 
 def test_the_scene_protocol_is_what_both_scenes_implement(tiny_scene):
