@@ -2,7 +2,7 @@
 # The classifier two-sample test (with FID beside it), train ids only, for each data source of an ablation table
 # (experiments/tio2_sem/ABLATION.md, experiments/tio2_tsem/ABLATION.md): real vs real; renders of the chosen epoch of
 # GAN_RUN (a), of the same scene at the network's initial weights (b), at the middle of every limit (c), at the
-# probes' best fixed values (d); and the generated dataset of row a when experiments/ablation.sh has made it.
+# probes' best fixed values (d); and the generated dataset of row a when experiments/tio2_sem/ablation.sh has made it.
 # Run from the repository root:
 #
 #   bash experiments/realism/run_ablation.sh DATASET GAN_RUN [SEEDS]

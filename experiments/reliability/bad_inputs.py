@@ -8,7 +8,7 @@ TiO2 SEM images ($DRGAN_DATA, default ../shared/datasets) where they are not: th
 mine patches from 32 images (20-70 s), which the seconds column would show. For each it prints the last
 error line, the work done before the error (read from the files the command left: patches mined, checkpoints,
 rendered images, results), and the seconds from start to exit (Python and the imports alone take the first
-row's seconds). Prints a Markdown table (experiments/reliability.md holds the output).
+row's seconds). Prints a Markdown table (experiments/reliability/README.md holds the output).
 """
 
 from __future__ import annotations

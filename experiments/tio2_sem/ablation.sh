@@ -3,7 +3,7 @@
 # from one source, three segmenters trained on it (seeds 0-2, the same settings for every row of a data set), scored
 # on the 8 test ids of the data set's split.json.
 #
-#   bash experiments/ablation.sh DATASET ROW GAN_RUN_FOLDER
+#   bash experiments/tio2_sem/ablation.sh DATASET ROW GAN_RUN_FOLDER
 #
 # DATASET: tio2_sem or tio2_tsem (a folder of ../shared/datasets, or of $DRGAN_DATA).
 # ROW: a (the trained generator's chosen epoch), b (the same scene and network at its initial weights),

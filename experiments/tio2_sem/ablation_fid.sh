@@ -3,9 +3,9 @@
 # at the datasets' spp 16, over three draws (the phi bank, then two new banks with their own render seeds), against
 # the real train patches of GAN_RUN (134 for tio2_sem, 126 for tio2_tsem):
 #
-#   bash experiments/ablation_fid.sh DATASET GAN_RUN > runs/ablation/fid.md     # DATASET: tio2_sem or tio2_tsem
+#   bash experiments/tio2_sem/ablation_fid.sh DATASET GAN_RUN > runs/ablation/fid.md     # DATASET: tio2_sem or tio2_tsem
 #
-# Rows a-d as experiments/ablation.sh (a trained, b initial weights, c middle of the limits, d the probes' values).
+# Rows a-d as experiments/tio2_sem/ablation.sh (a trained, b initial weights, c middle of the limits, d the probes' values).
 set -euo pipefail
 DATASET=${1:?usage: ablation_fid.sh DATASET GAN_RUN}
 GAN=${2:?usage: ablation_fid.sh DATASET GAN_RUN}

@@ -1,10 +1,10 @@
 """FID of a scene at fixed (not learned) values: which scene change helps, before any training (issues 15, 17).
 
-    python experiments/probe_scene.py NAME [HYDRA_OVERRIDE ...] [--experiment tio2_tsem] [--reference RUN]
-                                      [--values ckpt|middle] [--ckpt CKPT] [--set KEY=VALUE ...] [--n N]
-    python experiments/probe_scene.py cube material.meshes.kind=cube                  # TSEM, v3's values
-    python experiments/probe_scene.py cube_s1 material.meshes.kind=cube seed=1        # another phi bank + seeds
-    python experiments/probe_scene.py counts_8_32 --experiment tio2_sem --reference runs/tio2_sem/RUN \
+    python experiments/tio2_tsem/probe_scene.py NAME [HYDRA_OVERRIDE ...] [--experiment tio2_tsem] [--reference RUN]
+                                               [--values ckpt|middle] [--ckpt CKPT] [--set KEY=VALUE ...] [--n N]
+    python experiments/tio2_tsem/probe_scene.py cube material.meshes.kind=cube              # TSEM, v3's values
+    python experiments/tio2_tsem/probe_scene.py cube_s1 material.meshes.kind=cube seed=1    # another phi bank + seeds
+    python experiments/tio2_tsem/probe_scene.py counts_8_32 --experiment tio2_sem --reference runs/tio2_sem/RUN \
         --values ckpt --ckpt runs/tio2_sem/RUN/checkpoints/best.ckpt material.n_particles_min=8 renderer.spp=121
 
 The one harness for the scene probes (it replaces the SEM scripts probe_appearance.py and probe_counts.py, which
@@ -41,7 +41,7 @@ from drgan.metrics.inception import InceptionFeatures
 from drgan.models.gan_module import GANModule
 from drgan.synthetic.source import checkpoint_config, load_module, use_parameters
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TSEM_REFERENCE = ROOT / "runs/tio2_tsem/tsem_transmission_v3"
 DARK = 0.4  # grey below which a pixel counts as dark (TSEM: film ~0.82, particles < 0.22)
 
