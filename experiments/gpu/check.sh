@@ -3,7 +3,7 @@
 # time limit of its own so that one hang cannot eat the session's device time, every log under $OUT.
 #   carry: .gpu_site.tar.xz (bash ../shared/gpu/build_site.sh), .gpu_wheels (pytest's wheels: the GPU machine has
 #          no pytest), .gpu_data/tio2_sem/images (a few *train* images of tio2_sem; never a test id)
-#   command: bash experiments/gpu/check.sh [STEPS]     STEPS: any of "variant tests bench train generate probe genbench ddp"
+#   command: bash experiments/gpu/check.sh [STEPS]     STEPS: any of "variant tests bench train generate genbench ddp"
 # Results and what they mean: experiments/gpu/README.md.
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_out}
@@ -57,8 +57,6 @@ from drgan import backend; print('drgan auto ->', backend.resolve_variant('auto'
     log "generated $(ls /tmp/gen/images 2>/dev/null | wc -l) images"
     mkdir -p "$OUT/gen" && for f in $(ls /tmp/gen/images 2>/dev/null | sort | head -8); do cp "/tmp/gen/images/$f" "$OUT/gen/"; done
     cp /tmp/gen/manifest.json "$OUT/gen/" 2>/dev/null ;;
-  probe)  # where cuda and llvm disagree in test_scene's rectangle test (experiments/gpu/probe_rectangle.py)
-    DRGAN_VARIANT=cuda_ad_rgb run probe 60 python3 experiments/gpu/probe_rectangle.py ;;
   genbench)  # benchmarks/generate.py: pairs per minute by spp and resolution, render and labels apart
     run genbench ${GENBENCH_LIMIT:-120} python3 benchmarks/generate.py --spp 16 121 --resolution 256 512 --images 20 ;;
   ddp)
