@@ -3,7 +3,7 @@
     python -m drgan.train -m experiment=tio2_sem run_name=spp_sweep 'logger.mlflow.run_name=spp_sweep_spp${renderer.spp}' \\
         renderer.spp=4,16,64,121 callbacks.fid.spp=16 callbacks.fid.cache_dir=runs/tio2_sem/fid_cache \\
         +trainer.max_time=00:00:08:00 trainer.limit_train_batches=40 'tags=[spp_sweep]'
-    python experiments/benchmarks/spp_sweep.py [--tag spp_sweep] [--out experiments/benchmarks]
+    python benchmarks/spp_sweep.py [--tag spp_sweep] [--out experiments/benchmarks]
 
 Every run renders its FID images at the same spp (callbacks.fid.spp), so the FID compares what training
 at each spp has learned, not the Monte Carlo noise of its renders. Prints a markdown table and writes
