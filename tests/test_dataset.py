@@ -6,6 +6,7 @@ The render loop that fills it (drgan.generate) is tested in tests/test_generate.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,20 +17,20 @@ from drgan import io
 from drgan.errors import ConfigError, DataError
 from drgan.synthetic import manifest as mf
 from drgan.synthetic.folder import DatasetFolder, bg_id, syn_id, syn_index
-from drgan.synthetic.generation_settings import FIXED_SETTINGS, fixed_settings
+from drgan.synthetic.generation_settings import FIXED_SETTINGS, GenerateSettings
 from drgan.synthetic.shards import Shard, owned_by
 
 SIZE = 12
 
 
-def settings(n: int, n_background: int = 1) -> dict:
-    """What drgan.synthetic.generation_settings.settings_from returns, in its key order (no checkpoint needed here)."""
-    return {
-        "ckpt": "/runs/x/checkpoints/best.ckpt", "material": "tio2_sem", "n": n, "n_background": n_background,
-        "seed": 0, "contour_px": 1, "min_contrast": 0.0, "min_background": 0.05, "polarity": "bright",
-        "max_attempts": 10 * n + 100, "renderer": {"spp": 1, "resolution": SIZE}, "backgrounds": None,
-        "shard": "0/1", "model_cfg": {"material": {"name": "tio2_sem"}},
+def settings(n: int, n_background: int = 1, **more) -> GenerateSettings:
+    """Settings as GenerateSettings.resolve gives them (no checkpoint needed here)."""
+    given = {
+        "ckpt": "/runs/x/checkpoints/best.ckpt", "grey_spread": False, "material": "tio2_sem", "n": n,
+        "n_background": n_background, "seed": 0, "contour_px": 1, "min_contrast": 0.0, "min_background": 0.05,
+        "polarity": "bright", "renderer": {"spp": 1, "resolution": SIZE}, "backgrounds": None, "out": "unused",
     }  # fmt: skip
+    return GenerateSettings(**{**given, **more})
 
 
 def item_arrays(index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -77,7 +78,7 @@ def test_write_read_roundtrip(tmp_path):
     from drgan.segmentation.data import load_generated_pairs
 
     folder = DatasetFolder(tmp_path / "data")
-    folder.check_settings(fixed_settings(settings(3)))
+    folder.check_settings(settings(3).fixed())
     for index, kept in ((0, True), (1, False), (2, True), (3, True)):
         write_synthetic(folder, index, kept)
     write_background(folder, 0)
@@ -118,11 +119,11 @@ def test_write_read_roundtrip(tmp_path):
 
 def test_other_settings_are_refused_and_n_may_grow(tmp_path):
     folder = DatasetFolder(tmp_path / "data")
-    folder.check_settings(fixed_settings(settings(3)))
+    folder.check_settings(settings(3).fixed())
     assert list(json.loads((folder.root / "config.json").read_text())["fixed"]) == list(FIXED_SETTINGS)
-    folder.check_settings(fixed_settings(settings(30, n_background=5)))  # n, n_background: not fixed
+    folder.check_settings(settings(30, n_background=5).fixed())  # n, n_background: not fixed
     with pytest.raises(ConfigError, match=r"generated with other settings \(seed: 0 there, 7 now\)"):
-        folder.check_settings(fixed_settings({**settings(3), "seed": 7}))
+        folder.check_settings(replace(settings(3), seed=7).fixed())
 
 
 def test_resume_of_a_half_written_shard(tmp_path):
@@ -182,7 +183,7 @@ def test_foreign_and_unfinished_folders_are_named(tmp_path):
         load_generated_pairs(tmp_path / "nowhere")
 
     unfinished = DatasetFolder(tmp_path / "unfinished")  # generate started there, no manifest yet
-    unfinished.check_settings(fixed_settings(settings(2)))
+    unfinished.check_settings(settings(2).fixed())
     write_synthetic(unfinished, 0)
     with pytest.raises(DataError, match=r"without manifest.json, so the dataset is not complete.*merge=true"):
         load_generated_pairs(unfinished.root)
@@ -282,7 +283,7 @@ def test_partial_backgrounds_fill_up_n_background_with_their_particles_ignored(t
     from drgan.synthetic.folder import IGNORE, pbg_id
 
     path, discs = partial_patchset(tmp_path / "patches")
-    s = {**settings(1, n_background=5), "backgrounds": str(path)}
+    s = settings(1, n_background=5, backgrounds=str(path))
     folder = DatasetFolder(tmp_path / "data")
     write_synthetic(folder, 0)
     with caplog.at_level("INFO", logger="drgan.synthetic.backgrounds"):
@@ -344,7 +345,7 @@ def test_partial_backgrounds_at_a_lower_resolution_and_without_them(tmp_path):
     assert (mask[covered] == IGNORE).all()
 
     # partial_background=false: fewer background items, as before partial backgrounds existed.
-    s = {**settings(1, n_background=3), "backgrounds": str(path), "partial_background": False}
+    s = settings(1, n_background=3, backgrounds=str(path), partial_background=False)
     folder = DatasetFolder(tmp_path / "without")
     write_synthetic(folder, 0)
     assert write_backgrounds(folder, str(path), 3, PATCH, PartialSettings(enabled=False)) == {"background": 1}
@@ -358,13 +359,13 @@ def test_partial_settings_are_fixed_only_when_not_the_defaults_and_shard_0_write
     from drgan.synthetic.folder import pbg_id
 
     folder = DatasetFolder(tmp_path / "data")
-    folder.check_settings(fixed_settings(settings(3)))  # a folder made before partial backgrounds existed ...
+    folder.check_settings(settings(3).fixed())  # a folder made before partial backgrounds existed ...
     defaults = {"partial_background": True, "partial_max_ignored": 0.6, "partial_margin_px": None}
-    folder.check_settings(fixed_settings({**settings(3), **defaults}))  # ... resumes with the defaults
+    folder.check_settings(settings(3, **defaults).fixed())  # ... resumes with the defaults
     with pytest.raises(ConfigError, match=r"partial_background: None there, False now"):
-        folder.check_settings(fixed_settings({**settings(3), **defaults, "partial_background": False}))
+        folder.check_settings(settings(3, **{**defaults, "partial_background": False}).fixed())
     with pytest.raises(ConfigError, match=r"partial_max_ignored: None there, 0.3 now"):
-        folder.check_settings(fixed_settings({**settings(3), **defaults, "partial_max_ignored": 0.3}))
+        folder.check_settings(settings(3, **{**defaults, "partial_max_ignored": 0.3}).fixed())
     assert pbg_id(2) == "pbg_0002" and syn_index("pbg_0002") is None
     assert owned_by("pbg_0002", Shard(0, 2)) and not owned_by("pbg_0002", Shard(1, 2))
     assert owned_by("partial_backgrounds", Shard(0, 2)) and not owned_by("partial_backgrounds", Shard(1, 2))

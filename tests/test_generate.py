@@ -59,9 +59,9 @@ def count_renders(monkeypatch):
     calls = []
     render = gen.render_index
 
-    def counting(module, sample_phi, settings, index):
+    def counting(module, sample_phi, settings, index, *rest):
         calls.append(index)
-        return render(module, sample_phi, settings, index)
+        return render(module, sample_phi, settings, index, *rest)
 
     monkeypatch.setattr(gen, "render_index", counting)
     return calls

@@ -41,6 +41,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -49,9 +50,9 @@ from drgan.data.polarity import check_polarity
 from drgan.errors import DataError
 from drgan.runtime import stage_main, start
 from drgan.scene.labels import class_mask
-from drgan.synthetic.backgrounds import PartialSettings, write_backgrounds
+from drgan.synthetic.backgrounds import write_backgrounds
 from drgan.synthetic.folder import DatasetFolder, syn_id
-from drgan.synthetic.generation_settings import fixed_settings, settings_from
+from drgan.synthetic.generation_settings import GenerateSettings
 from drgan.synthetic.grey_spread import GreySpread
 from drgan.synthetic.manifest import write_manifest, write_shard_manifest
 from drgan.synthetic.shards import Shard, kept_below, owned_by
@@ -141,21 +142,36 @@ class Stats:
         }
 
 
-def render_index(module, sample_phi, settings: dict, index: int):
-    """(image, labels, mask, check, meta, render_s, label_s) of index ``index``: reproducible from (seed, index)."""
-    seeds = index_seeds(settings["seed"], index)
+class Rendered(NamedTuple):
+    """One synthetic index, rendered, annotated and judged (`render_index`)."""
+
+    image: np.ndarray  # (H, W) in [0, 1], after grey_spread
+    labels: np.ndarray  # instance ids, 0 background
+    mask: np.ndarray  # 0 background, 1 particle, 2 contour
+    check: Check  # the filter's verdict
+    meta: dict  # meta/ID.json (or dropped/ID.json with the reason) without its id and files
+    render_s: float  # seconds in the renderer
+    label_s: float  # seconds making the mask
+
+
+def render_index(
+    module, sample_phi, settings: GenerateSettings, index: int, spread: GreySpread | None = None
+) -> Rendered:
+    """Index ``index`` rendered, annotated and judged, reproducible from (seed, index); with ``spread``
+    (grey_spread) the image takes one real patch's grey levels."""
+    seeds = index_seeds(settings.seed, index)
     phi = sample_phi(seeds["phi"])
     start = time.perf_counter()
     sample = module.generator.sample(phi, seed=seeds["render"])
     render_s = time.perf_counter() - start
     start = time.perf_counter()
     labels = np.asarray(sample.labels)
-    mask = class_mask(labels, settings["contour_px"])
+    mask = class_mask(labels, settings.contour_px)
     label_s = time.perf_counter() - start
-    image, spread = sample.image, None
-    if settings.get("spread") is not None:  # grey_spread: this image's grey levels from a real patch
-        image, spread = settings["spread"].apply(image, labels, seeds["render"])
-    check = contrast_check(image, labels, settings["min_contrast"], settings["min_background"], settings["polarity"])
+    image, grey = sample.image, None
+    if spread is not None:  # grey_spread: this image's grey levels from a real patch
+        image, grey = spread.apply(image, labels, seeds["render"])
+    check = contrast_check(image, labels, settings.min_contrast, settings.min_background, settings.polarity)
     sigma_key = module.generator.material.noise_sigma.key
     meta = {
         "kind": "synthetic",
@@ -169,42 +185,47 @@ def render_index(module, sample_phi, settings: dict, index: int):
         "background_fraction": check.background_fraction,
         "particles_visible": check.particles_visible,
     }
-    if spread is not None:
-        meta["grey_spread"] = spread
-    return image, labels, mask, check, meta, render_s, label_s
+    if grey is not None:
+        meta["grey_spread"] = grey
+    return Rendered(image, labels, mask, check, meta, render_s, label_s)
 
 
 def generate(cfg: DictConfig) -> dict:
     """Render this shard's part of the dataset in ``cfg.out``; return the manifest written (merged or shard)."""
+    return generate_dataset(GenerateSettings.from_config(cfg))
+
+
+def generate_dataset(given: GenerateSettings) -> dict:
+    """Render this shard's part of the dataset in ``given.out`` (settings as given: resolved against the checkpoint
+    here); return the manifest written (merged or shard)."""
     import torch
 
     from drgan.models import build
 
-    settings = settings_from(cfg)
-    out = Path(str(cfg.out)).expanduser().resolve()
+    settings, saved_cfg = given.resolve()
+    out = Path(str(settings.out)).expanduser().resolve()
     folder = DatasetFolder(out)
-    shard = Shard.parse(cfg.get("shard"))
-    folder.check_settings(fixed_settings(settings))
-    if cfg.get("merge"):
+    shard = Shard.parse(settings.shard)
+    folder.check_settings(settings.fixed())
+    if settings.merge:
         return write_manifest(folder, settings, stats=None, required=True)
     folder.remove_partial(lambda item: owned_by(item, shard))
 
-    model_cfg = OmegaConf.create(settings["model_cfg"])
-    module = load_module(Path(settings["ckpt"]), settings["model_cfg"])
-    use_parameters(module, settings["parameters"], settings["model_cfg"])
+    model_cfg = OmegaConf.create(saved_cfg)
+    module = load_module(Path(settings.ckpt), saved_cfg)
+    use_parameters(module, settings.parameters, saved_cfg)
     resolution = int(module.generator.scene.spec.render.resolution)
-    render_settings = settings  # what render_index reads: settings, and with grey_spread the GreySpread ("spread")
-    if module.textured or settings["grey_spread"]:
+    spread = None  # with grey_spread, the real patches' grey levels each image takes one of
+    if module.textured or settings.grey_spread:
         from drgan.data.patches import PatchSet
 
-        patches = PatchSet.load(settings["backgrounds"])
+        patches = PatchSet.load(settings.backgrounds)
         if module.textured:
             module.use_background_texture(patches.background)
-        if settings["grey_spread"]:
+        if settings.grey_spread:
             spread = GreySpread.from_patches(
-                patches.train, patches.params.get("segment") or {}, settings["polarity"], resolution
+                patches.train, patches.params.get("segment") or {}, settings.polarity, resolution
             )
-            render_settings = {**settings, "spread": spread}
             levels = spread.levels
             log.info(
                 "grey_spread: grey levels of %d real train patches: background %.3f-%.3f, particles %.3f-%.3f "
@@ -213,8 +234,8 @@ def generate(cfg: DictConfig) -> dict:
             )  # fmt: skip
     log.info(
         "generating %d images of %s into %s (shard %s, %d x %d px, spp %s, contour %d px)",
-        settings["n"], settings["material"], out, shard, resolution, resolution,
-        module.generator.scene.spec.render.spp, settings["contour_px"],
+        settings.n, settings.material, out, shard, resolution, resolution,
+        module.generator.scene.spec.render.spp, settings.contour_px,
     )  # fmt: skip
 
     layouts = build.layout_sampler(model_cfg)  # built once: typing the material per image costs ~25 ms
@@ -222,18 +243,13 @@ def generate(cfg: DictConfig) -> dict:
     def sample_phi(seed: int) -> np.ndarray:
         return layouts(1, seed=seed)[0]
 
-    n, stats = settings["n"], Stats()
+    n, stats = settings.n, Stats()
     if shard.index == 0:
         write_backgrounds(
-            folder,
-            settings["backgrounds"],
-            settings["n_background"],
-            resolution,
-            PartialSettings.from_settings(settings),
-            settings["polarity"],
+            folder, settings.backgrounds, settings.n_background, resolution, settings.partial, settings.polarity
         )
     outcomes = folder.outcomes()
-    bar = _progress(cfg, total=math.ceil(n / shard.count))
+    bar = _progress(settings.progress, total=math.ceil(n / shard.count))
     index = shard.index
     try:
         with torch.no_grad():
@@ -247,17 +263,17 @@ def generate(cfg: DictConfig) -> dict:
                     median = float(np.nanmedian(contrasts)) if np.isfinite(contrasts).any() else math.nan
                     raise RuntimeError(
                         f"none of the first {stats.rendered} images passed the filter (drop reasons: {dict(stats.reasons)}; "
-                        f"median contrast {median:.3f} against min_contrast={settings['min_contrast']} for "
-                        f"{settings['polarity']} particles, min_background={settings['min_background']}). A contrast "
+                        f"median contrast {median:.3f} against min_contrast={settings.min_contrast} for "
+                        f"{settings.polarity} particles, min_background={settings.min_background}). A contrast "
                         "below 1 means the particles are on the wrong side of the background: check polarity (here "
                         "from the checkpoint's material) and the epoch (best_epoch.json); or lower min_contrast"
                     )
-                if index >= settings["max_attempts"]:
+                if index >= settings.max_attempts:
                     have = kept_below(outcomes, index)
                     raise RuntimeError(
-                        f"only {have} of n={n} images passed the filter in max_attempts={settings['max_attempts']} "
+                        f"only {have} of n={n} images passed the filter in max_attempts={settings.max_attempts} "
                         f"indices (drop reasons this run: {dict(stats.reasons) or 'none'}; min_contrast="
-                        f"{settings['min_contrast']}, min_background={settings['min_background']}): lower min_contrast "
+                        f"{settings.min_contrast}, min_background={settings.min_background}): lower min_contrast "
                         "or min_background, raise max_attempts, or pick a better checkpoint"
                     )
                 item = syn_id(index)
@@ -265,19 +281,18 @@ def generate(cfg: DictConfig) -> dict:
                     stats.skipped += 1
                     index += shard.count
                     continue
-                image, labels, mask, check, meta, render_s, label_s = render_index(
-                    module, sample_phi, render_settings, index
-                )
+                rendered = render_index(module, sample_phi, settings, index, spread)
+                check = rendered.check
                 stats.rendered += 1
                 stats.contrasts.append(check.contrast)
-                stats.render_s += render_s
-                stats.label_s += label_s
+                stats.render_s += rendered.render_s
+                stats.label_s += rendered.label_s
                 if check.kept:
-                    folder.write(item, image, mask, labels, meta)
+                    folder.write(item, rendered.image, rendered.mask, rendered.labels, rendered.meta)
                     stats.kept += 1
                     bar.update(1)
                 else:
-                    folder.write_dropped(item, {"reason": check.reason, **meta})
+                    folder.write_dropped(item, {"reason": check.reason, **rendered.meta})
                     stats.dropped += 1
                     stats.reasons[check.reason] += 1
                 outcomes[index] = check.kept
@@ -296,14 +311,14 @@ def generate(cfg: DictConfig) -> dict:
     if manifest is not None:
         counts = manifest["counts"]
         print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "
-              f"{counts['partial_background']} partial background items (n_background={settings['n_background']})")  # fmt: skip
+              f"{counts['partial_background']} partial background items (n_background={settings.n_background})")  # fmt: skip
     return manifest
 
 
-def _progress(cfg: DictConfig, total: int):
+def _progress(shown: bool, total: int):
     from tqdm import tqdm
 
-    return tqdm(total=total, desc="kept", unit="img", disable=not cfg.get("progress", True), dynamic_ncols=True)
+    return tqdm(total=total, desc="kept", unit="img", disable=not shown, dynamic_ncols=True)
 
 
 @stage_main("conf/gan", "generate")

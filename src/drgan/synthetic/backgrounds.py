@@ -118,15 +118,6 @@ class PartialSettings:
     max_ignored: float = PARTIAL_MAX_IGNORED
     margin_px: int | None = None
 
-    @classmethod
-    def from_settings(cls, settings: dict) -> PartialSettings:
-        """From a generation run's settings (drgan.synthetic.generation_settings; keys absent: the defaults)."""
-        return cls(
-            bool(settings.get("partial_background", True)),
-            float(settings.get("partial_max_ignored", PARTIAL_MAX_IGNORED)),
-            settings.get("partial_margin_px"),
-        )
-
 
 def default_margin(sigma: float | None) -> int:
     """The margin (px) a partial background ignores around each particle: PARTIAL_MARGIN_MIN_PX, or

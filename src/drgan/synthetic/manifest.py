@@ -19,10 +19,11 @@ import json
 import logging
 from collections import Counter
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from drgan import io
 from drgan.errors import ConfigError, DataError
-from drgan.synthetic.backgrounds import PartialSettings, backgrounds_exhausted, partial_exhausted
+from drgan.synthetic.backgrounds import backgrounds_exhausted, partial_exhausted
 from drgan.synthetic.folder import (
     CONFIG,
     FILE_KINDS,
@@ -37,42 +38,42 @@ from drgan.synthetic.folder import (
 )
 from drgan.synthetic.shards import Shard, dataset_cutoff, kept_below, shard_manifest_name
 
+if TYPE_CHECKING:
+    from drgan.synthetic.generation_settings import GenerateSettings
+
 log = logging.getLogger(__name__)
 
 GENERATED_DATASET = "a dataset folder written by drgan.generate (manifest.json, images/, masks/, labels/, meta/)"
 
 
-def public_config(settings: dict) -> dict:
-    """The settings as a manifest records them (without the model config, which the checkpoint holds)."""
-    return {k: v for k, v in settings.items() if k != "model_cfg"}
-
-
 # --- writing ------------------------------------------------------------------------------------------------
 
 
-def write_shard_manifest(folder: DatasetFolder, settings: dict, shard: Shard, stats: dict) -> None:
+def write_shard_manifest(folder: DatasetFolder, settings: GenerateSettings, shard: Shard, stats: dict) -> None:
     """manifest_shard_I.json: the kept indices of one shard found on disk, and its throughput."""
     outcomes = folder.outcomes()
     mine = sorted(i for i, kept in outcomes.items() if kept and shard.owns_index(i))
     io.write_json(folder.root / shard_manifest_name(shard), {
         "shard": str(shard),
-        "config": public_config(settings),
+        "config": settings.record(),
         "entries": [Entry.synthetic(i).to_json() for i in mine],
         "throughput": stats,
     })  # fmt: skip
 
 
-def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, required: bool) -> dict | None:
+def write_manifest(
+    folder: DatasetFolder, settings: GenerateSettings, stats: dict | None, required: bool
+) -> dict | None:
     """manifest.json of the first n kept indices and the backgrounds, when all are done.
 
     Incomplete: a ConfigError naming what is missing when ``required`` (single process, merge=true),
     else None (a shard whose siblings are still running)."""
     outcomes = folder.outcomes()
-    n, n_background = settings["n"], settings["n_background"]
+    n, n_background = settings.n, settings.n_background
     cutoff, missing = dataset_cutoff(outcomes, n)
     backgrounds = [bg_id(k) for k in range(n_background) if folder.done(bg_id(k))]
     # Partial backgrounds fill up what the PatchSet's backgrounds leave of n_background (once those are all done).
-    wanted = n_background - len(backgrounds) if PartialSettings.from_settings(settings).enabled else 0
+    wanted = n_background - len(backgrounds) if settings.partial_background else 0
     partials = [pbg_id(j) for j in range(wanted) if folder.done(pbg_id(j))]
     problem = None
     if cutoff is None:
@@ -80,7 +81,7 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
             f"synthetic index {missing} ({syn_id(missing)}) is not done yet "
             f"({kept_below(outcomes, missing)} of n={n} kept below it)"
         )
-    elif len(backgrounds) < n_background and not backgrounds_exhausted(settings["backgrounds"], len(backgrounds)):
+    elif len(backgrounds) < n_background and not backgrounds_exhausted(settings.backgrounds, len(backgrounds)):
         problem = f"{len(backgrounds)} of n_background={n_background} background patches are done (shard 0 writes them)"
     elif len(partials) < wanted and not partial_exhausted(folder, len(partials)):
         problem = (
@@ -105,11 +106,11 @@ def write_manifest(folder: DatasetFolder, settings: dict, stats: dict | None, re
     shards = []
     for path in sorted(folder.root.glob("manifest_shard_*.json")):
         record = json.loads(path.read_text())
-        if record.get("config", {}).get("ckpt") == settings["ckpt"]:
+        if record.get("config", {}).get("ckpt") == settings.ckpt:
             shards.append({"shard": record.get("shard"), **record.get("throughput", {})})
     surplus = sum(1 for i, k in outcomes.items() if k and i > cutoff)
     manifest = {
-        "config": {**public_config(settings), "shard": None},
+        "config": {**settings.record(), "shard": None},
         "counts": {
             "synthetic": len(kept),
             "background": len(backgrounds),
