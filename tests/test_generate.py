@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from test_train import make_images, run_train, tiny_overrides
 
 from drgan import generate as gen
 from drgan.errors import ConfigError
+from drgan.synthetic.generation_settings import GenerateSettings, defaults
 
 N = 3
 N_BG = 2
@@ -128,6 +130,69 @@ def test_shard_and_seeds():
     assert gen.index_seeds(0, 5) == gen.index_seeds(0, 5) != gen.index_seeds(0, 6) != gen.index_seeds(1, 5)
     assert dataset_cutoff({0: True, 1: False, 2: True, 4: True}, 2) == (2, 3)
     assert dataset_cutoff({0: True, 1: False, 3: True}, 2) == (None, 2)
+
+
+def test_generate_yaml_and_the_settings_dataclass_hold_the_same_defaults():
+    """conf/gan/generate.yaml is the user's reference and GenerateSettings the code's: they cannot drift apart."""
+    from omegaconf import OmegaConf
+
+    cfg = compose([], config_name="generate")
+    given = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+    assert set(given) <= set(defaults()), "a key of generate.yaml that GenerateSettings lacks"
+    assert all(v is None for v in given.pop("renderer").values())  # overrides; null = the checkpoint's
+    assert given == {key: defaults()[key] for key in given}  # every YAML value as the field's default
+    assert defaults()["renderer"] == {} and defaults()["material"] is None  # groups: nothing asked for
+    composed = compose(["ckpt=run", "out=data"], config_name="generate")
+    assert GenerateSettings.from_config(composed) == GenerateSettings(ckpt="run", out="data")
+
+
+def test_a_setting_is_checked_naming_its_key_before_anything_is_read():
+    for override, message in (
+        ("n=0", r"n=0: expected an integer >= 1"),
+        ("min_background=1.0", r"min_background=1.0: expected a fraction below 1"),
+        ("contour_px=1.5", r"contour_px=1.5: expected an integer >= 0"),
+        ("grey_spread=maybe", r"grey_spread='maybe': expected auto, true or false"),
+        ("max_attempts=2", r"max_attempts=2: expected >= n=1000"),
+        ("seed=abc", r"seed='abc': expected an integer"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            GenerateSettings.from_config(compose(["ckpt=/nope", "out=data", override], config_name="generate"))
+    settings = GenerateSettings.from_config(compose(["ckpt=/nope", "out=data", "n=3"], config_name="generate"))
+    assert (settings.max_attempts, settings.shard, settings.min_contrast) == (130, "0/1", 1.15)
+
+
+def test_a_new_setting_is_one_field_and_reaches_the_stage(tiny_run, tmp_path, monkeypatch):
+    """CONTRIBUTING's recipe for a new generate key: a field of GenerateSettings (type, default, check) and, where
+    users should see it, its line in generate.yaml. A subclass stands in for the edited class, ``+toy_gain=`` for
+    the YAML line; without it the field's default applies."""
+
+    @dataclass(frozen=True, kw_only=True)
+    class ToySettings(GenerateSettings):
+        toy_gain: float = 1.0  # a toy key, fixed by config.json when not at its default (CHANGED)
+
+        def __post_init__(self):
+            super().__post_init__()
+            if isinstance(self.toy_gain, bool) or not isinstance(self.toy_gain, (int, float)) or self.toy_gain <= 0:
+                raise ConfigError(f"toy_gain={self.toy_gain!r}: expected a number > 0")
+
+    seen = []
+    render = gen.render_index
+
+    def spy(module, sample_phi, settings, index, *rest):
+        seen.append(settings.toy_gain)
+        return render(module, sample_phi, settings, index, *rest)
+
+    monkeypatch.setattr(gen, "render_index", spy)
+    out = tmp_path / "data"
+    args = [f"ckpt={tiny_run}", f"out={out}", "n=1", "n_background=0", "min_contrast=0", "progress=false"]
+    manifest = gen.generate_dataset(ToySettings.from_config(compose([*args, "+toy_gain=2.5"], "generate")))
+    assert seen and set(seen) == {2.5}
+    assert manifest["config"]["toy_gain"] == 2.5 and list(manifest["config"])[-1] == "toy_gain"
+    assert json.loads((out / "config.json").read_text())["fixed"]["toy_gain"] == 2.5
+    with pytest.raises(ConfigError, match=r"generated with other settings \(toy_gain: 2.5 there, None now\)"):
+        gen.generate_dataset(ToySettings.from_config(compose(args, "generate")))  # the default, 1.0: not recorded
+    with pytest.raises(ConfigError, match=r"toy_gain=-1: expected a number > 0"):
+        ToySettings.from_config(compose([*args, "+toy_gain=-1"], "generate"))
 
 
 # --- generation ---------------------------------------------------------------------------------------------
