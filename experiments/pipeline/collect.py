@@ -80,6 +80,41 @@ def main(folders: list[str]) -> None:
     print("\n| set | profile | train | generate | segment | analyze | evaluate | GAN |")
     print("|---|---|---|---|---|---|---|---|")
     print("\n".join(times))
+    print(grey_table(folders))
+
+
+def _grey(start: dict, key: str) -> str:
+    if not start:
+        return ""
+    return f"{start['first'][key]:.3f} -> {start['last'][key]:.3f} ({start['real'][key]:.3f})"
+
+
+def _ratio(best: dict, key: str) -> str:
+    low, high = (best.get("brightness_range") or {}).get(key, (np.nan, np.nan))
+    return f"{best[key + '_brightness']:.2f} ({low:.2f}-{high:.2f})"
+
+
+def grey_table(folders: list[str]) -> str:
+    """Where the GAN's grey started (the grey start: first render -> after it; real) and where the chosen epoch is."""
+    lines = [
+        "| set | particle grey: first -> start (real) | background grey: first -> start (real) | chosen epoch | "
+        "particle x real (range) | background x real (range) | in range |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name in folders:
+        run = Path(name)
+        best_path = run / "train" / "checkpoints" / "best_epoch.json"
+        start_path = run / "train" / "grey_start.json"
+        if not best_path.is_file():
+            continue
+        best = json.loads(best_path.read_text())
+        start = json.loads(start_path.read_text()) if start_path.is_file() else {}
+        lines.append(
+            f"| {run.name} | {_grey(start, 'particle')} | {_grey(start, 'background')} | {best['epoch']} "
+            f"(FID {best['fid']:.1f}) | {_ratio(best, 'particle')} | {_ratio(best, 'background')} | "
+            f"{'yes' if best.get('brightness_ok') else 'no'} |"
+        )
+    return "\n" + "\n".join(lines)
 
 
 if __name__ == "__main__":
