@@ -323,10 +323,10 @@ def test_the_profile_writes_a_measured_fringe_into_a_transmission_material(tmp_p
     result = profile(
         compose([f"data.dir={folder}", "name=tem_discs", f"out={tmp_path / 'out'}"], config_name="profile")
     )
-    assert result["material"]["parent"] == "tio2_tsem"
-    edge = result["edge"]
+    assert result.material.parent == "tio2_tsem"
+    edge = result.edge
     assert edge["ring"]["kind"] == "opposite" and edge["fringe"]["amplitude"] == pytest.approx(0.2, rel=0.2)
-    written = result["material"]["fringe"]
+    written = result.material.fringe
     assert written["amplitude"]["min"] == 0.0
     assert written["amplitude"]["max"] == pytest.approx(FRINGE_LIMIT_FACTOR * edge["fringe"]["amplitude"], abs=1e-3)
     assert written["width_px"] == pytest.approx(1.5, rel=0.25)

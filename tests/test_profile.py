@@ -139,7 +139,7 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     monkeypatch.chdir(tmp_path)
     overrides = [f"data.dir={folder}", "data.crop_rows=[320,336]", "name=my_discs", f"out={tmp_path / 'out'}"]
     result = profile(compose(overrides, config_name="profile"))
-    assert result["polarity"]["value"] == "bright" and result["data"]["split"] is None
+    assert result.polarity.value == "bright" and result.data.split is None
     figures = ("sizes.png", "scale_search.png", "particles.png", "background_noise.png", "edge_profile.png")
     for name in ("profile.json", "report.md", *figures):
         assert (tmp_path / "out" / name).stat().st_size > 0
@@ -179,6 +179,7 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert 0 <= grown["images"] <= n and "- `data.segment.grow_outlines`: true: " in report
     assert (f"on {grown['images']} of {n} images" if grown["images"] else f"on none of the {n} images") in report
     # A scale chosen below min_separability for its alike segments writes the lowered value, and says why
+    from drgan.data.profile_result import ProfileResult
     from drgan.material_proposal import data_settings
 
     assert not saved["segmentation"]["scale_estimate"]["alike"]
@@ -186,14 +187,14 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     alike = copy.deepcopy(saved)
     alike["segmentation"]["scale_estimate"]["alike"] = True
     alike["segmentation"]["params"]["min_separability"] = 0.58
-    data, notes = data_settings(alike)
+    data, notes = data_settings(ProfileResult.from_dict(alike))
     assert data["segment"]["min_separability"] == 0.58
     assert notes["data.segment.min_separability"].startswith("0.58 (default 0.66): the particles' scale separates")
     # A scale that smooths more than the particles' size asks (a plateau) says so, with the segments' size
     assert not saved["segmentation"]["scale_estimate"]["plateau"]
     plateau = copy.deepcopy(saved)
     plateau["segmentation"]["scale_estimate"]["plateau"] = True
-    note = data_settings(plateau)[1]["data.segment.scale"]
+    note = data_settings(ProfileResult.from_dict(plateau))[1]["data.segment.scale"]
     size = saved["sizes"]["median_diameter_px"]
     assert "no scale agreed with its segments' size" in note and f"one size ({size:.1f} px)" in note
 
@@ -210,24 +211,24 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     # the discs' median diameter given (the search is the bright test's, above): keys given travel, with their values
     overrides += ["data.segment.grow_outlines=false", "data.segment.scale=20"]
     result = profile(compose(overrides, config_name="profile"))  # crop_rows auto: the white bar found and dropped
-    assert result["polarity"]["value"] == "dark" and result["material"]["parent"] == "tio2_tsem"
-    assert result["data"]["crop_rows"] == "auto" and abs(result["sizes"]["median_diameter_px"] / 20 - 1) < 0.1
+    assert result.polarity.value == "dark" and result.material.parent == "tio2_tsem"
+    assert result.data.crop_rows == "auto" and abs(result.sizes.median_diameter_px / 20 - 1) < 0.1
     text = (tmp_path / "drgan_conf" / "material" / "dark_discs.yaml").read_text()
     assert "  - tio2_tsem\n" in text and "noise_grain_px:" in text
     cfg = compose(["material=dark_discs"], config_name="train")
     assert cfg.material.polarity == "dark" and cfg.data.polarity == "dark" and cfg.data.crop_rows == "auto"
     assert cfg.data.segment.neck_depth == 0.2 and "    neck_depth: 0.2\n" in text  # a key given travels
     assert cfg.data.segment.scale == 20
-    assert cfg.data.segment.grow_outlines is False and result["segmentation"]["outlines_grown"]["images"] == 0
+    assert cfg.data.segment.grow_outlines is False and result.segmentation.outlines_grown["images"] == 0
     # No ring at the discs' edges: the transmission material renders no fringe, and says why.
-    assert result["edge"]["ring"]["kind"] == "none" and result["material"]["fringe"] is None
+    assert result.edge["ring"]["kind"] == "none" and result.material.fringe is None
     assert cfg.material.imaging.fringe is None and "#   edge fringe: none" in text
-    assert cfg.material.noise_grain_px == pytest.approx(result["background"]["grain_px"], abs=0.01)
+    assert cfg.material.noise_grain_px == pytest.approx(result.background.grain_px, abs=0.01)
     from drgan.material_proposal import (
         NOISE_LIMIT_FACTOR,  # the background shows the detector noise: it bounds the learned one
     )
 
-    measured = result["background"]["noise_sigma"]
+    measured = result.background.noise_sigma
     assert cfg.material.noise_sigma.max == pytest.approx(max(0.01, NOISE_LIMIT_FACTOR * measured), abs=1e-4)
 
 

@@ -9,12 +9,16 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import TYPE_CHECKING
 
 from omegaconf import OmegaConf
 
 from drgan.data import measurements
 from drgan.data.classical import CALIBRATION, Fixed
 from drgan.data.particle_edge import MAX_SATURATED
+
+if TYPE_CHECKING:
+    from drgan.data.profile_result import ProfileResult
 
 NOISE_LIMIT_FACTOR, NOISE_LIMIT_FLOOR = 2.2, 0.01  # transmission materials: noise_sigma.max = 2.2 x measured
 EXTENT_PER_DIAMETER = 1.1  # largest extent / equivalent diameter of a particle seen from above (TiO2: 30 / 26.5 px)
@@ -35,14 +39,14 @@ def choose_parent(polarity: str, kind: str, median_px: float) -> tuple[str, str]
     return parent, f"bright, irregular: the TiO2 material of the nearest size ({PAPER_SIZES[parent]:.0f} px)"
 
 
-def data_settings(result: dict) -> tuple[dict, dict]:
+def data_settings(result: ProfileResult) -> tuple[dict, dict]:
     """(data keys, notes): the segmentation the profile validated (data.segment, so that training mines with the
     same lengths) and data.min_particles when too few windows hold the default 3 particles (large particles)."""
-    seg, counts = result["segmentation"], result["particles_per_patch"]
-    given = seg["setting"]
+    seg, counts = result.segmentation, result.particles_per_patch
+    given = seg.setting
     # the lengths (from the scale or given), and any other key given by hand (neck_depth, min_separability, ..)
-    data = {"segment": {k: v for k, v in seg["params"].items() if k in SEGMENT_KEYS or k in given}}
-    estimate = seg["scale_estimate"]
+    data = {"segment": {k: v for k, v in seg.params.items() if k in SEGMENT_KEYS or k in given}}
+    estimate = seg.scale_estimate
     log_scale = (
         "no LoG blob stood out (particles fill the image), a diameter searched from 8 px up,"
         if estimate is None or estimate["diameter_px"] is None
@@ -51,7 +55,7 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     if "scale" in given:
         how = "set by hand (data.segment)"
     elif estimate.get("plateau"):
-        size = result["sizes"]["median_diameter_px"]
+        size = result.sizes.median_diameter_px
         how = (
             f"measured: {log_scale} no scale agreed with its segments' size and separated enough; from "
             f"{estimate['refined_px']} px up the segments keep one size ({size:.1f} px) over an octave and more: "
@@ -61,13 +65,13 @@ def data_settings(result: dict) -> tuple[dict, dict]:
     else:
         how = f"measured: {log_scale} refined to the segments' own median ({estimate['refined_px']} px)"
     notes = {
-        "data.segment.scale": f"particle diameter {seg['scale_px']} px, {how}",
+        "data.segment.scale": f"particle diameter {seg.scale_px} px, {how}",
         "data.segment (sigma, min_distance, min_area, max_area, background)": "from the scale unless set by hand"
         + (f" ({', '.join(sorted(given))} given)" if given else "")
-        + f"; Otsu separability {seg['separability_median']:.2f} (particles segmented: {seg['particles']})",
+        + f"; Otsu separability {seg.separability_median:.2f} (particles segmented: {seg.particles})",
     }
-    notes["data.segment.neck_depth"] = _neck_note(seg["params"]["neck_depth"], "neck_depth" in given, estimate)
-    lowered = seg["params"]["min_separability"]
+    notes["data.segment.neck_depth"] = _neck_note(seg.params["neck_depth"], "neck_depth" in given, estimate)
+    lowered = seg.params["min_separability"]
     if lowered != CALIBRATION.min_separability and "min_separability" not in given:
         data["segment"]["min_separability"] = lowered
         notes["data.segment.min_separability"] = (
@@ -76,13 +80,13 @@ def data_settings(result: dict) -> tuple[dict, dict]:
             "gaps, texture cut into specks of every size at the finer scale); to decide, set data.segment.scale "
             "and data.segment.min_separability together"
         )
-    notes["data.segment.grow_outlines"] = _outline_note(seg, result["data"]["images"])
-    enough = counts["with_3_or_more"]["windows"] / max(1, counts["windows"])
+    notes["data.segment.grow_outlines"] = _outline_note(seg.params, seg.outlines_grown, result.data.images)
+    enough = counts.with_3_or_more["windows"] / max(1, counts.windows)
     if enough < MIN_WINDOW_SHARE:
-        data["min_particles"] = max(1, min(3, int(counts["median"])))
+        data["min_particles"] = max(1, min(3, int(counts.median)))
         notes["data.min_particles"] = (
-            f"{data['min_particles']}: only {100 * enough:.0f} % of the {counts['patch_size']} px windows hold 3 or "
-            f"more particles (median {counts['median']:g})"
+            f"{data['min_particles']}: only {100 * enough:.0f} % of the {counts.patch_size} px windows hold 3 or "
+            f"more particles (median {counts.median:g})"
         )
     return data, notes
 
@@ -92,14 +96,14 @@ SEGMENT_KEYS = ("scale", "sigma", "min_distance", "min_area", "max_area", "backg
 MIN_WINDOW_SHARE = 0.2  # below this share of windows with >= 3 particles, training mines windows with fewer
 
 
-def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict, dict, dict]:
+def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, str, dict, dict, dict]:
     """(parent, why, material, size, notes): what the profile measured, as the keys of a material inheriting the
     closest paper material (`choose_parent`), the size group's parameters for a bimodal fit (else {}), and per key
     why it was set."""
-    polarity = result["polarity"]["value"]
-    sizes, counts = result["sizes"], result["particles_per_patch"]
-    kind = result["shape"]["mesh_kind"]
-    parent, why = choose_parent(polarity, kind, sizes["median_diameter_px"])
+    polarity = result.polarity.value
+    sizes, counts = result.sizes, result.particles_per_patch
+    kind = result.shape.mesh_kind
+    parent, why = choose_parent(polarity, kind, sizes.median_diameter_px)
     by_kind = {f.kind: f for f in fits}
     if chosen.kind == "normal":
         size_px, spread = chosen.params["mean"], chosen.params["std"] / chosen.params["mean"]
@@ -111,12 +115,12 @@ def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict,
     # A material's sizes are largest extents (a mesh's scale); the profile measures equivalent diameters of
     # projected areas: ~0.9 x the largest extent for the TiO2 particles (tio2_sem: masks 26.5 px, extent 30 px).
     size_px *= EXTENT_PER_DIAMETER
-    kept = counts["with_3_or_more"] if counts["with_3_or_more"]["windows"] else counts
+    kept = counts.with_3_or_more if counts.with_3_or_more["windows"] else {"p10": counts.p10, "p90": counts.p90}
     n_max = max(1, int(math.ceil(kept["p90"])))
     n_min = max(1, min(n_max, int(math.floor(kept["p10"]))))
-    pol_note = "detected" if result["polarity"]["setting"] == "auto" else "set on the command line"
+    pol_note = "detected" if result.polarity.setting == "auto" else "set on the command line"
     material = {
-        "name": result["name"],
+        "name": result.name,
         "polarity": polarity,
         "particle_size_px": round(float(size_px), 1),
         "size_spread": round(float(spread), 3),
@@ -129,30 +133,30 @@ def material_settings(result: dict, fits: list, chosen) -> tuple[str, str, dict,
         "particle_size_px": f"median equivalent diameter of the segmented particles x {EXTENT_PER_DIAMETER} (a "
         "material's size is a particle's largest extent)",
         "size_spread": spread_note,
-        "n_particles": f"p90 of particles per {counts['patch_size']} px patch over the patches with >= 3 (those "
-        f"training keeps; mean over all patches {counts['mean']:.1f})",
+        "n_particles": f"p90 of particles per {counts.patch_size} px patch over the patches with >= 3 (those "
+        f"training keeps; mean over all patches {counts.mean:.1f})",
         "n_particles_min": "p10 over the same patches; a constellation draws n_particles_min..n_particles",
-        "meshes.kind": f"median major/minor axis ratio {result['shape']['axis_ratio_median']:.2f}",
+        "meshes.kind": f"median major/minor axis ratio {result.shape.axis_ratio_median:.2f}",
     }
-    background = result["background"]
+    background = result.background
     if parent_renders_without_sampling_noise(parent):
         # Such a render has no Monte Carlo grain: the image's noise is the detector's, which the background shows,
         # so it bounds the learned noise (tio2_tsem: 0.018 measured; wider limits start far too grainy).
-        material["noise_grain_px"] = round(float(background["grain_px"]), 2)
+        material["noise_grain_px"] = round(float(background.grain_px), 2)
         material["noise_sigma"] = {
             "min": 0.001,
-            "max": round(max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * background["noise_sigma"]), 4),
+            "max": round(max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * background.noise_sigma), 4),
         }
         notes["noise_grain_px"] = (
-            f"lag-1 autocorrelation {background['lag1_autocorrelation']:.3f} of the background's high-pass residual"
+            f"lag-1 autocorrelation {background.lag1_autocorrelation:.3f} of the background's high-pass residual"
         )
         notes["noise_sigma.max"] = f"{NOISE_LIMIT_FACTOR} x the background's noise sigma"
-    stage = stage_limits(parent, background["background_grey"])
+    stage = stage_limits(parent, background.background_grey)
     if stage is not None:
         material["imaging"] = {"stage_bsdf": {"base_color": stage[0]}}
         notes["imaging.stage_bsdf.base_color"] = stage[1]
     if parent_renders_fringe(parent):
-        fringe, why_fringe = fringe_settings(result.get("edge"))
+        fringe, why_fringe = fringe_settings(result.edge)
         if fringe is not None:  # only a measured fringe: without one the material renders none
             material["imaging"] = {"fringe": fringe}
             notes["imaging.fringe"] = why_fringe
@@ -270,7 +274,7 @@ def parent_renders_without_sampling_noise(parent: str) -> bool:
     return typed_material(parent_material(parent)).imaging.noiseless
 
 
-def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
+def material_yaml(result: ProfileResult, fits: list, chosen) -> tuple[str, str]:
     """(parent name, the text of drgan_conf/material/NAME.yaml): the measured keys, checked against the typed
     material (`drgan.scene.config.typed_material`, merged over the parent) and dumped, with why each was set."""
     from drgan.scene.config import typed_material
@@ -279,10 +283,10 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
     typed_material(
         OmegaConf.merge(parent_material(parent), material)
     )  # a value the schema refuses fails here, not in training
-    agg, data = result["agglomeration"], result["data"]
+    agg, data = result.agglomeration, result.data
     notes["size group"] = f"{chosen.kind}: lowest BIC of normal / lognormal / bimodal"
     notes["placement group"] = (
-        f"{agg['placement']}: touching fraction {agg['touching_fraction']:.2f}, Clark-Evans {agg['clark_evans_median']}"
+        f"{agg.placement}: touching fraction {agg.touching_fraction:.2f}, Clark-Evans {agg.clark_evans_median}"
     )
     body = {"material": material}
     if size:
@@ -290,30 +294,30 @@ def material_yaml(result: dict, fits: list, chosen) -> tuple[str, str]:
     segmentation, data_notes = data_settings(result)
     notes.update(data_notes)
     body["data"] = {
-        "dir": data["dir"],
-        "crop_rows": data["crop_rows"],
-        "split": data["split"],
+        "dir": data.dir,
+        "crop_rows": data.crop_rows,
+        "split": data.split,
         "polarity": material["polarity"],
         **segmentation,
     }
     header = [
         "# @package _global_",
-        f"# Written by `python -m drgan.profile` from {data['images']} image(s) of {data['dir']}",
-        f"# (report: {result['out']}/report.md).",
+        f"# Written by `python -m drgan.profile` from {data.images} image(s) of {data.dir}",
+        f"# (report: {result.out}/report.md).",
         f"# Parent: {parent} ({why}); everything not set here comes from it, unmeasured.",
         "# Measured:",
         *(f"#   {key}: {note}" for key, note in notes.items()),
-        f"#   for reference: background grey {result['background']['background_grey']:.3f}, noise sigma "
-        f"{result['background']['noise_sigma']:.4f}",
+        f"#   for reference: background grey {result.background.background_grey:.3f}, noise sigma "
+        f"{result.background.noise_sigma:.4f}",
         *(
-            [f"#   edge fringe: {fringe_settings(result.get('edge'))[1]}; the material renders none"]
+            [f"#   edge fringe: {fringe_settings(result.edge)[1]}; the material renders none"]
             if parent_renders_fringe(parent) and "imaging" not in material
             else []
         ),
         "defaults:",
         f"  - {parent}",
         f"  - override /size: {chosen.kind}",
-        f"  - override /placement: {agg['placement']}",
+        f"  - override /placement: {agg.placement}",
     ]
     return parent, "\n".join(header) + "\n" + OmegaConf.to_yaml(OmegaConf.create(body))
 
@@ -349,11 +353,11 @@ def _neck_note(depth: float, given: bool, estimate: dict | None) -> str:
     )
 
 
-def _outline_note(seg: dict, images: int) -> str:
+def _outline_note(params: dict, grown: dict | None, images: int) -> str:
     """What the outlines' growth to the particles' edges did (`drgan.data.classical.grow_to_edges`)."""
-    if not seg["params"].get("grow_outlines", True):
+    if not params.get("grow_outlines", True):
         return "false (set by hand): Otsu's outlines"
-    grown = seg.get("outlines_grown") or {"images": 0}
+    grown = grown or {"images": 0}
     if not grown["images"]:
         return f"true: on none of the {images} images did the strongest edges lie below Otsu's threshold"
     return (

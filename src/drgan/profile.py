@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,18 @@ from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particle_edge import EDGE_BACKGROUND_PX, EDGE_INSIDE_PX, EDGE_INTERIOR_PX, EDGE_OUTSIDE_PX
 from drgan.data.patches import scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
+from drgan.data.profile_result import (
+    Agglomeration,
+    ImagesRead,
+    MaterialProposed,
+    PatchCounts,
+    PixelSize,
+    PolarityFound,
+    ProfileResult,
+    SegmentationFound,
+    ShapeFound,
+    SizesFound,
+)
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_bytes, write_json
 from drgan.material_proposal import WHY_SEGMENT, data_settings, fringe_settings, material_yaml, parent_renders_fringe
@@ -105,7 +118,7 @@ def select_images(folder: Path, split_path: Path | None, max_images: int | None)
 # --- the profile ------------------------------------------------------------------------------------------
 
 
-def profile(cfg: DictConfig) -> dict:
+def profile(cfg: DictConfig) -> ProfileResult:
     """Profile the images of cfg.data.dir; write figures, profile.json, report.md and the material config."""
     folder, crop, polarity_setting, patch = _check_settings(cfg)
     name = str(cfg.name)
@@ -172,79 +185,82 @@ def profile(cfg: DictConfig) -> dict:
     pixel_sizes = [est.pixel_size_nm(p) for p in paths]
     known = [s for s, _ in pixel_sizes if s is not None]
 
-    result = {
-        "name": name,
-        "data": {
-            "dir": str(folder.resolve()),
-            "crop_rows": list(crop) if isinstance(crop, tuple) else crop,
-            "split": str(split_path.resolve()) if split_path else None,
-            "images": len(images),
-            "ids": [p.stem for p in paths],
-            "shape": list(images[0].shape),
-        },
-        "polarity": {"value": polarity, "setting": polarity_setting, **(estimate.as_dict() if estimate else {})},
-        "segmentation": {
-            "scale_px": params.scale,
-            "scale_estimate": scale.as_dict() if scale else None,
-            "setting": {k: v for k, v in setting.as_dict().items() if v != SegmentParams().as_dict()[k]},
-            "separability_median": round(float(np.median(separabilities)), 4),
+    result = ProfileResult(
+        name=name,
+        data=ImagesRead(
+            dir=str(folder.resolve()),
+            crop_rows=list(crop) if isinstance(crop, tuple) else crop,
+            split=str(split_path.resolve()) if split_path else None,
+            images=len(images),
+            ids=[p.stem for p in paths],
+            shape=list(images[0].shape),
+        ),
+        polarity=PolarityFound(polarity, polarity_setting, estimate.as_dict() if estimate else {}),
+        segmentation=SegmentationFound(
+            scale_px=params.scale,
+            scale_estimate=scale.as_dict() if scale else None,
+            setting={k: v for k, v in setting.as_dict().items() if v != SegmentParams().as_dict()[k]},
+            separability_median=round(float(np.median(separabilities)), 4),
             # images whose outlines grew out to the particles' edges, and the foreground added (median over those)
-            "outlines_grown": {
+            outlines_grown={
                 "images": sum(g > 0 for g in grown),
                 "foreground_added_median": round(float(np.median([g for g in grown if g > 0] or [0.0])), 4),
             },
-            "params": params.as_dict(),
-            "particles": int(sum(len(t["diameter_px"]) for t in tables)),
-            "particles_not_touching_border": int(inner.size),
-        },
-        "background": noise.as_dict(),
-        "sizes": {
-            "median_diameter_px": round(float(np.median(inner)), 3),
-            "mean_diameter_px": round(float(inner.mean()), 3),
-            "quantiles_px": {q: round(float(np.quantile(inner, float(q))), 3) for q in ("0.1", "0.25", "0.75", "0.9")},
-            "fits": [f.as_dict() for f in fits],
-            "chosen": chosen.kind,
-            "criterion": "lowest BIC = k ln(n) - 2 ln(L), likelihoods in diameter space",
-        },
-        "particles_per_patch": {
-            "definition": f"segments (any, border-touching included) whose centroid lies inside a "
+            params=params.as_dict(),
+            particles=int(sum(len(t["diameter_px"]) for t in tables)),
+            particles_not_touching_border=int(inner.size),
+        ),
+        background=type(noise)(**noise.as_dict()),  # as recorded: what the report and the material read
+        sizes=SizesFound(
+            median_diameter_px=round(float(np.median(inner)), 3),
+            mean_diameter_px=round(float(inner.mean()), 3),
+            quantiles_px={q: round(float(np.quantile(inner, float(q))), 3) for q in ("0.1", "0.25", "0.75", "0.9")},
+            fits=[f.as_dict() for f in fits],
+            chosen=chosen.kind,
+            criterion="lowest BIC = k ln(n) - 2 ln(L), likelihoods in diameter space",
+        ),
+        particles_per_patch=PatchCounts(
+            definition=f"segments (any, border-touching included) whose centroid lies inside a "
             f"{patch} px window; windows on a grid of stride {patch // 2} px",
-            "patch_size": patch,
-            "windows": int(counts.size),
-            "mean": round(float(counts.mean()), 3),
-            "median": float(np.median(counts)),
-            "p10": float(np.quantile(counts, 0.1)),
-            "p90": float(np.quantile(counts, 0.9)),
+            patch_size=patch,
+            windows=int(counts.size),
+            mean=round(float(counts.mean()), 3),
+            median=float(np.median(counts)),
+            p10=float(np.quantile(counts, 0.1)),
+            p90=float(np.quantile(counts, 0.9)),
             # The windows training keeps (data.min_particles: 3 by default): the scene's range.
-            "with_3_or_more": _quantiles(counts[counts >= 3]),
-        },
-        "agglomeration": {
-            "touching_fraction": round(touching, 4),
-            "clark_evans_median": round(ce_median, 4) if ce_median is not None else None,
-            "placement": est.placement_kind(touching, ce_median),
-        },
-        "shape": {"axis_ratio_median": round(axis_ratio, 4), "mesh_kind": est.mesh_kind(axis_ratio)},
-        "edge": edge.as_dict() if edge is not None else None,
-        "pixel_size": {
-            "nm_per_px": round(float(np.median(known)), 5) if known else None,
-            "source": pixel_sizes[0][1] if known else "unknown",
-            "images_with_size": len(known),
-        },
-    }
-    result["out"] = str(out.resolve())
+            with_3_or_more=_quantiles(counts[counts >= 3]),
+        ),
+        agglomeration=Agglomeration(
+            touching_fraction=round(touching, 4),
+            clark_evans_median=round(ce_median, 4) if ce_median is not None else None,
+            placement=est.placement_kind(touching, ce_median),
+        ),
+        shape=ShapeFound(axis_ratio_median=round(axis_ratio, 4), mesh_kind=est.mesh_kind(axis_ratio)),
+        edge=edge.as_dict() if edge is not None else None,
+        pixel_size=PixelSize(
+            nm_per_px=round(float(np.median(known)), 5) if known else None,
+            source=pixel_sizes[0][1] if known else "unknown",
+            images_with_size=len(known),
+        ),
+        out=str(out.resolve()),
+    )
     profile_figures.write_figures(out, images, labels_kept, inner, fits, chosen, noise, foregrounds, counts, polarity)
     if scale is not None:
         profile_figures.scale_figure(out, scale.as_dict())
     profile_figures.edge_figure(out, edge)
     parent, yaml_text = material_yaml(result, fits, chosen)
-    fringe = fringe_settings(result["edge"])[0] if parent_renders_fringe(parent) else None
-    result["material"] = {
-        "parent": parent,
-        "config": str(conf_path.resolve()),
-        "data": data_settings(result)[0],
-        "fringe": fringe,  # material.imaging.fringe as written (None: the material renders no fringe)
-    }
-    write_json(out / "profile.json", result)
+    fringe = fringe_settings(result.edge)[0] if parent_renders_fringe(parent) else None
+    result = replace(
+        result,
+        material=MaterialProposed(
+            parent=parent,
+            config=str(conf_path.resolve()),
+            data=data_settings(result)[0],
+            fringe=fringe,  # material.imaging.fringe as written (None: the material renders no fringe)
+        ),
+    )
+    write_json(out / "profile.json", result.as_dict())
     write_bytes(out / "report.md", report_markdown(result).encode())
     write_bytes(conf_path, yaml_text.encode())
     log.info("wrote %s and %s (parent material %s)", out / "profile.json", conf_path, parent)
@@ -284,40 +300,41 @@ def _quantiles(counts: np.ndarray) -> dict:
 # --- the report -------------------------------------------------------------------------------------------
 
 
-def report_markdown(r: dict) -> str:
-    b, s, c, a = r["background"], r["sizes"], r["particles_per_patch"], r["agglomeration"]
-    seg = r["segmentation"]
+def report_markdown(result: ProfileResult) -> str:
+    """report.md: what the profile measured and what the material config it wrote says."""
+    sizes = result.sizes
     fits = "\n".join(
-        f"| {f['kind']}{' (chosen)' if f['kind'] == s['chosen'] else ''} | "
+        f"| {f['kind']}{' (chosen)' if f['kind'] == sizes.chosen else ''} | "
         + ", ".join(f"{k} {v:g}" for k, v in f["params"].items())
         + f" | {f['log_likelihood']:.1f} | {f['bic']:.1f} |"
-        for f in s["fits"]
+        for f in sizes.fits
     )
-    px = r["pixel_size"]
-    data, data_notes = data_settings(r)  # the table shows the keys the material carries
-    seg_table = "| key | value | why |\n|---|---|---|\n" + "\n".join(
-        f"| data.segment.{k} | {v} | {'set by hand' if k in seg['setting'] else WHY_SEGMENT.get(k, 'from the scale')} |"
-        for k, v in data["segment"].items()
-    )
-    seg_table += "\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in data_notes.items())
     return (
-        _report_head(r, b, s, c, a, seg, px, seg_table, fits)
-        + edge_markdown(r.get("edge"), r["material"])
+        _report_head(result)
+        + _segmentation_markdown(result)
+        + f"""
+## Diameter fits ({sizes.criterion})
+
+| fit | parameters (px; sigma of log d) | log L | BIC |
+|---|---|---|---|
+{fits}
+"""
+        + edge_markdown(result.edge, result.material)
         + "\nFigures: `sizes.png`, `scale_search.png`, `particles.png` (real images: keep them out of repositories), "
         "`background_noise.png`, `edge_profile.png`.\n"
     )
 
 
-def edge_markdown(edge: dict | None, material: dict) -> str:
+def edge_markdown(edge: dict | None, material: MaterialProposed) -> str:
     """The report's section on the mean particle edge: the ring the rule found, the fit, what the material got."""
-    written = material.get("fringe")
-    parent_takes = parent_renders_fringe(material["parent"])
+    written = material.fringe
+    parent_takes = parent_renders_fringe(material.parent)
     if written is not None:
         verdict = f"written: `material.imaging.fringe: {written}`"
     elif parent_takes:
         verdict = "none written: the material renders no fringe"
     else:
-        verdict = f"not written: the parent material `{material['parent']}` renders no fringe (transmission only)"
+        verdict = f"not written: the parent material `{material.parent}` renders no fringe (transmission only)"
     head = "\n## Mean particle edge (edge_profile.png)\n\n"
     if edge is None:
         return head + f"Too few isolated particles for an edge profile. Fringe: {verdict}.\n"
@@ -356,38 +373,47 @@ inside). Rule: {edge["rule"]}. Fringe: {verdict}.
 """
 
 
-def _report_head(r, b, s, c, a, seg, px, seg_table, fits) -> str:
-    return f"""# Profile: {r["name"]}
+def _report_head(r: ProfileResult) -> str:
+    b, c, a, px = r.background, r.particles_per_patch, r.agglomeration, r.pixel_size
+    return f"""# Profile: {r.name}
 
-{r["data"]["images"]} image(s) of `{r["data"]["dir"]}` (crop_rows {r["data"]["crop_rows"]}, split {r["data"]["split"]}).
-Material config: `{r["material"]["config"]}` (parent `{r["material"]["parent"]}`).
+{r.data.images} image(s) of `{r.data.dir}` (crop_rows {r.data.crop_rows}, split {r.data.split}).
+Material config: `{r.material.config}` (parent `{r.material.parent}`).
 
 | quantity | value |
 |---|---|
-| polarity | {r["polarity"]["value"]} ({r["polarity"]["setting"]}; confidence {r["polarity"].get("confidence", "-")}) |
-| background grey (median of background pixels) | {b["background_grey"]:.4f} |
-| noise sigma (MAD of the high-pass residual, corrected) | {b["noise_sigma"]:.4f} |
-| lag-1 autocorrelation of the residual | {b["lag1_autocorrelation"]:.3f} |
-| grain (Gaussian stddev, px) | {b["grain_px"]:.2f} |
-| particles segmented / not touching the border | {seg["particles"]} / {seg["particles_not_touching_border"]} |
-| median / mean equivalent diameter (px) | {s["median_diameter_px"]:.2f} / {s["mean_diameter_px"]:.2f} |
-| particles per {c["patch_size"]} px patch: mean / median (p10-p90) | {c["mean"]:.2f} / {c["median"]:g} \
-({c["p10"]:g}-{c["p90"]:g}) |
-| touching fraction / Clark-Evans ratio | {a["touching_fraction"]:.3f} / {a["clark_evans_median"]} \
--> placement {a["placement"]} |
-| median axis ratio | {r["shape"]["axis_ratio_median"]:.3f} -> meshes {r["shape"]["mesh_kind"]} |
-| pixel size | {px["nm_per_px"]} nm ({px["source"]}) |
+| polarity | {r.polarity.value} ({r.polarity.setting}; confidence {r.polarity.confidence}) |
+| background grey (median of background pixels) | {b.background_grey:.4f} |
+| noise sigma (MAD of the high-pass residual, corrected) | {b.noise_sigma:.4f} |
+| lag-1 autocorrelation of the residual | {b.lag1_autocorrelation:.3f} |
+| grain (Gaussian stddev, px) | {b.grain_px:.2f} |
+| particles segmented / not touching the border | {r.segmentation.particles} / \
+{r.segmentation.particles_not_touching_border} |
+| median / mean equivalent diameter (px) | {r.sizes.median_diameter_px:.2f} / {r.sizes.mean_diameter_px:.2f} |
+| particles per {c.patch_size} px patch: mean / median (p10-p90) | {c.mean:.2f} / {c.median:g} ({c.p10:g}-{c.p90:g}) |
+| touching fraction / Clark-Evans ratio | {a.touching_fraction:.3f} / {a.clark_evans_median} \
+-> placement {a.placement} |
+| median axis ratio | {r.shape.axis_ratio_median:.3f} -> meshes {r.shape.mesh_kind} |
+| pixel size | {px.nm_per_px} nm ({px.source}) |
 
-Particles per patch: {c["definition"]}.
-## Segmentation (drgan.data.classical; written to the material's `data` keys, so training mines alike)
+Particles per patch: {c.definition}.
+"""
 
-{seg_table}
 
-## Diameter fits ({s["criterion"]})
+def _segmentation_markdown(r: ProfileResult) -> str:
+    """The segmentation table: each data.segment key the material carries, and why it has its value."""
+    data, data_notes = data_settings(r)
+    given = r.segmentation.setting
+    table = "| key | value | why |\n|---|---|---|\n" + "\n".join(
+        f"| data.segment.{k} | {v} | {'set by hand' if k in given else WHY_SEGMENT.get(k, 'from the scale')} |"
+        for k, v in data["segment"].items()
+    )
+    notes = "\n".join(f"- `{k}`: {v}" for k, v in data_notes.items())
+    return f"""## Segmentation (drgan.data.classical; written to the material's `data` keys, so training mines alike)
 
-| fit | parameters (px; sigma of log d) | log L | BIC |
-|---|---|---|---|
-{fits}
+{table}
+
+{notes}
 """
 
 
