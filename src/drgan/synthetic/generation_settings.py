@@ -44,8 +44,15 @@ _CHANGED_ORDER = ("parameters", "partial_background", "partial_max_ignored", "pa
 _DEFAULT = object()
 
 
-def setting(default: Any = _DEFAULT, *, fixed: str = CHANGED, record: bool = True, before: Any = _DEFAULT,
-            factory=None, given=None):  # fmt: skip
+def setting(
+    default: Any = _DEFAULT,
+    *,
+    fixed: str = CHANGED,
+    record: bool = True,
+    before: Any = _DEFAULT,
+    factory=None,
+    given=None,
+):
     """A field of `GenerateSettings`: its ``default`` (or ``factory`` for a mutable one), whether config.json records
     it (``fixed``: ALWAYS, NEVER, or CHANGED from ``before``), whether manifest.json does (``record``), and ``given``
     (cfg -> value) where the value is not the composed config's key of the field's name."""
