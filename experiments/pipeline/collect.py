@@ -51,6 +51,9 @@ def scored(folder: Path) -> dict | None:
         "pq": _ms([float(r["pq"]) for r in means]),
         "median": _ms([stats[r]["median_error"] for r in runs], 100, 1, True),
         "count": _ms([stats[r]["count_error"] for r in runs], 100, 1, True),
+        "ks": _ms([stats[r]["ks"] for r in runs]),
+        "w1": _ms([stats[r]["w1"] for r in runs], 1, 2),
+        "split": " / ".join(f"{100 * share(r, 'split'):.0f}" for r in runs),
         "merged": " / ".join(f"{100 * share(r, 'merged'):.0f}" for r in runs),
         "missed": " / ".join(f"{100 * share(r, 'missed'):.0f}" for r in runs),
         "offset": _ms([stats[r].get("sources/diameter_offset", np.nan) for r in runs], 1, 2, True),
@@ -58,7 +61,10 @@ def scored(folder: Path) -> dict | None:
 
 
 def main(folders: list[str]) -> None:
-    head = "| set | segmenter | runs | DSC | AP50 | PQ | median error % | count error % | merged % | missed % | offset px |"
+    head = (
+        "| set | segmenter | runs | DSC | AP50 | PQ | median error % | count error % | KS | W1 px | merged % | split % | "
+        "missed % | offset px |"
+    )
     print(head)
     print("|" + "---|" * (head.count("|") - 1))
     times = []
@@ -71,7 +77,7 @@ def main(folders: list[str]) -> None:
             s = scored(folder)
             if s:
                 print(f"| {run.name} | {label} | {s['n']} | {s['dsc']} | {s['ap50']} | {s['pq']} | {s['median']} | "
-                      f"{s['count']} | {s['merged']} | {s['missed']} | {s['offset']} |")  # fmt: skip
+                      f"{s['count']} | {s['ks']} | {s['w1']} | {s['merged']} | {s['split']} | {s['missed']} | {s['offset']} |")  # fmt: skip
         stages = state.get("stages", {})
         line = " | ".join(f"{stages[k].get('seconds', 0) / 60:.1f}" if k in stages else "" for k in
                           ("profile", "train", "generate", "segment", "analyze", "evaluate"))  # fmt: skip
