@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 from drgan import cli
 
@@ -47,3 +49,58 @@ def test_a_users_mistake_prints_its_message_and_no_traceback(tmp_path):
     output = done.stdout + done.stderr
     assert done.returncode == 1 and "data.dir is not set: material=sio2_him" in output
     assert "Traceback" not in output and "Error executing job" not in output
+
+
+TOY_STAGE = '''"""A toy stage: writes its greeting into its run folder."""
+
+from pathlib import Path
+
+from drgan.errors import ConfigError
+from drgan.runtime import stage_main
+
+
+@stage_main(config_path=".", config_name="toy")
+def main(cfg):
+    if not cfg.greeting:
+        raise ConfigError("greeting is empty")
+    Path(cfg.out).write_text(cfg.greeting)
+
+
+if __name__ == "__main__":
+    main()
+'''
+
+
+def test_a_new_stage_is_one_entry_in_the_registry(tmp_path, monkeypatch, capsys):
+    """CONTRIBUTING.md, "a stage": its module (started by runtime.stage_main), its config file and one entry in
+    cli.COMMANDS make `drgan toy --help` and `drgan toy KEY=VALUE` work; nothing else is edited (monkeypatch: the
+    entry and the module's path go away after the test)."""
+    (tmp_path / "drgan_toy_stage.py").write_text(TOY_STAGE)
+    conf = tmp_path / "toy.yaml"
+    conf.write_text("# what the toy says\ngreeting: hello\n# the file it writes\nout: ???\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.setitem(cli.COMMANDS, "toy", ("drgan_toy_stage", str(conf), "a toy stage"))
+
+    assert cli.main(["--help"]) == 0
+    assert "\n  toy " in capsys.readouterr().out
+    assert cli.main(["toy", "--help"]) == 0
+    text = capsys.readouterr().out
+    assert "A toy stage: writes its greeting" in text and "# what the toy says\ngreeting: hello" in text
+
+    out = tmp_path / "said.txt"
+    assert cli.main(["toy", "greeting=hi", f"out={out}", f"hydra.run.dir={tmp_path / 'run'}"]) == 0
+    assert out.read_text() == "hi"
+    assert cli.main(["toy", "greeting=", f"out={out}", f"hydra.run.dir={tmp_path / 'run'}"]) == 1
+    assert "error: greeting is empty" in capsys.readouterr().err
+
+
+def test_every_stage_of_the_registry_is_in_a_layer_of_the_import_contracts():
+    """pyproject.toml's import contracts name the entry points' layer; a stage added to cli.COMMANDS and not there
+    would escape `lint-imports`."""
+    text = (Path(cli.__file__).resolve().parents[2] / "pyproject.toml").read_text()
+    layers = text.split("[tool.importlinter]")[1].split("layers = [")[1].split("]")[0]  # tomllib is Python 3.11+
+    named = set(re.findall(r"drgan[\w.]*", layers))
+    missing = [module for module, _, _ in cli.COMMANDS.values() if module not in named]
+    assert not missing, f"add {missing} to the entry points' layer in pyproject.toml"

@@ -9,6 +9,7 @@ comments (the stage's config file).
 from __future__ import annotations
 
 import ast
+import importlib.util
 import runpy
 import sys
 from collections.abc import Sequence
@@ -16,7 +17,10 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent
 
-# subcommand: (module, config file of its settings relative to the package or None, what it does), in pipeline order
+# The registry of stages, the one place a new stage is named (CONTRIBUTING.md, "a stage"): subcommand -> (module run
+# as `python -m MODULE`, the config file of its settings relative to the package (or an absolute path) or None, what
+# it does), in pipeline order. `drgan --help`, `drgan NAME --help` and `drgan NAME ...` read it, and
+# tests/test_cli.py checks that the import contracts in pyproject.toml put every module named here in a layer.
 COMMANDS = {
     "pipeline": (
         "drgan.pipeline",
@@ -47,10 +51,12 @@ COMMANDS = {
 
 
 def _docstring(module: str) -> str:
-    """A module's docstring, read without importing it (the help stays instant)."""
-    stem = PACKAGE / module.removeprefix("drgan.").replace(".", "/")
-    path = stem / "__init__.py" if stem.is_dir() else stem.with_suffix(".py")
-    return ast.get_docstring(ast.parse(path.read_text())) or ""
+    """A module's docstring, read without importing it (the help stays instant; finding a submodule imports only
+    its parent packages, and ``import drgan`` imports nothing)."""
+    spec = importlib.util.find_spec(module)
+    if spec is None or spec.origin is None:
+        return ""
+    return ast.get_docstring(ast.parse(Path(spec.origin).read_text())) or ""
 
 
 def help_text() -> str:
@@ -73,9 +79,8 @@ def stage_help(name: str) -> str:
     module, config, _ = COMMANDS[name]
     text = _docstring(module)
     if config is not None:
-        text += (
-            f"\n\nSettings (KEY=VALUE on the command line; src/drgan/{config}):\n\n" + (PACKAGE / config).read_text()
-        )
+        where = config if Path(config).is_absolute() else f"src/drgan/{config}"
+        text += f"\n\nSettings (KEY=VALUE on the command line; {where}):\n\n" + (PACKAGE / config).read_text()
     return text
 
 
