@@ -19,7 +19,7 @@ from omegaconf import MISSING, OmegaConf
 from test_train import SIZE, run_train, tiny_overrides
 
 from drgan.errors import ConfigError
-from drgan.scene.config import ImagingConfig, ParameterRange, register_scene, typed_material
+from drgan.scene.config import ImagingConfig, Material, ParameterRange, register_scene, typed_material
 from drgan.scene.parameters import parse_parameter
 from drgan.scene.scene import MeshParticles, reconstruction_blur
 
@@ -300,3 +300,58 @@ def test_parameter_limits_are_checked_before_anything_is_built_and_may_come_from
     ):
         with pytest.raises(ConfigError, match=message):
             typed_material(compose([override]).material)
+
+
+# -- a toy material key, added here only ----------------------------------------------------------------------
+@dataclass
+class GainMaterial(Material):
+    """`Material` with one more key, as a new key is added: a field with its default, and its check."""
+
+    silhouette_gain: float = 1.0  # the toy key: how much brighter than asked the particles are (> 0)
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not (math.isfinite(self.silhouette_gain) and self.silhouette_gain > 0):
+            raise ConfigError(f"material.silhouette_gain={self.silhouette_gain}: expected a finite number > 0")
+
+
+def test_a_new_material_key_is_a_field_of_the_typed_material(tmp_path, monkeypatch):
+    """CONTRIBUTING.md, "a material": a new key is a field of drgan.scene.config.Material (here a subclass put in its
+    place, so nothing persists). The compose-time schema (drgan.configs.schemas) and typed_material both read that
+    one class: a material file's value reaches the scene, its default fills a file without it, a mistyped value
+    fails at compose naming the key, and a value its check refuses fails before a scene is built."""
+    from hydra.errors import ConfigCompositionException
+
+    from drgan import configs
+    from drgan.models import build
+
+    seen = []
+    original = SilhouetteScene.spec_from_config.__func__
+
+    def spec_from_config(cls, material, render):
+        seen.append(material.silhouette_gain)
+        return original(cls, material, render)
+
+    monkeypatch.chdir(tmp_path)
+    for name, value in (("gain", "0.5"), ("mistyped_gain", "loud"), ("refused_gain", "-1.0")):
+        write_material(
+            tmp_path, name, TOY_MATERIAL.replace("name: silhouettes", f"name: {name}\n  silhouette_gain: {value}")
+        )
+    write_material(tmp_path, "silhouettes", TOY_MATERIAL)
+    try:
+        monkeypatch.setattr("drgan.scene.config.Material", GainMaterial)
+        monkeypatch.setattr(SilhouetteScene, "spec_from_config", classmethod(spec_from_config))
+        overrides = ["renderer.resolution=24", "renderer.spp=1"]
+        cfg = compose(["material=gain", *overrides], config_name="render")
+        assert isinstance(build.build_scene(cfg), SilhouetteScene) and seen == [0.5]
+        assert typed_material(compose(["material=silhouettes", *overrides]).material).silhouette_gain == 1.0
+        with pytest.raises(ConfigCompositionException) as error:
+            compose(["material=mistyped_gain", *overrides])
+        assert "silhouette_gain" in str(error.value.__cause__ or error.value)
+        with pytest.raises(ConfigError, match=r"material\.silhouette_gain=-1\.0: expected a finite number > 0"):
+            build.build_scene(compose(["material=refused_gain", *overrides]))
+    finally:
+        monkeypatch.undo()
+        configs.setup()  # the ConfigStore's material schema back to drgan's own
+    with pytest.raises(ConfigCompositionException):  # without the field, the key is unknown again
+        compose(["material=gain"])
