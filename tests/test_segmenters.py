@@ -317,3 +317,93 @@ def test_analyze_measures_a_folder_of_predicted_masks(tmp_path):
     write_png(images / "second.png", disc_image(labels) * 255)
     with pytest.raises(DataError, match="missing: no mask for 1 image.*: second"):
         analyze(cfg)
+
+
+# --- a toy segmenter, added as CONTRIBUTING.md says -------------------------------------------------------------
+
+TOY_SEGMENTER = '''"""A segmenter outside drgan: one 3 x 3 convolution from the image to the three classes' logits."""
+
+import lightning.pytorch as L
+import torch
+from torch.nn.functional import cross_entropy
+
+from drgan.segmentation.module import particle_dsc
+from drgan.segmentation.registry import register_segmenter
+
+
+@register_segmenter
+class PixelSegmenter(L.LightningModule):
+    def __init__(self, width: int = 3, lr: float = 0.01):
+        super().__init__()
+        self.save_hyperparameters()  # plain keywords: the checkpoint is rebuilt from them
+        self.net = torch.nn.Conv2d(1, 3, width, padding=width // 2)
+
+    def forward(self, x):
+        return self.net(x)  # (B, 1, H, W) -> (B, 3, H, W) logits: background, particle, contour
+
+    def training_step(self, batch, batch_idx):
+        loss = cross_entropy(self(batch[0]), batch[1], ignore_index=255)
+        self.log("train/loss", loss, batch_size=len(batch[0]))
+        return loss
+
+    def validation_step(self, batch, batch_idx):
+        logits = self(batch[0])
+        self.log_dict(
+            {"val/loss": cross_entropy(logits, batch[1], ignore_index=255), "val/dsc": particle_dsc(logits, batch[1])},
+            batch_size=len(batch[0]),
+        )
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=self.hparams.lr)
+'''
+
+
+def test_a_new_segmenter_is_a_registered_class_that_segment_trains_and_evaluate_loads(
+    own_registry, tmp_path, monkeypatch
+):
+    """CONTRIBUTING.md, "a segmenter": a LightningModule decorated with @register_segmenter is the whole change.
+    `segment` builds it from model._target_ and trains it (one step on a generated set), its checkpoint names the
+    class, and `evaluate` rebuilds it through the allow-list and scores it; without the registration the same
+    checkpoint is refused."""
+    from omegaconf import OmegaConf, open_dict
+    from test_segment import make_generated
+
+    from drgan.evaluate import evaluate
+    from drgan.segment import segment
+
+    (tmp_path / "toy_segmenter.py").write_text(TOY_SEGMENTER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        out = tmp_path / "run"
+        cfg = compose(
+            [
+                f"data={make_generated(tmp_path / 'gen')}",
+                f"out={out}",
+                f"paths.root_dir={tmp_path}",
+                "loader.crop=32",
+                "loader.batch_size=4",
+                "trainer.accelerator=cpu",
+                "trainer.enable_progress_bar=false",
+                "trainer.max_epochs=1",
+            ],
+            config_name="segment",
+        )
+        with open_dict(cfg):
+            cfg.model = OmegaConf.create({"_target_": "toy_segmenter.PixelSegmenter", "width": 3})
+        assert "train/loss" in segment(cfg)
+        last = out / "checkpoints" / "last.ckpt"
+        saved = torch.load(last, map_location="cpu", weights_only=True)["hyper_parameters"]
+        assert saved == {"width": 3, "lr": 0.01, "_target_": "toy_segmenter.PixelSegmenter"}
+
+        labels = disc_labels(40, seed=7)
+        real = make_real(
+            tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]}
+        )
+        result = evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{last}]", "inference.tile=32"]))
+        assert set(result["runs"]) == {"run0"} and 0.0 <= result["runs"]["run0"]["dsc"] <= 1.0
+
+        monkeypatch.setattr(registry, "_REGISTRY", {})  # the same checkpoint, the class not registered
+        with pytest.raises(ConfigError, match="'toy_segmenter.PixelSegmenter' is not an allowed segmenter"):
+            evaluate(eval_cfg(real, tmp_path / "eval2", [f"models=[{last}]", "inference.tile=32"]))
+    finally:
+        sys.modules.pop("toy_segmenter", None)
