@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -278,3 +279,29 @@ def test_a_bright_stage_beyond_the_parents_reach_widens_its_limit_enough():
     with torch.no_grad():
         image = module.generator.render_one(phi, values, seed=1)[0].numpy()
     assert image[module.generator.scene.instance_labels() == 0].mean() > 0.43
+
+
+def test_profile_yaml_and_the_settings_dataclass_hold_the_same_defaults(tmp_path, monkeypatch):
+    """profile.yaml is the user's reference, ProfileSettings the typed source the stage reads: their defaults agree
+    (the interpolated out and the split, resolved to a file or None, aside), and a wrong value fails naming its key."""
+    import dataclasses
+
+    from drgan.profile import ProfileSettings
+
+    monkeypatch.chdir(tmp_path)
+    folder = _folder(tmp_path, "bright", n=1)
+    settings = ProfileSettings.from_config(compose([f"data.dir={folder}", "name=x"], config_name="profile"))
+    defaults = {f.name: f for f in dataclasses.fields(ProfileSettings)}
+    for key in ("crop_rows", "polarity", "patch_size", "max_images", "overwrite", "conf_dir", "seed"):
+        default = defaults[key].default
+        assert getattr(settings, key) == default, key
+    assert settings.segment == defaults["segment"].default_factory() == SegmentParams()
+    assert settings.split is None  # no split.json beside the folder: every image
+    assert settings.out == Path("runs/profile/x") and settings.conf_path == Path("drgan_conf/material/x.yaml")
+    for override, key in (
+        ("patch_size=8", "patch_size"),
+        ("max_images=0", "max_images"),
+        ("data.polarity=grey", "polarity"),
+    ):
+        with pytest.raises(ConfigError, match=key):
+            ProfileSettings.from_config(compose([f"data.dir={folder}", "name=x", override], config_name="profile"))

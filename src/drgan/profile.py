@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import re
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -52,41 +52,84 @@ log = logging.getLogger(__name__)
 # --- settings and images ----------------------------------------------------------------------------------
 
 
-def _check_settings(cfg: DictConfig) -> tuple[Path, tuple[int, int] | None, str, int]:
-    if not cfg.get("data") or not cfg.data.get("dir"):
-        raise ConfigError("profile: give data.dir=DIR (a folder of particle images)")
-    name = cfg.get("name")
-    if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
-        raise ConfigError(
-            f"profile: name={name!r}: expected a material name of letters, digits, _ or - "
-            "(the config is written as drgan_conf/material/NAME.yaml)"
-        )
-    from drgan.configs import shipped_materials
+@dataclass(frozen=True)
+class ProfileSettings:
+    """The settings of a profile run: every key of conf/gan/profile.yaml with its type, its default and its check
+    (`from_config`), resolved before any image is read. The YAML stays the user's reference (what each key means);
+    the field defaults are the same values (tests/test_profile.py composes profile.yaml and compares). A new key is
+    a field here, its check in `from_config` and, where users should see it, its line in the YAML."""
 
-    if str(name) in shipped_materials():
-        raise ConfigError(
-            f"profile: name={name}: a material drgan ships has that name ({', '.join(shipped_materials())}); yours "
-            f"would be confused with it on the config search path. Choose another name, e.g. name={name}_mine"
+    name: str
+    data_dir: Path
+    out: Path  # figures, profile.json, report.md (the YAML's default: runs/profile/NAME)
+    crop_rows: tuple[int, int] | str | None = "auto"  # [start, stop), "auto" (the info bar found) or None
+    split: Path | None = None  # the split.json whose train ids are profiled (data.split resolved); None: every image
+    polarity: str = "auto"
+    segment: SegmentParams = field(default_factory=SegmentParams)  # data.segment keys set by hand
+    patch_size: int = 256
+    max_images: int | None = None
+    overwrite: bool = False
+    conf_dir: Path = Path("drgan_conf")
+    seed: int = 0
+
+    @property
+    def conf_path(self) -> Path:
+        """Where the material config goes: conf_dir/material/NAME.yaml."""
+        return self.conf_dir / "material" / f"{self.name}.yaml"
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> ProfileSettings:
+        """From the composed profile config; a `ConfigError` naming the key for any value that cannot be right."""
+        if not cfg.get("data") or not cfg.data.get("dir"):
+            raise ConfigError("profile: give data.dir=DIR (a folder of particle images)")
+        name = cfg.get("name")
+        if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
+            raise ConfigError(
+                f"profile: name={name!r}: expected a material name of letters, digits, _ or - "
+                "(the config is written as drgan_conf/material/NAME.yaml)"
+            )
+        from drgan.configs import shipped_materials
+
+        if str(name) in shipped_materials():
+            raise ConfigError(
+                f"profile: name={name}: a material drgan ships has that name ({', '.join(shipped_materials())}); "
+                f"yours would be confused with it on the config search path. Choose another name, e.g. "
+                f"name={name}_mine"
+            )
+        folder = Path(str(cfg.data.dir)).expanduser()
+        if not folder.is_dir():
+            raise ConfigError(f"profile: data.dir={folder}: no such folder (expected a folder of images)")
+        crop = cfg.data.get("crop_rows")
+        if isinstance(crop, str) and crop != "auto":
+            raise ConfigError(f"profile: data.crop_rows={crop!r}: expected [start, stop), auto or null")
+        if crop is not None and crop != "auto":
+            crop = list(crop)
+            if len(crop) != 2 or not all(isinstance(v, int) for v in crop) or not 0 <= crop[0] < crop[1]:
+                raise ConfigError(f"profile: data.crop_rows={crop}: expected [start, stop) with 0 <= start < stop")
+            crop = (crop[0], crop[1])
+        polarity = check_polarity(cfg.data.get("polarity", "auto"), "data.polarity", allow_auto=True)
+        patch = cfg.get("patch_size", 256)
+        if not isinstance(patch, int) or patch < 16:
+            raise ConfigError(f"profile: patch_size={patch}: expected an integer >= 16 px")
+        max_images = cfg.get("max_images")
+        if max_images is not None and (not isinstance(max_images, int) or max_images < 1):
+            raise ConfigError(f"profile: max_images={max_images}: expected a positive integer or null")
+        settings = cls(
+            name=str(name),
+            data_dir=folder,
+            crop_rows=crop,
+            polarity=polarity,
+            segment=_segment_setting(cfg),
+            patch_size=patch,
+            max_images=max_images,
+            overwrite=bool(cfg.get("overwrite", False)),
+            conf_dir=Path(str(cfg.get("conf_dir", "drgan_conf"))),
+            out=Path(str(cfg.out)),
+            seed=int(cfg.get("seed", 0)),
         )
-    folder = Path(str(cfg.data.dir)).expanduser()
-    if not folder.is_dir():
-        raise ConfigError(f"profile: data.dir={folder}: no such folder (expected a folder of images)")
-    crop = cfg.data.get("crop_rows")
-    if isinstance(crop, str) and crop != "auto":
-        raise ConfigError(f"profile: data.crop_rows={crop!r}: expected [start, stop), auto or null")
-    if crop is not None and crop != "auto":
-        crop = list(crop)
-        if len(crop) != 2 or not all(isinstance(v, int) for v in crop) or not 0 <= crop[0] < crop[1]:
-            raise ConfigError(f"profile: data.crop_rows={crop}: expected [start, stop) with 0 <= start < stop")
-        crop = (crop[0], crop[1])
-    polarity = check_polarity(cfg.data.get("polarity", "auto"), "data.polarity", allow_auto=True)
-    patch = cfg.get("patch_size", 256)
-    if not isinstance(patch, int) or patch < 16:
-        raise ConfigError(f"profile: patch_size={patch}: expected an integer >= 16 px")
-    max_images = cfg.get("max_images")
-    if max_images is not None and (not isinstance(max_images, int) or max_images < 1):
-        raise ConfigError(f"profile: max_images={max_images}: expected a positive integer or null")
-    return folder, crop, polarity, patch
+        if settings.conf_path.exists() and not settings.overwrite:
+            raise ConfigError(f"profile: {settings.conf_path} exists; choose another name= or set overwrite=true")
+        return replace(settings, split=resolve_split(folder, cfg.data.get("split", "auto")))
 
 
 def resolve_split(folder: Path, split) -> Path | None:
@@ -118,15 +161,18 @@ def select_images(folder: Path, split_path: Path | None, max_images: int | None)
 # --- the profile ------------------------------------------------------------------------------------------
 
 
-def profile(cfg: DictConfig) -> ProfileResult:
-    """Profile the images of cfg.data.dir; write figures, profile.json, report.md and the material config."""
-    folder, crop, polarity_setting, patch = _check_settings(cfg)
-    name = str(cfg.name)
-    conf_path = Path(str(cfg.get("conf_dir", "drgan_conf"))) / "material" / f"{name}.yaml"
-    if conf_path.exists() and not cfg.get("overwrite", False):
-        raise ConfigError(f"profile: {conf_path} exists; choose another name= or set overwrite=true")
-    split_path = resolve_split(folder, cfg.data.get("split", "auto"))
-    paths = select_images(folder, split_path, cfg.get("max_images"))
+def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
+    """Profile the images of data.dir; write figures, profile.json, report.md and the material config."""
+    s = settings if isinstance(settings, ProfileSettings) else ProfileSettings.from_config(settings)
+    folder, crop, polarity_setting, patch, name, split_path = (
+        s.data_dir,
+        s.crop_rows,
+        s.polarity,
+        s.patch_size,
+        s.name,
+        s.split,
+    )
+    paths = select_images(folder, split_path, s.max_images)
     images = [read_grey(p, crop) for p in tqdm(paths, desc="reading", unit="image")]  # checks crop on every image
     small = [p.name for p, im in zip(paths, images) if min(im.shape) < patch]
     if small:
@@ -137,8 +183,8 @@ def profile(cfg: DictConfig) -> ProfileResult:
 
     # The particle scale (and from it every segmentation length), on the images mining searches it on (scale_sample);
     # data.segment keys given are kept as given.
-    out = Path(str(cfg.out))
-    setting = _segment_setting(cfg)
+    out = s.out
+    setting = s.segment
     try:
         params, scale = resolve_params(scale_sample(images), setting, polarity, progress=True)
     except NoParticles as error:
@@ -175,7 +221,7 @@ def profile(cfg: DictConfig) -> ProfileResult:
     inner = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
     if inner.size == 0:  # every particle touches the border: their sizes are cut, but they are all there is
         inner = np.concatenate([t["diameter_px"] for t in tables])
-    fits, chosen = est.fit_sizes(inner, seed=int(cfg.get("seed", 0)))
+    fits, chosen = est.fit_sizes(inner, seed=s.seed)
     counts = np.concatenate(counts)
     touching = float(np.mean(np.concatenate([t["touches_other"] for t in tables])))
     ce_values = [c for c in ce if c is not None]
@@ -255,15 +301,15 @@ def profile(cfg: DictConfig) -> ProfileResult:
         result,
         material=MaterialProposed(
             parent=parent,
-            config=str(conf_path.resolve()),
+            config=str(s.conf_path.resolve()),
             data=data_settings(result)[0],
             fringe=fringe,  # material.imaging.fringe as written (None: the material renders no fringe)
         ),
     )
     write_json(out / "profile.json", result.as_dict())
     write_bytes(out / "report.md", report_markdown(result).encode())
-    write_bytes(conf_path, yaml_text.encode())
-    log.info("wrote %s and %s (parent material %s)", out / "profile.json", conf_path, parent)
+    write_bytes(s.conf_path, yaml_text.encode())
+    log.info("wrote %s and %s (parent material %s)", out / "profile.json", s.conf_path, parent)
     return result
 
 
@@ -420,7 +466,7 @@ def _segmentation_markdown(r: ProfileResult) -> str:
 @stage_main("conf/gan", "profile")
 def main(cfg: DictConfig):
     OmegaConf.resolve(cfg)
-    profile(cfg)
+    profile(ProfileSettings.from_config(cfg))
 
 
 if __name__ == "__main__":
