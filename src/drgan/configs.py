@@ -17,10 +17,17 @@ Groups whose values the code reads as typed settings have a schema, registered w
 (``- /drgan_schema/renderer@_here_``; a material file: ``- /drgan_schema/material@material`` and its imaging mode's
 ``- /drgan_schema/imaging/secondary@material.imaging``): a value of the wrong type (``renderer.spp=abc``,
 ``n_particles: many`` in a material's file) or a key the schema lacks (``sppp: 4``, ``n_particles_mn: 8``) fails
-when the config is composed, naming the key, before anything is built. The renderer and model schemas hold types
-only (every field MISSING; the defaults are the group's YAML, the value checks in the objects built from it:
-`drgan.scene.scene.RenderSettings`, `drgan.models.gan_module.GANTraining`); the material's are the typed material
-itself (`drgan.scene.config.Material`, defaults and checks included).
+when the config is composed, naming the key, before anything is built. Each schema comes from the typed object the
+code reads, the one place a key is declared (its type, its default, its check):
+
+- ``renderer``: derived (`renderer_schema`) from `drgan.scene.render_settings.RenderSettings`, every field that is
+  a renderer key (all but the material's ``filter_stddev``), in its order, typed Optional (null = RenderSettings'
+  default; drgan.generate's ``renderer``: the checkpoint's) with RenderSettings' default, so a key without a line in
+  ``conf/gan/renderer/default.yaml`` composes to it; plus the Mitsuba ``variant``. A new renderer key is one field
+  there (tests/test_settings_source.py adds one and checks the YAML's defaults against the fields');
+- ``material``: the typed material itself (`drgan.scene.config.Material`, defaults and checks included);
+- ``model``: `ModelSchema` below, types only (every field MISSING; the defaults are the group's YAML, the value
+  checks in the objects built from it: `drgan.models.gan_module.GANTraining` and `drgan.models.build`).
 
 Nothing is registered on import: `setup` does it (schemas, shared groups, resolvers), called by `compose` and by
 every entry point before Hydra composes.
@@ -28,6 +35,9 @@ every entry point before Hydra composes.
 
 from __future__ import annotations
 
+import dataclasses
+import types
+import typing
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -39,23 +49,6 @@ from omegaconf import MISSING
 from drgan.errors import ConfigError
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
-
-
-# Optional[...] rather than `X | None`: OmegaConf reads these annotations at run time.
-@dataclass
-class RendererSchema:
-    """``renderer``: the render-quality settings of `drgan.scene.scene.RenderSettings` plus the Mitsuba variant. Every
-    key may be null (= RenderSettings' default; drgan.generate: the checkpoint's), so that generate's overrides can
-    merge over a preset a material picks."""
-
-    variant: Optional[str] = MISSING  # noqa: UP045
-    integrator: Optional[str] = MISSING  # noqa: UP045
-    max_depth: Optional[int] = MISSING  # noqa: UP045
-    resolution: Optional[int] = MISSING  # noqa: UP045
-    spp: Optional[int] = MISSING  # noqa: UP045
-    grad_spp: Optional[int] = MISSING  # noqa: UP045
-    grad_seed: Optional[str] = MISSING  # noqa: UP045
-    camera_distance: Optional[float] = MISSING  # noqa: UP045
 
 
 @dataclass
@@ -92,14 +85,36 @@ class ModelSchema:
     discriminator: DiscriminatorSchema = MISSING
 
 
-def renderer_overrides_schema() -> type:
-    """``renderer`` of drgan.generate: every key of `RendererSchema`, optional, default None (= the checkpoint's)."""
-    import dataclasses
-    import typing
+def _optional(hint) -> Any:
+    """``Optional[X]`` for an annotation ``X`` or ``X | None``: OmegaConf reads typing's Optional at run time, not
+    ``X | None``."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        rest = tuple(arg for arg in typing.get_args(hint) if arg is not type(None))
+        hint = rest[0] if len(rest) == 1 else typing.Union[rest]  # noqa: UP007
+    return Optional[hint]  # noqa: UP045
 
-    hints = typing.get_type_hints(RendererSchema)  # every one Optional already
-    fields = [(f.name, hints[f.name], dataclasses.field(default=None)) for f in dataclasses.fields(RendererSchema)]
-    return dataclasses.make_dataclass("RendererOverrides", fields, bases=(RendererSchema,))
+
+def renderer_schema(overrides: bool = False) -> type:
+    """``renderer``: the Mitsuba ``variant`` (``auto``; drgan.backend's choices), then every renderer key of
+    `drgan.scene.render_settings.RenderSettings` (`renderer_fields`: its type, Optional, and its default). Every
+    key may be null (= RenderSettings' default), so that generate's overrides can merge over a preset a material
+    picks. ``overrides``: drgan.generate's ``renderer``, every key default null (= the checkpoint's).
+
+    RenderSettings is looked up when called (by `setup`), so a class put in its place is the schema."""
+    from drgan.scene import render_settings
+
+    settings = render_settings.RenderSettings
+    hints = typing.get_type_hints(settings)
+    fields = [("variant", Optional[str], dataclasses.field(default=None if overrides else "auto"))]  # noqa: UP045
+    for key in render_settings.renderer_fields(settings):
+        if overrides:
+            default = dataclasses.field(default=None)
+        elif key.default_factory is not dataclasses.MISSING:
+            default = dataclasses.field(default_factory=key.default_factory)
+        else:
+            default = dataclasses.field(default=key.default)
+        fields.append((key.name, _optional(hints[key.name]), default))
+    return dataclasses.make_dataclass("RendererOverrides" if overrides else "RendererSchema", fields)
 
 
 def schemas() -> dict[str, type]:
@@ -107,8 +122,8 @@ def schemas() -> dict[str, type]:
     from drgan.scene import config
 
     return {
-        "renderer": RendererSchema,
-        "renderer_overrides": renderer_overrides_schema(),
+        "renderer": renderer_schema(),
+        "renderer_overrides": renderer_schema(overrides=True),
         "model": ModelSchema,
         "material": config.Material,
         "imaging/secondary": config.SecondaryImaging,
