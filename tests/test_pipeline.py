@@ -18,7 +18,7 @@ from PIL import Image
 
 from drgan import pipeline
 from drgan.errors import ConfigError, DataError, DrganError
-from drgan.pipeline import runner, stages, tracking
+from drgan.pipeline import registry, runner, stages, tracking
 
 
 def images_folder(folder: Path, n: int = 3, seed: int = 0) -> Path:
@@ -128,14 +128,17 @@ class FakeStages:
     """Stands in for the stage processes: records each command, writes the stage's done file, and can be told to
     die in a stage (after writing a last.ckpt, as a killed drgan.train leaves one)."""
 
-    def __init__(self, monkeypatch):
+    def __init__(self, monkeypatch, real: tuple[str, ...] = ()):
         self.calls: list[list[str]] = []
         self.die_in: str | None = None
+        self.real, self.run_stage = real, runner.run_stage  # the stages in ``real`` run their own process
         monkeypatch.setattr(runner, "run_stage", self)
         monkeypatch.setattr(runner, "check_stage_settings", lambda s: None)
 
     def __call__(self, stage, env=None):
         self.calls.append([stage.name, *stage.command()[3:]])
+        if stage.name in self.real:
+            return self.run_stage(stage, env)
         if stage.name == self.die_in:
             (stage.folder / "checkpoints").mkdir(parents=True, exist_ok=True)
             (stage.folder / "checkpoints" / "last.ckpt").write_bytes(b"x")
@@ -188,6 +191,129 @@ def test_two_pipelines_on_one_folder_are_refused(tmp_path):
         with pytest.raises(ConfigError, match="another drgan.pipeline is running"):
             with tracking.folder_lock(tmp_path / "out"):
                 pass
+
+
+# --- the table of stages -------------------------------------------------------------------------------------
+
+
+def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
+    """registry.PIPELINE, read by build_stages and parse_settings: each stage's command, done file and refused keys
+    as the pipeline has always given them (pinned here: a change of the table that changes a command fails)."""
+    s = pipeline.parse_settings(
+        [f"data.dir={tmp_path / 'images'}", "name=t", f"out={tmp_path / 'o'}", f"annotated={tmp_path / 'a'}",
+         "train.seed=3", "analyze.inference.tile=64"]
+    )  # fmt: skip
+    o, data, conf = tmp_path / "o", s.data_dir, tmp_path / "o" / "drgan_conf"
+    model = f"model={o / 'segment' / 'checkpoints' / 'last.ckpt'}"
+    logged = ["logger.mlflow.experiment_name=pipeline_t", "parent_run=P"]
+    built = {st.name: (st.module, st.recorded(), st.done_file) for st in stages.build_stages(s, "P", nm_per_px=2.5)}
+    assert built == {
+        "profile": ("drgan.profile", [f"data.dir={data}", "name=t", f"out={o / 'profile'}", f"conf_dir={conf}",
+                                      "overwrite=true"], conf / "material" / "t.yaml"),
+        "train": ("drgan.train", ["material=t", "run_name=t", f"hydra.run.dir={o / 'train'}",
+                                  f"hydra.searchpath=[file://{conf}]", *logged,
+                                  "callbacks.early_stopping.max_minutes=90", "seed=3"], o / "train" / "metrics.json"),
+        "generate": ("drgan.generate", [f"ckpt={o / 'train'}", f"out={o / 'generate'}", "renderer.spp=16"],
+                     o / "generate" / "manifest.json"),
+        "segment": ("drgan.segment", [f"data={o / 'generate'}", f"out={o / 'segment'}", "name=t", "run_name=t",
+                                      *logged], o / "segment" / "metrics.json"),
+        "analyze": ("drgan.analyze", [model, f"images={data}", f"out={o / 'analyze'}", "nm_per_px=2.5",
+                                      "inference.tile=64"], o / "analyze" / "particles.csv"),
+        "evaluate": ("drgan.evaluate", [model, f"data={tmp_path / 'a'}", f"out={o / 'evaluate'}", "subset=all"],
+                     o / "evaluate" / "results.md"),
+    }  # fmt: skip
+    assert registry.PIPELINE_KEYS == {
+        "profile": ("data.dir", "name", "out", "conf_dir", "overwrite"),
+        "train": ("material", "run_name", "hydra.run.dir", "hydra.searchpath", "parent_run", "ckpt_path"),
+        "generate": ("ckpt", "out"),
+        "segment": ("data", "real", "out", "name", "run_name", "parent_run", "ckpt_path"),
+        "analyze": ("model", "images", "out"),
+        "evaluate": ("model", "models", "data", "out"),
+    }
+    assert pipeline.STAGES == registry.STAGES == tuple(built)
+    (o / "train" / "checkpoints").mkdir(parents=True)
+    (o / "train" / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    resumed = {st.name: st.resume() for st in stages.build_stages(s, None) if st.spec.resumes}
+    assert resumed == {"train": ["ckpt_path=last"], "segment": []}  # only train has a checkpoint
+
+
+# --- a toy stage, added as CONTRIBUTING.md says ---------------------------------------------------------------
+
+TOY_STAGE = '''"""A toy pipeline stage: counts the lines of the particle table that analyze wrote."""
+
+import json
+import sys
+from pathlib import Path
+
+args = dict(arg.split("=", 1) for arg in sys.argv[1:])
+out = Path(args["out"])
+out.mkdir(parents=True, exist_ok=True)
+lines = len(Path(args["particles"]).read_text().splitlines())
+(out / "count.json").write_text(json.dumps({"lines": lines, "greeting": args.get("greeting", "hello")}))
+'''
+
+
+def toy_summary(folder: Path) -> dict:
+    counted = json.loads((folder / "count.json").read_text()) if (folder / "count.json").is_file() else {}
+    if not counted:
+        return {}
+    return {
+        "line": f"{counted['lines']} line(s) counted, {counted['greeting']}",
+        "metrics": {"toy/lines": counted["lines"]},
+    }
+
+
+TOY = registry.StageSpec(
+    "toy",
+    wire=lambda c: [f"particles={c.folder('analyze') / 'particles.csv'}", f"out={c.folder('toy')}"],
+    keys=("particles", "out"),
+    done=lambda c: c.folder("toy") / "count.json",
+    summary=toy_summary,
+    what="counts the lines of the particle table",
+    links=(("the count", "count.json"), ("a figure it never drew", "lines.png")),
+    module="drgan_toy_pipeline_stage",
+)
+
+
+def test_a_new_pipeline_stage_is_one_entry_in_the_table(tmp_path, monkeypatch):
+    """CONTRIBUTING.md, "a pipeline stage": its module (here a script outside drgan) and one entry in
+    registry.PIPELINE, after analyze, are the whole change. The toy stage runs as its own process on what analyze
+    wrote, takes its STAGE.KEY=VALUE, refuses the keys the pipeline sets, is skipped once done, runs again with
+    redo=toy, and report.md and pipeline.json summarise it. (The stages before it are faked, as above.)"""
+    (tmp_path / "drgan_toy_pipeline_stage.py").write_text(TOY_STAGE)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    after = registry.STAGES.index("analyze") + 1
+    monkeypatch.setattr(registry, "PIPELINE", [*registry.PIPELINE[:after], TOY, *registry.PIPELINE[after:]])
+    assert pipeline.STAGES == ("profile", "train", "generate", "segment", "analyze", "toy", "evaluate")
+    with pytest.raises(ConfigError, match="toy.out is set by the pipeline.*python -m drgan_toy_pipeline_stage"):
+        settings(tmp_path, "toy.out=/elsewhere")
+
+    images_folder(tmp_path / "images")
+    fake = FakeStages(monkeypatch, real=("toy",))
+    lines = []
+    pipeline.run(settings(tmp_path, "toy.greeting=hi"), echo=lines.append)
+    out = tmp_path / "out"
+    particles = out / "analyze" / "particles.csv"
+    assert fake.names() == ["profile", "train", "generate", "segment", "analyze", "toy"]
+    assert fake.calls[-1] == ["toy", f"particles={particles}", f"out={out / 'toy'}", "greeting=hi"]
+    assert json.loads((out / "toy" / "count.json").read_text()) == {"lines": 1, "greeting": "hi"}  # its own process
+    assert "[6/6] toy: done in" in lines[-2] and lines[-2].endswith(": 1 line(s) counted, hi")
+    record = json.loads((out / "pipeline.json").read_text())["stages"]["toy"]
+    assert record["state"] == "done" and record["summary"]["line"] == "1 line(s) counted, hi"
+    report = (out / "report.md").read_text()
+    assert "| [toy](#toy) | done |" in report and "| 1 line(s) counted, hi |" in report
+    section = report.split("\n## toy\n")[1]
+    assert section.startswith("\ncounts the lines of the particle table.\n\n**1 line(s) counted, hi**\n")
+    assert "Look at: [the count](toy/count.json).\n" in section and "lines.png" not in section
+    assert f"python -m drgan_toy_pipeline_stage particles={particles} out={out / 'toy'} greeting=hi\n" in section
+
+    fake.calls, lines = [], []
+    pipeline.run(settings(tmp_path, "toy.greeting=hi"), echo=lines.append)
+    assert fake.calls == [] and any(line.startswith("[6/6] toy: done (") and "skipped" in line for line in lines)
+
+    pipeline.run(settings(tmp_path, "toy.greeting=again", "redo=toy"), echo=lines.append)
+    assert fake.names() == ["toy"]
+    assert json.loads((out / "toy" / "count.json").read_text())["greeting"] == "again"
 
 
 # --- the real thing, tiny (slow) ---------------------------------------------------------------------------

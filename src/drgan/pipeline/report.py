@@ -1,6 +1,7 @@
 """What a drgan.pipeline run chose and found, read back from the files its stages wrote: one summary per stage
-(``stage_summary``: a line for the console, numbers for MLflow, the rest for the report) and ``report.md``
-(``write_report``), which links every stage's figures and says what each stage chose and why."""
+(``profile_summary`` ...: a line for the console, numbers for MLflow, the rest for the report; each stage's entry in
+registry.py names its own) and ``report.md`` (``write_report``), which links every stage's figures and says what each
+stage chose and why."""
 
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ def _number(value, fmt: str = "{:.3f}") -> str:
     return fmt.format(value) if isinstance(value, (int, float)) and math.isfinite(value) else "n/a"
 
 
-def _profile(folder: Path) -> dict:
+def profile_summary(folder: Path) -> dict:
     p = _json(folder / "profile.json")
     if not p:
         return {}
@@ -48,7 +49,7 @@ def _profile(folder: Path) -> dict:
     }
 
 
-def _train(folder: Path) -> dict:
+def train_summary(folder: Path) -> dict:
     metrics, best = _json(folder / "metrics.json"), _json(folder / "checkpoints" / "best_epoch.json")
     grey = _json(folder / "grey_start.json")
     if not metrics:
@@ -75,7 +76,7 @@ def _train(folder: Path) -> dict:
     }
 
 
-def _generate(folder: Path) -> dict:
+def generate_summary(folder: Path) -> dict:
     manifest = _json(folder / "manifest.json")
     counts = manifest.get("counts") or {}
     if not counts:
@@ -91,7 +92,7 @@ def _generate(folder: Path) -> dict:
     }
 
 
-def _segment(folder: Path) -> dict:
+def segment_summary(folder: Path) -> dict:
     metrics = _json(folder / "metrics.json")
     if not metrics:
         return {}
@@ -115,7 +116,7 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(handle))
 
 
-def _analyze(folder: Path) -> dict:
+def analyze_summary(folder: Path) -> dict:
     summary = _json(folder / "summary.json")
     if not summary:
         return {}
@@ -137,7 +138,7 @@ def _analyze(folder: Path) -> dict:
     }
 
 
-def _evaluate(folder: Path) -> dict:
+def evaluate_summary(folder: Path) -> dict:
     means = [r for r in _rows(folder / "results.csv") if r.get("image") == "mean"]
     if not means:
         return {}
@@ -155,48 +156,15 @@ def _evaluate(folder: Path) -> dict:
     }
 
 
-SUMMARIES = {"profile": _profile, "train": _train, "generate": _generate, "segment": _segment,
-             "analyze": _analyze, "evaluate": _evaluate}  # fmt: skip
-
-
-def stage_summary(stage: str, folder: Path, settings=None) -> dict:
-    """What one finished stage wrote, read back: {"line": ..., "metrics": {...}, ...} ({} when nothing is there)."""
-    return SUMMARIES[stage](Path(folder))
-
-
 # --- report.md ---------------------------------------------------------------------------------------------
-
-LINKS = {
-    "profile": [("report", "report.md"), ("outlines found", "particles.png"), ("sizes", "sizes.png"),
-                ("scale search", "scale_search.png"), ("edge profile", "edge_profile.png")],
-    "train": [("real patches", "patches/contact_sheet.png"), ("FID per evaluation", "plots/fid.png"),
-              ("best epoch and why", "checkpoints/best_epoch.json"), ("grey start", "grey_start.json")],
-    "generate": [("manifest (kept, dropped, why)", "manifest.json"), ("images", "images"), ("masks", "masks")],
-    "segment": [("metrics and split calibration", "metrics.json"), ("log", "segment.log")],
-    "analyze": [("statistics", "statistics.md"), ("size distribution", "sizes.png"), ("particles", "particles.csv"),
-                ("overlays", "overlays")],
-    "evaluate": [("scores", "results.md"), ("statistics", "statistics.md"), ("sizes", "sizes.png"),
-                 ("overlays", "overlays")],
-}  # fmt: skip
-
-WHAT = {
-    "profile": "reads the images (train ids only), detects the polarity, segments the particles classically and writes "
-    "the material: sizes, particles per patch, placement, noise, the edge",
-    "train": "trains the GAN with that material; an evaluation (FID, grey levels) every 67 steps; the best epoch is "
-    "the broadest among the lowest FIDs whose grey matches the real patches'",
-    "generate": "renders annotated pairs from the best epoch, each image's grey levels those of one real patch "
-    "(grey_spread), and adds real background windows",
-    "segment": "trains the segmenter on the pairs and chooses its touching-particle split on held-out pairs",
-    "analyze": "segments every image of the folder and measures each particle",
-    "evaluate": "scores the segmenter on the annotated images (never used for anything else)",
-}
 
 
 def _relative(path: Path, root: Path) -> str:
     return os.path.relpath(path, root)
 
 
-def _train_details(summary: dict) -> list[str]:
+def train_details(summary: dict, settings) -> list[str]:
+    """The GAN's report lines below its result: why it stopped, the chosen epoch's grey, the grey start."""
     lines = []
     if summary.get("stop_message"):
         lines.append(f"- why it stopped: {summary['stop_message']}")
@@ -218,6 +186,18 @@ def _train_details(summary: dict) -> list[str]:
             + f" in {grey.get('steps')} steps"
         )
     return lines
+
+
+def profile_details(summary: dict, settings) -> list[str]:
+    """The profile's report lines below its result: the material it wrote, the pixel size it read."""
+    if not summary.get("parent"):
+        return []
+    out = settings.out
+    return [
+        f"- the material: `{_relative(out / 'drgan_conf' / 'material' / (settings.name + '.yaml'), out)}` "
+        f"(inherits `{summary['parent']}`; every measured key says why it was set)",
+        f"- pixel size: {summary.get('nm_per_px') or 'unknown'} nm/px ({summary.get('pixel_size_source')})",
+    ]
 
 
 def write_report(settings, state: dict, stages) -> None:
@@ -248,20 +228,14 @@ def write_report(settings, state: dict, stages) -> None:
     for stage in stages:
         record = (state.get("stages") or {}).get(stage.name, {})
         summary = record.get("summary") or {}
-        lines += ["", f"## {stage.name}", "", WHAT[stage.name] + "."]
+        lines += ["", f"## {stage.name}", "", stage.spec.what + "."]
         if summary.get("line"):
             lines += ["", f"**{summary['line']}**"]
-        if stage.name == "train":
-            lines += [""] + _train_details(summary) if _train_details(summary) else []
-        if stage.name == "profile" and summary.get("parent"):
-            lines += [
-                "",
-                f"- the material: `{_relative(out / 'drgan_conf' / 'material' / (settings.name + '.yaml'), out)}` "
-                f"(inherits `{summary['parent']}`; every measured key says why it was set)",
-                f"- pixel size: {summary.get('nm_per_px') or 'unknown'} nm/px ({summary.get('pixel_size_source')})",
-            ]
+        details = stage.spec.details(summary, settings)
+        if details:
+            lines += ["", *details]
         links = [
-            f"[{label}]({_relative(stage.folder / rel, out)})" for label, rel in LINKS[stage.name]
+            f"[{label}]({_relative(stage.folder / rel, out)})" for label, rel in stage.spec.links
             if (stage.folder / rel).exists()
         ]  # fmt: skip
         if links:

@@ -28,7 +28,6 @@ are none of the images training reads (compared by content).
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import shutil
@@ -37,10 +36,10 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 
 from drgan.errors import ConfigError, DrganError
-from drgan.pipeline.report import stage_summary, write_report
+from drgan.pipeline.registry import profiled_pixel_size
+from drgan.pipeline.report import write_report
 from drgan.pipeline.settings import CONFIG, REPORT_FILE, STATE_FILE, Settings, parse_settings
 from drgan.pipeline.stages import Stage, build_stages, check_inputs, check_stage_settings
 from drgan.pipeline.tracking import State, Tracker, folder_lock
@@ -93,15 +92,14 @@ def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
             for stage in stages[[st.name for st in stages].index(s.redo) :]:
                 if stage.folder.exists():
                     shutil.rmtree(stage.folder)
-                if stage.name == "profile":
-                    stage.done_file.unlink(missing_ok=True)
+                stage.done_file.unlink(missing_ok=True)  # the profile's (the material) lies outside its folder
                 state.forget(stage.name)
         total, started = len(stages), time.perf_counter()
         status = "FAILED"
         try:
             for number, stage in enumerate(stages, 1):
-                if stage.name == "analyze":  # the pixel size the profile read from the images' metadata
-                    stage = build_stages(s, tracker.parent, _profiled_pixel_size(s.out))[number - 1]
+                # its arguments again, now with what the stages before it found (the profile's pixel size)
+                stage = build_stages(s, tracker.parent, profiled_pixel_size(s.out))[number - 1]
                 record = state.stage(stage.name)
                 if record.get("state") == "done" and stage.done_file.is_file():
                     if record.get("args") != stage.recorded():
@@ -128,11 +126,11 @@ def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
                 if not stage.done_file.is_file():
                     state.update(stage.name, state="failed", exit_code=code, seconds_before=seconds)
                     raise DrganError(f"pipeline: stage {stage.name} exited 0 but wrote no {stage.done_file}")
-                summary = stage_summary(stage.name, stage.folder, s)
+                summary = stage.spec.summary(stage.folder)
                 state.update(stage.name, state="done", seconds=seconds, seconds_before=None, finished=time.time(),
                              summary=summary)  # fmt: skip
-                if stage.name not in ("train", "segment"):  # those two log MLflow runs of their own
-                    tracker.child(stage, seconds, _numbers(summary), _artifacts(stage))
+                if not stage.spec.mlflow_run:  # a stage with an MLflow run of its own (train, segment) logs itself
+                    tracker.child(stage, seconds, _numbers(summary), [stage.folder / n for n in stage.spec.artifacts])
                 echo(f"[{number}/{total}] {stage.name}: done in {_minutes(seconds)}"
                      + (f": {summary['line']}" if summary.get("line") else ""))  # fmt: skip
                 write_report(s, state.data, stages)
@@ -148,22 +146,8 @@ def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
         return state.data
 
 
-def _profiled_pixel_size(out: Path) -> float | None:
-    path = out / "profile" / "profile.json"
-    if not path.is_file():
-        return None
-    size = (json.loads(path.read_text()).get("pixel_size") or {}).get("nm_per_px")
-    return float(size) if size else None
-
-
 def _numbers(summary: dict) -> dict[str, float]:
     return {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
-
-
-def _artifacts(stage: Stage) -> list[Path]:
-    names = {"profile": ["report.md", "profile.json"], "generate": ["manifest.json"],
-             "analyze": ["particles.csv", "histograms.png"], "evaluate": ["results.md", "statistics.md"]}  # fmt: skip
-    return [stage.folder / n for n in names.get(stage.name, [])]
 
 
 def _minutes(seconds) -> str:

@@ -1,4 +1,5 @@
-"""The pipeline's settings: its own keys, and each stage's STAGE.KEY=VALUE routed to that stage."""
+"""The pipeline's settings: its own keys, and each stage's STAGE.KEY=VALUE routed to that stage (the stages and the
+keys the pipeline sets for them: registry.py)."""
 
 from __future__ import annotations
 
@@ -10,14 +11,13 @@ from pathlib import Path
 import yaml
 
 from drgan.errors import ConfigError
+from drgan.pipeline import registry
 
 CONFIG = Path(__file__).parent.parent / "conf" / "pipeline" / "pipeline.yaml"
-STAGES = ("profile", "train", "generate", "segment", "analyze", "evaluate")
 OWN_KEYS = ("data.dir", "name", "annotated", "out", "redo", "mlflow")
 STATE_FILE = "pipeline.json"
 REPORT_FILE = "report.md"
 LOCK_FILE = ".pipeline.lock"
-RESUME_KEY = "ckpt_path"  # the resume flag a stage gets when it has a checkpoint; not a setting
 
 
 # --- settings ---------------------------------------------------------------------------------------------
@@ -60,7 +60,7 @@ def _stage_key(key: str) -> tuple[str, str] | None:
     prefix = re.match(r"^(\+\+|\+|~)?", key).group(0)
     rest = key[len(prefix) :]
     stage, dot, inner = rest.partition(".")
-    if dot and stage in STAGES:
+    if dot and stage in registry.STAGES:
         if not inner:
             raise ConfigError(f"pipeline: {key!r}: expected {stage}.KEY=VALUE")
         return stage, prefix + inner
@@ -70,9 +70,10 @@ def _stage_key(key: str) -> tuple[str, str] | None:
 def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     """The pipeline's settings from its YAML and the command line (``KEY=VALUE`` words); checks names, not files."""
     base = yaml.safe_load(config_path.read_text())
+    names, pipeline_keys = registry.STAGES, registry.PIPELINE_KEYS
     own = {"data.dir": base["data"]["dir"], **{k: base[k] for k in OWN_KEYS if k != "data.dir"}}
     stages: dict[str, dict[str, str]] = {
-        s: {str(k): _value_text(v) for k, v in (base["stages"].get(s) or {}).items()} for s in STAGES
+        s: {str(k): _value_text(v) for k, v in (base["stages"].get(s) or {}).items()} for s in names
     }
     for word in argv:
         key, value = _split_override(word)
@@ -86,7 +87,7 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         else:
             raise ConfigError(
                 f"pipeline: {key}: not a setting of the pipeline ({', '.join(OWN_KEYS)}) nor a stage's key "
-                f"(STAGE.KEY=VALUE with STAGE one of {', '.join(STAGES)}; e.g. train.seed=1)"
+                f"(STAGE.KEY=VALUE with STAGE one of {', '.join(names)}; e.g. train.seed=1)"
             )
     if not own["data.dir"]:
         raise ConfigError("pipeline: give data.dir=DIR (the folder of your images)")
@@ -103,8 +104,8 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     redo = own["redo"]
     if redo in ("null", "None", ""):
         redo = None
-    if redo is not None and redo not in STAGES:
-        raise ConfigError(f"pipeline: redo={redo!r}: expected a stage, one of {', '.join(STAGES)}")
+    if redo is not None and redo not in names:
+        raise ConfigError(f"pipeline: redo={redo!r}: expected a stage, one of {', '.join(names)}")
     annotated = own["annotated"]
     annotated = None if annotated in (None, "null", "None", "") else Path(str(annotated)).expanduser()
     out = own["out"]
@@ -112,11 +113,11 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     mlflow = own["mlflow"]
     mlflow = mlflow if isinstance(mlflow, bool) else str(mlflow).lower() in ("true", "1", "yes")
     for stage, keys in stages.items():
-        fixed = sorted(set(k.lstrip("+~") for k in keys) & set(PIPELINE_KEYS[stage]))
+        fixed = sorted(set(k.lstrip("+~") for k in keys) & set(pipeline_keys[stage]))
         if fixed:
             raise ConfigError(
                 f"pipeline: {stage}.{fixed[0]} is set by the pipeline (it wires the stages' folders together); "
-                f"set out= for another folder, or run python -m drgan.{stage} by hand"
+                f"set out= for another folder, or run python -m {registry.stage_spec(stage).command_module} by hand"
             )
     return Settings(
         data_dir=Path(str(own["data.dir"])).expanduser().resolve(),
@@ -127,14 +128,3 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         mlflow=mlflow,
         stages=stages,
     )
-
-
-# The keys the pipeline sets itself (each stage's folders and links); a user's STAGE.KEY for one of them is refused.
-PIPELINE_KEYS = {
-    "profile": ("data.dir", "name", "out", "conf_dir", "overwrite"),
-    "train": ("material", "run_name", "hydra.run.dir", "hydra.searchpath", "parent_run", RESUME_KEY),
-    "generate": ("ckpt", "out"),
-    "segment": ("data", "real", "out", "name", "run_name", "parent_run", RESUME_KEY),
-    "analyze": ("model", "images", "out"),
-    "evaluate": ("model", "models", "data", "out"),
-}

@@ -10,17 +10,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from drgan.errors import ConfigError, DataError
-from drgan.pipeline.settings import RESUME_KEY, STAGES, Settings
+from drgan.pipeline import registry
+from drgan.pipeline.registry import RESUME_KEY, Context, StageSpec
+from drgan.pipeline.settings import Settings
 
 # --- the stages ---------------------------------------------------------------------------------------------
 
 
 @dataclass
 class Stage:
-    """One stage: its command's module, its folder, the arguments the pipeline gives it, and the file whose
-    presence (with a clean exit) says it is done."""
+    """One stage of this run: its entry in registry.PIPELINE, its folder, the arguments the pipeline gives it, and
+    the file whose presence (with a clean exit) says it is done."""
 
-    name: str
+    spec: StageSpec
     folder: Path
     wired: list[str]  # the pipeline's own arguments (folders, links)
     settings: list[str]  # defaults of the pipeline's config and the user's STAGE.KEY=VALUE
@@ -28,8 +30,12 @@ class Stage:
     resume: Callable[[], list[str]] = field(default=lambda: [])  # extra arguments of a resumed run
 
     @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
     def module(self) -> str:
-        return f"drgan.{self.name}"
+        return self.spec.command_module
 
     def command(self) -> list[str]:
         return [sys.executable, "-m", self.module, *self.wired, *self.settings, *self.resume()]
@@ -44,76 +50,28 @@ def _last_checkpoint(folder: Path) -> Callable[[], list[str]]:
 
 
 def build_stages(s: Settings, parent_run: str | None, nm_per_px: float | None = None) -> list[Stage]:
-    """The stages of a pipeline run, in order (evaluate only with ``annotated``)."""
-    out, name = s.out, s.name
-    conf = out / "drgan_conf"
-    experiment = f"pipeline_{name}"
+    """The stages of a pipeline run, in registry.PIPELINE's order (those whose ``wire`` gives None left out: evaluate
+    without ``annotated``); ``nm_per_px``: the pixel size the profile found."""
+    context = Context(s.out, s.name, s.data_dir, s.annotated, s.stages, nm_per_px)
     links = [f"parent_run={parent_run}"] if parent_run else []
-    logged = [f"logger.mlflow.experiment_name={experiment}", *links] if s.mlflow else ["logger=none"]
-
-    def settings(stage: str) -> list[str]:
-        return [key if value is None else f"{key}={value}" for key, value in s.stages[stage].items()]
-
-    folders = {stage: out / stage for stage in STAGES}
-    model = folders["segment"] / "checkpoints" / "last.ckpt"
-    stages = [
-        Stage(
-            "profile",
-            folders["profile"],
-            [f"data.dir={s.data_dir}", f"name={name}", f"out={folders['profile']}", f"conf_dir={conf}",
-             "overwrite=true"],
-            settings("profile"),
-            conf / "material" / f"{name}.yaml",
-        ),
-        Stage(
-            "train",
-            folders["train"],
-            [f"material={name}", f"run_name={name}", f"hydra.run.dir={folders['train']}",
-             f"hydra.searchpath=[file://{conf}]", *logged],
-            settings("train"),
-            folders["train"] / "metrics.json",
-            _last_checkpoint(folders["train"]),
-        ),
-        Stage(
-            "generate",
-            folders["generate"],
-            [f"ckpt={folders['train']}", f"out={folders['generate']}"],
-            settings("generate"),
-            folders["generate"] / "manifest.json",
-        ),
-        Stage(
-            "segment",
-            folders["segment"],
-            [f"data={folders['generate']}", f"out={folders['segment']}", f"name={name}", f"run_name={name}", *logged],
-            settings("segment"),
-            folders["segment"] / "metrics.json",
-            _last_checkpoint(folders["segment"]),
-        ),
-        Stage(
-            "analyze",
-            folders["analyze"],
-            [f"model={model}", f"images={s.data_dir}", f"out={folders['analyze']}",
-             *([f"nm_per_px={nm_per_px}"] if nm_per_px and "nm_per_px" not in s.stages["analyze"] else [])],
-            settings("analyze"),
-            folders["analyze"] / "particles.csv",
-        ),
-    ]  # fmt: skip
-    if s.annotated is not None:
-        subset = [] if (s.annotated / "split.json").is_file() else ["subset=all"]
+    logged = [f"logger.mlflow.experiment_name=pipeline_{s.name}", *links] if s.mlflow else ["logger=none"]
+    stages = []
+    for spec in registry.PIPELINE:
+        wired = spec.wire(context)
+        if wired is None:
+            continue
+        folder = context.folder(spec.name)
         stages.append(
             Stage(
-                "evaluate",
-                folders["evaluate"],
-                [f"model={model}", f"data={s.annotated}", f"out={folders['evaluate']}", *subset],
-                settings("evaluate"),
-                folders["evaluate"] / "results.md",
+                spec,
+                folder,
+                [*wired, *(logged if spec.mlflow_run else [])],
+                [key if value is None else f"{key}={value}" for key, value in s.stages.get(spec.name, {}).items()],
+                spec.done(context),
+                _last_checkpoint(folder) if spec.resumes else (lambda: []),
             )
         )
     return stages
-
-
-CONFIG_NAMES = {"profile": "profile", "train": "train", "generate": "generate", "segment": "segment",
-                "analyze": "analyze", "evaluate": "evaluate"}  # fmt: skip
 
 
 def check_stage_settings(s: Settings) -> None:
@@ -125,10 +83,11 @@ def check_stage_settings(s: Settings) -> None:
             continue
         overrides = [key if value is None else f"{key}={value}" for key, value in keys.items()]
         try:
-            compose(overrides, config_name=CONFIG_NAMES[stage])
+            compose(overrides, config_name=registry.stage_spec(stage).config_name)
         except Exception as error:  # noqa: BLE001  (Hydra's errors come in several types; all mean a bad key)
             first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-            raise ConfigError(f"pipeline: the {stage} settings {overrides} do not fit drgan.{stage}: {first}") from None
+            module = registry.stage_spec(stage).command_module
+            raise ConfigError(f"pipeline: the {stage} settings {overrides} do not fit {module}: {first}") from None
 
 
 # --- inputs -----------------------------------------------------------------------------------------------
