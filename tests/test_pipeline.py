@@ -18,7 +18,7 @@ from PIL import Image
 
 from drgan import pipeline
 from drgan.errors import ConfigError, DataError, DrganError
-from drgan.pipeline import registry, runner, stages, tracking
+from drgan.pipeline import runner, stage_table, stages, tracking
 
 
 def images_folder(folder: Path, n: int = 3, seed: int = 0) -> Path:
@@ -197,7 +197,7 @@ def test_two_pipelines_on_one_folder_are_refused(tmp_path):
 
 
 def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
-    """registry.PIPELINE, read by build_stages and parse_settings: each stage's command, done file and refused keys
+    """stage_table.PIPELINE, read by build_stages and parse_settings: each stage's command, done file and refused keys
     as the pipeline has always given them (pinned here: a change of the table that changes a command fails)."""
     s = pipeline.parse_settings(
         [f"data.dir={tmp_path / 'images'}", "name=t", f"out={tmp_path / 'o'}", f"annotated={tmp_path / 'a'}",
@@ -222,7 +222,7 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
         "evaluate": ("drgan.evaluate", [model, f"data={tmp_path / 'a'}", f"out={o / 'evaluate'}", "subset=all"],
                      o / "evaluate" / "results.md"),
     }  # fmt: skip
-    assert registry.PIPELINE_KEYS == {
+    assert stage_table.PIPELINE_KEYS == {
         "profile": ("data.dir", "name", "out", "conf_dir", "overwrite"),
         "train": ("material", "run_name", "hydra.run.dir", "hydra.searchpath", "parent_run", "ckpt_path"),
         "generate": ("ckpt", "out"),
@@ -230,7 +230,7 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
         "analyze": ("model", "images", "out"),
         "evaluate": ("model", "models", "data", "out"),
     }
-    assert pipeline.STAGES == registry.STAGES == tuple(built)
+    assert pipeline.STAGES == stage_table.STAGES == tuple(built)
     (o / "train" / "checkpoints").mkdir(parents=True)
     (o / "train" / "checkpoints" / "last.ckpt").write_bytes(b"x")
     resumed = {st.name: st.resume() for st in stages.build_stages(s, None) if st.spec.resumes}
@@ -263,7 +263,7 @@ def toy_summary(folder: Path) -> dict:
     }
 
 
-TOY = registry.StageSpec(
+TOY = stage_table.StageSpec(
     "toy",
     wire=lambda c: [f"particles={c.folder('analyze') / 'particles.csv'}", f"out={c.folder('toy')}"],
     keys=("particles", "out"),
@@ -277,13 +277,13 @@ TOY = registry.StageSpec(
 
 def test_a_new_pipeline_stage_is_one_entry_in_the_table(tmp_path, monkeypatch):
     """CONTRIBUTING.md, "a pipeline stage": its module (here a script outside drgan) and one entry in
-    registry.PIPELINE, after analyze, are the whole change. The toy stage runs as its own process on what analyze
+    stage_table.PIPELINE, after analyze, are the whole change. The toy stage runs as its own process on what analyze
     wrote, takes its STAGE.KEY=VALUE, refuses the keys the pipeline sets, is skipped once done, runs again with
     redo=toy, and report.md and pipeline.json summarise it. (The stages before it are faked, as above.)"""
     (tmp_path / "drgan_toy_pipeline_stage.py").write_text(TOY_STAGE)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    after = registry.STAGES.index("analyze") + 1
-    monkeypatch.setattr(registry, "PIPELINE", [*registry.PIPELINE[:after], TOY, *registry.PIPELINE[after:]])
+    after = stage_table.STAGES.index("analyze") + 1
+    monkeypatch.setattr(stage_table, "PIPELINE", [*stage_table.PIPELINE[:after], TOY, *stage_table.PIPELINE[after:]])
     assert pipeline.STAGES == ("profile", "train", "generate", "segment", "analyze", "toy", "evaluate")
     with pytest.raises(ConfigError, match="toy.out is set by the pipeline.*python -m drgan_toy_pipeline_stage"):
         settings(tmp_path, "toy.out=/elsewhere")

@@ -807,3 +807,18 @@ def test_split_core_opens_a_wide_neck_the_network_is_unsure_of():
 
     with pytest.raises(ConfigError, match="inference.split_core"):
         split_touching(probs, split_core=1.0)
+
+
+def test_segment_yaml_and_the_settings_dataclasses_hold_the_same_defaults(tmp_path):
+    """segment.yaml is the user's reference; LoaderSettings and TrainingPairs are the typed objects the stage reads:
+    their defaults agree, so a key is one field (+ its YAML line), never two values that can drift apart."""
+    import dataclasses
+
+    from drgan.segment import LoaderSettings, TrainingPairs
+
+    cfg = compose(["real=R"], config_name="segment")
+    assert LoaderSettings.from_config(cfg) == LoaderSettings()
+    pairs = TrainingPairs.from_config(cfg)
+    assert pairs == dataclasses.replace(TrainingPairs(), real="R")
+    generated = TrainingPairs.from_config(compose(["data=D", "contour_px=1.5"], config_name="segment"))
+    assert generated == TrainingPairs(data="D")  # real-only keys are not read for generated pairs

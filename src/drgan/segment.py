@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -24,41 +26,82 @@ from drgan.runtime import stage_main, start
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class TrainingPairs:
+    """Where segment's training pairs come from: ``data`` (pairs of drgan.generate) or ``real`` (the train ids of
+    an annotated dataset, with its split, crop_rows, masks, mask_suffix and contour_px); exactly one of the two.
+    Field defaults = segment.yaml's (tests/test_segment.py compares)."""
+
+    data: str | None = None
+    real: str | None = None
+    split: str | None = None
+    contour_px: int = 1
+    crop_rows: Any = "auto"
+    masks: str = "masks"
+    mask_suffix: str = "auto"
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> TrainingPairs:
+        if bool(cfg.get("data")) == bool(cfg.get("real")):
+            raise ConfigError("segment: give exactly one of data=DIR (generated pairs) or real=DATASET (real baseline)")
+        if cfg.get("data"):
+            return cls(data=cfg.data)
+        return cls(
+            real=cfg.real,
+            split=cfg.get("split"),
+            contour_px=setting_int("contour_px", cfg.contour_px, 0),
+            crop_rows=cfg.get("crop_rows"),
+            masks=cfg.get("masks", "masks"),
+            mask_suffix=cfg.get("mask_suffix", "auto"),
+        )
+
+    def load(self):
+        """The pairs (drgan.segmentation.data): generated, or the real dataset's train ids (never its test ids)."""
+        from drgan.segmentation.data import load_generated_pairs, load_real_pairs, real_ids
+
+        if self.data:
+            return load_generated_pairs(self.data, setting="data")
+        real = Path(self.real)
+        ids = real_ids(real, self.split, "train", setting="real")
+        return load_real_pairs(real, ids, self.contour_px, self.crop_rows, self.mask_suffix, self.masks)
+
+
+@dataclass(frozen=True)
+class LoaderSettings:
+    """The ``loader`` group (and seed, val_fraction) of segment.yaml, checked (`from_config`: a ConfigError names
+    the key of a bad value). Field defaults = segment.yaml's (tests/test_segment.py compares)."""
+
+    crop: int = 128  # random crops per sample, px
+    samples_per_pair: int | str = "auto"  # crops of each pair per epoch; auto: real images by area, generated once
+    batch_size: int = 8
+    num_workers: int = 0
+    brightness: float = 0.05  # jitter, in units of the [0, 1] grey range
+    contrast: float = 0.1  # relative contrast jitter
+    seed: int = 0
+    val_fraction: float = 0.1
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> LoaderSettings:
+        ld = cfg.loader
+        per_pair = ld.samples_per_pair
+        return cls(
+            crop=setting_int("loader.crop", ld.crop, 1),
+            samples_per_pair="auto" if per_pair == "auto" else setting_int("loader.samples_per_pair", per_pair, 1),
+            batch_size=setting_int("loader.batch_size", ld.batch_size, 1),
+            num_workers=setting_int("loader.num_workers", ld.num_workers, 0),
+            brightness=setting_float("loader.brightness", ld.brightness, 0.0),
+            contrast=setting_float("loader.contrast", ld.contrast, 0.0),
+            seed=setting_int("seed", cfg.seed),
+            val_fraction=setting_float("val_fraction", cfg.val_fraction),
+        )
+
+
 def load_training_pairs(cfg: DictConfig):
-    from drgan.segmentation.data import load_generated_pairs, load_real_pairs, real_ids
-
-    if bool(cfg.get("data")) == bool(cfg.get("real")):
-        raise ConfigError("segment: give exactly one of data=DIR (generated pairs) or real=DATASET (real baseline)")
-    loader_settings(cfg)  # a bad loader.* value fails before any image is read
-    if cfg.get("data"):
-        return load_generated_pairs(cfg.data, setting="data")
-    real = Path(cfg.real)
-    ids = real_ids(real, cfg.get("split"), "train", setting="real")
-    return load_real_pairs(
-        real,
-        ids,
-        setting_int("contour_px", cfg.contour_px, 0),
-        cfg.get("crop_rows"),
-        cfg.get("mask_suffix", "auto"),
-        cfg.get("masks", "masks"),
-    )
-
-
-def loader_settings(cfg: DictConfig) -> dict:
-    """The `loader` group (and seed, val_fraction) as numbers; a ConfigError names the key of a bad value."""
-    ld = cfg.loader
-    return {
-        "crop": setting_int("loader.crop", ld.crop, 1),
-        "samples_per_pair": (
-            "auto" if ld.samples_per_pair == "auto" else setting_int("loader.samples_per_pair", ld.samples_per_pair, 1)
-        ),
-        "batch_size": setting_int("loader.batch_size", ld.batch_size, 1),
-        "num_workers": setting_int("loader.num_workers", ld.num_workers, 0),
-        "brightness": setting_float("loader.brightness", ld.brightness, 0.0),
-        "contrast": setting_float("loader.contrast", ld.contrast, 0.0),
-        "seed": setting_int("seed", cfg.seed),
-        "val_fraction": setting_float("val_fraction", cfg.val_fraction),
-    }
+    """The training pairs of a segment config, every setting checked first (a bad loader.* value fails before any
+    image is read)."""
+    source = TrainingPairs.from_config(cfg)
+    LoaderSettings.from_config(cfg)
+    return source.load()
 
 
 def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool = False):
@@ -69,33 +112,33 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool =
 
     from drgan.segmentation.data import CropDataset, crops_by_area, split_pairs
 
-    ld = loader_settings(cfg)
-    train_pairs, val_pairs = split_pairs(pairs, ld["val_fraction"], ld["seed"])
-    per_pair = ld["samples_per_pair"]
+    ld = LoaderSettings.from_config(cfg)
+    train_pairs, val_pairs = split_pairs(pairs, ld.val_fraction, ld.seed)
+    per_pair = ld.samples_per_pair
     if per_pair == "auto":
         # Real images are sampled by their area (an epoch of 20 large tiles is not 20 crops); generated pairs are
         # windows the GAN rendered, sampled once each, as their number (1,000 and more) already sets the epoch.
-        per_pair = crops_by_area(train_pairs, ld["crop"]) if cfg.get("real") else 1
+        per_pair = crops_by_area(train_pairs, ld.crop) if cfg.get("real") else 1
     kw = dict(
-        crop=ld["crop"],
-        brightness=ld["brightness"],
-        contrast=ld["contrast"],
-        seed=ld["seed"],
+        crop=ld.crop,
+        brightness=ld.brightness,
+        contrast=ld.contrast,
+        seed=ld.seed,
         normalize=normalize,
         centres=centres,
     )
     crops = CropDataset(train_pairs, augment=True, samples_per_pair=per_pair, **kw)
     train = DataLoader(
         crops,
-        batch_size=ld["batch_size"],
+        batch_size=ld.batch_size,
         shuffle=True,
-        drop_last=len(crops) > ld["batch_size"],
-        num_workers=ld["num_workers"],
-        persistent_workers=ld["num_workers"] > 0,
+        drop_last=len(crops) > ld.batch_size,
+        num_workers=ld.num_workers,
+        persistent_workers=ld.num_workers > 0,
     )
     val = None
     if val_pairs:
-        val = DataLoader(CropDataset(val_pairs, augment=False, **kw), batch_size=ld["batch_size"], num_workers=0)
+        val = DataLoader(CropDataset(val_pairs, augment=False, **kw), batch_size=ld.batch_size, num_workers=0)
     return train, val, len(train_pairs), len(val_pairs)
 
 

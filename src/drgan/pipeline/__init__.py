@@ -1,7 +1,7 @@
 """The pipeline command, from a folder of images to particle numbers: its overview is drgan.pipeline.runner's
-(`python -m drgan.pipeline --help` prints it); its stages are declared in drgan.pipeline.registry."""
+(`python -m drgan.pipeline --help` prints it); its stages are declared in drgan.pipeline.stage_table."""
 
-from drgan.pipeline import registry
+from drgan.pipeline import stage_table
 from drgan.pipeline.runner import main, run
 from drgan.pipeline.settings import Settings, parse_settings
 
@@ -9,7 +9,7 @@ __all__ = ["STAGES", "Settings", "main", "parse_settings", "run"]
 
 
 def __getattr__(name: str):
-    """``STAGES``: the stages' names in order, read from registry.PIPELINE at each read."""
+    """``STAGES``: the stages' names in order, read from stage_table.PIPELINE at each read."""
     if name == "STAGES":
-        return registry.STAGES
+        return stage_table.STAGES
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,6 +1,6 @@
 """What a drgan.pipeline run chose and found, read back from the files its stages wrote: one summary per stage
 (``profile_summary`` ...: a line for the console, numbers for MLflow, the rest for the report; each stage's entry in
-registry.py names its own) and ``report.md`` (``write_report``), which links every stage's figures and says what each
+stage_table.py names its own) and ``report.md`` (``write_report``), which links every stage's figures and says what each
 stage chose and why."""
 
 from __future__ import annotations

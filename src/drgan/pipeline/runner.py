@@ -38,9 +38,9 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 
 from drgan.errors import ConfigError, DrganError
-from drgan.pipeline.registry import profiled_pixel_size
 from drgan.pipeline.report import write_report
 from drgan.pipeline.settings import CONFIG, REPORT_FILE, STATE_FILE, Settings, parse_settings
+from drgan.pipeline.stage_table import profiled_pixel_size
 from drgan.pipeline.stages import Stage, build_stages, check_inputs, check_stage_settings
 from drgan.pipeline.tracking import State, Tracker, folder_lock
 

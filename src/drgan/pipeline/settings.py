@@ -1,5 +1,5 @@
 """The pipeline's settings: its own keys, and each stage's STAGE.KEY=VALUE routed to that stage (the stages and the
-keys the pipeline sets for them: registry.py)."""
+keys the pipeline sets for them: stage_table.py)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import yaml
 
 from drgan.errors import ConfigError
-from drgan.pipeline import registry
+from drgan.pipeline import stage_table
 
 CONFIG = Path(__file__).parent.parent / "conf" / "pipeline" / "pipeline.yaml"
 OWN_KEYS = ("data.dir", "name", "annotated", "out", "redo", "mlflow")
@@ -60,7 +60,7 @@ def _stage_key(key: str) -> tuple[str, str] | None:
     prefix = re.match(r"^(\+\+|\+|~)?", key).group(0)
     rest = key[len(prefix) :]
     stage, dot, inner = rest.partition(".")
-    if dot and stage in registry.STAGES:
+    if dot and stage in stage_table.STAGES:
         if not inner:
             raise ConfigError(f"pipeline: {key!r}: expected {stage}.KEY=VALUE")
         return stage, prefix + inner
@@ -70,7 +70,7 @@ def _stage_key(key: str) -> tuple[str, str] | None:
 def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     """The pipeline's settings from its YAML and the command line (``KEY=VALUE`` words); checks names, not files."""
     base = yaml.safe_load(config_path.read_text())
-    names, pipeline_keys = registry.STAGES, registry.PIPELINE_KEYS
+    names, pipeline_keys = stage_table.STAGES, stage_table.PIPELINE_KEYS
     own = {"data.dir": base["data"]["dir"], **{k: base[k] for k in OWN_KEYS if k != "data.dir"}}
     stages: dict[str, dict[str, str]] = {
         s: {str(k): _value_text(v) for k, v in (base["stages"].get(s) or {}).items()} for s in names
@@ -117,7 +117,7 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         if fixed:
             raise ConfigError(
                 f"pipeline: {stage}.{fixed[0]} is set by the pipeline (it wires the stages' folders together); "
-                f"set out= for another folder, or run python -m {registry.stage_spec(stage).command_module} by hand"
+                f"set out= for another folder, or run python -m {stage_table.stage_spec(stage).command_module} by hand"
             )
     return Settings(
         data_dir=Path(str(own["data.dir"])).expanduser().resolve(),

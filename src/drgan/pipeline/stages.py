@@ -10,16 +10,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from drgan.errors import ConfigError, DataError
-from drgan.pipeline import registry
-from drgan.pipeline.registry import RESUME_KEY, Context, StageSpec
+from drgan.pipeline import stage_table
 from drgan.pipeline.settings import Settings
+from drgan.pipeline.stage_table import RESUME_KEY, Context, StageSpec
 
 # --- the stages ---------------------------------------------------------------------------------------------
 
 
 @dataclass
 class Stage:
-    """One stage of this run: its entry in registry.PIPELINE, its folder, the arguments the pipeline gives it, and
+    """One stage of this run: its entry in stage_table.PIPELINE, its folder, the arguments the pipeline gives it, and
     the file whose presence (with a clean exit) says it is done."""
 
     spec: StageSpec
@@ -50,13 +50,13 @@ def _last_checkpoint(folder: Path) -> Callable[[], list[str]]:
 
 
 def build_stages(s: Settings, parent_run: str | None, nm_per_px: float | None = None) -> list[Stage]:
-    """The stages of a pipeline run, in registry.PIPELINE's order (those whose ``wire`` gives None left out: evaluate
+    """The stages of a pipeline run, in stage_table.PIPELINE's order (those whose ``wire`` gives None left out: evaluate
     without ``annotated``); ``nm_per_px``: the pixel size the profile found."""
     context = Context(s.out, s.name, s.data_dir, s.annotated, s.stages, nm_per_px)
     links = [f"parent_run={parent_run}"] if parent_run else []
     logged = [f"logger.mlflow.experiment_name=pipeline_{s.name}", *links] if s.mlflow else ["logger=none"]
     stages = []
-    for spec in registry.PIPELINE:
+    for spec in stage_table.PIPELINE:
         wired = spec.wire(context)
         if wired is None:
             continue
@@ -83,10 +83,10 @@ def check_stage_settings(s: Settings) -> None:
             continue
         overrides = [key if value is None else f"{key}={value}" for key, value in keys.items()]
         try:
-            compose(overrides, config_name=registry.stage_spec(stage).config_name)
+            compose(overrides, config_name=stage_table.stage_spec(stage).config_name)
         except Exception as error:  # noqa: BLE001  (Hydra's errors come in several types; all mean a bad key)
             first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-            module = registry.stage_spec(stage).command_module
+            module = stage_table.stage_spec(stage).command_module
             raise ConfigError(f"pipeline: the {stage} settings {overrides} do not fit {module}: {first}") from None
 
 
