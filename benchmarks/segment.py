@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from drgan.data.images import read_grey
-from drgan.segmentation.inference import predict, predict_probs, split_touching
-from drgan.segmentation.module import SegmenterModule, load_segmenter
+from drgan.segmenters.inference import predict, predict_probs, split_touching
+from drgan.segmenters.module import SegmenterModule, load_segmenter
 
 
 def main() -> None:

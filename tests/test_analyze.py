@@ -30,7 +30,7 @@ def field(seed: int, size: int = 64) -> np.ndarray:
 
 
 def class_map_of(labels: np.ndarray) -> np.ndarray:
-    from drgan.segmentation.inference import separate_regions
+    from drgan.segmenters.inference import separate_regions
 
     return separate_regions(labels)
 

@@ -1,4 +1,4 @@
-"""The touching-particle split chosen per segmenter on its validation pairs (drgan.segmentation.calibrate)."""
+"""The touching-particle split chosen per segmenter on its validation pairs (drgan.segmenters.calibrate)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 
 from drgan.errors import ConfigError
 from drgan.scene.labels import class_mask
-from drgan.segmentation.data import Pair
+from drgan.segmenters.pairs import Pair
 
 
 class ProbabilityImage(torch.nn.Module):
@@ -45,7 +45,7 @@ def _pair(labels: np.ndarray, neck_probability: float | None = None) -> Pair:
 
 
 def test_the_core_that_opens_an_unsure_neck_is_chosen_and_the_table_is_exact():
-    from drgan.segmentation.calibrate import calibrate_split
+    from drgan.segmenters.calibrate import calibrate_split
 
     pair = _pair(_two_touching_discs(r=10.0, gap=7.0), neck_probability=0.6)
     result = calibrate_split(ProbabilityImage(), [pair, pair], {"cores": [None, 0.7], "depths": [2.0]}, tile=48)
@@ -57,7 +57,7 @@ def test_the_core_that_opens_an_unsure_neck_is_chosen_and_the_table_is_exact():
 
 
 def test_ties_keep_the_more_lenient_setting_and_max_pairs_caps_the_work():
-    from drgan.segmentation.calibrate import calibrate_split
+    from drgan.segmenters.calibrate import calibrate_split
 
     apart = _pair(_two_touching_discs(r=7.0, gap=20.0))  # well apart: every setting finds both
     result = calibrate_split(
@@ -78,7 +78,7 @@ def test_ties_keep_the_more_lenient_setting_and_max_pairs_caps_the_work():
     ],
 )
 def test_bad_grids_are_config_errors_naming_the_entry(grid, message):
-    from drgan.segmentation.calibrate import check_grid
+    from drgan.segmenters.calibrate import check_grid
 
     with pytest.raises(ConfigError, match=message):
         check_grid(grid)
@@ -87,7 +87,7 @@ def test_bad_grids_are_config_errors_naming_the_entry(grid, message):
 
 def test_auto_settings_come_from_the_checkpoint_or_the_uncalibrated_defaults(tmp_path, caplog):
     from drgan.checkpoint_io import add_entry
-    from drgan.segmentation.calibrate import CHECKPOINT_KEY, UNCALIBRATED, resolve_auto, stored_split
+    from drgan.segmenters.calibrate import CHECKPOINT_KEY, UNCALIBRATED, resolve_auto, stored_split
 
     path = tmp_path / "x.ckpt"
     torch.save({"state_dict": {"w": torch.zeros(2)}}, path)

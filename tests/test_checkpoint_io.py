@@ -109,7 +109,7 @@ def test_segment_evaluate_and_analyze_refuse_a_crafted_checkpoint(crafted, tmp_p
     from drgan.analyze import analyze
     from drgan.evaluate import evaluate
     from drgan.segment import segment
-    from drgan.segmentation.module import load_segmenter
+    from drgan.segmenters.module import load_segmenter
 
     path, marker = crafted
     with pytest.raises(DataError, match=f"model=.*{REFUSED}"):
@@ -189,7 +189,7 @@ def test_real_checkpoints_need_no_allow_listed_class(tiny_run, segmenter_run):  
 
 def test_real_checkpoints_load_at_every_site(tiny_run, segmenter_run, tmp_path):  # noqa: F811
     from drgan.runtime import resolve_checkpoint
-    from drgan.segmentation.module import load_segmenter
+    from drgan.segmenters.module import load_segmenter
 
     best, last = tiny_run / "checkpoints" / "best.ckpt", tiny_run / "checkpoints" / "last.ckpt"
     saved = checkpoint_config(best)

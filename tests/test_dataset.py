@@ -75,7 +75,7 @@ def test_ids_and_files():
 
 def test_write_read_roundtrip(tmp_path):
     """Items written by DatasetFolder come back from the manifest, pixel for pixel, in id order."""
-    from drgan.segmentation.data import load_generated_pairs
+    from drgan.segmenters.pairs import load_generated_pairs
 
     folder = DatasetFolder(tmp_path / "data")
     folder.check_settings(settings(3).fixed())
@@ -170,7 +170,7 @@ def test_resume_of_a_half_written_shard(tmp_path):
 
 
 def test_foreign_and_unfinished_folders_are_named(tmp_path):
-    from drgan.segmentation.data import load_generated_pairs
+    from drgan.segmenters.pairs import load_generated_pairs
 
     real = tmp_path / "tio2_like"  # a real dataset: images and split, binary masks under another name
     (real / "images").mkdir(parents=True)
@@ -278,7 +278,7 @@ def partial_patchset(root: Path) -> tuple[Path, list[np.ndarray]]:
 def test_partial_backgrounds_fill_up_n_background_with_their_particles_ignored(tmp_path, caplog):
     from scipy import ndimage
 
-    from drgan.segmentation.data import load_generated_pairs
+    from drgan.segmenters.pairs import load_generated_pairs
     from drgan.synthetic.backgrounds import PartialSettings, write_backgrounds
     from drgan.synthetic.folder import IGNORE, pbg_id
 
@@ -382,7 +382,7 @@ def test_partial_settings_are_fixed_only_when_not_the_defaults_and_shard_0_write
 
 
 def test_generated_masks_may_hold_the_ignore_value_but_no_other(tmp_path):
-    from drgan.segmentation.data import load_generated_pairs
+    from drgan.segmenters.pairs import load_generated_pairs
 
     root = tmp_path / "pairs"
     image, mask, _ = item_arrays(1)

@@ -429,7 +429,7 @@ def test_export_nnunet_declares_the_ignore_label_for_partial_backgrounds(partial
 
 def test_export_and_segment_read_the_dataset_through_its_manifest(dataset, tmp_path):
     from drgan.errors import DataError
-    from drgan.segmentation.data import load_generated_pairs
+    from drgan.segmenters.pairs import load_generated_pairs
 
     data = tmp_path / "data"
     shutil.copytree(dataset, data)

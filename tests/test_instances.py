@@ -1,4 +1,4 @@
-"""The instance-aware segmenter (drgan.segmentation.instances): its centre-map targets from hand-made instance maps,
+"""The instance-aware segmenter (drgan.segmenters.instances): its centre-map targets from hand-made instance maps,
 exactly against a brute-force distance; its split on hand-made probabilities; a few training steps through
 drgan.segment, drgan.evaluate and drgan.analyze; instance maps as annotations."""
 
@@ -88,7 +88,7 @@ def _probs(labels: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 def test_split_by_centres_separates_touching_particles_the_class_map_merges():
     from drgan.metrics.instance_scores import binarize_and_label, match_instances
-    from drgan.segmentation.inference import split_by_centres
+    from drgan.segmenters.inference import split_by_centres
 
     truth = touching_pair()
     probs = _probs(truth, centre_distance(truth))  # the classes merge them; the centre map has two cores
@@ -114,7 +114,7 @@ def make_generated_with_labels(folder: Path, n: int = 6, size: int = 32) -> Path
 
 
 def test_the_crops_carry_the_centre_targets_of_the_whole_image_cut_and_turned_with_the_mask(tmp_path):
-    from drgan.segmentation.data import CropDataset, load_generated_pairs
+    from drgan.segmenters.pairs import CropDataset, load_generated_pairs
 
     pairs = load_generated_pairs(make_generated_with_labels(tmp_path / "g"))
     assert pairs[0].labels is not None and pairs[0].labels.max() >= 1
@@ -131,13 +131,13 @@ def test_a_few_training_steps_through_segment_evaluate_and_analyze(tmp_path):
     from drgan.analyze import analyze
     from drgan.evaluate import evaluate
     from drgan.segment import segment
-    from drgan.segmentation.registry import load_segmenter
+    from drgan.segmenters.registry import load_segmenter
 
     data = make_generated_with_labels(tmp_path / "gen")
     out = tmp_path / "run"
     overrides = tiny_segment_overrides(
         data, tmp_path, out, "logger=none", "trainer.max_epochs=2",
-        "model._target_=drgan.segmentation.instances.CentreSegmenterModule", "+model.distance_weight=5.0",
+        "model._target_=drgan.segmenters.instances.CentreSegmenterModule", "+model.distance_weight=5.0",
     )  # fmt: skip
     metrics = segment(compose(overrides, config_name="segment"))
     assert "train/centre_mse" in metrics and np.isfinite(metrics["val/loss"])
@@ -162,7 +162,7 @@ def test_a_few_training_steps_through_segment_evaluate_and_analyze(tmp_path):
 def test_an_instance_map_annotation_keeps_touching_particles_apart(tmp_path):
     import tifffile
 
-    from drgan.segmentation.data import load_real_items
+    from drgan.segmenters.pairs import load_real_items
 
     labels = touching_pair().astype(np.uint16) * 300  # ids 300 and 600: a 16-bit instance map
     folder = tmp_path / "real"

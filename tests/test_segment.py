@@ -68,15 +68,15 @@ def make_real(folder: Path, images: dict, masks: dict, split: dict) -> Path:
 
 @pytest.mark.parametrize("depth, base, size", [(4, 16, (64, 64)), (3, 8, (37, 50)), (1, 4, (5, 7))])
 def test_unet_output_shape(depth, base, size):
-    from drgan.segmentation.unet import UNet
+    from drgan.segmenters.unet import UNet
 
     net = UNet(1, 3, depth, base).eval()
     assert net(torch.rand(2, 1, *size)).shape == (2, 3, *size)
 
 
 def test_training_steps_reduce_loss():
-    from drgan.segmentation.data import CropDataset, Pair
-    from drgan.segmentation.module import SegmenterModule
+    from drgan.segmenters.module import SegmenterModule
+    from drgan.segmenters.pairs import CropDataset, Pair
 
     torch.manual_seed(0)
     pairs = [Pair(str(i), disc_image(disc_labels(seed=i), i), class_mask(disc_labels(seed=i), 1)) for i in range(4)]
@@ -120,7 +120,7 @@ def test_losses_and_val_dsc_leave_ignored_pixels_out():
     import torch.nn.functional as F
 
     from drgan.scene.labels import IGNORE
-    from drgan.segmentation.module import cross_entropy, particle_dsc, soft_dice_loss
+    from drgan.segmenters.module import cross_entropy, particle_dsc, soft_dice_loss
 
     gen = torch.Generator().manual_seed(0)
     target = torch.randint(0, 3, (2, 6, 5), generator=gen)
@@ -145,7 +145,7 @@ def test_losses_and_val_dsc_leave_ignored_pixels_out():
 
 def test_an_all_ignored_crop_gives_a_finite_loss_and_gradients():
     from drgan.scene.labels import IGNORE
-    from drgan.segmentation.module import SegmenterModule, cross_entropy, particle_dsc, soft_dice_loss
+    from drgan.segmenters.module import SegmenterModule, cross_entropy, particle_dsc, soft_dice_loss
 
     torch.manual_seed(0)
     model = SegmenterModule(depth=2, base=4)
@@ -167,7 +167,7 @@ def test_an_all_ignored_crop_gives_a_finite_loss_and_gradients():
 
 def test_contact_pixels_are_the_line_between_touching_particles_and_narrow_gaps():
     from drgan.scene.labels import IGNORE
-    from drgan.segmentation.module import contact_pixels
+    from drgan.segmenters.module import contact_pixels
 
     # class_mask draws a 1-px contour inside each instance: two touching 6 x 6 squares have a 2-px contour line
     # between their interiors; a pair with 3 background columns between them has 5 non-particle columns between
@@ -198,7 +198,7 @@ def test_contact_weighted_cross_entropy_matches_a_hand_computation_and_trains_th
     import torch.nn.functional as F
 
     from drgan.scene.labels import IGNORE
-    from drgan.segmentation.module import SegmenterModule, contact_pixels, cross_entropy
+    from drgan.segmenters.module import SegmenterModule, contact_pixels, cross_entropy
 
     gen = torch.Generator().manual_seed(3)
     labels = np.zeros((16, 16), np.int32)
@@ -247,7 +247,7 @@ def test_contact_weighted_cross_entropy_matches_a_hand_computation_and_trains_th
 
 def test_crops_carry_the_ignore_value_unchanged():
     from drgan.scene.labels import IGNORE
-    from drgan.segmentation.data import CropDataset, Pair
+    from drgan.segmenters.pairs import CropDataset, Pair
 
     rng = np.random.default_rng(0)
     mask = rng.choice(np.array([0, 1, 2, IGNORE], np.uint8), size=(20, 20))
@@ -270,8 +270,8 @@ def test_crops_carry_the_ignore_value_unchanged():
 
 
 def test_sliding_window_matches_direct_inference():
-    from drgan.segmentation.inference import predict, predict_probs
-    from drgan.segmentation.unet import UNet
+    from drgan.segmenters.inference import predict, predict_probs
+    from drgan.segmenters.unet import UNet
 
     torch.manual_seed(0)
     net = UNet(1, 3, 3, 4).eval()
@@ -292,9 +292,9 @@ def test_zscore_segmenter_ignores_detector_brightness_and_contrast():
     """A "zscore" model predicts the same on a*x + b as on x (whole-image statistics, at inference as in
     training crops); the raw "none" model does not, so the check can fail."""
     from drgan.errors import ConfigError
-    from drgan.segmentation.data import CropDataset, Pair
-    from drgan.segmentation.inference import predict_probs
-    from drgan.segmentation.module import SegmenterModule
+    from drgan.segmenters.inference import predict_probs
+    from drgan.segmenters.module import SegmenterModule
+    from drgan.segmenters.pairs import CropDataset, Pair
 
     labels = disc_labels(size=48, n=4)
     image = disc_image(labels)
@@ -337,7 +337,7 @@ def _probs_of(particle: np.ndarray, contour: np.ndarray | None = None) -> np.nda
 
 def test_separate_regions_gives_one_4_connected_instance_per_region():
     from drgan.metrics.instance_scores import binarize_and_label
-    from drgan.segmentation.inference import separate_regions
+    from drgan.segmenters.inference import separate_regions
 
     labels = np.zeros((6, 8), np.int32)
     labels[1:5, 1:4] = 1
@@ -353,7 +353,7 @@ def test_separate_regions_gives_one_4_connected_instance_per_region():
 
 def test_split_touching_separates_a_merged_pair_and_keeps_single_particles():
     from drgan.metrics.instance_scores import binarize_and_label, match_instances
-    from drgan.segmentation.inference import split_touching
+    from drgan.segmenters.inference import split_touching
 
     truth = _two_touching_discs()
     merged = _probs_of(truth > 0)  # the network drew no line between them
@@ -374,8 +374,8 @@ def test_split_touching_separates_a_merged_pair_and_keeps_single_particles():
 
 def test_predictor_settings_are_checked_before_predicting():
     from drgan.errors import ConfigError
-    from drgan.segmentation.inference import make_predictor, predict
-    from drgan.segmentation.unet import UNet
+    from drgan.segmenters.inference import make_predictor, predict
+    from drgan.segmenters.unet import UNet
 
     net = UNet(1, 3, 2, 4).eval()
     for bad, message in [
@@ -387,7 +387,7 @@ def test_predictor_settings_are_checked_before_predicting():
             make_predictor(net, bad)
     image = np.random.default_rng(0).random((32, 32)).astype(np.float32)
     # split="none" is the plain argmax of the probabilities
-    from drgan.segmentation.inference import predict_probs
+    from drgan.segmenters.inference import predict_probs
 
     assert (predict(net, image, split="none", tile=32) == predict_probs(net, image, tile=32).argmax(0)).all()
 
@@ -513,7 +513,7 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     assert {"train/loss", "val/loss", "val/dsc"} <= set(metrics)
     last = out / "checkpoints" / "last.ckpt"
     assert last.is_file() and json.loads((out / "metrics.json").read_text())["global_step"] == 1
-    from drgan.segmentation.module import load_segmenter
+    from drgan.segmenters.module import load_segmenter
 
     assert load_segmenter(last).input_normalization == "zscore"  # travels with the checkpoint to inference
     # the split chosen on the validation pairs is stored in the checkpoint and read back by evaluate's auto
@@ -521,7 +521,7 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     assert calibration["n_pairs"] >= 1 and len(calibration["table"]) == 14
     assert load_segmenter(last).split_calibration == calibration
     saved = torch.load(last, map_location="cpu", weights_only=True)["hyper_parameters"]
-    assert saved["_target_"] == "drgan.segmentation.module.SegmenterModule"  # the class, for the registry's loader
+    assert saved["_target_"] == "drgan.segmenters.module.SegmenterModule"  # the class, for the registry's loader
     again = segment(compose([*common, "trainer.max_epochs=2", "ckpt_path=last"], config_name="segment"))
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 2 and "train/loss" in again
 
@@ -665,7 +665,7 @@ def with_info_bar(image, rows=12):
 def test_info_bars_are_found_and_masks_published_without_them_are_accepted(tmp_path):
     """TSEM's layout: image with its info bar, mask already without it and named like the image (no _m)."""
     from drgan.data.images import info_bar_rows
-    from drgan.segmentation.data import load_real
+    from drgan.segmenters.pairs import load_real
 
     rng = np.random.default_rng(0)
     field = np.clip(0.7 + rng.normal(0, 0.05, (48, 40)), 0.01, 0.99)
@@ -755,7 +755,7 @@ def test_real_images_are_sampled_by_their_area_and_generated_pairs_once_each(tmp
     """An epoch of a few large real images is not a few crops: loader.samples_per_pair=auto draws round(area /
     crop^2) crops of each real image, and one of each generated pair (their number already sets the epoch)."""
     from drgan.segment import dataloaders, load_training_pairs
-    from drgan.segmentation.data import CropDataset, crops_by_area
+    from drgan.segmenters.pairs import CropDataset, crops_by_area
 
     labels = {i: disc_labels(64, seed=k) for k, i in enumerate(("a", "b", "c"))}
     real = make_real(
@@ -780,7 +780,7 @@ def test_real_images_are_sampled_by_their_area_and_generated_pairs_once_each(tmp
 
 
 def test_a_validation_score_has_settled_only_when_the_last_epochs_stopped_raising_it():
-    from drgan.segmentation.module import settled
+    from drgan.segmenters.module import settled
 
     assert settled([0.2, 0.5, 0.6, 0.6, 0.605, 0.6])[0]  # +0.005 over the last 3 epochs
     rising, why = settled([0.2, 0.3, 0.32, 0.34, 0.36])
@@ -790,7 +790,7 @@ def test_a_validation_score_has_settled_only_when_the_last_epochs_stopped_raisin
 
 def test_split_core_opens_a_wide_neck_the_network_is_unsure_of():
     from drgan.metrics.instance_scores import binarize_and_label, match_instances
-    from drgan.segmentation.inference import split_touching
+    from drgan.segmenters.inference import split_touching
 
     truth = _two_touching_discs(r=10.0, gap=7.0)  # a neck almost as wide as the discs
     probs = _probs_of(truth > 0)

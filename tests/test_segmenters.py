@@ -1,6 +1,6 @@
 """The segmenter seam: segmenters built from `_target_` configs, checkpoints rebuilt only from the allow-list
-(drgan.segmentation.registry), and one loader from what a user names (a checkpoint, or a folder of predicted masks
-such as nnU-Net's output) to class maps (drgan.segmentation.predictors), used by evaluate and analyze.
+(drgan.segmenters.registry), and one loader from what a user names (a checkpoint, or a folder of predicted masks
+such as nnU-Net's output) to class maps (drgan.segmenters.predictors), used by evaluate and analyze.
 
 Masks are written by hand with numpy and PIL; their scores are counted by hand in the docstrings.
 """
@@ -23,13 +23,13 @@ from PIL import Image
 from test_segment import disc_image, disc_labels, eval_cfg, make_real
 
 from drgan.errors import ConfigError, DataError
-from drgan.segmentation import registry
-from drgan.segmentation.module import SegmenterModule
+from drgan.segmenters import registry
+from drgan.segmenters.module import SegmenterModule
 from drgan.targets import target_path
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-TARGET = "drgan.segmentation.module.SegmenterModule"
+TARGET = "drgan.segmenters.module.SegmenterModule"
 TINY = ["model.depth=2", "model.base=4"]
 
 
@@ -171,7 +171,7 @@ def test_registered_and_entry_point_segmenters_load(own_registry, tmp_path, monk
     assert type(registry.load_segmenter(tmp_path / "mine.ckpt")) is TinySegmenter
 
     (tmp_path / "plugin_seg.py").write_text(
-        "from drgan.segmentation.module import SegmenterModule\n\nclass PluginSegmenter(SegmenterModule):\n    pass\n"
+        "from drgan.segmenters.module import SegmenterModule\n\nclass PluginSegmenter(SegmenterModule):\n    pass\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     points = [
@@ -327,8 +327,8 @@ import lightning.pytorch as L
 import torch
 from torch.nn.functional import cross_entropy
 
-from drgan.segmentation.module import particle_dsc
-from drgan.segmentation.registry import register_segmenter
+from drgan.segmenters.module import particle_dsc
+from drgan.segmenters.registry import register_segmenter
 
 
 @register_segmenter

@@ -104,7 +104,7 @@ def test_evaluate_writes_particle_statistics_and_the_classical_baseline_finds_th
         {i: (labels[i] > 0) * 255 for i in ids},
         {"train": [], "test": ids},
     )
-    from drgan.segmentation.predictors import load_predictor
+    from drgan.segmenters.predictors import load_predictor
 
     class Truth:  # a predictor that returns each image's own mask
         source, how = "masks", ""

@@ -73,7 +73,7 @@ def generated(folder: Path, polarity: str, n: int) -> list[float]:
 
 
 def real(folder: Path, ids: str, polarity: str) -> list[float]:
-    from drgan.segmentation.data import load_real_items, real_ids
+    from drgan.segmenters.pairs import load_real_items, real_ids
 
     values = []
     for item, labels in load_real_items(folder, real_ids(folder, None, ids, "real")):

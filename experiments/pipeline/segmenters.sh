@@ -18,7 +18,7 @@ ANNOTATED=$(python -c "import json,sys; print(json.load(open('$RUN/pipeline.json
 OUT=$RUN/extra
 mkdir -p "$OUT"
 export OMP_NUM_THREADS=${THREADS:-2}
-centres=(model._target_=drgan.segmentation.instances.CentreSegmenterModule +model.distance_weight=5.0)
+centres=(model._target_=drgan.segmenters.instances.CentreSegmenterModule +model.distance_weight=5.0)
 
 for variant in $VARIANTS; do
   case $variant in

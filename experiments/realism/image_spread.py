@@ -36,14 +36,14 @@ def measures(image: np.ndarray, particle: np.ndarray, known: np.ndarray) -> tupl
 
 
 def generated(folder: Path) -> list[tuple[float, float]]:
-    from drgan.segmentation.data import load_generated_pairs
+    from drgan.segmenters.pairs import load_generated_pairs
 
     pairs = [p for p in load_generated_pairs(folder) if p.id.startswith("syn_")]  # rendered items only
     return [measures(p.image, (p.mask == 1) | (p.mask == 2), p.mask != 255) for p in pairs]
 
 
 def real(dataset: Path) -> list[tuple[float, float]]:
-    from drgan.segmentation.data import load_real_pairs
+    from drgan.segmenters.pairs import load_real_pairs
 
     ids = json.loads((dataset / "split.json").read_text())["train"]  # test ids are never read
     out = []

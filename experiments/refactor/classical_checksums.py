@@ -7,7 +7,7 @@ after a refactor of either (experiments/refactor/checksums.md).
 Per image (read with drgan.data.images.read_grey, crop_rows=auto; polarity detected): the resolved settings and
 the scale search's record (`resolve_params`, as JSON), the labels and foreground of `segment_with_report` with them,
 `particle_foreground`, `segment_particles` at the resolved scale with seed_depth 1 and without grown outlines, and
-`drgan.segmentation.inference.split_touching` of class probabilities made from the classical labels (particle,
+`drgan.segmenters.inference.split_touching` of class probabilities made from the classical labels (particle,
 a 1-px contour between segments, background; Gaussian-blurred, seeded noise) with its default and two other
 settings. Each line: image, what, sha256 of the array's bytes (with its dtype and shape) or of the JSON.
 """
@@ -40,7 +40,7 @@ except ImportError:
     )
 from drgan.data.images import read_grey
 from drgan.data.polarity import detect_polarity
-from drgan.segmentation.inference import split_touching
+from drgan.segmenters.inference import split_touching
 
 
 def digest(value) -> str:

@@ -1,5 +1,5 @@
 """Choose and store the touching-particle split of segmenter checkpoints on held-out generated pairs, as
-`drgan.segment` does after training on its own validation pairs (drgan.segmentation.calibrate).
+`drgan.segment` does after training on its own validation pairs (drgan.segmenters.calibrate).
 
 For U-Nets trained where the calibration did not finish (issue 27's synthetic-trained U-Nets on the lent GPU,
 experiments/statistics/README.md): the pairs come from the same generator with another seed than the training set,
@@ -19,9 +19,9 @@ from omegaconf import OmegaConf
 
 import drgan
 from drgan.checkpoint_io import add_entry
-from drgan.segmentation.calibrate import CHECKPOINT_KEY, as_array_free, calibrate_split, markdown_table
-from drgan.segmentation.data import load_generated_pairs
-from drgan.segmentation.registry import load_segmenter
+from drgan.segmenters.calibrate import CHECKPOINT_KEY, as_array_free, calibrate_split, markdown_table
+from drgan.segmenters.pairs import load_generated_pairs
+from drgan.segmenters.registry import load_segmenter
 
 # drgan.segment's own grid (segment.yaml's split_calibration), so both choose among the same splits
 SEGMENT_YAML = Path(drgan.__file__).parent / "conf" / "segmentation" / "segment.yaml"

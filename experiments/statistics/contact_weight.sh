@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 27: U-Nets trained with the contact-weighted cross-entropy (model.contact_weight, drgan.segmentation.module),
+# Issue 27: U-Nets trained with the contact-weighted cross-entropy (model.contact_weight, drgan.segmenters.module),
 # against merged touching particles; every run resumable (rerun the same command to continue).
 #
 #   bash experiments/statistics/contact_weight.sh tio2_sem|tio2_tsem [OUT] [KINDS]

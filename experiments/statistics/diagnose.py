@@ -23,9 +23,9 @@ import numpy as np
 
 from drgan.metrics.instance_scores import ERROR_SOURCES, binarize_and_label, error_sources, segmentation_scores
 from drgan.metrics.statistics import compare_sizes, particles
-from drgan.segmentation.data import load_real_items, real_ids, split_pairs
-from drgan.segmentation.inference import predict_probs, split_touching
-from drgan.segmentation.predictors import load_predictor
+from drgan.segmenters.inference import predict_probs, split_touching
+from drgan.segmenters.pairs import load_real_items, real_ids, split_pairs
+from drgan.segmenters.predictors import load_predictor
 
 
 def parse_variant(text: str) -> dict:

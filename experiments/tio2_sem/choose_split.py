@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from drgan.metrics.instance_scores import binarize_and_label, segmentation_scores
-from drgan.segmentation.data import load_real, real_ids
-from drgan.segmentation.inference import predict_probs, split_touching
-from drgan.segmentation.module import load_segmenter
+from drgan.segmenters.inference import predict_probs, split_touching
+from drgan.segmenters.module import load_segmenter
+from drgan.segmenters.pairs import load_real, real_ids
 
 
 def main() -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from drgan.scene.labels import class_mask
-from drgan.segmentation.data import load_generated_pairs, load_real, real_ids
+from drgan.segmenters.pairs import load_generated_pairs, load_real, real_ids
 
 
 def stats(pairs) -> dict[str, np.ndarray]:

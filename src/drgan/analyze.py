@@ -1,7 +1,7 @@
 """`python -m drgan.analyze model=CKPT images=DIR out=DIR`: the particle statistics a paper reports.
 
 ``model``: a segmenter checkpoint, or a folder of predicted masks named like the images (e.g. nnU-Net's output
-folder; drgan.segmentation.predictors). Each image -> class map (a checkpoint: sliding windows and the segmenter's
+folder; drgan.segmenters.predictors). Each image -> class map (a checkpoint: sliding windows and the segmenter's
 own split of touching particles) -> particle class -> 4-connected instances, measured exactly as drgan.evaluate
 measures a prediction (drgan.metrics.statistics): components under ``min_area_px`` are specks (neither counted nor
 sized); particles cut by the image border are counted but not sized (a cut particle's area is not its size).
@@ -192,8 +192,8 @@ def analyze(cfg: DictConfig, predictor=None) -> list[dict]:
     """Analyse every image of cfg.images; returns the particle rows.
     predictor: a Predictor or a function image -> class map, instead of cfg.model (tests)."""
     from drgan.data.images import list_images
-    from drgan.segmentation.data import read_image_item
-    from drgan.segmentation.predictors import as_predictor, load_predictor
+    from drgan.segmenters.pairs import read_image_item
+    from drgan.segmenters.predictors import as_predictor, load_predictor
 
     nm, min_area, n_boot, bins = _settings(cfg)
     paths = list_images(cfg.images)

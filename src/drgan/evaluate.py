@@ -2,11 +2,11 @@
 
 Several runs (seeds): ``models=[A.ckpt,B.ckpt,...]``, each scored, then mean +- std over them. A run is a
 segmenter checkpoint or a folder of predicted masks, e.g. nnU-Net's output folder (``model=PRED_DIR``: one
-``<id>.png`` per test id, values 0 background, 1 particle, 2 contour); drgan.segmentation.predictors turns either
+``<id>.png`` per test id, values 0 background, 1 particle, 2 contour); drgan.segmenters.predictors turns either
 into class maps, and a folder is checked against every test image (missing, extra, size, values) first.
 
 Per test image: the run's class map (a checkpoint: sliding-window prediction, touching particles split,
-``inference.split``, see drgan.segmentation.inference) -> particle class only (contour and background are both "not
+``inference.split``, see drgan.segmenters.inference) -> particle class only (contour and background are both "not
 particle", so the contour separates touching particles) -> 4-connected components -> scores against the
 4-connected components of the true binary mask (drgan.metrics.instance_scores):
 - DSC: Dice of particle pixels;
@@ -178,8 +178,8 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
     """Score every run on the test ids; returns {"runs": {run: {score: value}}, "mean": {...}, "std": {...}}.
 
     predictors: optional {run name: Predictor, or f(image) -> class map} instead of cfg.model(s) (tests)."""
-    from drgan.segmentation.data import REAL_DATASET, check_dataset_folder, load_real_items, real_ids
-    from drgan.segmentation.predictors import as_predictor, load_predictor
+    from drgan.segmenters.pairs import REAL_DATASET, check_dataset_folder, load_real_items, real_ids
+    from drgan.segmenters.predictors import as_predictor, load_predictor
 
     if not cfg.get("data"):
         raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")

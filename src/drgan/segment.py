@@ -1,7 +1,7 @@
 """`python -m drgan.segment data=DIR name=NAME`: train the U-Net segmenter (3 classes, Dice + CE, Adam).
 
 `data=DIR`: pairs written by `python -m drgan.generate` (images/ID.png, masks/ID.png classes 0/1/2, and 255 on
-the particles of partial backgrounds, which the loss and val/dsc leave out: drgan.segmentation.module).
+the particles of partial backgrounds, which the loss and val/dsc leave out: drgan.segmenters.module).
 `real=DATASET`: the real-data baseline, trained on the `train` ids of DATASET/split.json only; targets are
 class_mask(4-connected components of the binary mask, contour_px). A seeded `val_fraction` of the pairs is
 held out for validation. Run folder `out`: checkpoints/last.ckpt (and the latest epoch), segment.log,
@@ -56,8 +56,8 @@ class TrainingPairs:
         )
 
     def load(self):
-        """The pairs (drgan.segmentation.data): generated, or the real dataset's train ids (never its test ids)."""
-        from drgan.segmentation.data import load_generated_pairs, load_real_pairs, real_ids
+        """The pairs (drgan.segmenters.pairs): generated, or the real dataset's train ids (never its test ids)."""
+        from drgan.segmenters.pairs import load_generated_pairs, load_real_pairs, real_ids
 
         if self.data:
             return load_generated_pairs(self.data, setting="data")
@@ -110,7 +110,7 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool =
     targets too (an instance-aware segmenter, ``needs_centres``)."""
     from torch.utils.data import DataLoader
 
-    from drgan.segmentation.data import CropDataset, crops_by_area, split_pairs
+    from drgan.segmenters.pairs import CropDataset, crops_by_area, split_pairs
 
     ld = LoaderSettings.from_config(cfg)
     train_pairs, val_pairs = split_pairs(pairs, ld.val_fraction, ld.seed)
@@ -183,9 +183,9 @@ def segment(cfg: DictConfig) -> dict:
 
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
-    from drgan.segmentation.calibrate import check_grid
-    from drgan.segmentation.module import ScoreHistory, settled
-    from drgan.segmentation.registry import build_segmenter
+    from drgan.segmenters.calibrate import check_grid
+    from drgan.segmenters.module import ScoreHistory, settled
+    from drgan.segmenters.registry import build_segmenter
 
     wall_start = time.perf_counter()
     with open_dict(cfg):
@@ -281,10 +281,10 @@ def segment(cfg: DictConfig) -> dict:
 
 
 def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) -> dict | None:
-    """Choose the touching-particle split on the validation pairs (drgan.segmentation.calibrate) and store it in
+    """Choose the touching-particle split on the validation pairs (drgan.segmenters.calibrate) and store it in
     ``last`` for evaluate/analyze's ``split_core: auto``; None when calibration is off or impossible."""
     from drgan.checkpoint_io import add_entry
-    from drgan.segmentation.calibrate import CHECKPOINT_KEY, as_array_free, calibrate_split, markdown_table
+    from drgan.segmenters.calibrate import CHECKPOINT_KEY, as_array_free, calibrate_split, markdown_table
 
     if grid is None:
         return None

@@ -7,11 +7,11 @@ The image border does not count as a boundary: a particle cut by the border has 
 
 ``IGNORE`` (255) marks mask pixels that are no class at all: nothing is known about them, so a segmenter's loss
 and scores leave them out (cross-entropy's ``ignore_index``, the soft Dice and val/dsc over the other pixels;
-drgan.segmentation.module). drgan.generate writes it in the masks of partial backgrounds (real windows with
+drgan.segmenters.module). drgan.generate writes it in the masks of partial backgrounds (real windows with
 particles: their particles and a margin around them, drgan.synthetic.backgrounds); a renderer's own masks never
 hold it. nnU-Net's exports declare it as the label "ignore" (drgan.export_nnunet).
 
-``centre_distance``: the target of the instance-aware segmenter (drgan.segmentation.instances), per particle its
+``centre_distance``: the target of the instance-aware segmenter (drgan.segmenters.instances), per particle its
 distance transform over its own maximum: 1 on its core, 0 where it touches a neighbour.
 """
 

@@ -2,7 +2,7 @@
 
 One core (`distance_seeds`, `flood`, `distance_watershed`) serves both of drgan's splits: the classical
 segmentation's (`split_touching` here: seeds at maxima ``min_distance`` apart, optionally ``seed_depth`` px deep,
-kept where they stand at a neck (`_neck_caps`)) and the U-Net's (drgan.segmentation.inference.split_touching: seeds
+kept where they stand at a neck (`_neck_caps`)) and the U-Net's (drgan.segmenters.inference.split_touching: seeds
 at the h-maxima of the smoothed distance transform of the particle class's core, flooded over the particle and
 contour classes).
 """

@@ -1,6 +1,6 @@
 """Which classes a segmenter checkpoint may name: building segmenters from ``_target_`` configs, and loading them back.
 
-A segmenter is configured like any Hydra object, ``model: {_target_: drgan.segmentation.module.SegmenterModule,
+A segmenter is configured like any Hydra object, ``model: {_target_: drgan.segmenters.module.SegmenterModule,
 depth: 4, ...}``, and ``build_segmenter`` writes the class's dotted name into the module's hyperparameters, so its
 checkpoints hold the same node: ``_target_`` beside the keywords the class was built with. ``load_segmenter``
 rebuilds that object, so the name inside a file decides which class is constructed. A checkpoint can come from
@@ -19,7 +19,7 @@ The allow-list holds
 
 A segmenter class is a LightningModule that calls ``self.save_hyperparameters()`` with plain keyword values (so
 that its checkpoint can be rebuilt and read without unpickling code) and maps a (B, 1, H, W) image batch to
-(B, C, H, W) class logits (classes 0 background, 1 particle, 2 contour; drgan.segmentation.inference). It may
+(B, C, H, W) class logits (classes 0 background, 1 particle, 2 contour; drgan.segmenters.inference). It may
 name the input normalisation its training used in an ``input_normalization`` attribute.
 """
 
@@ -32,7 +32,7 @@ from pathlib import Path
 
 from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import ConfigError, DataError
-from drgan.segmentation.calibrate import stored_split
+from drgan.segmenters.calibrate import stored_split
 from drgan.targets import target_path
 
 __all__ = [
@@ -46,8 +46,10 @@ __all__ = [
 
 ENTRY_POINT_GROUP = "drgan.segmenters"
 # Modules whose import registers drgan's own segmenters; a lookup imports them (constant names, never a file's).
-BUILTIN_MODULES = ("drgan.segmentation.module", "drgan.segmentation.instances")
+BUILTIN_MODULES = ("drgan.segmenters.module", "drgan.segmenters.instances")
 EXPECTED = "a segmenter checkpoint written by `python -m drgan.segment`"
+# Checkpoints written before the package was named drgan.segmenters name their class by its old module path.
+_OLD_PACKAGE, _PACKAGE = "drgan.segmentation.", "drgan.segmenters."
 
 _REGISTRY: dict[str, type] = {}
 
@@ -97,13 +99,15 @@ def segmenter_class(target: object, where: str, note: str = "") -> type:
     """The allow-listed class named ``target``, or a ConfigError that names it (``where``: the setting or file;
     ``note``: added after the name). Nothing that ``target`` names is imported unless it is on the list."""
     _import_builtins()
+    if isinstance(target, str) and target.startswith(_OLD_PACKAGE):
+        target = _PACKAGE + target.removeprefix(_OLD_PACKAGE)
     cls = _REGISTRY.get(target) if isinstance(target, str) else None
     if cls is None and isinstance(target, str):
         cls = _from_entry_point(target)
     if cls is None:
         raise ConfigError(
             f"{where}: _target_ {target!r} is not an allowed segmenter{note}. Allowed: "
-            f"{registered_segmenters()} (a class joins with @drgan.segmentation.registry.register_segmenter in a "
+            f"{registered_segmenters()} (a class joins with @drgan.segmenters.registry.register_segmenter in a "
             f"module drgan imports, or as an entry point of the group {ENTRY_POINT_GROUP!r} of an installed package)"
         )
     return cls
@@ -133,7 +137,7 @@ def build_segmenter(node, where: str = "model"):
     target = settings.get("_target_")
     if not target or not isinstance(target, str):
         raise ConfigError(
-            f"{where}: no _target_ (expected a segmenter class, e.g. _target_: drgan.segmentation.module.SegmenterModule)"
+            f"{where}: no _target_ (expected a segmenter class, e.g. _target_: drgan.segmenters.module.SegmenterModule)"
         )
     try:
         cls = get_class(target)

@@ -31,7 +31,7 @@ UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95, "seed_level": 0.5}
 GRID_DEFAULTS = {
     "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
     "depths": [1.0, 2.0],
-    "levels": [0.3, 0.4, 0.5, 0.6, 0.7],  # the instance-aware segmenter's seed levels (drgan.segmentation.instances)
+    "levels": [0.3, 0.4, 0.5, 0.6, 0.7],  # the instance-aware segmenter's seed levels (drgan.segmenters.instances)
     "max_pairs": 100,
 }
 TIE = 0.002  # AP50 differences below this are ties: the earlier (more lenient) grid setting wins
@@ -78,7 +78,7 @@ def calibrate_split(
     the instance-aware segmenter (its split "centres"); return the best setting with its pooled AP50 and the whole
     table. The network runs once per pair; only the split is repeated."""
     from drgan.metrics.instance_scores import binarize_and_label, match_instances
-    from drgan.segmentation.inference import predict_probs, split_by_centres, split_of, split_touching
+    from drgan.segmenters.inference import predict_probs, split_by_centres, split_of, split_touching
 
     settings = check_grid(grid if grid is not None else {})
     if not pairs:

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from drgan.errors import ConfigError, DataError, check_keys
-from drgan.segmentation.data import normalization
+from drgan.segmenters.pairs import normalization
 
 SPLITS = ("auto", "watershed", "centres", "none")  # auto: the segmenter's own (`split_of`)
 
@@ -88,7 +88,7 @@ def predict_probs(
 
 def split_of(model, split: str = "auto") -> str:
     """The split a segmenter's class maps get: ``split`` as given, or for "auto" the model's own
-    (``instance_split``: "centres" for the instance-aware segmenter, drgan.segmentation.instances), else the
+    (``instance_split``: "centres" for the instance-aware segmenter, drgan.segmenters.instances), else the
     distance-transform watershed."""
     if split != "auto":
         return split
@@ -154,7 +154,7 @@ def split_touching(
 def split_by_centres(probs: np.ndarray, seed_level: float = 0.5, min_seed_px: int = 2) -> np.ndarray:
     """(4, H, W) probabilities (3 classes, then the instance-aware segmenter's centre map) -> (H, W) uint8 class map
     whose particle class holds one 4-connected region per particle: the foreground (particle + contour > 0.5) flooded
-    over the negative centre map from its pieces above ``seed_level`` (drgan.segmentation.instances). Seeds smaller
+    over the negative centre map from its pieces above ``seed_level`` (drgan.segmenters.instances). Seeds smaller
     than ``min_seed_px`` pixels are noise."""
     from scipy import ndimage
     from skimage.segmentation import watershed
@@ -196,7 +196,7 @@ def predict(
     """(H, W) image -> (H, W) uint8 class map (0 background, 1 particle, 2 contour).
 
     split="watershed": touching particles cut apart (``split_touching``); "centres": seeded by the instance-aware
-    segmenter's centre map above ``seed_level`` (drgan.segmentation.instances.split_by_centres); "none": the
+    segmenter's centre map above ``seed_level`` (drgan.segmenters.instances.split_by_centres); "none": the
     network's argmax; "auto": the model's own (`split_of`)."""
     check_split(split, split_depth, split_smooth, split_core)
     split = split_of(model, split)
@@ -204,7 +204,7 @@ def predict(
     if split == "centres":
         if probs.shape[0] != 4:
             raise ConfigError(
-                "inference.split=centres: this segmenter has no centre map (only drgan.segmentation.instances."
+                "inference.split=centres: this segmenter has no centre map (only drgan.segmenters.instances."
                 "CentreSegmenterModule has); use split=watershed or auto"
             )
         return split_by_centres(probs, seed_level)

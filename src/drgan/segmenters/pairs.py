@@ -2,7 +2,7 @@
 
 Two sources, both giving float32 grey images in [0, 1] and uint8 class masks {0 background, 1 particle,
 2 contour}, and in generated masks also ``IGNORE`` = 255 (no class: the loss and val/dsc leave those pixels out,
-drgan.segmentation.module):
+drgan.segmenters.module):
 - generated data (`python -m drgan.generate`): the items DIR/manifest.json lists, images/ID.png + masks/ID.png
   (classes; 255 on the particles of partial backgrounds), read through drgan.synthetic; a folder of such pairs
   without a manifest (made by hand) is paired by file name, and a folder that is neither is refused, naming it;
@@ -309,7 +309,7 @@ def split_pairs(pairs: list[Pair], val_fraction: float, seed: int) -> tuple[list
 
 
 def centre_map(pair: Pair) -> np.ndarray:
-    """The centre-map target of a pair (drgan.segmentation.instances.centre_distance of its instances), float16."""
+    """The centre-map target of a pair (drgan.segmenters.instances.centre_distance of its instances), float16."""
     return centre_distance(pair.instances()).astype(np.float16)
 
 

@@ -8,7 +8,7 @@ binary map found from the class mask alone (no instance labels needed, so real m
 Logged keys: train/loss, train/ce, train/dice_loss, val/loss, val/dsc (particle-class Dice of the argmax
 map, over the whole validation batch). Mask pixels of value ``IGNORE`` (255, drgan.scene.labels: the particles of
 a partial background) count nowhere: cross-entropy averages over the other pixels (``ignore_index``), the soft
-Dice and val/dsc sum over them only; a batch of ignored pixels only has loss 0 and zero gradients, never NaN. Registered as a segmenter (drgan.segmentation.registry), so its checkpoints
+Dice and val/dsc sum over them only; a batch of ignored pixels only has loss 0 and zero gradients, never NaN. Registered as a segmenter (drgan.segmenters.registry), so its checkpoints
 load by the ``_target_`` among their hyperparameters; ``load_segmenter`` is the registry's loader.
 """
 
@@ -22,9 +22,9 @@ import torch.nn.functional as F
 
 from drgan.errors import ConfigError
 from drgan.scene.labels import IGNORE
-from drgan.segmentation.data import check_normalize
-from drgan.segmentation.registry import load_segmenter, register_segmenter
-from drgan.segmentation.unet import UNet
+from drgan.segmenters.pairs import check_normalize
+from drgan.segmenters.registry import load_segmenter, register_segmenter
+from drgan.segmenters.unet import UNet
 
 __all__ = [
     "SegmenterModule",

@@ -12,16 +12,16 @@ is no boundary (as in drgan.scene.labels' contour class). drgan's generated pair
 (``labels/`` of a generated set: every particle, with its true contact line); real annotations give a binary mask's
 4-connected components or an instance map's ids.
 
-**The network**: `drgan.segmentation.unet.UNet` with a fourth output channel, the centre map's logit. Loss: the
+**The network**: `drgan.segmenters.unet.UNet` with a fourth output channel, the centre map's logit. Loss: the
 U-Net's Dice + cross-entropy on the classes, plus ``distance_weight`` x the mean squared error of the sigmoid centre
 map, over the pixels whose mask is not IGNORE.
 
-**Inference** (`drgan.segmentation.inference.split_by_centres`): the foreground is where particle and contour probabilities sum over 0.5; the
+**Inference** (`drgan.segmenters.inference.split_by_centres`): the foreground is where particle and contour probabilities sum over 0.5; the
 seeds are the connected pieces of the predicted centre map above ``seed_level`` (inside the foreground); the
 foreground is flooded from them over the negative centre map (watershed), and neighbouring regions are separated by a
-1-px contour line (`drgan.segmentation.inference.separate_regions`), so that drgan.evaluate and drgan.analyze read its
+1-px contour line (`drgan.segmenters.inference.separate_regions`), so that drgan.evaluate and drgan.analyze read its
 instances from the class map as they read every segmenter's. ``seed_level`` is chosen per checkpoint on its
-validation pairs (drgan.segmentation.calibrate), as the U-Net's split is.
+validation pairs (drgan.segmenters.calibrate), as the U-Net's split is.
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ import torch
 
 from drgan.errors import ConfigError
 from drgan.scene.labels import IGNORE, centre_distance
-from drgan.segmentation.module import SegmenterModule, contact_pixels, cross_entropy, soft_dice_loss
-from drgan.segmentation.registry import register_segmenter
-from drgan.segmentation.unet import UNet
+from drgan.segmenters.module import SegmenterModule, contact_pixels, cross_entropy, soft_dice_loss
+from drgan.segmenters.registry import register_segmenter
+from drgan.segmenters.unet import UNet
 
 __all__ = ["CentreSegmenterModule", "centre_distance"]
 
@@ -45,7 +45,7 @@ class CentreSegmenterModule(SegmenterModule):
     distance_weight: weight of the centre map's squared error in the loss (the class losses weigh 1 each)."""
 
     instance_split = SPLIT
-    needs_centres = True  # its training pairs carry centre_distance targets (drgan.segmentation.data)
+    needs_centres = True  # its training pairs carry centre_distance targets (drgan.segmenters.pairs)
 
     def __init__(self, distance_weight: float = 5.0, **unet):
         super().__init__(**unet)  # the U-Net's keywords (SegmenterModule), all recorded with distance_weight

@@ -2,8 +2,8 @@
 
 What a user gives is either
 - a segmenter checkpoint (a file written by ``python -m drgan.segment``, or by another registered segmenter): each
-  image is predicted with sliding windows and the ``inference:`` settings (drgan.segmentation.inference), the
-  class rebuilt through the allow-list of drgan.segmentation.registry; or
+  image is predicted with sliding windows and the ``inference:`` settings (drgan.segmenters.inference), the
+  class rebuilt through the allow-list of drgan.segmenters.registry; or
 - a folder of predicted masks, e.g. nnU-Net's output folder: one ``<id>.png`` (or another image type) per image,
   named by the image's id (a split id for drgan.evaluate, the file stem for drgan.analyze), with values 0 background,
   1 particle, 2 contour (the classes of drgan's masks and of export_nnunet's labels; a 0/1 mask is the same without
@@ -31,7 +31,7 @@ import numpy as np
 
 from drgan.data.images import IMAGE_SUFFIXES
 from drgan.errors import DataError
-from drgan.segmentation.data import ImageItem, drop_mask_rows, read_raw_mask
+from drgan.segmenters.pairs import ImageItem, drop_mask_rows, read_raw_mask
 
 __all__ = [
     "CLASSES",
@@ -80,8 +80,8 @@ class SegmenterPredictor(FunctionPredictor):
     """A loaded segmenter with its inference settings (``make_predictor``: checked when made)."""
 
     def __init__(self, source: str, model, inference: Mapping):
-        from drgan.segmentation.calibrate import resolve_auto
-        from drgan.segmentation.inference import make_predictor
+        from drgan.segmenters.calibrate import resolve_auto
+        from drgan.segmenters.inference import make_predictor
 
         inference, note = resolve_auto(inference, getattr(model, "split_calibration", None), source)
         how = ", ".join(f"{k} {v}" for k, v in inference.items()) + (f" (split {note})" if note else "")
@@ -210,7 +210,7 @@ def load_predictor(source, inference: Mapping | None = None, setting: str = "mod
         return MaskFolder(path, setting)
     if not path.exists():
         raise DataError(f"{setting}={source}: no such file or folder (expected {EXPECTED})")
-    from drgan.segmentation.registry import load_segmenter
+    from drgan.segmenters.registry import load_segmenter
 
     return SegmenterPredictor(str(source), load_segmenter(path, setting), inference or {})
 
