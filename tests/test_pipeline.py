@@ -151,6 +151,27 @@ class FakeStages:
         return [c[0] for c in self.calls]
 
 
+def test_the_pixel_size_the_profile_read_reaches_analyze_and_the_report(tmp_path, monkeypatch):
+    """analyze measures in nm when the profile read a pixel size from the images' metadata: its command gets it, and
+    report.md shows the command as it ran (not as it was built before the profile ran)."""
+    images_folder(tmp_path / "images")
+    fake = FakeStages(monkeypatch)
+    profiled = tmp_path / "out" / "profile" / "profile.json"
+
+    def stage_with_profile(stage, env=None):
+        code = FakeStages.__call__(fake, stage, env)
+        if stage.name == "profile":
+            profiled.parent.mkdir(parents=True, exist_ok=True)
+            profiled.write_text(json.dumps({"pixel_size": {"nm_per_px": 2.5}}))
+        return code
+
+    monkeypatch.setattr(runner, "run_stage", stage_with_profile)
+    pipeline.run(settings(tmp_path), echo=lambda line: None)
+    analyze = next(call for call in fake.calls if call[0] == "analyze")
+    assert "nm_per_px=2.5" in analyze
+    assert "nm_per_px=2.5" in (tmp_path / "out" / "report.md").read_text()
+
+
 def test_a_rerun_skips_done_stages_and_resumes_the_killed_one(tmp_path, monkeypatch):
     images_folder(tmp_path / "images")
     fake = FakeStages(monkeypatch)

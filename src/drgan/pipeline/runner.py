@@ -99,7 +99,8 @@ def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
         try:
             for number, stage in enumerate(stages, 1):
                 # its arguments again, now with what the stages before it found (the profile's pixel size)
-                stage = build_stages(s, tracker.parent, profiled_pixel_size(s.out))[number - 1]
+                # (kept in `stages`, so that report.md shows the command as it ran)
+                stage = stages[number - 1] = build_stages(s, tracker.parent, profiled_pixel_size(s.out))[number - 1]
                 record = state.stage(stage.name)
                 if record.get("state") == "done" and stage.done_file.is_file():
                     if record.get("args") != stage.recorded():
