@@ -151,6 +151,13 @@ class FakeStages:
         return [c[0] for c in self.calls]
 
 
+def test_redo_of_a_stage_this_run_does_not_have_is_refused_by_name(tmp_path, no_stage_runs):
+    images_folder(tmp_path / "images")
+    with pytest.raises(ConfigError, match="redo=evaluate: this run has no such stage.*annotated=DIR"):
+        pipeline.run(settings(tmp_path, "redo=evaluate"), echo=lambda line: None)
+    assert no_stage_runs == []
+
+
 def test_the_pixel_size_the_profile_read_reaches_analyze_and_the_report(tmp_path, monkeypatch):
     """analyze measures in nm when the profile read a pixel size from the images' metadata: its command gets it, and
     report.md shows the command as it ran (not as it was built before the profile ran)."""

@@ -89,7 +89,13 @@ def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
         tracker = Tracker(s)
         stages = build_stages(s, tracker.parent)
         if s.redo is not None:
-            for stage in stages[[st.name for st in stages].index(s.redo) :]:
+            names = [st.name for st in stages]
+            if s.redo not in names:
+                raise ConfigError(
+                    f"pipeline: redo={s.redo}: this run has no such stage (its stages: {', '.join(names)}; evaluate "
+                    "runs only with annotated=DIR)"
+                )
+            for stage in stages[names.index(s.redo) :]:
                 if stage.folder.exists():
                     shutil.rmtree(stage.folder)
                 stage.done_file.unlink(missing_ok=True)  # the profile's (the material) lies outside its folder
