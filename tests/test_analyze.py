@@ -107,3 +107,33 @@ def test_bad_settings_stop_before_any_image_is_read(key, value, tmp_path):
     with pytest.raises(ConfigError, match=key):
         analyze(compose([f"images={tmp_path / 'none'}", f"{key}={value}"], config_name="analyze"),
                 predictor=lambda image: image > 0.5)  # fmt: skip
+
+
+def test_analyze_and_evaluate_yaml_and_their_settings_dataclasses_hold_the_same_defaults(tmp_path):
+    """analyze.yaml / evaluate.yaml are the user's reference, AnalyzeSettings / EvaluateSettings the typed objects
+    the stages read: every default agrees (the folders given aside), so no key has two values that can drift (as
+    evaluate's min_area_px once did: 8 px^2 in the YAML, 0 in the code)."""
+    import dataclasses
+
+    from drgan.analyze import AnalyzeSettings
+    from drgan.evaluate import EvaluateSettings
+
+    # the folders are given; the inference block is the YAML's (its keys are checked by make_predictor, "auto"
+    # resolved from the checkpoint: drgan.segmenters.calibrate)
+    given = {"images", "out", "data", "models", "inference"}
+    settings = AnalyzeSettings.from_config(compose(["images=I", "out=O"], config_name="analyze"))
+    real = make_real(tmp_path / "real", {"a": disc_image(np.zeros((8, 8)))}, {"a": np.zeros((8, 8), np.uint8)},
+                     {"train": [], "test": ["a"]})  # fmt: skip
+    evaluated = EvaluateSettings.from_config(compose([f"data={real}", "model=M", "out=O"], config_name="evaluate"))
+    for typed in (settings, evaluated):
+        for f in dataclasses.fields(typed):
+            if f.name in given:
+                continue
+            default = f.default_factory() if f.default is dataclasses.MISSING else f.default
+            assert getattr(typed, f.name) == default, (type(typed).__name__, f.name)
+    assert evaluated.models == ("M",) and settings.images.name == "I"
+    assert settings.inference == evaluated.inference and settings.inference["split_core"] == "auto"
+    with pytest.raises(ConfigError, match="min_area_px"):
+        EvaluateSettings.from_config(compose([f"data={real}", "model=M", "min_area_px=-1"], config_name="evaluate"))
+    with pytest.raises(ConfigError, match="bins"):
+        AnalyzeSettings.from_config(compose(["images=I", "bins=0"], config_name="analyze"))

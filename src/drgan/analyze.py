@@ -33,10 +33,12 @@ import io
 import logging
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from drgan.errors import ConfigError
 from drgan.io import figure_png, write_bytes, write_json
@@ -170,60 +172,94 @@ def size_statistics(
 # --- the command ---------------------------------------------------------------------------------------------
 
 
-def _settings(cfg: DictConfig) -> tuple[float | None, float, int, int]:
-    if not cfg.get("images"):
-        raise ConfigError("analyze: give images=DIR (a folder of images)")
-    nm = cfg.get("nm_per_px")
-    if nm is not None and not (isinstance(nm, (int, float)) and not isinstance(nm, bool) and nm > 0):
-        raise ConfigError(f"analyze: nm_per_px={nm}: expected a positive pixel size")
-    min_area = cfg.get("min_area_px", 8)
-    if isinstance(min_area, bool) or not isinstance(min_area, (int, float)) or min_area < 0:
-        raise ConfigError(f"analyze: min_area_px={min_area!r}: expected an area in px^2 >= 0")
-    n_boot = cfg.get("bootstrap", 1000)
-    if isinstance(n_boot, bool) or not isinstance(n_boot, int) or n_boot < 0:
-        raise ConfigError(f"analyze: bootstrap={n_boot!r}: expected a number of resamples >= 0 (0: no intervals)")
-    bins = cfg.get("bins", 30)
-    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
-        raise ConfigError(f"analyze: bins={bins!r}: expected a positive integer")
-    return (float(nm) if nm is not None else None), float(min_area), n_boot, bins
+@dataclass(frozen=True)
+class AnalyzeSettings:
+    """Every key of conf/segmentation/analyze.yaml with its type, its default and its check (`from_config`, before
+    any image is read). The YAML stays the user's reference; the field defaults are the same values
+    (tests/test_analyze.py composes analyze.yaml and compares). A new key is a field here (+ its YAML line)."""
+
+    images: Path
+    out: Path
+    model: str | None = None  # a segmenter checkpoint, or a folder of predicted masks named like the images
+    crop_rows: Any = "auto"  # info-bar rows [start, stop) to drop; auto: detected; None: none
+    nm_per_px: float | None = None  # None: read from each image's metadata, else sizes in px
+    min_area_px: float = 8.0  # smaller components are specks (as drgan.evaluate's statistics)
+    exclude_border: bool = False
+    bootstrap: int = 1000
+    seed: int = 0
+    wires: bool = False
+    bins: int = 30
+    inference: dict = field(default_factory=dict)  # checkpoints only
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> AnalyzeSettings:
+        if not cfg.get("images"):
+            raise ConfigError("analyze: give images=DIR (a folder of images)")
+        nm = cfg.get("nm_per_px")
+        if nm is not None and not (isinstance(nm, (int, float)) and not isinstance(nm, bool) and nm > 0):
+            raise ConfigError(f"analyze: nm_per_px={nm}: expected a positive pixel size")
+        min_area = cfg.get("min_area_px", cls.min_area_px)
+        if isinstance(min_area, bool) or not isinstance(min_area, (int, float)) or min_area < 0:
+            raise ConfigError(f"analyze: min_area_px={min_area!r}: expected an area in px^2 >= 0")
+        n_boot = cfg.get("bootstrap", cls.bootstrap)
+        if isinstance(n_boot, bool) or not isinstance(n_boot, int) or n_boot < 0:
+            raise ConfigError(f"analyze: bootstrap={n_boot!r}: expected a number of resamples >= 0 (0: no intervals)")
+        bins = cfg.get("bins", cls.bins)
+        if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+            raise ConfigError(f"analyze: bins={bins!r}: expected a positive integer")
+        crop = cfg.get("crop_rows", cls.crop_rows)
+        inference = cfg.get("inference")
+        return cls(
+            images=Path(str(cfg.images)),
+            out=Path(str(cfg.out)),
+            model=str(cfg.model) if cfg.get("model") else None,
+            crop_rows=crop if crop is None or isinstance(crop, str) else tuple(crop),
+            nm_per_px=float(nm) if nm is not None else None,
+            min_area_px=float(min_area),
+            exclude_border=bool(cfg.get("exclude_border", cls.exclude_border)),
+            bootstrap=n_boot,
+            seed=int(cfg.get("seed", cls.seed)),
+            wires=bool(cfg.get("wires", cls.wires)),
+            bins=bins,
+            inference=dict(OmegaConf.to_container(inference, resolve=True)) if inference else {},
+        )
 
 
-def analyze(cfg: DictConfig, predictor=None) -> list[dict]:
-    """Analyse every image of cfg.images; returns the particle rows.
-    predictor: a Predictor or a function image -> class map, instead of cfg.model (tests)."""
+def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict]:
+    """Analyse every image of the settings' images folder; returns the particle rows.
+    predictor: a Predictor or a function image -> class map, instead of the settings' model (tests)."""
     from drgan.data.images import list_images
     from drgan.segmenters.pairs import read_image_item
     from drgan.segmenters.predictors import as_predictor, load_predictor
 
-    nm, min_area, n_boot, bins = _settings(cfg)
-    paths = list_images(cfg.images)
+    s = settings if isinstance(settings, AnalyzeSettings) else AnalyzeSettings.from_config(settings)
+    nm, min_area, n_boot, bins = s.nm_per_px, s.min_area_px, s.bootstrap, s.bins
+    paths = list_images(s.images)
     if predictor is None:
-        if not cfg.get("model"):
+        if not s.model:
             raise ConfigError(
                 "analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment) or a folder of "
                 "predicted masks named like the images"
             )
-        predictor = load_predictor(cfg.model, cfg.inference)
+        predictor = load_predictor(s.model, s.inference)
     else:
         predictor = as_predictor(predictor, "predictor")
     scales, pixel_note = pixel_sizes(paths, nm)
     log.info("pixel size: %s", pixel_note)
-    crop = cfg.get("crop_rows")
-    crop = crop if crop is None or isinstance(crop, str) else tuple(crop)
-    items = [read_image_item(p, p.stem, crop) for p in paths]  # all read (and checked) before predicting
+    items = [read_image_item(p, p.stem, s.crop_rows) for p in paths]  # all read (and checked) before predicting
     predictor.check(items)
 
-    out = Path(cfg.out)
+    out = s.out
     rows, found, thickness_values = [], [], []
     for item, scale in zip(items, scales):
         class_map = np.asarray(predictor(item))
         labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
         mine = particles(labels).at_least(min_area)  # what drgan.evaluate counts and sizes
         found.append(mine)
-        image_rows = particle_rows(item.id, labels, scale, min_area, bool(cfg.get("exclude_border", False)))
+        image_rows = particle_rows(item.id, labels, scale, min_area, s.exclude_border)
         rows += image_rows
         write_bytes(out / "overlays" / f"{item.id}.png", _overlay_png(item.image, labels, image_rows))
-        if cfg.get("wires"):
+        if s.wires:
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (scale or 1.0))
             png = figure_png(lambda plt, im=item.image, t=thick, s=scale: _thickness_map(plt, im, t, s))
@@ -235,7 +271,7 @@ def analyze(cfg: DictConfig, predictor=None) -> list[dict]:
     factors = [s if in_nm else 1.0 for s in scales]
     area_unit = "µm²" if in_nm else "Mpx"
     areas = [item.image.size * (f * f * 1e-6 if in_nm else 1e-6) for item, f in zip(items, factors)]
-    stats = size_statistics(found, factors, areas, n_boot, int(cfg.get("seed", 0)))
+    stats = size_statistics(found, factors, areas, n_boot, s.seed)
     summary = {
         "images": len(items),
         "unit": unit,
@@ -255,7 +291,7 @@ def analyze(cfg: DictConfig, predictor=None) -> list[dict]:
     write_bytes(out / "statistics.md", statistics_markdown(summary).encode())
     write_bytes(out / "sizes.png", figure_png(lambda plt: _size_figure(plt, _sizes(found, factors), stats, unit, bins)))
     write_bytes(out / "histograms.png", figure_png(lambda plt: _histograms(plt, rows, in_nm, bins)))
-    if cfg.get("wires"):
+    if s.wires:
         values = np.concatenate(thickness_values) if thickness_values else np.zeros(0)
         write_bytes(
             out / "thickness_histogram.png",
@@ -445,7 +481,7 @@ def _thickness_histogram(plt, values, in_nm, bins):
 
 @stage_main("conf/segmentation", "analyze")
 def main(cfg: DictConfig):
-    analyze(cfg)
+    analyze(AnalyzeSettings.from_config(cfg))
 
 
 if __name__ == "__main__":

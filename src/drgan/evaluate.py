@@ -39,10 +39,12 @@ from __future__ import annotations
 import csv
 import io
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from drgan.errors import ConfigError
 from drgan.io import write_bytes, write_with
@@ -149,6 +151,67 @@ def tables(rows: list[dict], runs: list[str], ids: list[str], inference: str = "
     return buf.getvalue(), "\n".join(md)
 
 
+NO_MODELS = (
+    "evaluate: give model=CHECKPOINT (or a folder of predicted masks, one <id>.png per test image) "
+    "or models=[A,B,...] (one per run)"
+)
+
+
+@dataclass(frozen=True)
+class EvaluateSettings:
+    """Every key of conf/segmentation/evaluate.yaml with its type, its default and its check (`from_config`, before
+    any checkpoint or image is read). The YAML stays the user's reference; the field defaults are the same values
+    (tests/test_analyze.py composes evaluate.yaml and compares). A new key is a field here (+ its YAML line)."""
+
+    data: Path
+    out: Path
+    models: tuple[str, ...] = ()  # ``model`` then ``models``: checkpoints or folders of predicted masks, one per run
+    split: str | None = None  # split file; None: <data>/split.json
+    subset: str = "test"
+    crop_rows: Any = "auto"
+    masks: str = "masks"
+    mask_suffix: str = "auto"
+    overlays: bool = True
+    statistics: bool = True
+    bootstrap: int = 1000
+    seed: int = 0
+    nm_per_px: float | None = None
+    min_area_px: float = 8.0
+    overlay_alpha: float = 0.5
+    inference: dict = field(default_factory=dict)  # checkpoints only
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig, need_models: bool = True) -> EvaluateSettings:
+        """From the composed config; ``need_models``: a run without model(s) is refused (evaluate given its
+        predictors directly, as tests do, needs none)."""
+        from drgan.segmenters.pairs import REAL_DATASET, check_dataset_folder
+
+        if not cfg.get("data"):
+            raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")
+        data_dir = check_dataset_folder(cfg.data, "data", REAL_DATASET)  # before any checkpoint is read
+        min_area = statistics_min_area(cfg)
+        models = model_sources(cfg) if need_models else [str(m) for m in cfg.get("models") or []]
+        inference = cfg.get("inference")
+        return cls(
+            data=data_dir,
+            out=Path(str(cfg.out)),
+            models=tuple(models),
+            split=cfg.get("split"),
+            subset=str(cfg.get("subset", cls.subset)),
+            crop_rows=cfg.get("crop_rows", cls.crop_rows),
+            masks=cfg.get("masks", cls.masks),
+            mask_suffix=cfg.get("mask_suffix", cls.mask_suffix),
+            overlays=bool(cfg.get("overlays", cls.overlays)),
+            statistics=bool(cfg.get("statistics", cls.statistics)),
+            bootstrap=int(cfg.get("bootstrap", cls.bootstrap)),
+            seed=int(cfg.get("seed", cls.seed)),
+            nm_per_px=cfg.get("nm_per_px"),
+            min_area_px=min_area,
+            overlay_alpha=float(cfg.get("overlay_alpha", cls.overlay_alpha)),
+            inference=dict(OmegaConf.to_container(inference, resolve=True)) if inference else {},
+        )
+
+
 def model_sources(cfg: DictConfig) -> list[str]:
     """The runs to score: ``model=`` (one) and ``models=[A,B,...]`` (several), in that order; each a segmenter
     checkpoint or a folder of predicted masks."""
@@ -158,10 +221,7 @@ def model_sources(cfg: DictConfig) -> list[str]:
     if cfg.get("model"):
         models.insert(0, str(cfg.model))
     if not models:
-        raise ConfigError(
-            "evaluate: give model=CHECKPOINT (or a folder of predicted masks, one <id>.png per test image) "
-            "or models=[A,B,...] (one per run)"
-        )
+        raise ConfigError(NO_MODELS)
     return models
 
 
@@ -174,30 +234,30 @@ def _inference_line(predictors: dict) -> str:
     return "; ".join(f"{run}: {how}" for run, how in hows.items())
 
 
-def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
+def evaluate(settings: EvaluateSettings | DictConfig, predictors: dict | None = None) -> dict:
     """Score every run on the test ids; returns {"runs": {run: {score: value}}, "mean": {...}, "std": {...}}.
 
-    predictors: optional {run name: Predictor, or f(image) -> class map} instead of cfg.model(s) (tests)."""
-    from drgan.segmenters.pairs import REAL_DATASET, check_dataset_folder, load_real_items, real_ids
+    predictors: optional {run name: Predictor, or f(image) -> class map} instead of the settings' models (tests)."""
+    from drgan.segmenters.pairs import load_real_items, real_ids
     from drgan.segmenters.predictors import as_predictor, load_predictor
 
-    if not cfg.get("data"):
-        raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")
-    data_dir = check_dataset_folder(cfg.data, "data", REAL_DATASET)  # before any checkpoint is read
-    statistics_min_area(cfg)
+    s = (
+        settings
+        if isinstance(settings, EvaluateSettings)
+        else EvaluateSettings.from_config(settings, need_models=predictors is None)
+    )
     if predictors is None:
-        inference = dict(cfg.inference)
-        predictors = {f"run{k}": load_predictor(m, inference) for k, m in enumerate(model_sources(cfg))}
+        if not s.models:
+            raise ConfigError(NO_MODELS)
+        predictors = {f"run{k}": load_predictor(m, s.inference) for k, m in enumerate(s.models)}
     else:
         predictors = {run: as_predictor(p, run) for run, p in predictors.items()}
-    ids = real_ids(data_dir, cfg.get("split"), str(cfg.subset), setting="data")
-    samples = load_real_items(
-        data_dir, ids, cfg.get("crop_rows"), cfg.get("mask_suffix", "auto"), cfg.get("masks", "masks")
-    )  # every image/mask read and checked first
+    ids = real_ids(s.data, s.split, s.subset, setting="data")
+    samples = load_real_items(s.data, ids, s.crop_rows, s.mask_suffix, s.masks)  # every image/mask read and checked
     for predictor in predictors.values():
         predictor.check([item for item, _ in samples])  # a mask folder: every mask read and compared with its image
 
-    out = Path(cfg.out)
+    out = s.out
     rows = []
     truth = [particles(true_labels) for _, true_labels in samples]
     found: dict[str, list] = {run: [] for run in predictors}
@@ -215,10 +275,10 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
             sources[run].append(error_sources(pred_labels, true_labels))
             rows.append({"run": run, "model": predictor.source, "image": image_id, **scores})
             log.info("%s %s: %s", run, image_id, {s: round(scores[s], 3) for s in SCORES})
-            if k == 0 and cfg.get("overlays", True):
+            if k == 0 and s.overlays:
                 from PIL import Image
 
-                rgb = overlay(image, pred_labels, true_labels, float(cfg.overlay_alpha))
+                rgb = overlay(image, pred_labels, true_labels, s.overlay_alpha)
                 write_with(
                     out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG")
                 )
@@ -235,8 +295,8 @@ def evaluate(cfg: DictConfig, predictors: dict | None = None) -> dict:
         "mean": {s: v[0] for s, v in stats.items()},
         "std": {s: v[1] for s, v in stats.items()},
     }
-    if cfg.get("statistics", True):
-        result["statistics"] = particle_statistics(cfg, out, found, truth, ids, sources)
+    if s.statistics:
+        result["statistics"] = particle_statistics(s, out, found, truth, ids, sources)
     return result
 
 
@@ -251,7 +311,7 @@ def summed_sources(per_image: list[dict]) -> dict:
 
 def statistics_min_area(cfg: DictConfig) -> float:
     """``min_area_px`` (px^2, >= 0): components below it are specks in the statistics, on both sides."""
-    value = cfg.get("min_area_px", 0)
+    value = cfg.get("min_area_px", EvaluateSettings.min_area_px)
     try:
         area = float(0 if value is None else value)
     except (TypeError, ValueError):
@@ -262,14 +322,12 @@ def statistics_min_area(cfg: DictConfig) -> float:
 
 
 def particle_statistics(
-    cfg: DictConfig, out: Path, found: dict, truth: list, ids: list[str], sources: dict | None = None
+    s: EvaluateSettings, out: Path, found: dict, truth: list, ids: list[str], sources: dict | None = None
 ) -> dict:
     """Each run's particle statistics against the masks' (drgan.metrics.statistics); writes statistics.md,
     statistics.csv and sizes.png. Returns {run: {statistic: {value, low, high}}, plus "count_errors": [...] and,
     with ``sources`` (per run, error_sources of each image), "sources": summed_sources}."""
-    n_boot, seed = int(cfg.get("bootstrap", 1000)), int(cfg.get("seed", 0))
-    nm = cfg.get("nm_per_px")
-    min_area = statistics_min_area(cfg)
+    n_boot, seed, nm, min_area = s.bootstrap, s.seed, s.nm_per_px, s.min_area_px
     truth = [t.at_least(min_area) for t in truth]
     found = {run: [p.at_least(min_area) for p in mine] for run, mine in found.items()}
     result = {}
@@ -398,7 +456,7 @@ def size_figure(found: dict, truth: list, nm: float | None) -> bytes:
 
 @stage_main("conf/segmentation", "evaluate")
 def main(cfg: DictConfig):
-    evaluate(cfg)
+    evaluate(EvaluateSettings.from_config(cfg))
 
 
 if __name__ == "__main__":
