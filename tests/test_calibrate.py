@@ -112,3 +112,15 @@ def test_auto_settings_come_from_the_checkpoint_or_the_uncalibrated_defaults(tmp
     fixed = {"split_depth": 3.0, "split_core": None}
     assert resolve_auto(fixed, calibration) == (fixed, "")  # numbers given are kept
     assert stored_split({CHECKPOINT_KEY: {"split_depth": -1}}) is None  # malformed: ignored, with a warning
+
+
+def test_segment_yaml_grid_is_the_calibration_default():
+    """segment.yaml's split_calibration (what users read and change) and GRID_DEFAULTS (what a checkpoint is
+    recalibrated with) are one grid."""
+    from omegaconf import OmegaConf
+
+    from drgan.configs import compose
+    from drgan.segmenters.calibrate import GRID_DEFAULTS, check_grid
+
+    grid = OmegaConf.to_container(compose(["data=D"], config_name="segment").split_calibration)
+    assert check_grid(grid) == check_grid(GRID_DEFAULTS) and grid == GRID_DEFAULTS

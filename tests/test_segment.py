@@ -518,7 +518,7 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     assert load_segmenter(last).input_normalization == "zscore"  # travels with the checkpoint to inference
     # the split chosen on the validation pairs is stored in the checkpoint and read back by evaluate's auto
     calibration = json.loads((out / "metrics.json").read_text())["split_calibration"]
-    assert calibration["n_pairs"] >= 1 and len(calibration["table"]) == 14
+    assert calibration["n_pairs"] >= 1 and len(calibration["table"]) == 7 * 5  # cores x depths of the default grid
     assert load_segmenter(last).split_calibration == calibration
     saved = torch.load(last, map_location="cpu", weights_only=True)["hyper_parameters"]
     assert saved["_target_"] == "drgan.segmenters.module.SegmenterModule"  # the class, for the registry's loader

@@ -30,7 +30,7 @@ CHECKPOINT_KEY = "drgan_split"
 UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95, "seed_level": 0.5}
 GRID_DEFAULTS = {
     "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
-    "depths": [1.0, 2.0],
+    "depths": [1.0, 2.0, 4.0, 8.0, 16.0],  # px; the larger ones for particles of 100 px and more (EMPS actbio)
     "levels": [0.3, 0.4, 0.5, 0.6, 0.7],  # the instance-aware segmenter's seed levels (drgan.segmenters.instances)
     "max_pairs": 100,
 }
