@@ -169,6 +169,13 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert type(placement) is layout._PLACEMENT_KINDS[saved["agglomeration"]["placement"]]
     assert cfg.data.dir == str(folder.resolve()) and list(cfg.data.crop_rows) == [320, 336]
     assert cfg.renderer.spp == 16 and cfg.material.filter_stddev == 3.0  # inherited from the parent (HIM)
+    # The background's noise bounds the learned noise of an SEM material too (the parent's 0.2 let a GAN on clean
+    # images learn 30 x the real noise); the grain stays the path tracer's (no noise_grain_px written)
+    from drgan.material_proposal import NOISE_LIMIT_FACTOR
+
+    bound = max(0.01, NOISE_LIMIT_FACTOR * saved["background"]["noise_sigma"])
+    assert cfg.material.noise_sigma.max == pytest.approx(bound, abs=1e-4) and bound < 0.2
+    assert "noise_grain_px:" not in (tmp_path / "drgan_conf" / "material" / "my_discs.yaml").read_text()
     # The neck depth the profile chose (its segmentation's) travels, and the report says why
     chosen = saved["segmentation"]["params"]["neck_depth"]
     assert chosen in (0.0, 0.2) and cfg.data.segment.neck_depth == chosen
