@@ -109,6 +109,17 @@ def test_bad_settings_stop_before_any_image_is_read(key, value, tmp_path):
                 predictor=lambda image: image > 0.5)  # fmt: skip
 
 
+@pytest.mark.parametrize("value", ["-1", "0", "true", "abc"])
+def test_a_bad_pixel_size_stops_evaluate_before_any_checkpoint_is_read(value, tmp_path):
+    from drgan.evaluate import EvaluateSettings
+
+    real = make_real(tmp_path / "real", {"a": disc_image(np.zeros((8, 8)))}, {"a": np.zeros((8, 8), np.uint8)},
+                     {"train": [], "val": [], "test": ["a"]})  # fmt: skip
+    cfg = compose([f"data={real}", f"model={tmp_path / 'missing.ckpt'}", f"nm_per_px={value}"], config_name="evaluate")
+    with pytest.raises(ConfigError, match="evaluate: nm_per_px="):
+        EvaluateSettings.from_config(cfg)
+
+
 def test_analyze_and_evaluate_yaml_and_their_settings_dataclasses_hold_the_same_defaults(tmp_path):
     """analyze.yaml / evaluate.yaml are the user's reference, AnalyzeSettings / EvaluateSettings the typed objects
     the stages read: every default agrees (the folders given aside), so no key has two values that can drift (as

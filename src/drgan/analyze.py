@@ -38,9 +38,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from drgan.errors import ConfigError
+from drgan.configs import plain_node
+from drgan.errors import ConfigError, pixel_size
 from drgan.io import figure_png, write_bytes, write_json
 from drgan.metrics.instance_scores import binarize_and_label
 from drgan.metrics.statistics import Particles, bootstrap, particles
@@ -195,9 +196,6 @@ class AnalyzeSettings:
     def from_config(cls, cfg: DictConfig) -> AnalyzeSettings:
         if not cfg.get("images"):
             raise ConfigError("analyze: give images=DIR (a folder of images)")
-        nm = cfg.get("nm_per_px")
-        if nm is not None and not (isinstance(nm, (int, float)) and not isinstance(nm, bool) and nm > 0):
-            raise ConfigError(f"analyze: nm_per_px={nm}: expected a positive pixel size")
         min_area = cfg.get("min_area_px", cls.min_area_px)
         if isinstance(min_area, bool) or not isinstance(min_area, (int, float)) or min_area < 0:
             raise ConfigError(f"analyze: min_area_px={min_area!r}: expected an area in px^2 >= 0")
@@ -208,20 +206,19 @@ class AnalyzeSettings:
         if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
             raise ConfigError(f"analyze: bins={bins!r}: expected a positive integer")
         crop = cfg.get("crop_rows", cls.crop_rows)
-        inference = cfg.get("inference")
         return cls(
             images=Path(str(cfg.images)),
             out=Path(str(cfg.out)),
             model=str(cfg.model) if cfg.get("model") else None,
             crop_rows=crop if crop is None or isinstance(crop, str) else tuple(crop),
-            nm_per_px=float(nm) if nm is not None else None,
+            nm_per_px=pixel_size("analyze", cfg.get("nm_per_px")),
             min_area_px=float(min_area),
             exclude_border=bool(cfg.get("exclude_border", cls.exclude_border)),
             bootstrap=n_boot,
             seed=int(cfg.get("seed", cls.seed)),
             wires=bool(cfg.get("wires", cls.wires)),
             bins=bins,
-            inference=dict(OmegaConf.to_container(inference, resolve=True)) if inference else {},
+            inference=plain_node(cfg, "inference"),
         )
 
 

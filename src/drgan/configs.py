@@ -94,6 +94,15 @@ def _optional(hint) -> Any:
     return Optional[hint]  # noqa: UP045
 
 
+def plain_node(cfg, key: str) -> dict:
+    """``cfg[key]`` resolved into a plain dict ({} when absent or empty): what a typed settings object keeps of a
+    free-form node (evaluate's and analyze's ``inference``), so that it holds no OmegaConf container."""
+    from omegaconf import OmegaConf
+
+    node = cfg.get(key)
+    return dict(OmegaConf.to_container(node, resolve=True)) if node else {}
+
+
 def renderer_schema(overrides: bool = False) -> type:
     """``renderer``: the Mitsuba ``variant`` (``auto``; drgan.backend's choices), then every renderer key of
     `drgan.scene.render_settings.RenderSettings` (`renderer_fields`: its type, Optional, and its default). Every

@@ -67,6 +67,16 @@ def setting_float(key: str, value: object, minimum: float | None = None) -> floa
     return number
 
 
+def pixel_size(stage: str, value: object) -> float | None:
+    """A stage's ``nm_per_px`` setting: None (not given) or a positive finite size in nm, else a ConfigError naming
+    the stage and the key (before any image is read)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < float(value) < math.inf:
+        raise ConfigError(f"{stage}: nm_per_px={value!r}: expected a positive pixel size in nm")
+    return float(value)
+
+
 def check_spp(spp, name: str = "spp") -> int:
     """Samples per pixel for the stratified sampler: a positive perfect square, or a ConfigError naming ``name``
     (rather than silently rounding up)."""

@@ -44,9 +44,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from drgan.errors import ConfigError
+from drgan.configs import plain_node
+from drgan.errors import ConfigError, pixel_size
 from drgan.io import write_bytes, write_with
 from drgan.metrics.instance_scores import (
     ERROR_SOURCES,
@@ -191,7 +192,6 @@ class EvaluateSettings:
         data_dir = check_dataset_folder(cfg.data, "data", REAL_DATASET)  # before any checkpoint is read
         min_area = statistics_min_area(cfg)
         models = model_sources(cfg) if need_models else [str(m) for m in cfg.get("models") or []]
-        inference = cfg.get("inference")
         return cls(
             data=data_dir,
             out=Path(str(cfg.out)),
@@ -205,10 +205,10 @@ class EvaluateSettings:
             statistics=bool(cfg.get("statistics", cls.statistics)),
             bootstrap=int(cfg.get("bootstrap", cls.bootstrap)),
             seed=int(cfg.get("seed", cls.seed)),
-            nm_per_px=cfg.get("nm_per_px"),
+            nm_per_px=pixel_size("evaluate", cfg.get("nm_per_px")),
             min_area_px=min_area,
             overlay_alpha=float(cfg.get("overlay_alpha", cls.overlay_alpha)),
-            inference=dict(OmegaConf.to_container(inference, resolve=True)) if inference else {},
+            inference=plain_node(cfg, "inference"),
         )
 
 
