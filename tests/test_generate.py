@@ -87,6 +87,21 @@ def ids(out: Path) -> list[str]:
 # --- units --------------------------------------------------------------------------------------------------
 
 
+def test_pairs_pixel_scale_is_the_render_over_the_real_window_the_gan_learned_from(tmp_path):
+    from drgan.data.patches import PatchSet
+
+    assert gen.pairs_pixel_scale(256, None, 256.0) == 1.0  # no patch set (an imported generator): its view
+    assert gen.pairs_pixel_scale(256, tmp_path / "none", 512.0) == 0.5
+    (tmp_path / "wide").mkdir()
+    (tmp_path / "wide" / "summary.json").write_text(json.dumps({"params": {"size": 256, "window": 512}}))
+    assert (
+        PatchSet.saved_window(tmp_path / "wide") == 512 and gen.pairs_pixel_scale(256, tmp_path / "wide", 256.0) == 0.5
+    )
+    (tmp_path / "same").mkdir()
+    (tmp_path / "same" / "summary.json").write_text(json.dumps({"params": {"size": 24}}))  # windows of the render size
+    assert gen.pairs_pixel_scale(24, tmp_path / "same", 256.0) == 1.0
+
+
 def test_contrast_check_hand_made():
     labels = np.zeros((10, 10), np.int32)
     labels[2:5, 2:5] = 1
@@ -208,6 +223,7 @@ def test_dataset_layout_masks_and_manifest(dataset):
     assert counts["kept"] == N and counts["attempted"] == N + counts["dropped"]
     assert manifest["config"]["material"] == "tio2_sem" and manifest["config"]["renderer"]["spp"] == 1
     assert manifest["config"]["contour_px"] == 1 and manifest["throughput"]["this_run"]["rendered"] >= N
+    assert manifest["pixel_scale"] == 1.0  # rendered at the px of the windows the GAN learned from
     for entry in manifest["entries"]:
         files = {k: dataset / v for k, v in entry["files"].items()}
         image, mask, labels = read(files["image"]), read(files["mask"]), read(files["label"])

@@ -372,6 +372,44 @@ def test_split_touching_separates_a_merged_pair_and_keeps_single_particles():
     assert not split_touching(_probs_of(np.zeros((20, 20), bool), contour=disc[:20, :20])).any()
 
 
+class _Threshold(torch.nn.Module):
+    """A stand-in segmenter: particle where the image is above 0.5; records the size of every tile it sees."""
+
+    def __init__(self):
+        super().__init__()
+        self.seen: list[tuple[int, int]] = []
+
+    def forward(self, x):
+        self.seen.append(tuple(x.shape[-2:]))
+        z = (x - 0.5) * 40
+        return torch.cat([-z, z, torch.full_like(z, -20.0)], 1)
+
+
+def test_a_segmenter_of_large_particles_sees_the_image_at_its_pixel_scale_and_answers_at_the_image_size():
+    """Pairs rendered at half the real px (a wide view of large particles) give a segmenter of pixel_scale 0.5: it
+    must see real images halved, and its class map, outlines and touching-particle split come back at full size."""
+    from drgan.metrics.instance_scores import binarize_and_label, match_instances
+    from drgan.segmenters.inference import make_predictor, predict
+
+    truth = _two_touching_discs(size=96, r=22.0, gap=34.0)
+    image = np.where(truth > 0, 0.8, 0.2).astype(np.float32)
+    model = _Threshold()
+    model.pixel_scale = 0.5  # as load_segmenter sets it from the checkpoint
+    classes = predict(model, image, tile=48, split="watershed", split_depth=2.0, split_core=None)
+    assert set(model.seen) == {(48, 48)} and len(model.seen) == 1  # one 48 px tile: the 96 px image halved
+    assert classes.shape == truth.shape
+    assert abs(int((classes > 0).sum()) / int((truth > 0).sum()) - 1) < 0.03  # the outline where it was
+    pred = binarize_and_label(classes.astype(np.int64))
+    m = match_instances(pred, truth, 0.5)
+    assert m.tp == 2 and m.fp == 0 and m.ious.min() > 0.85  # the split still cuts the pair at full size
+    # an inference setting overrides the model's own; a bad one is refused before any image
+    model.seen.clear()
+    make_predictor(model, {"tile": 96, "pixel_scale": 1.0})(image)
+    assert model.seen == [(96, 96)]
+    with pytest.raises(ConfigError, match="pixel_scale"):
+        make_predictor(model, {"pixel_scale": 0})
+
+
 def test_predictor_settings_are_checked_before_predicting():
     from drgan.errors import ConfigError
     from drgan.segmenters.inference import make_predictor, predict
@@ -500,11 +538,13 @@ def tiny_segment_overrides(data, root, out, *extra) -> list[str]:
     ]
 
 
-def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
+def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     from drgan.evaluate import evaluate
-    from drgan.segment import segment
+    from drgan.segment import TrainingPairs, segment
 
     data = make_generated(tmp_path / "gen")
+    # pairs of a GAN that learned from windows twice its render: every checkpoint carries the scale to inference
+    monkeypatch.setattr(TrainingPairs, "pixel_scale", lambda self: 0.5)
     out = tmp_path / "run"
     common = tiny_segment_overrides(
         data, tmp_path, out, "trainer.log_every_n_steps=1", "name=tiny", "model.normalize=zscore"
@@ -520,6 +560,9 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path):
     calibration = json.loads((out / "metrics.json").read_text())["split_calibration"]
     assert calibration["n_pairs"] >= 1 and len(calibration["table"]) == 7 * 5  # cores x depths of the default grid
     assert load_segmenter(last).split_calibration == calibration
+    epoch_file = next((out / "checkpoints").glob("epoch_*.ckpt"))
+    assert load_segmenter(last).pixel_scale == load_segmenter(epoch_file).pixel_scale == 0.5
+    assert json.loads((out / "metrics.json").read_text())["pixel_scale"] == 0.5
     saved = torch.load(last, map_location="cpu", weights_only=True)["hyper_parameters"]
     assert saved["_target_"] == "drgan.segmenters.module.SegmenterModule"  # the class, for the registry's loader
     again = segment(compose([*common, "trainer.max_epochs=2", "ckpt_path=last"], config_name="segment"))

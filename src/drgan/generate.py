@@ -195,6 +195,16 @@ def generate(cfg: DictConfig) -> dict:
     return generate_dataset(GenerateSettings.from_config(cfg))
 
 
+def pairs_pixel_scale(resolution: int, backgrounds, view_width: float) -> float:
+    """Image px of the pairs per px of the real images the GAN learned from: the render resolution over the real
+    window its training patches covered (the run's PatchSet; below 1 when large particles were learned from windows
+    wider than the render), else over the material's view (a generator without patches, e.g. imported)."""
+    from drgan.data.patches import PatchSet
+
+    window = PatchSet.saved_window(backgrounds) if backgrounds else None
+    return round(resolution / float(window or view_width), 6)
+
+
 def generate_dataset(given: GenerateSettings) -> dict:
     """Render this shard's part of the dataset in ``given.out`` (settings as given: resolved against the checkpoint
     here); return the manifest written (merged or shard)."""
@@ -215,6 +225,7 @@ def generate_dataset(given: GenerateSettings) -> dict:
     module = load_module(Path(settings.ckpt), saved_cfg)
     use_parameters(module, settings.parameters, saved_cfg)
     resolution = int(module.generator.scene.spec.render.resolution)
+    pixel_scale = pairs_pixel_scale(resolution, settings.backgrounds, module.generator.scene.spec.view_width)
     spread = None  # with grey_spread, the real patches' grey levels each image takes one of
     if module.textured or settings.grey_spread:
         from drgan.data.patches import PatchSet
@@ -306,8 +317,8 @@ def generate_dataset(given: GenerateSettings) -> dict:
     print(f"{stats.kept} kept, {stats.dropped} dropped, {stats.skipped} already done; "
           + (f"{rate:.2f} images/minute ({summary['rendered_per_minute']:.2f} rendered/minute)" if rate is not None else "nothing rendered"))  # fmt: skip
     if shard.count > 1:
-        write_shard_manifest(folder, settings, shard, summary)
-    manifest = write_manifest(folder, settings, stats=summary, required=shard.count == 1)
+        write_shard_manifest(folder, settings, shard, summary, pixel_scale)
+    manifest = write_manifest(folder, settings, stats=summary, required=shard.count == 1, pixel_scale=pixel_scale)
     if manifest is not None:
         counts = manifest["counts"]
         print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "

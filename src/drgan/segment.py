@@ -55,6 +55,18 @@ class TrainingPairs:
             mask_suffix=cfg.get("mask_suffix", "auto"),
         )
 
+    def pixel_scale(self) -> float:
+        """Image px per real px of the pairs: a generated set's (its manifest; 1.0 for hand-made pairs), 1.0 for real
+        images. The segmenter keeps it in its checkpoints; inference resamples real images by it."""
+        if not self.data:
+            return 1.0
+        from drgan.synthetic.folder import MANIFEST
+        from drgan.synthetic.manifest import manifest_pixel_scale, read_manifest
+
+        if not (Path(self.data) / MANIFEST).is_file():
+            return 1.0
+        return manifest_pixel_scale(read_manifest(self.data, "data"), "data")
+
     def load(self):
         """The pairs (drgan.segmenters.pairs): generated, or the real dataset's train ids (never its test ids)."""
         from drgan.segmenters.pairs import load_generated_pairs, load_real_pairs, real_ids
@@ -184,7 +196,7 @@ def segment(cfg: DictConfig) -> dict:
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
     from drgan.segmenters.calibrate import check_grid
-    from drgan.segmenters.module import ScoreHistory, settled
+    from drgan.segmenters.module import PixelScaleEntry, ScoreHistory, settled
     from drgan.segmenters.registry import build_segmenter
 
     wall_start = time.perf_counter()
@@ -199,6 +211,12 @@ def segment(cfg: DictConfig) -> dict:
     calibration_grid = check_grid(cfg.get("split_calibration"))
     model = build_segmenter(cfg.model, "model")
     pairs = load_training_pairs(cfg)
+    pixel_scale = TrainingPairs.from_config(cfg).pixel_scale()
+    if pixel_scale != 1.0:
+        log.info(
+            "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
+            "checkpoints)", pixel_scale, pixel_scale,
+        )  # fmt: skip
     train_loader, val_loader, n_train, n_val = dataloaders(
         cfg, pairs, str(getattr(model, "input_normalization", "none")), bool(getattr(model, "needs_centres", False))
     )
@@ -219,7 +237,9 @@ def segment(cfg: DictConfig) -> dict:
         save_top_k=1,
     )
     scores = ScoreHistory()
-    callbacks = [ResumeCheckpoint(), checkpoint, scores, *([stopper] if stopper is not None else [])]
+    callbacks = [
+        PixelScaleEntry(pixel_scale), ResumeCheckpoint(), checkpoint, scores, *([stopper] if stopper is not None else [])
+    ]  # fmt: skip
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     start_loggers(loggers)
 
@@ -273,6 +293,7 @@ def segment(cfg: DictConfig) -> dict:
             "settled_why": why,
             "val_dsc_history": scores.history,
             "split_calibration": calibration,
+            "pixel_scale": pixel_scale,
             **metrics,
         },
     )

@@ -136,6 +136,21 @@ class PatchSet:
                 return int(array.shape[-1])
         return int(self.params.get("size", 0))
 
+    @property
+    def window(self) -> int:
+        """Real image px a patch covers: its mined window (resample_patches records it), else its size."""
+        return int(self.params.get("window") or self.params.get("size") or self.patch_size)
+
+    @staticmethod
+    def saved_window(directory: str | Path) -> int | None:
+        """``window`` of a saved set, read from its summary alone (no arrays); None when there is no set there."""
+        try:
+            params = json.loads((Path(directory) / _SUMMARY_FILE).read_text()).get("params") or {}
+        except (OSError, ValueError):
+            return None
+        window = params.get("window") or params.get("size")
+        return int(window) if window else None
+
     def summary(self) -> dict:
         """Counts a user checks first: patches kept, from how many images, particles per patch, background."""
         counts = np.asarray(self.train_counts)

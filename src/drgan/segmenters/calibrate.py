@@ -35,6 +35,9 @@ GRID_DEFAULTS = {
     "max_pairs": 100,
 }
 TIE = 0.002  # AP50 differences below this are ties: the earlier (more lenient) grid setting wins
+# Image px per real px of the pairs a segmenter learned from (a generated set's manifest pixel_scale: below 1 when
+# the GAN saw large particles in windows wider than its render); inference resamples real images by it.
+PIXEL_SCALE_KEY = "drgan_pixel_scale"
 
 
 def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | None:
@@ -130,6 +133,18 @@ def calibrate_split(
         "n_pairs": len(chosen),
         "table": table,
     }
+
+
+def stored_pixel_scale(checkpoint: Mapping, source: str = "checkpoint") -> float:
+    """The pixel scale a checkpoint holds (``PIXEL_SCALE_KEY``); 1.0 when it holds none (checkpoints from before it
+    was stored, real-trained ones) or a malformed one (with a warning: the checkpoint still loads)."""
+    entry = checkpoint.get(PIXEL_SCALE_KEY)
+    if entry is None:
+        return 1.0
+    if isinstance(entry, bool) or not isinstance(entry, (int, float)) or not 0 < entry < math.inf:
+        log.warning("%s: its %s entry %r is not a pixel scale; 1.0 used", source, PIXEL_SCALE_KEY, entry)
+        return 1.0
+    return float(entry)
 
 
 def stored_split(checkpoint: Mapping, source: str = "checkpoint") -> dict | None:

@@ -191,16 +191,26 @@ def predict(
     split_smooth: float = 1.0,
     split_core: float | None = None,
     seed_level: float = 0.5,
+    pixel_scale: float | None = None,
     **kw,
 ) -> np.ndarray:
     """(H, W) image -> (H, W) uint8 class map (0 background, 1 particle, 2 contour).
 
     split="watershed": touching particles cut apart (``split_touching``); "centres": seeded by the instance-aware
     segmenter's centre map above ``seed_level`` (drgan.segmenters.instances.split_by_centres); "none": the
-    network's argmax; "auto": the model's own (`split_of`)."""
+    network's argmax; "auto": the model's own (`split_of`).
+
+    ``pixel_scale``: the network sees the image resampled by this factor (area-averaged when below 1) and its
+    probabilities are brought back to the image's size; None: the model's own (``model.pixel_scale``, stored by
+    drgan.segment from its generated pairs: their px per real px; 1.0 for real-trained models). The split's lengths
+    (``split_depth``, ``split_smooth``: px at the network's scale, as calibrated) are scaled with it."""
     check_split(split, split_depth, split_smooth, split_core)
     split = split_of(model, split)
-    probs = predict_probs(model, image, **kw)
+    scale = check_pixel_scale(getattr(model, "pixel_scale", 1.0) if pixel_scale is None else pixel_scale)
+    probs = predict_probs(model, resample(image, scale), **kw)
+    if scale != 1.0:
+        probs = resample_probs(probs, np.shape(image))
+        split_depth, split_smooth = split_depth / scale, split_smooth / scale
     if split == "centres":
         if probs.shape[0] != 4:
             raise ConfigError(
@@ -211,6 +221,31 @@ def predict(
     if split == "none":
         return probs[:3].argmax(axis=0).astype(np.uint8)
     return split_touching(probs[:3], split_depth, split_smooth, split_core)
+
+
+def check_pixel_scale(value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 16:
+        raise ConfigError(f"inference.pixel_scale={value!r}: expected a factor in (0, 16] (null: the model's own)")
+    return float(value)
+
+
+def resample(image: np.ndarray, scale: float) -> np.ndarray:
+    """``image`` (H, W) resized by ``scale`` (at least 1 px a side): area-averaged (anti-aliased) when shrinking,
+    as the GAN's real patches were (drgan.data.patches.resample_patches); unchanged for 1."""
+    if scale == 1.0:
+        return image
+    from skimage.transform import resize
+
+    image = np.asarray(image, dtype=np.float32)
+    shape = tuple(max(1, int(round(n * scale))) for n in image.shape)
+    return resize(image, shape, order=1, anti_aliasing=scale < 1, preserve_range=True).astype(np.float32)
+
+
+def resample_probs(probs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(C, h, w) probabilities -> (C, H, W), bilinear (each channel; they still sum to 1)."""
+    from skimage.transform import resize
+
+    return np.stack([resize(p, shape, order=1, preserve_range=True) for p in probs]).astype(np.float32)
 
 
 def make_predictor(model: torch.nn.Module, inference: dict):
@@ -226,4 +261,6 @@ def make_predictor(model: torch.nn.Module, inference: dict):
     check_keys("inference", inference, defaults, "setting")
     settings = {**defaults, **inference}
     check_split(settings["split"], settings["split_depth"], settings["split_smooth"], settings["split_core"])
+    if settings["pixel_scale"] is not None:
+        check_pixel_scale(settings["pixel_scale"])
     return lambda image: predict(model, image, **inference)

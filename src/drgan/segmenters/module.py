@@ -193,6 +193,20 @@ class ScoreHistory(L.Callback):
         self.history = [float(v) for v in state_dict.get("history", [])]
 
 
+class PixelScaleEntry(L.Callback):
+    """Writes the training pairs' pixel scale (image px per real px) into every checkpoint the run saves, last.ckpt
+    and the epoch files, under drgan.segmenters.calibrate.PIXEL_SCALE_KEY; load_segmenter reads it back and
+    inference resamples the images it is given by it."""
+
+    def __init__(self, scale: float):
+        self.scale = float(scale)
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        from drgan.segmenters.calibrate import PIXEL_SCALE_KEY
+
+        checkpoint[PIXEL_SCALE_KEY] = self.scale
+
+
 def settled(history: list[float]) -> tuple[bool, str]:
     """(whether the validation score had settled when training stopped, why): the best val/dsc of the last
     SETTLE_EPOCHS epochs is less than SETTLE_GAIN above the best before them."""

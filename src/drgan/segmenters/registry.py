@@ -32,7 +32,7 @@ from pathlib import Path
 
 from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import ConfigError, DataError
-from drgan.segmenters.calibrate import stored_split
+from drgan.segmenters.calibrate import stored_pixel_scale, stored_split
 from drgan.targets import target_path
 
 __all__ = [
@@ -192,4 +192,6 @@ def load_segmenter(path: str | Path, setting: str = "model"):
         ) from None
     # the touching-particle split drgan.segment chose on the validation pairs (inference split_* = auto reads it)
     model.split_calibration = stored_split(checkpoint, f"{setting}={path}")
+    # image px per real px of its training pairs: inference resamples the images it is given by it
+    model.pixel_scale = stored_pixel_scale(checkpoint, f"{setting}={path}")
     return model.eval()

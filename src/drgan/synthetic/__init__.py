@@ -28,6 +28,7 @@ from drgan.synthetic.manifest import (
     check_files,
     is_generated,
     manifest_entries,
+    manifest_pixel_scale,
     read_manifest,
     unlisted_items,
     write_manifest,
@@ -38,5 +39,5 @@ from drgan.synthetic.shards import Shard, dataset_cutoff, kept_below, owned_by
 __all__ = [
     "BACKGROUND", "GENERATED_DATASET", "IGNORE", "PARTIAL_BACKGROUND", "SYNTHETIC", "DatasetFolder", "Entry", "Shard",
     "bg_id", "check_files", "dataset_cutoff", "is_generated", "item_files", "kept_below", "manifest_entries",
-    "owned_by", "pbg_id", "read_manifest", "syn_id", "unlisted_items", "write_manifest", "write_shard_manifest",
+    "manifest_pixel_scale", "owned_by", "pbg_id", "read_manifest", "syn_id", "unlisted_items", "write_manifest", "write_shard_manifest",
 ]  # fmt: skip

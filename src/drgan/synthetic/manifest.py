@@ -49,22 +49,34 @@ GENERATED_DATASET = "a dataset folder written by drgan.generate (manifest.json, 
 # --- writing ------------------------------------------------------------------------------------------------
 
 
-def write_shard_manifest(folder: DatasetFolder, settings: GenerateSettings, shard: Shard, stats: dict) -> None:
+def write_shard_manifest(
+    folder: DatasetFolder, settings: GenerateSettings, shard: Shard, stats: dict, pixel_scale: float = 1.0
+) -> None:
     """manifest_shard_I.json: the kept indices of one shard found on disk, and its throughput."""
     outcomes = folder.outcomes()
     mine = sorted(i for i, kept in outcomes.items() if kept and shard.owns_index(i))
     io.write_json(folder.root / shard_manifest_name(shard), {
         "shard": str(shard),
         "config": settings.record(),
+        "pixel_scale": pixel_scale,
         "entries": [Entry.synthetic(i).to_json() for i in mine],
         "throughput": stats,
     })  # fmt: skip
 
 
 def write_manifest(
-    folder: DatasetFolder, settings: GenerateSettings, stats: dict | None, required: bool
+    folder: DatasetFolder,
+    settings: GenerateSettings,
+    stats: dict | None,
+    required: bool,
+    pixel_scale: float | None = None,
 ) -> dict | None:
     """manifest.json of the first n kept indices and the backgrounds, when all are done.
+
+    ``pixel_scale``: image px per px of the real images the GAN learned from (render resolution / the material's
+    view_width; below 1 when the GAN saw large particles in wide windows, area-averaged); None (merge=true): the
+    shard manifests' (1.0 without any). A segmenter trained on the set keeps it (drgan.segment) and resamples the
+    real images it predicts by it (drgan.segmenters.inference).
 
     Incomplete: a ConfigError naming what is missing when ``required`` (single process, merge=true),
     else None (a shard whose siblings are still running)."""
@@ -103,14 +115,18 @@ def write_manifest(
         + [Entry.background(b).to_json() for b in backgrounds]
         + [Entry.partial_background(p).to_json() for p in partials]
     )
-    shards = []
+    shards, scales = [], []
     for path in sorted(folder.root.glob("manifest_shard_*.json")):
         record = json.loads(path.read_text())
         if record.get("config", {}).get("ckpt") == settings.ckpt:
             shards.append({"shard": record.get("shard"), **record.get("throughput", {})})
+            scales.append(float(record.get("pixel_scale", 1.0)))
+    if pixel_scale is None:
+        pixel_scale = scales[0] if scales else 1.0
     surplus = sum(1 for i, k in outcomes.items() if k and i > cutoff)
     manifest = {
         "config": {**settings.record(), "shard": None},
+        "pixel_scale": float(pixel_scale),
         "counts": {
             "synthetic": len(kept),
             "background": len(backgrounds),
@@ -168,6 +184,15 @@ def is_generated(root: str | Path) -> bool:
     """Whether ``root`` was made by drgan.generate (complete or not): it holds manifest.json or config.json."""
     root = Path(root)
     return (root / MANIFEST).is_file() or (root / CONFIG).is_file()
+
+
+def manifest_pixel_scale(manifest: dict, setting: str = "data") -> float:
+    """A generated set's image px per real image px (``write_manifest``); 1.0 for a manifest without one (sets made
+    before it was recorded rendered one px per real px), a DataError naming ``setting`` for a value that is none."""
+    value = manifest.get("pixel_scale", 1.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
+        raise DataError(f"{setting}: manifest.json's pixel_scale {value!r}: expected a positive number")
+    return float(value)
 
 
 def read_manifest(root: str | Path, setting: str = "data") -> dict:
