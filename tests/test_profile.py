@@ -240,6 +240,40 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     assert cfg.material.noise_sigma.max == pytest.approx(max(0.01, NOISE_LIMIT_FACTOR * measured), abs=1e-4)
 
 
+def test_view_window_widens_for_large_particles_within_the_images():
+    assert est.view_window(30.0, 256, 1024) == 256  # TiO2: the render size
+    assert est.view_window(131.0, 256, 1024) == 256  # EMPS actbio's rings fit (0.51 of the window)
+    assert est.view_window(310.0, 256, 1024) == 1024 and est.view_window(310.0, 256, 512) == 512  # capped
+
+
+def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, monkeypatch):
+    """Particles that fill a render-sized window (EMPS saa890: 282 px in 256 px windows, none whole in any) are
+    learned from wider windows, area-averaged to the render: the material says how wide, counts are per window,
+    and the detector's grain is written in render px."""
+    from drgan.profile import profile
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    rng = np.random.default_rng(5)
+    for i in range(3):
+        image, _ = synthetic("dark", rng, size=160, n=4, median=40.0, sigma=0.1, grain=2.0)
+        Image.fromarray((image * 255).round().astype(np.uint8)).save(folder / f"im{i}.png")
+    monkeypatch.chdir(tmp_path)
+    overrides = [f"data.dir={folder}", "name=big_discs", f"out={tmp_path / 'out'}", "patch_size=32",
+                 "data.crop_rows=null", "data.segment.scale=40", "data.segment.neck_depth=0.0"]  # fmt: skip
+    result = profile(compose(overrides, config_name="profile"))
+    counts = result.particles_per_patch
+    assert abs(result.sizes.median_diameter_px / 40 - 1) < 0.15
+    assert counts.patch_size == 128 and counts.render_px == 32  # 44 px extent > 0.6 x 64; 256 > the 160 px images
+    cfg = compose(["material=big_discs", "renderer.resolution=32"], config_name="train")
+    assert cfg.material.view_width == 128 and cfg.data.view_width == 128
+    assert cfg.material.noise_grain_px == pytest.approx(result.background.grain_px * 32 / 128, abs=0.01)
+    assert (
+        "#   view_width: 128 real px per training window, rendered at 32 px"
+        in (tmp_path / "drgan_conf" / "material" / "big_discs.yaml").read_text()
+    )
+
+
 def test_errors_before_compute(tmp_path, monkeypatch):
     from drgan.profile import profile
 

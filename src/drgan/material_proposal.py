@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 
 from drgan.data import measurements
 from drgan.data.classical import CALIBRATION, Fixed
+from drgan.data.measurements import VIEW_EXTENT_FRACTION
 from drgan.data.particle_edge import MAX_SATURATED
 
 if TYPE_CHECKING:
@@ -148,9 +149,19 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
         "max": round(max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * background.noise_sigma), 4),
     }
     notes["noise_sigma.max"] = f"{NOISE_LIMIT_FACTOR} x the background's noise sigma (at least {NOISE_LIMIT_FLOOR})"
+    render_px = counts.render_px or counts.patch_size  # render px per window; below the window: large particles
+    if counts.render_px:
+        material["view_width"] = int(counts.patch_size)
+        notes["view_width"] = (
+            f"{counts.patch_size} real px per training window, rendered at {render_px} px: the particles' median "
+            f"extent ({EXTENT_PER_DIAMETER * result.sizes.median_diameter_px:.0f} px) would fill more of a "
+            f"{render_px} px window than {VIEW_EXTENT_FRACTION:g} of it; the segmenter trained on the generated "
+            "pairs resamples images by the same factor"
+        )
     if parent_renders_without_sampling_noise(parent):
-        # Such a render has no Monte Carlo grain: the noise's spatial correlation is the detector's too.
-        material["noise_grain_px"] = round(float(background.grain_px), 2)
+        # Such a render has no Monte Carlo grain: the noise's spatial correlation is the detector's too (in render
+        # px: a wide window's real grain is finer once area-averaged).
+        material["noise_grain_px"] = round(float(background.grain_px) * render_px / counts.patch_size, 2)
         notes["noise_grain_px"] = (
             f"lag-1 autocorrelation {background.lag1_autocorrelation:.3f} of the background's high-pass residual"
         )

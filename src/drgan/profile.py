@@ -43,7 +43,14 @@ from drgan.data.profile_result import (
 )
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_bytes, write_json
-from drgan.material_proposal import WHY_SEGMENT, data_settings, fringe_settings, material_yaml, parent_renders_fringe
+from drgan.material_proposal import (
+    EXTENT_PER_DIAMETER,
+    WHY_SEGMENT,
+    data_settings,
+    fringe_settings,
+    material_yaml,
+    parent_renders_fringe,
+)
 from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
@@ -193,7 +200,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             profile_figures.scale_figure(out, error.search.as_dict())
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
 
-    tables, foregrounds, labels_kept, counts, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
+    tables, foregrounds, labels_kept, shapes, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
     for image in tqdm(images, desc="segmenting", unit="image"):
         labels, foreground, separability, added = est.segment_image(image, params, polarity)
         table = est.particle_table(labels)
@@ -205,7 +212,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
         # The edge profile leaves out particles beside annotations (a scale bar may hide a neighbour).
         exclude = annotation_mask(as_grey(image)) if params.annotations else None
         edges.append(particle_edge.edge_samples(image, labels, foreground, exclude))
-        counts.append(est.patch_counts(table["row"], table["col"], labels.shape, patch))
+        shapes.append(labels.shape)
         ce.append(est.clark_evans(table["row"], table["col"], labels.size))
     if not sum(len(t["diameter_px"]) for t in tables):
         _write_failure_figure(out, images, polarity, labels_kept)
@@ -222,7 +229,14 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
     if inner.size == 0:  # every particle touches the border: their sizes are cut, but they are all there is
         inner = np.concatenate([t["diameter_px"] for t in tables])
     fits, chosen = est.fit_sizes(inner, seed=s.seed)
-    counts = np.concatenate(counts)
+    # Training windows wide enough for the particles (large ones: wider than the render, area-averaged to it)
+    window = est.view_window(EXTENT_PER_DIAMETER * float(np.median(inner)), patch, min(min(x) for x in shapes))
+    if window != patch:
+        log.info(
+            "particles of %.0f px median diameter: training windows of %d real px, rendered at %d px (%.2g x)",
+            np.median(inner), window, patch, patch / window,
+        )  # fmt: skip
+    counts = np.concatenate([est.patch_counts(t["row"], t["col"], sh, window) for t, sh in zip(tables, shapes)])
     touching = float(np.mean(np.concatenate([t["touches_other"] for t in tables])))
     ce_values = [c for c in ce if c is not None]
     ce_median = float(np.median(ce_values)) if ce_values else None
@@ -267,8 +281,8 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
         ),
         particles_per_patch=PatchCounts(
             definition=f"segments (any, border-touching included) whose centroid lies inside a "
-            f"{patch} px window; windows on a grid of stride {patch // 2} px",
-            patch_size=patch,
+            f"{window} px window; windows on a grid of stride {window // 2} px",
+            patch_size=window,
             windows=int(counts.size),
             mean=round(float(counts.mean()), 3),
             median=float(np.median(counts)),
@@ -276,6 +290,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             p90=float(np.quantile(counts, 0.9)),
             # The windows training keeps (data.min_particles: 3 by default): the scene's range.
             with_3_or_more=_quantiles(counts[counts >= 3]),
+            render_px=patch if window != patch else None,
         ),
         agglomeration=Agglomeration(
             touching_fraction=round(touching, 4),

@@ -102,6 +102,20 @@ def patch_counts(
     return (in_rows @ in_cols.T).ravel()
 
 
+VIEW_EXTENT_FRACTION = 0.6  # a particle's median extent may fill at most this much of a training window's width
+
+
+def view_window(extent_px: float, patch: int, shortest_side: int) -> int:
+    """Real px a training window covers so that a particle of ``extent_px`` (largest extent) fits in one with room
+    around it: ``patch`` (the render size), doubled while the particle fills more than VIEW_EXTENT_FRACTION of it
+    and the doubled window still fits in the shortest image side. Windows wider than the render are area-averaged
+    to it (the GAN sees large particles smaller; drgan.data.patches.resample_patches)."""
+    window = int(patch)
+    while extent_px > VIEW_EXTENT_FRACTION * window and 2 * window <= shortest_side:
+        window *= 2
+    return window
+
+
 def clark_evans(rows: np.ndarray, cols: np.ndarray, area: float) -> float | None:
     """Clark-Evans ratio: mean nearest-neighbour distance over its value for a Poisson pattern, 0.5 / sqrt(density).
 

@@ -87,6 +87,7 @@ class PatchCounts:
     p10: float
     p90: float
     with_3_or_more: dict  # windows, p10, p90 of the windows training keeps (data.min_particles: 3)
+    render_px: int | None = None  # the render size when the window is wider (large particles; None: the same)
 
 
 @dataclass(frozen=True)
