@@ -168,7 +168,11 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert type(size) is layout._SIZE_KINDS[saved["sizes"]["chosen"]]
     assert type(placement) is layout._PLACEMENT_KINDS[saved["agglomeration"]["placement"]]
     assert cfg.data.dir == str(folder.resolve()) and list(cfg.data.crop_rows) == [320, 336]
-    assert cfg.renderer.spp == 16 and cfg.material.filter_stddev == 3.0  # inherited from the parent (HIM)
+    assert cfg.renderer.spp == 16  # inherited from the parent (HIM)
+    # sharp outlines (discs drawn without blur) render through a sharper filter than the HIM parent's 3 px
+    from drgan.material_proposal import filter_for_blur
+
+    assert saved["edge_blur_px"] < 1.0 and cfg.material.filter_stddev == filter_for_blur(saved["edge_blur_px"]) == 0.5
     # The background's noise bounds the learned noise of an SEM material too (the parent's 0.2 let a GAN on clean
     # images learn 30 x the real noise); the grain stays the path tracer's (no noise_grain_px written)
     from drgan.material_proposal import NOISE_LIMIT_FACTOR
@@ -238,6 +242,34 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
 
     measured = result.background.noise_sigma
     assert cfg.material.noise_sigma.max == pytest.approx(max(0.01, NOISE_LIMIT_FACTOR * measured), abs=1e-4)
+
+
+def test_edge_blur_reads_the_gaussian_of_blurred_outlines_with_or_without_a_bright_rim():
+    yy, xx = np.mgrid[:192, :192]
+    image, fg = np.full((192, 192), 0.3), np.zeros((192, 192), bool)
+    for c in [(48, 48), (48, 144), (144, 48), (144, 144)]:
+        disc = (yy - c[0]) ** 2 + (xx - c[1]) ** 2 <= 30**2
+        image[disc], fg = 0.7, fg | disc
+    rim = fg & ~ndi.binary_erosion(fg, iterations=3)
+    rng = np.random.default_rng(0)
+    found = {}
+    for sigma in (1.5, 2.0, 3.0):
+        for name, sharp in (("step", image), ("rim", image + 0.3 * rim)):  # the SEM edge effect: a bright rim
+            blurred = ndi.gaussian_filter(sharp, sigma) + 0.01 * rng.standard_normal(image.shape)
+            found[sigma, name] = est.edge_blur(blurred, fg)
+    for sigma in (1.5, 2.0, 3.0):
+        assert abs(found[sigma, "step"] / sigma - 1) < 0.15 and abs(found[sigma, "rim"] / sigma - 1) < 0.25
+    assert found[1.5, "step"] < found[2.0, "step"] < found[3.0, "step"]
+    assert est.edge_blur(image, np.zeros_like(fg)) is None  # no outline: nothing measured
+
+
+def test_filter_for_blur_interpolates_the_render_table_and_holds_its_ends():
+    from drgan.material_proposal import FILTER_FOR_BLUR, filter_for_blur
+
+    assert filter_for_blur(None) is None and filter_for_blur(0.5) == 0.5 and filter_for_blur(5.0) == 3.0
+    for blur, filt in FILTER_FOR_BLUR:
+        assert filter_for_blur(blur) == filt
+    assert filter_for_blur(2.24, 0.5) == 1.0  # 2.24 image px seen at half the px: 1.12 render px
 
 
 def test_view_window_widens_for_large_particles_within_the_images():

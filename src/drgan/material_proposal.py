@@ -11,6 +11,7 @@ import functools
 import math
 from typing import TYPE_CHECKING
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from drgan.data import measurements
@@ -158,6 +159,13 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
             f"{render_px} px window than {VIEW_EXTENT_FRACTION:g} of it; the segmenter trained on the generated "
             "pairs resamples images by the same factor"
         )
+    blur = filter_for_blur(result.edge_blur_px, render_px / counts.patch_size)
+    if blur is not None and not parent_renders_without_sampling_noise(parent):
+        material["filter_stddev"] = blur
+        notes["filter_stddev"] = (
+            f"the outlines' measured blur {result.edge_blur_px:.2f} px (image px; {render_px / counts.patch_size:g} "
+            "render px each) through the SEM renders' blur per filter (FILTER_FOR_BLUR)"
+        )
     if parent_renders_without_sampling_noise(parent):
         # Such a render has no Monte Carlo grain: the noise's spatial correlation is the detector's too (in render
         # px: a wide window's real grain is finer once area-averaged).
@@ -279,6 +287,23 @@ def stage_limits(parent: str, background_grey: float) -> tuple[dict, str] | None
         f"0.01-{high}: the background is {background_grey:.3f} grey and {parent}'s stage renders at most {grey:.3f} "
         f"(limit {limit:g}); widened to {STAGE_MARGIN:g} x the linear estimate of the base colour the background needs"
     )
+
+
+# The outline blur (measurements.edge_blur, render px) of SEM renders made with each reconstruction filter
+# (material.filter_stddev): EMPS cej's material (tio2_him scene), 6 layouts each, the FCN at its initial values
+# (experiments/pipeline/README.md, "outline blur"). A render's outline is never sharper than ~0.96 px (shading, the
+# pixel's footprint); the paper's HIM materials' 3.0 renders 2.7 px.
+FILTER_FOR_BLUR = ((0.96, 0.5), (1.12, 1.0), (1.52, 1.5), (1.96, 2.0), (2.69, 3.0))
+
+
+def filter_for_blur(blur_px: float | None, render_per_image_px: float = 1.0) -> float | None:
+    """The SEM renderer's filter_stddev whose renders have the images' outline blur (``blur_px``, image px;
+    ``render_per_image_px`` converts it to render px), interpolated in FILTER_FOR_BLUR and held at its ends (0.5 for
+    outlines sharper than any render, 3.0 for blurrier ones); None when no blur was measured."""
+    if blur_px is None:
+        return None
+    blurs, filters = zip(*FILTER_FOR_BLUR)
+    return round(float(np.interp(blur_px * render_per_image_px, blurs, filters)), 2)
 
 
 def parent_renders_without_sampling_noise(parent: str) -> bool:

@@ -201,6 +201,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
 
     tables, foregrounds, labels_kept, shapes, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
+    blurs = []
     for image in tqdm(images, desc="segmenting", unit="image"):
         labels, foreground, separability, added = est.segment_image(image, params, polarity)
         table = est.particle_table(labels)
@@ -212,6 +213,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
         # The edge profile leaves out particles beside annotations (a scale bar may hide a neighbour).
         exclude = annotation_mask(as_grey(image)) if params.annotations else None
         edges.append(particle_edge.edge_samples(image, labels, foreground, exclude))
+        blurs.append(est.edge_blur(image, foreground, exclude))
         shapes.append(labels.shape)
         ce.append(est.clark_evans(table["row"], table["col"], labels.size))
     if not sum(len(t["diameter_px"]) for t in tables):
@@ -305,6 +307,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             images_with_size=len(known),
         ),
         out=str(out.resolve()),
+        edge_blur_px=round(float(np.median(found)), 3) if (found := [b for b in blurs if b is not None]) else None,
     )
     profile_figures.write_figures(out, images, labels_kept, inner, fits, chosen, noise, foregrounds, counts, polarity)
     if scale is not None:
@@ -448,6 +451,8 @@ Material config: `{r.material.config}` (parent `{r.material.parent}`).
 | noise sigma (MAD of the high-pass residual, corrected) | {b.noise_sigma:.4f} |
 | lag-1 autocorrelation of the residual | {b.lag1_autocorrelation:.3f} |
 | grain (Gaussian stddev, px) | {b.grain_px:.2f} |
+| outline blur (Gaussian stddev of the steepest edge slope, px) | \
+{"not measured" if r.edge_blur_px is None else f"{r.edge_blur_px:.2f}"} |
 | particles segmented / not touching the border | {r.segmentation.particles} / \
 {r.segmentation.particles_not_touching_border} |
 | median / mean equivalent diameter (px) | {r.sizes.median_diameter_px:.2f} / {r.sizes.mean_diameter_px:.2f} |

@@ -143,6 +143,7 @@ class ProfileResult:
     pixel_size: PixelSize
     out: str  # the profile's folder, resolved
     material: MaterialProposed | None = None  # None until the material config is written
+    edge_blur_px: float | None = None  # outlines' blur, px of the images (measurements.edge_blur; median of images)
 
     def as_dict(self) -> dict:
         """profile.json."""
@@ -166,6 +167,7 @@ class ProfileResult:
             pixel_size=PixelSize(**record["pixel_size"]),
             out=record["out"],
             material=MaterialProposed(**material) if material is not None else None,
+            edge_blur_px=record.get("edge_blur_px"),
         )
 
 
