@@ -272,6 +272,14 @@ def test_filter_for_blur_interpolates_the_render_table_and_holds_its_ends():
     assert filter_for_blur(2.24, 0.5) == 1.0  # 2.24 image px seen at half the px: 1.12 render px
 
 
+def test_whole_particle_counts_count_boxes_off_every_window_edge():
+    boxes = np.array([[10, 10, 20, 20], [0, 40, 10, 50], [30, 30, 70, 70]])  # inside; on the top edge; straddling
+    counts = est.whole_particle_counts(boxes, (64, 64), 64, 32)
+    assert counts.tolist() == [1]  # one 64 px window: only the first box is whole
+    counts = est.whole_particle_counts(boxes, (100, 100), 64, 32)  # windows at 2 and 34 (a centred grid)
+    assert counts.shape == (4,) and counts.max() <= 2 and est.whole_particle_counts(boxes, (50, 50), 64).size == 0
+
+
 def test_view_window_widens_for_large_particles_within_the_images():
     assert est.view_window(30.0, 256, 1024) == 256  # TiO2: the render size
     assert est.view_window(131.0, 256, 1024) == 256  # EMPS actbio's rings fit (0.51 of the window)
@@ -297,8 +305,11 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
     counts = result.particles_per_patch
     assert abs(result.sizes.median_diameter_px / 40 - 1) < 0.15
     assert counts.patch_size == 128 and counts.render_px == 32  # 44 px extent > 0.6 x 64; 256 > the 160 px images
+    # one 128 px window per 160 px image: 3 windows, far from 16 with 3 whole particles, so training keeps windows
+    # with one whole particle (as it counts them: bounding box off every window edge)
+    assert counts.whole["windows"] == 3 and counts.whole["at_least_3"] <= counts.whole["at_least_1"] <= 3
     cfg = compose(["material=big_discs", "renderer.resolution=32"], config_name="train")
-    assert cfg.material.view_width == 128 and cfg.data.view_width == 128
+    assert cfg.material.view_width == 128 and cfg.data.view_width == 128 and cfg.data.min_particles == 1
     assert cfg.material.noise_grain_px == pytest.approx(result.background.grain_px * 32 / 128, abs=0.01)
     assert (
         "#   view_width: 128 real px per training window, rendered at 32 px"

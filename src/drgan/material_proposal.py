@@ -90,12 +90,25 @@ def data_settings(result: ProfileResult) -> tuple[dict, dict]:
             f"{data['min_particles']}: only {100 * enough:.0f} % of the {counts.patch_size} px windows hold 3 or "
             f"more particles (median {counts.median:g})"
         )
+    whole = counts.whole
+    if whole is not None and whole["at_least_3"] < MIN_TRAIN_WINDOWS:
+        # Training keeps windows showing data.min_particles *whole* particles: large or densely packed ones are
+        # cut by most window edges (EMPS apsusc: 104 px spheres, 2 windows of 8 images with 3 whole ones).
+        k = next((k for k in (2, 1) if whole[f"at_least_{k}"] >= MIN_TRAIN_WINDOWS), 1)
+        if k < data.get("min_particles", 3):
+            data["min_particles"] = k
+            notes["data.min_particles"] = (
+                f"{k}: of the {whole['windows']} training windows ({counts.patch_size} px, stride {whole['stride']}) "
+                f"{whole['at_least_3']} show 3 or more whole particles, {whole[f'at_least_{k}']} show {k} or more "
+                f"(training wants at least {MIN_TRAIN_WINDOWS} to learn from)"
+            )
     return data, notes
 
 
 WHY_SEGMENT = {"scale": "measured", "neck_depth": "chosen by the segment sizes (note below)"}
 SEGMENT_KEYS = ("scale", "sigma", "min_distance", "min_area", "max_area", "background", "neck_depth")
 MIN_WINDOW_SHARE = 0.2  # below this share of windows with >= 3 particles, training mines windows with fewer
+MIN_TRAIN_WINDOWS = 16  # ... and below this many windows with 3 whole particles (before near-duplicates go), too
 
 
 def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, str, dict, dict, dict]:

@@ -27,7 +27,7 @@ from drgan.data.annotations import annotation_mask, as_grey
 from drgan.data.classical import NoParticles, SegmentParams, resolve_params
 from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particle_edge import EDGE_BACKGROUND_PX, EDGE_INSIDE_PX, EDGE_INTERIOR_PX, EDGE_OUTSIDE_PX
-from drgan.data.patches import scale_sample
+from drgan.data.patches import particle_boxes, scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.data.profile_result import (
     Agglomeration,
@@ -201,7 +201,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
         raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
 
     tables, foregrounds, labels_kept, shapes, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
-    blurs = []
+    blurs, boxes = [], []
     for image in tqdm(images, desc="segmenting", unit="image"):
         labels, foreground, separability, added = est.segment_image(image, params, polarity)
         table = est.particle_table(labels)
@@ -215,6 +215,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
         edges.append(particle_edge.edge_samples(image, labels, foreground, exclude))
         blurs.append(est.edge_blur(image, foreground, exclude))
         shapes.append(labels.shape)
+        boxes.append(particle_boxes(labels, params))
         ce.append(est.clark_evans(table["row"], table["col"], labels.size))
     if not sum(len(t["diameter_px"]) for t in tables):
         _write_failure_figure(out, images, polarity, labels_kept)
@@ -239,6 +240,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             np.median(inner), window, patch, patch / window,
         )  # fmt: skip
     counts = np.concatenate([est.patch_counts(t["row"], t["col"], sh, window) for t, sh in zip(tables, shapes)])
+    whole = np.concatenate([est.whole_particle_counts(b, sh, window) for b, sh in zip(boxes, shapes)])
     touching = float(np.mean(np.concatenate([t["touches_other"] for t in tables])))
     ce_values = [c for c in ce if c is not None]
     ce_median = float(np.median(ce_values)) if ce_values else None
@@ -293,6 +295,11 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             # The windows training keeps (data.min_particles: 3 by default): the scene's range.
             with_3_or_more=_quantiles(counts[counts >= 3]),
             render_px=patch if window != patch else None,
+            whole={
+                "stride": est.TRAIN_STRIDE,
+                "windows": int(whole.size),
+                **{f"at_least_{k}": int((whole >= k).sum()) for k in (1, 2, 3)},
+            },
         ),
         agglomeration=Agglomeration(
             touching_fraction=round(touching, 4),

@@ -28,7 +28,7 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from drgan.data.classical import Segmentation, SegmentParams, segment_with_report
-from drgan.data.patches import window_starts
+from drgan.data.patches import full_particle_counts, window_starts
 from drgan.errors import DataError
 
 # The high-pass that isolates noise from the background's slow shading: image minus its Gaussian blur.
@@ -100,6 +100,18 @@ def patch_counts(
     in_rows = ((rows >= r0) & (rows < r0 + size)).astype(np.int64)  # (R, K)
     in_cols = ((cols >= c0) & (cols < c0 + size)).astype(np.int64)  # (C, K)
     return (in_rows @ in_cols.T).ravel()
+
+
+TRAIN_STRIDE = 128  # data.stride's default: the grid training mines its windows on
+
+
+def whole_particle_counts(boxes: np.ndarray, shape: tuple[int, int], size: int, stride: int = TRAIN_STRIDE):
+    """Particles fully displayed (bounding box off every window edge, as training mines: drgan.data.patches) in each
+    ``size`` px window of the training grid of one image: a flat array. ``boxes``: particle_boxes of its segments."""
+    rows, cols = window_starts(shape[0], size, stride), window_starts(shape[1], size, stride)
+    if not len(rows) or not len(cols):
+        return np.zeros(0, np.int64)
+    return full_particle_counts(boxes, rows, cols, size, size).ravel()
 
 
 VIEW_EXTENT_FRACTION = 0.6  # a particle's median extent may fill at most this much of a training window's width

@@ -88,6 +88,8 @@ class PatchCounts:
     p90: float
     with_3_or_more: dict  # windows, p10, p90 of the windows training keeps (data.min_particles: 3)
     render_px: int | None = None  # the render size when the window is wider (large particles; None: the same)
+    # windows of the training grid (stride, windows) and how many show >= 1, 2, 3 whole particles (as mining counts)
+    whole: dict | None = None
 
 
 @dataclass(frozen=True)
