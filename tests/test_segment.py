@@ -584,6 +584,7 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     result = evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{last},{last}]", "inference.tile=32"]))
     assert set(result["runs"]) == {"run0", "run1"} and result["std"]["dsc"] == pytest.approx(0.0)
     assert "split calibrated on" in (tmp_path / "eval" / "results.md").read_text()
+    assert "images resampled by 0.5" in (tmp_path / "eval" / "results.md").read_text()  # says how it was scored
     assert (tmp_path / "eval" / "overlays" / "x.png").is_file()
 
 

@@ -85,6 +85,9 @@ class SegmenterPredictor(FunctionPredictor):
 
         inference, note = resolve_auto(inference, getattr(model, "split_calibration", None), source)
         how = ", ".join(f"{k} {v}" for k, v in inference.items()) + (f" (split {note})" if note else "")
+        scale = getattr(model, "pixel_scale", 1.0)
+        if inference.get("pixel_scale") is None and scale != 1.0:
+            how += f"; images resampled by {scale:g} (the pixel scale of its training pairs)"
         super().__init__(source, make_predictor(model, inference), how)
         self.model = model
 
