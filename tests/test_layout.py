@@ -241,8 +241,36 @@ def test_poisson_paper_sized_layouts_place_every_particle():
 
 def test_poisson_impossible_packing_raises():
     crowded = PoissonAgglomerates(max_height=0.0)
-    with pytest.raises(ConfigError, match="too many particles"):
+    with pytest.raises(ConfigError, match=r"too many particles.*\(constellation 0: 51 draws of sizes\)"):
         sample_layouts(1, 100, NormalSize(mean=24.0, std=0.0), crowded, view_width=64.0)
+
+
+def test_a_draw_of_sizes_too_large_for_the_view_is_drawn_again():
+    """EMPS apsusc's profiled material (104 px spheres, lognormal sigma 0.38, 3-6 per 256 px view) could not place
+    3 % of its draws, so training stopped at its start: such a constellation now draws its sizes again. Draws that
+    fit the first time are the ones they always were."""
+    size, placement = LognormalSize(median=114.0, sigma=0.38), PoissonAgglomerates(max_height=228.0)
+    rng_draws = []
+    for seed in range(200):  # which single draws fail without the redraw
+        rng = np.random.default_rng(seed)
+        sizes = size.sample(rng, (1, 6))
+        k = int(rng.integers(3, 7, size=1)[0])
+        try:
+            placement.sample(rng, sizes[0, :k], 256.0)
+        except ConfigError:
+            rng_draws.append(seed)
+    assert rng_draws  # the distribution does hold layouts that cannot be placed
+    for seed in rng_draws[:3]:
+        phi = sample_layouts(1, 6, size, placement, view_width=256.0, seed=seed, n_min=3)
+        assert 3 <= particle_counts(phi)[0] <= 6 and np.isfinite(phi).all()
+    fits = next(s for s in range(200) if s not in rng_draws)
+    rng = np.random.default_rng(fits)
+    sizes = size.sample(rng, (1, 6))
+    k = int(rng.integers(3, 7, size=1)[0])
+    np.testing.assert_array_equal(
+        sample_layouts(1, 6, size, placement, view_width=256.0, seed=fits, n_min=3)[0, :k, 3],
+        sizes[0, :k].astype(np.float32),
+    )
 
 
 # ---------------------------------------------------------------------------------------------- bad inputs

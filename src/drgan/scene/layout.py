@@ -33,6 +33,9 @@ __all__ = ["sample_layouts", "particle_counts", "size_from_config", "placement_f
 # The transformation tensor.
 
 
+PLACEMENT_REDRAWS = 50  # sizes drawn again for a constellation that does not fit, before the error stands
+
+
 def sample_layouts(
     m: int,
     n: int,
@@ -48,7 +51,9 @@ def sample_layouts(
     k_i rows are placed together and the other n - k_i rows are all zero: absent particles, which the scene
     does not render (real patches show anywhere from a few to dozens of particles; one fixed count gives
     every synthetic image the same density). The same arguments and seed give the same Phi (numpy
-    default_rng(seed)); ``n_min`` = None consumes the generator exactly as before it existed.
+    default_rng(seed)); ``n_min`` = None consumes the generator exactly as before it existed. A constellation whose
+    sizes cannot be placed (the placement's ConfigError) draws its sizes again, up to PLACEMENT_REDRAWS times; a
+    draw that fits the first time consumes the generator as before.
     """
     check_int_at_least("sample_layouts", "m", m, 1)
     check_int_at_least("sample_layouts", "n", n, 1)
@@ -69,8 +74,18 @@ def sample_layouts(
     counts = np.full(m, n) if n_min is None else rng.integers(n_min, n + 1, size=m)
     layouts = np.zeros((m, n, 4), dtype=np.float32)
     for i, k in enumerate(counts):
-        layouts[i, :k, :3] = placement.sample(rng, sizes[i, :k], float(view_width))
-        layouts[i, :k, 3] = sizes[i, :k]
+        drawn = sizes[i, :k]
+        for redraw in range(PLACEMENT_REDRAWS + 1):
+            try:
+                layouts[i, :k, :3] = placement.sample(rng, drawn, float(view_width))
+                break
+            except ConfigError as error:
+                # A draw of sizes that does not fit the view (a few large particles of a wide distribution in a
+                # full view): draw the constellation's sizes again, as a real window would hold other particles.
+                if redraw == PLACEMENT_REDRAWS:
+                    raise ConfigError(f"{error} (constellation {i}: {PLACEMENT_REDRAWS + 1} draws of sizes)") from None
+                drawn = size.sample(rng, (k,))
+        layouts[i, :k, 3] = drawn
     return layouts
 
 
