@@ -84,7 +84,8 @@ class SegmenterPredictor(FunctionPredictor):
         from drgan.segmenters.inference import make_predictor
 
         inference, note = resolve_auto(inference, getattr(model, "split_calibration", None), source)
-        how = ", ".join(f"{k} {v}" for k, v in inference.items()) + (f" (split {note})" if note else "")
+        shown = {k: v for k, v in inference.items() if not (k == "pixel_scale" and v is None)}  # said below
+        how = ", ".join(f"{k} {v}" for k, v in shown.items()) + (f" (split {note})" if note else "")
         scale = getattr(model, "pixel_scale", 1.0)
         if inference.get("pixel_scale") is None and scale != 1.0:
             how += f"; images resampled by {scale:g} (the pixel scale of its training pairs)"
