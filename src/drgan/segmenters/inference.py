@@ -192,6 +192,7 @@ def predict(
     split_core: float | None = None,
     seed_level: float = 0.5,
     pixel_scale: float | None = None,
+    annotations: bool = True,
     **kw,
 ) -> np.ndarray:
     """(H, W) image -> (H, W) uint8 class map (0 background, 1 particle, 2 contour).
@@ -203,7 +204,10 @@ def predict(
     ``pixel_scale``: the network sees the image resampled by this factor (area-averaged when below 1) and its
     probabilities are brought back to the image's size; None: the model's own (``model.pixel_scale``, stored by
     drgan.segment from its generated pairs: their px per real px; 1.0 for real-trained models). The split's lengths
-    (``split_depth``, ``split_smooth``: px at the network's scale, as calibrated) are scaled with it."""
+    (``split_depth``, ``split_smooth``: px at the network's scale, as calibrated) are scaled with it.
+
+    ``annotations``: particles lying mostly on a figure's scale bar, its text or a panel letter
+    (drgan.data.annotations.annotation_mask, as the classical segmentation leaves them out) are dropped."""
     check_split(split, split_depth, split_smooth, split_core)
     split = split_of(model, split)
     scale = check_pixel_scale(getattr(model, "pixel_scale", 1.0) if pixel_scale is None else pixel_scale)
@@ -217,10 +221,31 @@ def predict(
                 "inference.split=centres: this segmenter has no centre map (only drgan.segmenters.instances."
                 "CentreSegmenterModule has); use split=watershed or auto"
             )
-        return split_by_centres(probs, seed_level)
-    if split == "none":
-        return probs[:3].argmax(axis=0).astype(np.uint8)
-    return split_touching(probs[:3], split_depth, split_smooth, split_core)
+        classes = split_by_centres(probs, seed_level)
+    elif split == "none":
+        classes = probs[:3].argmax(axis=0).astype(np.uint8)
+    else:
+        classes = split_touching(probs[:3], split_depth, split_smooth, split_core)
+    return without_annotations(classes, image) if annotations else classes
+
+
+def without_annotations(classes: np.ndarray, image: np.ndarray, share: float = 0.5) -> np.ndarray:
+    """``classes`` with every particle (4-connected component of the particle class) that has at least ``share`` of
+    its pixels on the image's annotations (scale bars, text, panel letters: annotation_mask) set to background, and
+    contour pixels on them too."""
+    from scipy import ndimage as ndi
+
+    from drgan.data.annotations import annotation_mask, as_grey
+
+    mask = annotation_mask(as_grey(image))
+    if not mask.any():
+        return classes
+    labels, n = ndi.label(classes == 1)
+    on = np.bincount(labels[mask], minlength=n + 1) / np.maximum(np.bincount(labels.ravel(), minlength=n + 1), 1)
+    on[0] = 0.0  # the background is no particle
+    kept = classes.copy()
+    kept[(on >= share)[labels] | ((classes == 2) & mask)] = 0
+    return kept
 
 
 def check_pixel_scale(value) -> float:
