@@ -411,8 +411,9 @@ def test_a_segmenter_of_large_particles_sees_the_image_at_its_pixel_scale_and_an
 
 
 def test_particles_on_a_figures_panel_letters_are_dropped_as_the_classical_segmentation_drops_them():
-    """EMPS figure crops carry panel letters ("IV") in pure white: a segmenter reads them as bright particles (cej:
-    3 of its 15 false positives). Inference drops what lies on the annotations, unless told not to."""
+    """Figure crops carry panel letters and scale-bar text in pure white, which a segmenter of bright particles
+    reads as particles. Inference drops what lies on the annotations the classical segmentation finds, unless told
+    not to."""
     from drgan.metrics.instance_scores import binarize_and_label
     from drgan.segmenters.inference import predict
 
