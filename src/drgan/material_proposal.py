@@ -172,14 +172,15 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
             f"{render_px} px window than {VIEW_EXTENT_FRACTION:g} of it; the segmenter trained on the generated "
             "pairs resamples images by the same factor"
         )
+    noiseless = parent_renders_without_sampling_noise(parent)  # a transmission scene: no Monte Carlo grain
     blur = filter_for_blur(result.edge_blur_px, render_px / counts.patch_size)
-    if blur is not None and not parent_renders_without_sampling_noise(parent):
+    if blur is not None and not noiseless:
         material["filter_stddev"] = blur
         notes["filter_stddev"] = (
             f"the outlines' measured blur {result.edge_blur_px:.2f} px (image px; {render_px / counts.patch_size:g} "
             "render px each) through the SEM renders' blur per filter (FILTER_FOR_BLUR)"
         )
-    if parent_renders_without_sampling_noise(parent):
+    if noiseless:
         # Such a render has no Monte Carlo grain: the noise's spatial correlation is the detector's too (in render
         # px: a wide window's real grain is finer once area-averaged).
         material["noise_grain_px"] = round(float(background.grain_px) * render_px / counts.patch_size, 2)

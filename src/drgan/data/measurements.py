@@ -139,8 +139,6 @@ def edge_blur(image: np.ndarray, foreground: np.ndarray, exclude: np.ndarray | N
     the slope the largest gradient within 2 px; a blurred step of contrast C and sigma s has slope C / (s sqrt(2 pi)).
     The range rather than particle-minus-background grey, so that a bright rim (SEM edge effect) or a dark centre
     counts as the edge's own contrast. Median over the outline pixels; None without 50 of them."""
-    from scipy import ndimage as ndi
-
     fg = np.asarray(foreground, bool)
     smooth = ndi.gaussian_filter(np.asarray(image, np.float64), EDGE_SMOOTH_PX)
     slope = ndi.maximum_filter(np.hypot(ndi.sobel(smooth, 0), ndi.sobel(smooth, 1)) / 8.0, size=5)

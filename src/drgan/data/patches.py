@@ -136,14 +136,10 @@ class PatchSet:
                 return int(array.shape[-1])
         return int(self.params.get("size", 0))
 
-    @property
-    def window(self) -> int:
-        """Real image px a patch covers: its mined window (resample_patches records it), else its size."""
-        return int(self.params.get("window") or self.params.get("size") or self.patch_size)
-
     @staticmethod
     def saved_window(directory: str | Path) -> int | None:
-        """``window`` of a saved set, read from its summary alone (no arrays); None when there is no set there."""
+        """Real image px a patch of the saved set covers: its mined window (resample_patches records it), else its
+        size; read from its summary alone (no arrays). None when there is no set there."""
         try:
             params = json.loads((Path(directory) / _SUMMARY_FILE).read_text()).get("params") or {}
         except (OSError, ValueError):
