@@ -418,3 +418,15 @@ def test_a_tiny_pipeline_killed_inside_a_stage_resumes_to_the_single_commands_re
                             text=True, timeout=600)  # fmt: skip
     assert single.returncode == 0, single.stderr[-3000:]
     assert _images(tmp_path / "by_hand") == reference
+
+
+def test_the_report_says_which_contact_weight_the_segmenter_trained_with_and_why(tmp_path):
+    from drgan.pipeline.report import segment_summary
+
+    metrics = {"epoch": 12, "stop_reason": "max_epochs", "val/dsc": 0.9, "split_calibration": None,
+               "contact_weight": {"value": 10.0, "why": "auto: 10, bright particles"}}  # fmt: skip
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    assert "contact weight 10 (auto: 10, bright particles)" in segment_summary(tmp_path)["line"]
+    metrics.pop("contact_weight")  # a run from before the key: the line without it
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    assert "contact weight" not in segment_summary(tmp_path)["line"]

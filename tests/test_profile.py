@@ -184,6 +184,7 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     chosen = saved["segmentation"]["params"]["neck_depth"]
     assert chosen in (0.0, 0.2) and cfg.data.segment.neck_depth == chosen
     report = (tmp_path / "out" / "report.md").read_text()
+    assert "weighs the pixels between touching particles 11 x: bright particles" in report  # contact_weight=auto's
     assert f"| data.segment.neck_depth | {chosen} | chosen by the segment sizes" in report
     assert f"- `data.segment.neck_depth`: {chosen} (" in report and "chosen with the scale" in report
     grown = saved["segmentation"]["outlines_grown"]  # the report says what the outlines' growth did

@@ -610,6 +610,42 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     assert (tmp_path / "eval" / "overlays" / "x.png").is_file()
 
 
+def with_manifest(folder: Path, polarity: str) -> Path:
+    """make_generated's pairs with the manifest.json drgan.generate writes beside them (its config's polarity)."""
+    entries = [
+        {"id": p.stem, "kind": "synthetic", "files": {"image": f"images/{p.name}", "mask": f"masks/{p.name}"}}
+        for p in sorted((folder / "images").glob("*.png"))
+    ]
+    (folder / "manifest.json").write_text(json.dumps({"config": {"polarity": polarity}, "entries": entries}))
+    return folder
+
+
+def test_contact_weight_auto_follows_the_generated_particles_polarity(tmp_path):
+    from drgan.segment import CONTACT_WEIGHT_AUTO, TrainingPairs, resolve_contact_weight, segment
+    from drgan.segmenters.module import load_segmenter
+
+    assert compose([], config_name="segment").model.contact_weight == "auto"  # the default
+    assert resolve_contact_weight("auto", "bright")[0] == CONTACT_WEIGHT_AUTO["bright"] == 10.0
+    assert resolve_contact_weight("auto", "dark")[0] == CONTACT_WEIGHT_AUTO["dark"] == 0.0
+    assert resolve_contact_weight("auto", None)[0] == 0.0  # real images: no polarity to go by
+    assert resolve_contact_weight(3.0, "bright") == (3.0, "set")  # a number is kept whatever the data
+    # the polarity is the generated set's (its manifest), none for real images or pairs without one
+    bright = with_manifest(make_generated(tmp_path / "bright", n=4), "bright")
+    dark = with_manifest(make_generated(tmp_path / "dark", n=4), "dark")
+    assert TrainingPairs(data=str(bright)).polarity() == "bright"
+    assert TrainingPairs(data=str(dark)).polarity() == "dark"
+    assert TrainingPairs(data=str(make_generated(tmp_path / "bare", n=2))).polarity() is None
+    assert TrainingPairs(real=str(tmp_path)).polarity() is None
+    for data, weight in ((bright, 10.0), (dark, 0.0)):
+        out = tmp_path / f"run_{data.name}"
+        cfg = compose([*tiny_segment_overrides(data, tmp_path, out, "logger=none"), "trainer.max_epochs=1",
+                       "split_calibration=null"], config_name="segment")  # fmt: skip
+        segment(cfg)
+        assert load_segmenter(out / "checkpoints" / "last.ckpt").hparams.contact_weight == weight  # what it trained with
+        recorded = json.loads((out / "metrics.json").read_text())["contact_weight"]
+        assert recorded["value"] == weight and data.name in recorded["why"]
+
+
 def test_segment_refuses_bad_data_before_writing(tmp_path):
     from drgan.segment import segment
 

@@ -30,7 +30,7 @@ from drgan.targets import target_path
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 TARGET = "drgan.segmenters.module.SegmenterModule"
-TINY = ["model.depth=2", "model.base=4"]
+TINY = ["model.depth=2", "model.base=4", "model.contact_weight=0"]  # auto is drgan.segment's to resolve
 
 
 class TinySegmenter(SegmenterModule):

@@ -7,6 +7,8 @@
 # Variants (synthetic-trained on RUN/generate; real_* on the annotated set's train ids, its split.json):
 #   unet        drgan.segment's defaults (the U-Net)          unet_z      the same with model.normalize=zscore
 #   unet_c      the U-Net with model.contact_weight=10 (the pixels between touching particles weigh 11x)
+#   unet_0      the U-Net with model.contact_weight=0 (the default before contact_weight=auto; its seed 0 is the
+#               pipeline's own segmenter for runs from before auto: link RUN/segment as RUN/extra/unet_0_0)
 #   centres     the instance-aware CentreSegmenterModule      centres_z   the same with model.normalize=zscore
 #   real_unet / real_centres   trained on the real annotated train images instead (contour 1 px, area-based epochs)
 # Each variant's 3 seeds are scored together on the annotated test ids (drgan.evaluate models=[...]), and once the
@@ -26,6 +28,7 @@ for variant in $VARIANTS; do
     unet) args=(data="$RUN/generate") ;;
     unet_z) args=(data="$RUN/generate" model.normalize=zscore) ;;
     unet_c) args=(data="$RUN/generate" model.contact_weight=10) ;;
+    unet_0) args=(data="$RUN/generate" model.contact_weight=0) ;;
     centres) args=(data="$RUN/generate" "${centres[@]}") ;;
     centres_z) args=(data="$RUN/generate" "${centres[@]}" model.normalize=zscore) ;;
     real_unet) args=(real="$ANNOTATED" contour_px=1) ;;

@@ -67,6 +67,19 @@ class TrainingPairs:
             return 1.0
         return manifest_pixel_scale(read_manifest(self.data, "data"), "data")
 
+    def polarity(self) -> str | None:
+        """The particles' polarity (bright / dark) of a generated set (its manifest: the checkpoint material's);
+        None for real images and hand-made pairs without a manifest."""
+        if not self.data:
+            return None
+        from drgan.synthetic.folder import MANIFEST
+        from drgan.synthetic.manifest import read_manifest
+
+        if not (Path(self.data) / MANIFEST).is_file():
+            return None
+        polarity = (read_manifest(self.data, "data").get("config") or {}).get("polarity")
+        return polarity if polarity in ("bright", "dark") else None
+
     def load(self):
         """The pairs (drgan.segmenters.pairs): generated, or the real dataset's train ids (never its test ids)."""
         from drgan.segmenters.pairs import load_generated_pairs, load_real_pairs, real_ids
@@ -106,6 +119,27 @@ class LoaderSettings:
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
+
+
+# model.contact_weight=auto: the weight for bright particles (SEM: agglomerates whose contacts the U-Net merges) and
+# for dark ones (transmission images), measured end to end (experiments/pipeline/README.md, "The contact weight").
+CONTACT_WEIGHT_AUTO = {"bright": 10.0, "dark": 0.0}
+
+
+def resolve_contact_weight(value, polarity: str | None) -> tuple[float, str]:
+    """``model.contact_weight`` as a number, and why: ``auto`` takes CONTACT_WEIGHT_AUTO's value for the generated
+    set's polarity (0 without one: real images, hand-made pairs); a number stays (checked by the segmenter)."""
+    if value != "auto":
+        return value, "set"
+    if polarity is None:
+        return 0.0, "auto: 0, the pairs name no particle polarity (real images or hand-made pairs)"
+    weight = CONTACT_WEIGHT_AUTO[polarity]
+    why = (
+        "bright particles: the pixels between touching particles weigh 11 x, against merged agglomerates"
+        if weight
+        else "dark particles (transmission): every pixel alike, the weight cost AP50 on TEM sets"
+    )
+    return weight, f"auto: {weight:g}, {why}"
 
 
 def load_training_pairs(cfg: DictConfig):
@@ -209,9 +243,15 @@ def segment(cfg: DictConfig) -> dict:
     # then data: bad folders, sizes or mask values fail here, before the run folder gets anything.
     stopper = early_stopping(cfg.get("early_stopping"))
     calibration_grid = check_grid(cfg.get("split_calibration"))
+    source = TrainingPairs.from_config(cfg)
+    contact_why = None
+    if "contact_weight" in cfg.model:
+        with open_dict(cfg):
+            cfg.model.contact_weight, contact_why = resolve_contact_weight(cfg.model.contact_weight, source.polarity())
+        log.info("model.contact_weight=%g (%s)", cfg.model.contact_weight, contact_why)
     model = build_segmenter(cfg.model, "model")
     pairs = load_training_pairs(cfg)
-    pixel_scale = TrainingPairs.from_config(cfg).pixel_scale()
+    pixel_scale = source.pixel_scale()
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
@@ -294,6 +334,7 @@ def segment(cfg: DictConfig) -> dict:
             "val_dsc_history": scores.history,
             "split_calibration": calibration,
             "pixel_scale": pixel_scale,
+            "contact_weight": {"value": cfg.model.get("contact_weight"), "why": contact_why},
             **metrics,
         },
     )

@@ -97,10 +97,12 @@ def segment_summary(folder: Path) -> dict:
     if not metrics:
         return {}
     calibration = metrics.get("split_calibration") or {}
+    contact = metrics.get("contact_weight") or {}
+    weight = f", contact weight {contact['value']:g} ({contact.get('why')})" if contact.get("value") is not None else ""
     return {
         "line": f"{metrics.get('epoch')} epochs ({metrics.get('stop_reason')}), val DSC "
         f"{_number(metrics.get('val/dsc'))}, split depth {calibration.get('split_depth')} core "
-        f"{calibration.get('split_core')}",
+        f"{calibration.get('split_core')}{weight}",
         "metrics": {"segment/val_dsc": metrics.get("val/dsc"), "segment/epochs": metrics.get("epoch")},
         "val_dsc": metrics.get("val/dsc"),
         "stop_reason": metrics.get("stop_reason"),
