@@ -269,6 +269,38 @@ def test_crops_carry_the_ignore_value_unchanged():
                 )
 
 
+def test_texture_augmentation_adds_correlated_noise_of_bounded_std_and_leaves_masks_alone():
+    from drgan.segmenters.pairs import TEXTURE_PX, CropDataset, Pair, surface_texture
+
+    rng = np.random.default_rng(1)
+    stds, lags = [], []
+    for _ in range(200):
+        field = surface_texture((64, 64), 0.1, rng)
+        stds.append(field.std())
+        lags.append(np.corrcoef(field[:, :-1].ravel(), field[:, 1:].ravel())[0, 1])
+    assert 0 <= min(stds) and max(stds) <= 0.1 + 1e-9 and 0.04 < np.mean(stds) < 0.06  # uniform in [0, 0.1]
+    # low-passed at 0.7-3 px: neighbours correlate (white noise: 0), from grain (weakly) to cracks (strongly)
+    assert min(lags) > 0.3 and max(lags) > 0.9 and TEXTURE_PX == (0.7, 3.0)
+    mask = (np.add.outer(np.arange(32), np.arange(32)) % 7 == 0).astype(np.uint8)
+    image = np.where(mask == 1, 0.7, 0.3).astype(np.float32)
+    plain = CropDataset([Pair("a", image, mask)], 32, augment=True, samples_per_pair=20, brightness=0, contrast=0)
+    textured = CropDataset(
+        [Pair("a", image, mask)], 32, augment=True, samples_per_pair=20, brightness=0, contrast=0, texture=0.1
+    )
+    for k in range(20):
+        x, y = plain[k]
+        assert (np.isclose(x, 0.3) | np.isclose(x, 0.7)).all()  # without texture: the two grey levels only
+        x, y = textured[k]
+        assert set(np.unique(y.numpy())) <= {0, 1}
+        residual = x[0].numpy() - np.where(y.numpy() == 1, 0.7, 0.3)  # image and mask still aligned
+        assert np.abs(residual).max() < 0.6 and residual.std() <= 0.1 + 1e-6
+    assert any(np.abs(textured[k][0].numpy()[0] - np.where(textured[k][1].numpy() == 1, 0.7, 0.3)).max() > 0.01
+               for k in range(20))  # fmt: skip
+    # validation crops are never textured (repeatable scores)
+    val = CropDataset([Pair("a", image, mask)], 32, augment=False, texture=0.1)
+    np.testing.assert_array_equal(val[0][0][0].numpy(), image)
+
+
 def test_sliding_window_matches_direct_inference():
     from drgan.segmenters.inference import predict, predict_probs
     from drgan.segmenters.unet import UNet

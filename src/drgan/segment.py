@@ -102,6 +102,7 @@ class LoaderSettings:
     num_workers: int = 0
     brightness: float = 0.05  # jitter, in units of the [0, 1] grey range
     contrast: float = 0.1  # relative contrast jitter
+    texture: float = 0.0  # std of the surface texture added to each crop (pairs.surface_texture); 0: none
     seed: int = 0
     val_fraction: float = 0.1
 
@@ -116,6 +117,7 @@ class LoaderSettings:
             num_workers=setting_int("loader.num_workers", ld.num_workers, 0),
             brightness=setting_float("loader.brightness", ld.brightness, 0.0),
             contrast=setting_float("loader.contrast", ld.contrast, 0.0),
+            texture=setting_float("loader.texture", ld.get("texture", 0.0), 0.0),
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
@@ -169,6 +171,7 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool =
         crop=ld.crop,
         brightness=ld.brightness,
         contrast=ld.contrast,
+        texture=ld.texture,
         seed=ld.seed,
         normalize=normalize,
         centres=centres,

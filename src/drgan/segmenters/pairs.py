@@ -319,12 +319,27 @@ def crops_by_area(pairs: list[Pair], crop: int) -> list[int]:
     return [max(1, round(p.image.size / float(crop * crop))) for p in pairs]
 
 
+TEXTURE_PX = (0.7, 3.0)  # correlation lengths (Gaussian stddev, px) of the texture augmentation: grain to cracks
+
+
+def surface_texture(shape: tuple[int, int], amplitude: float, rng: np.random.Generator) -> np.ndarray:
+    """A random texture of ``shape``: white noise low-passed by a Gaussian of stddev drawn from TEXTURE_PX, scaled to
+    a std drawn from [0, amplitude] (grey units)."""
+    from scipy.ndimage import gaussian_filter
+
+    field = gaussian_filter(rng.standard_normal(shape), rng.uniform(*TEXTURE_PX), mode="wrap")
+    return (rng.uniform(0.0, amplitude) / max(float(field.std()), 1e-12)) * field
+
+
 class CropDataset(Dataset):
     """Random crops of the pairs, `samples_per_pair` per pair and epoch (one number for all, or one per pair, e.g.
     `crops_by_area`).
 
     augment: a random dihedral transform (8 flips/rotations) and a small brightness/contrast jitter,
-    x -> clip((x - mean) * c + mean + b) with c in [1 - contrast, 1 + contrast], b in [-brightness, brightness].
+    x -> clip((x - mean) * c + mean + b) with c in [1 - contrast, 1 + contrast], b in [-brightness, brightness];
+    with ``texture`` > 0 also a surface texture the renderer cannot show (cracks, beads, grain of a real particle):
+    Gaussian noise low-passed at a correlation length drawn from TEXTURE_PX, of a std drawn from [0, texture],
+    added to the whole crop, so that the network does not take every textured region for background.
     Without augment (validation) every sample is the pair's centre crop, unchanged, so val scores are repeatable.
     Images smaller than the crop are reflect-padded, their masks likewise. Masks are only cut, padded by copying,
     rotated and flipped, never interpolated: an IGNORE (255) pixel stays 255 and no other class is made from it.
@@ -343,6 +358,7 @@ class CropDataset(Dataset):
         seed: int = 0,
         normalize: str = "none",
         centres: bool = False,
+        texture: float = 0.0,
     ):
         if not pairs:
             raise DataError("segmentation dataset: no image/mask pairs")
@@ -353,7 +369,7 @@ class CropDataset(Dataset):
                 f"samples_per_pair: expected one count >= 1 per pair ({len(pairs)}), got {samples_per_pair}"
             )
         self.owner = np.repeat(np.arange(len(pairs)), counts)  # sample index -> pair index
-        self.brightness, self.contrast, self.seed = brightness, contrast, seed
+        self.brightness, self.contrast, self.seed, self.texture = brightness, contrast, seed, float(texture)
         mode = check_normalize(normalize, "loader normalize")
         self.stats = [normalization(p.image, mode) for p in pairs]  # (shift, scale) of each whole image
         # centre-map targets of whole images (their particles' extents), cut like the masks (an instance-aware segmenter)
@@ -389,6 +405,8 @@ class CropDataset(Dataset):
             mean = float(image.mean())
             c = rng.uniform(1 - self.contrast, 1 + self.contrast)
             image = np.clip((image - mean) * c + mean + rng.uniform(-self.brightness, self.brightness), 0.0, 1.0)
+            if self.texture > 0:
+                image = np.clip(image + surface_texture(image.shape, self.texture, rng), 0.0, 1.0)
         image = (image - shift) / scale
         sample = (
             torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None],
