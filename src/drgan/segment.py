@@ -55,29 +55,28 @@ class TrainingPairs:
             mask_suffix=cfg.get("mask_suffix", "auto"),
         )
 
-    def pixel_scale(self) -> float:
-        """Image px per real px of the pairs: a generated set's (its manifest; 1.0 for hand-made pairs), 1.0 for real
-        images. The segmenter keeps it in its checkpoints; inference resamples real images by it."""
-        if not self.data:
-            return 1.0
-        from drgan.synthetic.folder import MANIFEST
-        from drgan.synthetic.manifest import manifest_pixel_scale, read_manifest
-
-        if not (Path(self.data) / MANIFEST).is_file():
-            return 1.0
-        return manifest_pixel_scale(read_manifest(self.data, "data"), "data")
-
-    def polarity(self) -> str | None:
-        """The particles' polarity (bright / dark) of a generated set (its manifest: the checkpoint material's);
-        None for real images and hand-made pairs without a manifest."""
+    def manifest(self) -> dict | None:
+        """The generated set's manifest.json (drgan.synthetic.manifest), None for real images and hand-made pairs."""
         if not self.data:
             return None
         from drgan.synthetic.folder import MANIFEST
         from drgan.synthetic.manifest import read_manifest
 
-        if not (Path(self.data) / MANIFEST).is_file():
-            return None
-        polarity = (read_manifest(self.data, "data").get("config") or {}).get("polarity")
+        return read_manifest(self.data, "data") if (Path(self.data) / MANIFEST).is_file() else None
+
+    def pixel_scale(self, manifest: dict | None = None) -> float:
+        """Image px per real px of the pairs: a generated set's (its manifest; 1.0 for hand-made pairs), 1.0 for real
+        images. The segmenter keeps it in its checkpoints; inference resamples real images by it."""
+        from drgan.synthetic.manifest import manifest_pixel_scale
+
+        manifest = self.manifest() if manifest is None else manifest
+        return 1.0 if manifest is None else manifest_pixel_scale(manifest, "data")
+
+    def polarity(self, manifest: dict | None = None) -> str | None:
+        """The particles' polarity (bright / dark) of a generated set (its manifest: the checkpoint material's);
+        None for real images and hand-made pairs without a manifest."""
+        manifest = self.manifest() if manifest is None else manifest
+        polarity = ((manifest or {}).get("config") or {}).get("polarity")
         return polarity if polarity in ("bright", "dark") else None
 
     def load(self):
@@ -247,14 +246,18 @@ def segment(cfg: DictConfig) -> dict:
     stopper = early_stopping(cfg.get("early_stopping"))
     calibration_grid = check_grid(cfg.get("split_calibration"))
     source = TrainingPairs.from_config(cfg)
+    LoaderSettings.from_config(cfg)  # checked before any image is read
+    manifest = source.manifest()
     contact_why = None
     if "contact_weight" in cfg.model:
         with open_dict(cfg):
-            cfg.model.contact_weight, contact_why = resolve_contact_weight(cfg.model.contact_weight, source.polarity())
+            cfg.model.contact_weight, contact_why = resolve_contact_weight(
+                cfg.model.contact_weight, source.polarity(manifest)
+            )
         log.info("model.contact_weight=%g (%s)", cfg.model.contact_weight, contact_why)
     model = build_segmenter(cfg.model, "model")
-    pairs = load_training_pairs(cfg)
-    pixel_scale = source.pixel_scale()
+    pairs = source.load()
+    pixel_scale = source.pixel_scale(manifest)
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
