@@ -673,7 +673,8 @@ def test_contact_weight_auto_follows_the_generated_particles_polarity(tmp_path):
         cfg = compose([*tiny_segment_overrides(data, tmp_path, out, "logger=none"), "trainer.max_epochs=1",
                        "split_calibration=null"], config_name="segment")  # fmt: skip
         segment(cfg)
-        assert load_segmenter(out / "checkpoints" / "last.ckpt").hparams.contact_weight == weight  # what it trained with
+        trained = load_segmenter(out / "checkpoints" / "last.ckpt")
+        assert trained.hparams.contact_weight == weight  # what it trained with
         recorded = json.loads((out / "metrics.json").read_text())["contact_weight"]
         assert recorded["value"] == weight and data.name in recorded["why"]
 
