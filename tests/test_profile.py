@@ -312,6 +312,24 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
     cfg = compose(["material=big_discs", "renderer.resolution=32"], config_name="train")
     assert cfg.material.view_width == 128 and cfg.data.view_width == 128 and cfg.data.min_particles == 1
     assert cfg.material.noise_grain_px == pytest.approx(result.background.grain_px * 32 / 128, abs=0.01)
+    # The scene's particle range is that of the windows training keeps (>= data.min_particles), not of the few with
+    # 3 or more (EMPS saa890: 6-6 from those where its 512 px windows hold 1-2 particles)
+    import dataclasses
+
+    from drgan.material_proposal import material_settings
+
+    fits, chosen = est.fit_sizes(np.asarray([38.0, 40.0, 41.0, 43.0, 39.0, 42.0]), seed=0)
+
+    def n_range(at_least_3: int) -> tuple[int, int]:
+        kept = {"1": {"windows": 30, "p10": 1.0, "p90": 2.0}, "2": {"windows": 12, "p10": 2.0, "p90": 3.0},
+                "3": {"windows": 2, "p10": 6.0, "p90": 6.0}}  # fmt: skip
+        whole = {**counts.whole, "at_least_3": at_least_3, "at_least_2": 0, "at_least_1": 30}
+        patch = dataclasses.replace(counts, kept_counts=kept, with_3_or_more=kept["3"], whole=whole, windows=30)
+        material = material_settings(dataclasses.replace(result, particles_per_patch=patch), fits, chosen)[2]
+        return material["n_particles_min"], material["n_particles"]
+
+    assert n_range(at_least_3=2) == (1, 2)  # min_particles 1: windows with >= 1
+    assert n_range(at_least_3=40) == (6, 6)  # min_particles stays 3 (enough windows show 3 whole particles)
     assert (
         "#   view_width: 128 real px per training window, rendered at 32 px"
         in (tmp_path / "drgan_conf" / "material" / "big_discs.yaml").read_text()

@@ -130,7 +130,13 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
     # A material's sizes are largest extents (a mesh's scale); the profile measures equivalent diameters of
     # projected areas: ~0.9 x the largest extent for the TiO2 particles (tio2_sem: masks 26.5 px, extent 30 px).
     size_px *= EXTENT_PER_DIAMETER
-    kept = counts.with_3_or_more if counts.with_3_or_more["windows"] else {"p10": counts.p10, "p90": counts.p90}
+    # The constellations' range is that of the windows training keeps: those with data.min_particles particles (3,
+    # or fewer for large or packed particles). EMPS saa890 (1-2 particles of 282 px per 512 px window) had the range
+    # of its few windows with 3 or more, 6-6, and rendered packed heaps where its windows hold one or two particles.
+    k = data_settings(result)[0].get("min_particles", 3)
+    kept = (counts.kept_counts or {}).get(str(k)) or counts.with_3_or_more
+    if not kept["windows"]:
+        kept = {"p10": counts.p10, "p90": counts.p90}
     n_max = max(1, int(math.ceil(kept["p90"])))
     n_min = max(1, min(n_max, int(math.floor(kept["p10"]))))
     pol_note = "detected" if result.polarity.setting == "auto" else "set on the command line"
@@ -148,8 +154,8 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
         "particle_size_px": f"median equivalent diameter of the segmented particles x {EXTENT_PER_DIAMETER} (a "
         "material's size is a particle's largest extent)",
         "size_spread": spread_note,
-        "n_particles": f"p90 of particles per {counts.patch_size} px patch over the patches with >= 3 (those "
-        f"training keeps; mean over all patches {counts.mean:.1f})",
+        "n_particles": f"p90 of particles per {counts.patch_size} px patch over the patches with >= {k} (those "
+        f"training keeps, data.min_particles; mean over all patches {counts.mean:.1f})",
         "n_particles_min": "p10 over the same patches; a constellation draws n_particles_min..n_particles",
         "meshes.kind": f"median major/minor axis ratio {result.shape.axis_ratio_median:.2f}",
     }

@@ -294,6 +294,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             p90=float(np.quantile(counts, 0.9)),
             # The windows training keeps (data.min_particles: 3 by default): the scene's range.
             with_3_or_more=_quantiles(counts[counts >= 3]),
+            kept_counts={str(k): _quantiles(counts[counts >= k]) for k in (1, 2, 3)},
             render_px=patch if window != patch else None,
             whole={
                 "stride": est.TRAIN_STRIDE,

@@ -90,6 +90,9 @@ class PatchCounts:
     render_px: int | None = None  # the render size when the window is wider (large particles; None: the same)
     # windows of the training grid (stride, windows) and how many show >= 1, 2, 3 whole particles (as mining counts)
     whole: dict | None = None
+    # windows, p10, p90 of the windows with >= k particles, k = "1", "2", "3": the range of the windows training keeps
+    # when the profile lowers data.min_particles to k (None: profiles from before; with_3_or_more holds k = 3)
+    kept_counts: dict | None = None
 
 
 @dataclass(frozen=True)
