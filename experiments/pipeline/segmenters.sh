@@ -7,6 +7,7 @@
 # Variants (synthetic-trained on RUN/generate; real_* on the annotated set's train ids, its split.json):
 #   unet        drgan.segment's defaults (the U-Net)          unet_z      the same with model.normalize=zscore
 #   unet_c      the U-Net with model.contact_weight=10 (the pixels between touching particles weigh 11x)
+#   tex         the U-Net with loader.texture=0.1 (a random surface texture on every training crop)
 #   unet_0      the U-Net with model.contact_weight=0 (the default before contact_weight=auto; its seed 0 is the
 #               pipeline's own segmenter for runs from before auto: link RUN/segment as RUN/extra/unet_0_0)
 #   centres     the instance-aware CentreSegmenterModule      centres_z   the same with model.normalize=zscore
@@ -29,6 +30,7 @@ for variant in $VARIANTS; do
     unet_z) args=(data="$RUN/generate" model.normalize=zscore) ;;
     unet_c) args=(data="$RUN/generate" model.contact_weight=10) ;;
     unet_0) args=(data="$RUN/generate" model.contact_weight=0) ;;
+    tex) args=(data="$RUN/generate" loader.texture=0.1) ;;
     centres) args=(data="$RUN/generate" "${centres[@]}") ;;
     centres_z) args=(data="$RUN/generate" "${centres[@]}" model.normalize=zscore) ;;
     real_unet) args=(real="$ANNOTATED" contour_px=1) ;;
