@@ -254,7 +254,7 @@ def segment(cfg: DictConfig) -> dict:
             cfg.model.contact_weight, contact_why = resolve_contact_weight(
                 cfg.model.contact_weight, source.polarity(manifest)
             )
-        log.info("model.contact_weight=%g (%s)", cfg.model.contact_weight, contact_why)
+        log.info("model.contact_weight=%s (%s)", cfg.model.contact_weight, contact_why)
     model = build_segmenter(cfg.model, "model")
     pairs = source.load()
     pixel_scale = source.pixel_scale(manifest)
