@@ -101,7 +101,7 @@ class LoaderSettings:
     num_workers: int = 0
     brightness: float = 0.05  # jitter, in units of the [0, 1] grey range
     contrast: float = 0.1  # relative contrast jitter
-    texture: float = 0.0  # std of the surface texture added to each crop (pairs.surface_texture); 0: none
+    texture: float = 0.1  # std of the surface texture added to each crop (pairs.surface_texture); 0: none
     seed: int = 0
     val_fraction: float = 0.1
 
