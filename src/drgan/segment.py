@@ -116,7 +116,7 @@ class LoaderSettings:
             num_workers=setting_int("loader.num_workers", ld.num_workers, 0),
             brightness=setting_float("loader.brightness", ld.brightness, 0.0),
             contrast=setting_float("loader.contrast", ld.contrast, 0.0),
-            texture=setting_float("loader.texture", ld.get("texture", 0.0), 0.0),
+            texture=setting_float("loader.texture", ld.texture, 0.0),
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
