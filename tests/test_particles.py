@@ -100,6 +100,22 @@ def test_a_scale_bar_softened_by_resampling_is_found_and_a_rod_is_not():
     assert labels[rod].any() and not (labels > 0)[mask].any()  # the rod is a particle, the bar and label are not
 
 
+def test_a_scale_bar_drawn_across_bright_particles_is_found_and_their_highlights_are_not():
+    """A white bar drawn over bright spheres with saturated highlights (EMPS 226dc58f03): joined to the highlights
+    above and below it, its group is no bar; the bar is found all the same and the highlights are left alone."""
+    yy, xx = np.mgrid[:256, :256]
+    image = np.full((256, 256), 0.35)
+    for cx in (70, 130, 190):  # a row of spheres across the bottom, each with white highlights touching the bar
+        image[np.hypot(yy - 226, xx - cx) <= 28] = 0.8
+        for cy in (229, 246):
+            image[np.hypot(yy - cy, xx - cx) <= 5] = 1.0
+    image[234:241, 60:230] = 1.0  # the scale bar, across the spheres and their crests
+    mask = annotations.annotation_mask(image)
+    assert mask[234:241, 60:230].all()
+    crests = (image == 1.0) & ((yy < 232) | (yy > 243)) & (yy > 150)
+    assert crests.sum() > 50 and not mask[crests].any()
+
+
 def test_a_mark_on_a_particle_leaves_it_whole():
     """A label printed on a particle is a mark (never thresholded), but the particle goes on under it: its segment
     is the whole disc, one piece; a label on the film stays out of every segment."""

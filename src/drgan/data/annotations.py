@@ -139,6 +139,9 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
                 chars[index] = near_edge
                 char_boxes[index] = box
                 inner_chars += not near_edge
+        for box, own in _crossing_bars(candidates, mask):
+            mask[box] |= own
+            bars.append(box)
         # Characters count when near an edge (panel letters, scale-bar text); the rest stay particles or grain. Unless
         # the inside holds them about as densely: then this level draws the image itself (a dense packing's black
         # gaps, a bright film's white specks), and its character-shaped groups near an edge are more of the same.
@@ -157,6 +160,50 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
     if mask.any():
         mask = ndi.binary_dilation(mask, iterations=2)
     return mask
+
+
+def _drawn_bar(own: np.ndarray, short: int, fill: float) -> bool:
+    """A group (its pixels in its box) is drawn as a scale bar is: long and thin (`_bar_shaped`), filling ``fill`` of
+    its box, of one width (+-1 px) over SOFT_EVEN of its length: solid and straight, as no particle is."""
+    bh, bw = own.shape
+    if not _bar_shaped(max(bh, bw), min(bh, bw), short) or own.mean() < fill:
+        return False
+    widths = own.sum(axis=0 if bw >= bh else 1)
+    return bool(np.mean(np.abs(widths - np.median(widths)) <= 1) >= SOFT_EVEN)
+
+
+# A bar drawn across particles is taken only when at least this wide (px) and this long (x the image's shorter side):
+# the bright contact lines and black gaps between packed particles are straight for 20-30 px, but 1-2 px wide.
+CROSSING_WIDTH = 3
+CROSSING_LENGTH = 0.15
+
+
+def _crossing_bars(candidates: np.ndarray, found: np.ndarray) -> list[tuple[tuple[slice, slice], np.ndarray]]:
+    """Scale bars drawn across particles of their own grey (EMPS 226dc58f03: a white bar over bright spheres):
+    joined to the particles' saturated highlights, their group is no bar. Opened with a line of a bar's least length
+    (`_bar_shaped`) along one axis and then the other, the highlights fall away and the bar remains; it is taken when drawn as a bar
+    (`_drawn_bar`) at least CROSSING_WIDTH px wide and CROSSING_LENGTH long, within EDGE_BAND of an edge (where
+    figures put scale bars; a particle's own saturated core may be as straight) but not along the border, and not
+    found already. Returns (box, pixels in the box) per bar."""
+    h, w = candidates.shape
+    short = min(h, w)
+    length = max(3, int(np.ceil(0.04 * short)))
+    bars = []
+    for line in (np.ones((1, length), bool), np.ones((length, 1), bool)):  # horizontal bars, then vertical ones
+        labels, _ = ndi.label(ndi.binary_opening(candidates, line), structure=np.ones((3, 3)))
+        for index, box in enumerate(ndi.find_objects(labels), start=1):
+            rows, cols = box
+            own = labels[box] == index
+            edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop)
+            drawn = min(own.shape) >= CROSSING_WIDTH and max(own.shape) >= CROSSING_LENGTH * short
+            if (
+                drawn
+                and 0 < edge <= EDGE_BAND * short
+                and found[box][own].mean() < 0.5
+                and _drawn_bar(own, short, SOFT_FILL)
+            ):
+                bars.append((box, own))
+    return bars
 
 
 # A figure averaged down, resampled or saved as JPEG no longer draws its scale bar in pure white or black (a white
@@ -190,10 +237,7 @@ def _soft_bars(grey: np.ndarray, found: np.ndarray) -> np.ndarray:
             if not (_bar_shaped(long_, narrow, short) and 0 < edge <= EDGE_BAND * short):
                 continue
             own = labels[box] == index
-            if found[box][own].mean() >= 0.5 or own.mean() < SOFT_FILL:
-                continue
-            widths = own.sum(axis=0 if bw >= bh else 1)
-            if np.mean(np.abs(widths - np.median(widths)) <= 1) >= SOFT_EVEN:
+            if found[box][own].mean() < 0.5 and _drawn_bar(own, short, SOFT_FILL):
                 out[box] |= own
                 bars.append(box)
         if not bars:
