@@ -100,3 +100,15 @@ def test_typed_groups_refuse_a_wrong_key_or_type_when_composing(text, message, t
     assert cfg.renderer.spp == 4 and cfg.paths.log_dir and "mlflow" in cfg.logger
     with pytest.raises(ConfigCompositionException, match="Error merging override model.lr_g=fast"):
         compose(["model.lr_g=fast"], config_name="train")
+
+
+def test_the_training_grid_the_profile_predicts_is_the_one_training_mines():
+    """The profile counts whole particles per window on drgan.data.patches.STRIDE's grid to choose data.min_particles:
+    the stride training reads from its config, and the data module's default, must be that one."""
+    import inspect
+
+    from drgan.data.datamodule import RealPatchDataModule
+    from drgan.data.patches import STRIDE
+
+    assert compose([], config_name="train").data.stride == STRIDE
+    assert inspect.signature(RealPatchDataModule.__init__).parameters["stride"].default == STRIDE

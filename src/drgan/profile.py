@@ -27,7 +27,7 @@ from drgan.data.annotations import annotation_mask, as_grey
 from drgan.data.classical import NoParticles, SegmentParams, resolve_params
 from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particle_edge import EDGE_BACKGROUND_PX, EDGE_INSIDE_PX, EDGE_INTERIOR_PX, EDGE_OUTSIDE_PX
-from drgan.data.patches import particle_boxes, scale_sample
+from drgan.data.patches import STRIDE, particle_boxes, scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
 from drgan.data.profile_result import (
     Agglomeration,
@@ -297,7 +297,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             kept_counts={str(k): _quantiles(counts[counts >= k]) for k in (1, 2, 3)},
             render_px=patch if window != patch else None,
             whole={
-                "stride": est.TRAIN_STRIDE,
+                "stride": STRIDE,
                 "windows": int(whole.size),
                 **{f"at_least_{k}": int((whole >= k).sum()) for k in (1, 2, 3)},
             },

@@ -143,12 +143,17 @@ def resolve_contact_weight(value, polarity: str | None) -> tuple[float, str]:
     return weight, f"auto: {weight:g}, {why}"
 
 
-def load_training_pairs(cfg: DictConfig):
-    """The training pairs of a segment config, every setting checked first (a bad loader.* value fails before any
-    image is read)."""
+def checked_source(cfg: DictConfig) -> TrainingPairs:
+    """The training pairs' source of a segment config, its loader.* settings checked too: a bad value fails before
+    any image is read."""
     source = TrainingPairs.from_config(cfg)
     LoaderSettings.from_config(cfg)
-    return source.load()
+    return source
+
+
+def load_training_pairs(cfg: DictConfig):
+    """The training pairs of a segment config, every setting checked first (`checked_source`)."""
+    return checked_source(cfg).load()
 
 
 def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool = False):
@@ -245,8 +250,7 @@ def segment(cfg: DictConfig) -> dict:
     # then data: bad folders, sizes or mask values fail here, before the run folder gets anything.
     stopper = early_stopping(cfg.get("early_stopping"))
     calibration_grid = check_grid(cfg.get("split_calibration"))
-    source = TrainingPairs.from_config(cfg)
-    LoaderSettings.from_config(cfg)  # checked before any image is read
+    source = checked_source(cfg)
     manifest = source.manifest()
     contact_why = None
     if "contact_weight" in cfg.model:

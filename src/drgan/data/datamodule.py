@@ -21,6 +21,7 @@ from torch.utils.data import DataLoader, Dataset, RandomSampler
 from drgan.data.classical import ScaleEstimate, SegmentParams, resolve_params
 from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.patches import (
+    STRIDE,
     PatchSet,
     check_image_sizes,
     contact_sheet,
@@ -75,7 +76,7 @@ class RealPatchDataModule(LightningDataModule):
         split: str | None = "auto",
         crop_rows: Sequence[int] | None = None,
         patch_size: int = 256,
-        stride: int = 128,
+        stride: int = STRIDE,
         min_particles: int = 3,
         n_background: int = 200,
         background_stride: int | None = None,

@@ -28,7 +28,7 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from drgan.data.classical import Segmentation, SegmentParams, segment_with_report
-from drgan.data.patches import full_particle_counts, window_starts
+from drgan.data.patches import STRIDE, full_particle_counts, window_starts
 from drgan.errors import DataError
 
 # The high-pass that isolates noise from the background's slow shading: image minus its Gaussian blur.
@@ -102,10 +102,7 @@ def patch_counts(
     return (in_rows @ in_cols.T).ravel()
 
 
-TRAIN_STRIDE = 128  # data.stride's default: the grid training mines its windows on
-
-
-def whole_particle_counts(boxes: np.ndarray, shape: tuple[int, int], size: int, stride: int = TRAIN_STRIDE):
+def whole_particle_counts(boxes: np.ndarray, shape: tuple[int, int], size: int, stride: int = STRIDE):
     """Particles fully displayed (bounding box off every window edge, as training mines: drgan.data.patches) in each
     ``size`` px window of the training grid of one image: a flat array. ``boxes``: particle_boxes of its segments."""
     rows, cols = window_starts(shape[0], size, stride), window_starts(shape[1], size, stride)

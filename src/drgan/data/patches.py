@@ -316,11 +316,14 @@ def scale_sample(items: Sequence) -> list:
     return list(items[:: max(1, len(items) // SCALE_IMAGES)][:SCALE_IMAGES])
 
 
+STRIDE = 128  # px between candidate windows: data.stride's default (conf/gan/data/real_patches.yaml)
+
+
 def mine_patches(
     images: Sequence[np.ndarray],
     ids: Sequence[str],
     size: int = 256,
-    stride: int = 128,
+    stride: int = STRIDE,
     min_particles: int = 3,
     n_background: int = 200,
     *,
