@@ -301,6 +301,8 @@ def test_a_run_whose_first_images_all_fail_the_filter_stops_early_and_says_why(t
         ("shard", ["shard=3/2"], "expected 'i/k'"),
         ("material", ["material=tio2_him"], r"was trained for material tio2_sem, not tio2_him"),
         ("settings", ["seed=7"], "generated with other settings"),
+        ("placement", ["placement=poisson", "placement.min_distance_factor=-1"], "min_distance_factor"),
+        ("size", ["size=normal", "+size.spread=2"], "spread"),
     ],
 )
 def test_bad_inputs_fail_before_rendering(case, extra, message, tiny_run, dataset, tmp_path, monkeypatch):
@@ -309,6 +311,25 @@ def test_bad_inputs_fail_before_rendering(case, extra, message, tiny_run, datase
     args = [f"ckpt={tiny_run}", f"out={out}", "progress=false", *extra]
     with pytest.raises(ConfigError, match=message):
         gen.generate(compose(args, config_name="generate"))
+
+
+def test_a_size_and_placement_given_replace_the_checkpoints_and_keep_the_folder(tiny_run, tmp_path):
+    """`size=` / `placement=` on generate's command line: the trained generator renders the constellations given
+    (their ${material.*} read from the checkpoint's material), manifest.json records them, and the folder is only
+    completed with the same ones."""
+    out = tmp_path / "data"
+    given = ["size=normal", "size.mean=7.5", "size.std=0", "placement=random_2d", "placement.margin=1.0"]
+    manifest = run_generate(tiny_run, out, *given, n_background=0)
+    assert manifest["config"]["size"]["mean"] == 7.5 and manifest["config"]["placement"]["margin"] == 1.0
+    for meta in sorted((out / "meta").glob("syn_*.json")):
+        phi = np.asarray(json.loads(meta.read_text())["phi"])
+        phi = phi[phi[:, 3] > 0]  # the particles drawn (rows beyond n are zero)
+        assert len(phi) and np.allclose(phi[:, 3], 7.5)  # every diameter the one given
+        assert np.allclose(phi[:, 2], 7.5 / 2)  # random_2d: resting on the stage
+    with pytest.raises(ConfigError, match="generated with other settings"):
+        run_generate(tiny_run, out, n_background=0)  # the checkpoint's constellations: another dataset
+    default = run_generate(tiny_run, tmp_path / "default", n_background=0)
+    assert default["config"]["size"] is None and default["config"]["placement"] is None
 
 
 # --- partial backgrounds: real windows with particles, which their masks ignore ---------------------------------

@@ -40,7 +40,15 @@ log = logging.getLogger(__name__)
 
 ALWAYS, NEVER, CHANGED = "always", "never", "changed"  # config.json records a setting: always, never, when changed
 # config.json lists the settings it records when changed in the order they were added to drgan; a new one follows.
-_CHANGED_ORDER = ("parameters", "partial_background", "partial_max_ignored", "partial_margin_px", "grey_spread")
+_CHANGED_ORDER = (
+    "parameters",
+    "partial_background",
+    "partial_max_ignored",
+    "partial_margin_px",
+    "grey_spread",
+    "size",
+    "placement",
+)
 _DEFAULT = object()
 
 
@@ -71,6 +79,19 @@ def setting(
 def _material_name(cfg: DictConfig):
     """``material=NAME`` on generate's command line: only checked against the checkpoint's material."""
     return OmegaConf.select(cfg, "material.name")
+
+
+def _layout_group(group: str):
+    """Reader of ``size=NAME`` / ``placement=NAME`` (and their keys) on generate's command line: the group as a plain
+    dict, unresolved (its ``${material.*}`` are the checkpoint's material's: `GenerateSettings.resolve`), or None when
+    not given (the checkpoint's)."""
+
+    def given(cfg: DictConfig):
+        value = cfg.get(group)
+        value = OmegaConf.to_container(value, resolve=False) if isinstance(value, DictConfig) else value
+        return dict(value) if value else None
+
+    return given
 
 
 def _renderer_overrides(cfg: DictConfig) -> dict:
@@ -106,6 +127,10 @@ class GenerateSettings:
     backgrounds: str | None = setting(None, fixed=ALWAYS)  # resolved: <run folder>/patches when null and there
     shard: str | None = setting(None, fixed=NEVER)  # "i/k" on construction (null: "0/1")
     parameters: str | dict = setting("trained")  # trained | initial | middle | {key: value}
+    # The constellations: the checkpoint's size distribution and placement, or the ones given (the generator maps any
+    # constellation to its scene; a folder is only completed with the same ones)
+    size: dict | None = setting(None, given=_layout_group("size"))
+    placement: dict | None = setting(None, given=_layout_group("placement"))
     out: str = setting(MISSING, fixed=NEVER, record=False)
     merge: bool = setting(False, fixed=NEVER, record=False)
     progress: bool = setting(True, fixed=NEVER, record=False)
@@ -203,6 +228,8 @@ class GenerateSettings:
                 "grey_spread=true draws each image's grey levels from the real train patches, and the checkpoint has "
                 "no run folder with patches/; give backgrounds=PATCHSET_FOLDER or grey_spread=false"
             )
+        given_layout = _resolve_layout(self, saved["material"])
+        layout = {group: given_layout.get(group) or saved[group] for group in ("size", "placement")}
         resolved = replace(
             self,
             ckpt=str(ckpt_file),
@@ -212,8 +239,9 @@ class GenerateSettings:
             polarity=polarity,
             renderer=renderer,
             backgrounds=str(backgrounds) if backgrounds else None,
+            **given_layout,
         )
-        return Resolved(resolved, {**saved, "renderer": renderer})
+        return Resolved(resolved, {**saved, **layout, "renderer": renderer})
 
     @property
     def partial(self) -> PartialSettings:
@@ -237,6 +265,29 @@ class GenerateSettings:
             if value != f.metadata.get("before", _field_default(f)):
                 fixed[f.name] = value
         return fixed
+
+
+def _resolve_layout(settings: GenerateSettings, material: dict) -> dict:
+    """The size distribution and placement given on the command line, their ``${material.*}`` read from the
+    checkpoint's ``material``, each built once: a bad key or value fails here, naming it, before any model is built.
+    Returns {group: plain dict} of the groups given."""
+    from drgan.resolvers import register_resolvers
+    from drgan.scene import layout as scene_layout
+
+    register_resolvers()  # ${mul:...} and the others the groups use (already there under every entry point)
+
+    build = {"size": scene_layout.size_from_config, "placement": scene_layout.placement_from_config}
+    resolved = {}
+    for group, given in (("size", settings.size), ("placement", settings.placement)):
+        if not given:
+            continue
+        try:
+            value = OmegaConf.to_container(OmegaConf.create({"material": material, group: given}), resolve=True)[group]
+        except Exception as error:  # an interpolation the checkpoint's material cannot fill
+            raise ConfigError(f"{group}: {error}") from error
+        build[group](dict(value))
+        resolved[group] = value
+    return resolved
 
 
 class Resolved(NamedTuple):
