@@ -236,6 +236,15 @@ def test_dataset_layout_masks_and_manifest(dataset):
         else:
             assert labels.any() and np.asarray(meta["phi"]).shape == (3, 4)
             assert meta["sigma"] is not None and meta["contrast"] > 0 and set(meta["seed"]) == {"phi", "render"}
+    # The noise check against the run's real train patches (drgan.synthetic.noise_check), on every image kept.
+    noise = json.loads((dataset / "noise_check.json").read_text())
+    assert noise["images"]["generated"] == N and noise["highpass_px"] == 1.0
+    assert noise["background"]["ratio"] is not None  # 24 px renders leave background enough beyond the margin
+    for name in ("background", "particles"):
+        row = noise[name]
+        assert set(row) == {"real", "generated", "ratio"}
+        if row["ratio"] is not None:
+            assert row["ratio"] == pytest.approx(row["generated"] / row["real"], rel=1e-2)
     # Nothing half-written: no temporary files anywhere.
     assert not [p for p in dataset.rglob("*") if p.name.startswith(".") or ".tmp" in p.name]
 

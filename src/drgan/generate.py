@@ -323,7 +323,34 @@ def generate_dataset(given: GenerateSettings) -> dict:
         counts = manifest["counts"]
         print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "
               f"{counts['partial_background']} partial background items (n_background={settings.n_background})")  # fmt: skip
+        write_noise_check(out, manifest, settings, resolution)
     return manifest
+
+
+NOISE_CHECK = "noise_check.json"
+
+
+def write_noise_check(out: Path, manifest: dict, settings, resolution: int) -> dict | None:
+    """``out``/noise_check.json: the set's fine-scale noise against the real train patches'
+    (drgan.synthetic.noise_check), logged, with a warning naming a class WARN_RATIO or more off; nothing without
+    real patches (an imported generator). Seconds: 64 images on each side."""
+    from drgan.io import write_json
+    from drgan.synthetic import noise_check
+
+    result = noise_check.check_dataset(out, manifest, settings.backgrounds, settings.polarity, resolution)
+    if result is None:
+        return None
+    write_json(out / NOISE_CHECK, result)
+    off = noise_check.off_by(result)
+    if off:
+        log.warning(
+            "%s: %s. A segmenter learns from the generated speckle; the GAN's learned noise is bounded by "
+            "material.noise_sigma (the profile writes its maximum from the measured noise), and renderer.spp adds "
+            "sampling noise on the particles", noise_check.summary_line(result), "; ".join(off),
+        )  # fmt: skip
+    else:
+        log.info("%s", noise_check.summary_line(result))
+    return result
 
 
 def _progress(shown: bool, total: int):

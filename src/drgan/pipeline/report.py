@@ -82,13 +82,22 @@ def generate_summary(folder: Path) -> dict:
     if not counts:
         return {}
     config = manifest.get("config") or {}
+    noise = _json(folder / "noise_check.json")
+    ratios = {name: (noise.get(name) or {}).get("ratio") for name in ("background", "particles")}
+    measured = {name: ratio for name, ratio in ratios.items() if ratio is not None}
     return {
         "line": f"{counts.get('synthetic')} pairs ({counts.get('dropped')} dropped), {counts.get('background')} "
-        f"background + {counts.get('partial_background')} partial background windows",
-        "metrics": {"generate/pairs": counts.get("synthetic"), "generate/dropped": counts.get("dropped")},
+        f"background + {counts.get('partial_background')} partial background windows"
+        + ("; fine noise " + ", ".join(f"{k} {v:.2g} x real" for k, v in measured.items()) if measured else ""),
+        "metrics": {
+            "generate/pairs": counts.get("synthetic"),
+            "generate/dropped": counts.get("dropped"),
+            **{f"generate/noise_{name}_x_real": ratio for name, ratio in measured.items()},
+        },
         "counts": counts,
         "grey_spread": config.get("grey_spread"),
-        "spp": config.get("spp"),
+        "spp": (config.get("renderer") or {}).get("spp"),
+        "noise": noise or None,
     }
 
 
