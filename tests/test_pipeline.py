@@ -430,3 +430,20 @@ def test_the_report_says_which_contact_weight_the_segmenter_trained_with_and_why
     metrics.pop("contact_weight")  # a run from before the key: the line without it
     (tmp_path / "metrics.json").write_text(json.dumps(metrics))
     assert "contact weight" not in segment_summary(tmp_path)["line"]
+
+
+def test_the_report_shows_the_generated_sets_noise_against_the_real_and_its_spp(tmp_path):
+    from drgan.pipeline.report import generate_summary
+
+    manifest = {"counts": {"synthetic": 1000, "dropped": 7, "background": 200, "partial_background": 0},
+                "config": {"grey_spread": True, "renderer": {"spp": 16}}}  # fmt: skip
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    before = generate_summary(tmp_path)  # a set from before the noise check: the line without it
+    assert "noise" not in before["line"] and before["spp"] == 16 and before["noise"] is None
+    noise = {"background": {"real": 0.01, "generated": 0.058, "ratio": 5.8},
+             "particles": {"real": 0.03, "generated": None, "ratio": None}}  # fmt: skip
+    (tmp_path / "noise_check.json").write_text(json.dumps(noise))
+    summary = generate_summary(tmp_path)
+    assert summary["line"].endswith("; fine noise background 5.8 x real")  # particles not measured: left out
+    assert summary["metrics"]["generate/noise_background_x_real"] == 5.8
+    assert "generate/noise_particles_x_real" not in summary["metrics"]
