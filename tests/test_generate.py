@@ -484,6 +484,12 @@ def test_export_and_segment_read_the_dataset_through_its_manifest(dataset, tmp_p
         shutil.copyfile(data / kind / f"{ids(dataset)[0]}.png", data / kind / f"{extra}.png")
     pairs = load_generated_pairs(data)
     assert [p.id for p in pairs] == sorted(ids(dataset)) and extra not in {p.id for p in pairs}
+    # segment's fine-noise level of the set (what inference matches): the median over its synthetic images only
+    from drgan.segment import TrainingPairs
+    from drgan.segmenters.noise_match import noise_level
+
+    synthetic = [read(data / "images" / f"{i}.png") / 255.0 for i in ids(dataset) if i.startswith("syn_")]
+    assert TrainingPairs(data=str(data)).noise_level() == pytest.approx(np.median([noise_level(x) for x in synthetic]))
     target = export(data, tmp_path / "raw")
     assert not (target / "labelsTr" / f"{extra}.png").exists()
 

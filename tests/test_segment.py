@@ -599,6 +599,7 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     data = make_generated(tmp_path / "gen")
     # pairs of a GAN that learned from windows twice its render: every checkpoint carries the scale to inference
     monkeypatch.setattr(TrainingPairs, "pixel_scale", lambda self, manifest=None: 0.5)
+    monkeypatch.setattr(TrainingPairs, "noise_level", lambda self, manifest=None: 0.02)
     out = tmp_path / "run"
     common = tiny_segment_overrides(
         data, tmp_path, out, "trainer.log_every_n_steps=1", "name=tiny", "model.normalize=zscore"
@@ -617,6 +618,9 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     epoch_file = next((out / "checkpoints").glob("epoch_*.ckpt"))
     assert load_segmenter(last).pixel_scale == load_segmenter(epoch_file).pixel_scale == 0.5
     assert json.loads((out / "metrics.json").read_text())["pixel_scale"] == 0.5
+    # and the generated images' fine-noise level (stubbed above): inference brings cleaner images up to it
+    assert json.loads((out / "metrics.json").read_text())["noise_level"] == 0.02
+    assert load_segmenter(last).train_noise == load_segmenter(epoch_file).train_noise == 0.02
     saved = torch.load(last, map_location="cpu", weights_only=True)["hyper_parameters"]
     assert saved["_target_"] == "drgan.segmenters.module.SegmenterModule"  # the class, for the registry's loader
     again = segment(compose([*common, "trainer.max_epochs=2", "ckpt_path=last"], config_name="segment"))

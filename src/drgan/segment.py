@@ -72,6 +72,19 @@ class TrainingPairs:
         manifest = self.manifest() if manifest is None else manifest
         return 1.0 if manifest is None else manifest_pixel_scale(manifest, "data")
 
+    def noise_level(self, manifest: dict | None = None) -> float | None:
+        """The fine-noise level of a generated set's synthetic images (drgan.segmenters.noise_match: the median over
+        its first ones), which inference brings cleaner real images up to; None for real images and hand-made pairs
+        (nothing to match)."""
+        from drgan.data.images import read_grey
+        from drgan.segmenters.noise_match import SAMPLE, training_level
+
+        manifest = self.manifest() if manifest is None else manifest
+        if manifest is None:
+            return None
+        items = [e for e in manifest.get("entries", []) if e.get("kind") == "synthetic"][:SAMPLE]
+        return training_level(read_grey(Path(self.data) / e["files"]["image"]) for e in items)
+
     def polarity(self, manifest: dict | None = None) -> str | None:
         """The particles' polarity (bright / dark) of a generated set (its manifest: the checkpoint material's);
         None for real images and hand-made pairs without a manifest."""
@@ -236,8 +249,9 @@ def segment(cfg: DictConfig) -> dict:
 
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
-    from drgan.segmenters.calibrate import check_grid
-    from drgan.segmenters.module import PixelScaleEntry, ScoreHistory, settled
+    from drgan.segmenters.calibrate import PIXEL_SCALE_KEY, check_grid
+    from drgan.segmenters.module import CheckpointEntries, ScoreHistory, settled
+    from drgan.segmenters.noise_match import NOISE_KEY
     from drgan.segmenters.registry import build_segmenter
 
     wall_start = time.perf_counter()
@@ -267,6 +281,12 @@ def segment(cfg: DictConfig) -> dict:
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
             "checkpoints)", pixel_scale, pixel_scale,
         )  # fmt: skip
+    noise = source.noise_level(manifest)
+    if noise is not None:
+        log.info(
+            "the generated images' fine-noise level is %.4f: inference adds white noise to cleaner images up to it "
+            "(inference.noise_match; stored in the checkpoints)", noise,
+        )  # fmt: skip
     train_loader, val_loader, n_train, n_val = dataloaders(
         cfg, pairs, str(getattr(model, "input_normalization", "none")), bool(getattr(model, "needs_centres", False))
     )
@@ -288,7 +308,7 @@ def segment(cfg: DictConfig) -> dict:
     )
     scores = ScoreHistory()
     callbacks = [
-        PixelScaleEntry(pixel_scale), ResumeCheckpoint(), checkpoint, scores, *([stopper] if stopper is not None else [])
+        CheckpointEntries({PIXEL_SCALE_KEY: pixel_scale, NOISE_KEY: noise}), ResumeCheckpoint(), checkpoint, scores, *([stopper] if stopper is not None else [])
     ]  # fmt: skip
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     start_loggers(loggers)
@@ -344,6 +364,7 @@ def segment(cfg: DictConfig) -> dict:
             "val_dsc_history": scores.history,
             "split_calibration": calibration,
             "pixel_scale": pixel_scale,
+            "noise_level": noise,
             "contact_weight": {"value": cfg.model.get("contact_weight"), "why": contact_why},
             **metrics,
         },

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from drgan.errors import ConfigError, DataError, check_keys
+from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import normalization
 
 SPLITS = ("auto", "watershed", "centres", "none")  # auto: the segmenter's own (`split_of`)
@@ -192,6 +193,7 @@ def predict(
     split_core: float | None = None,
     seed_level: float = 0.5,
     pixel_scale: float | None = None,
+    noise_match: float | bool | None = None,
     annotations: bool = True,
     **kw,
 ) -> np.ndarray:
@@ -206,12 +208,17 @@ def predict(
     drgan.segment from its generated pairs: their px per real px; 1.0 for real-trained models). The split's lengths
     (``split_depth``, ``split_smooth``: px at the network's scale, as calibrated) are scaled with it.
 
+    ``noise_match``: the network sees the (resampled) image with white noise up to this fine-noise level when it is
+    cleaner (drgan.segmenters.noise_match); None: the model's own (``model.train_noise``, stored by drgan.segment from
+    its generated pairs; none for real-trained models: off); false or 0: off.
+
     ``annotations``: particles lying mostly on a figure's scale bar, its text or a panel letter
     (drgan.data.annotations.annotation_mask, as the classical segmentation leaves them out) are dropped."""
     check_split(split, split_depth, split_smooth, split_core)
     split = split_of(model, split)
     scale = check_pixel_scale(getattr(model, "pixel_scale", 1.0) if pixel_scale is None else pixel_scale)
-    probs = predict_probs(model, resample(image, scale), **kw)
+    level = check_noise_match(getattr(model, "train_noise", None) if noise_match is None else noise_match)
+    probs = predict_probs(model, match_noise(resample(image, scale), level), **kw)
     if scale != 1.0:
         probs = resample_probs(probs, np.shape(image))
         split_depth, split_smooth = split_depth / scale, split_smooth / scale
@@ -246,6 +253,18 @@ def without_annotations(classes: np.ndarray, image: np.ndarray, share: float = 0
     kept = classes.copy()
     kept[(on >= share)[labels] | ((classes == 2) & mask)] = 0
     return kept
+
+
+def check_noise_match(value) -> float | None:
+    """``inference.noise_match`` as a level (None: off): false / 0 / None are off, a number in (0, 1] a level."""
+    if value is None or value is False or value == 0:
+        return None
+    if value is True or not isinstance(value, (int, float)) or not 0 < value <= 1:
+        raise ConfigError(
+            f"inference.noise_match={value!r}: expected a fine-noise level in (0, 1], false (off) or null (the "
+            "model's own)"
+        )
+    return float(value)
 
 
 def check_pixel_scale(value) -> float:
@@ -288,4 +307,5 @@ def make_predictor(model: torch.nn.Module, inference: dict):
     check_split(settings["split"], settings["split_depth"], settings["split_smooth"], settings["split_core"])
     if settings["pixel_scale"] is not None:
         check_pixel_scale(settings["pixel_scale"])
+    check_noise_match(settings["noise_match"])
     return lambda image: predict(model, image, **inference)

@@ -193,18 +193,17 @@ class ScoreHistory(L.Callback):
         self.history = [float(v) for v in state_dict.get("history", [])]
 
 
-class PixelScaleEntry(L.Callback):
-    """Writes the training pairs' pixel scale (image px per real px) into every checkpoint the run saves, last.ckpt
-    and the epoch files, under drgan.segmenters.calibrate.PIXEL_SCALE_KEY; load_segmenter reads it back and
-    inference resamples the images it is given by it."""
+class CheckpointEntries(L.Callback):
+    """Writes ``entries`` (key -> value; None values are left out) into every checkpoint the run saves, last.ckpt and
+    the epoch files: what inference needs of the training pairs, read back by load_segmenter. drgan.segment stores
+    the pairs' pixel scale (drgan.segmenters.calibrate.PIXEL_SCALE_KEY: inference resamples real images by it) and
+    their fine-noise level (drgan.segmenters.noise_match.NOISE_KEY: inference brings cleaner images up to it)."""
 
-    def __init__(self, scale: float):
-        self.scale = float(scale)
+    def __init__(self, entries: dict):
+        self.entries = {key: value for key, value in entries.items() if value is not None}
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
-        from drgan.segmenters.calibrate import PIXEL_SCALE_KEY
-
-        checkpoint[PIXEL_SCALE_KEY] = self.scale
+        checkpoint.update(self.entries)
 
 
 def settled(history: list[float]) -> tuple[bool, str]:

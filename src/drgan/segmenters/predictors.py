@@ -84,11 +84,15 @@ class SegmenterPredictor(FunctionPredictor):
         from drgan.segmenters.inference import make_predictor
 
         inference, note = resolve_auto(inference, getattr(model, "split_calibration", None), source)
-        shown = {k: v for k, v in inference.items() if not (k == "pixel_scale" and v is None)}  # said below
+        own = ("pixel_scale", "noise_match")  # null: the model's own, said below
+        shown = {k: v for k, v in inference.items() if not (k in own and v is None)}
         how = ", ".join(f"{k} {v}" for k, v in shown.items()) + (f" (split {note})" if note else "")
         scale = getattr(model, "pixel_scale", 1.0)
         if inference.get("pixel_scale") is None and scale != 1.0:
             how += f"; images resampled by {scale:g} (the pixel scale of its training pairs)"
+        level = getattr(model, "train_noise", None)
+        if "noise_match" in inference and inference["noise_match"] is None and level:
+            how += f"; cleaner images brought up to its training pairs' fine-noise level {level:.4f}"
         super().__init__(source, make_predictor(model, inference), how)
         self.model = model
 

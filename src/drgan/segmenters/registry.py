@@ -33,6 +33,7 @@ from pathlib import Path
 from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import ConfigError, DataError
 from drgan.segmenters.calibrate import stored_pixel_scale, stored_split
+from drgan.segmenters.noise_match import stored_level
 from drgan.targets import target_path
 
 __all__ = [
@@ -194,4 +195,6 @@ def load_segmenter(path: str | Path, setting: str = "model"):
     model.split_calibration = stored_split(checkpoint, f"{setting}={path}")
     # image px per real px of its training pairs: inference resamples the images it is given by it
     model.pixel_scale = stored_pixel_scale(checkpoint, f"{setting}={path}")
+    # the fine-noise level of its generated training images: inference brings cleaner images up to it (None: off)
+    model.train_noise = stored_level(checkpoint)
     return model.eval()
