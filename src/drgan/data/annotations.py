@@ -181,10 +181,10 @@ CROSSING_LENGTH = 0.15
 def _crossing_bars(candidates: np.ndarray, found: np.ndarray) -> list[tuple[tuple[slice, slice], np.ndarray]]:
     """Scale bars drawn across particles of their own grey (EMPS 226dc58f03: a white bar over bright spheres):
     joined to the particles' saturated highlights, their group is no bar. Opened with a line of a bar's least length
-    (`_bar_shaped`) along one axis and then the other, the highlights fall away and the bar remains; it is taken when drawn as a bar
-    (`_drawn_bar`) at least CROSSING_WIDTH px wide and CROSSING_LENGTH long, within EDGE_BAND of an edge (where
-    figures put scale bars; a particle's own saturated core may be as straight) but not along the border, and not
-    found already. Returns (box, pixels in the box) per bar."""
+    (`_bar_shaped`) along one axis and then the other, the highlights fall away and the bar remains; it is taken when
+    drawn as a bar (`_drawn_bar`) at least CROSSING_WIDTH px wide and CROSSING_LENGTH long, within EDGE_BAND of an
+    edge (where figures put scale bars; a particle's own saturated core may be as straight) but not along the border,
+    and not found already. Returns (box, pixels in the box) per bar."""
     h, w = candidates.shape
     short = min(h, w)
     length = max(3, int(np.ceil(0.04 * short)))

@@ -9,8 +9,9 @@ none of the real spheres (particle DSC 0.38 by its argmax); the same network on 
 noisy as the training images or more is left as it is.
 
 The level is one number per image, the same estimator on both sides: the robust standard deviation (1.4826 x the
-median absolute deviation) of the image minus its Gaussian blur of HIGHPASS_PX, which flat regions (background and
-particle cores, most of a micrograph) dominate and edges barely move. drgan.segment stores the median level of its
+median absolute deviation) of the image minus its 1 px Gaussian blur (`drgan.synthetic.noise_check.fine_detail`, the
+detail generate's noise check reads too), which flat regions (background and particle cores, most of a micrograph)
+dominate and edges barely move. drgan.segment stores the median level of its
 generated training images in the checkpoint (`NOISE_KEY`); a real-trained segmenter stores none (its images are the
 real ones). The noise added is seeded by the image's size, so a prediction is repeatable.
 """
@@ -23,19 +24,17 @@ from functools import lru_cache
 
 import numpy as np
 
-HIGHPASS_PX = 1.0  # Gaussian sigma (px) of the blur subtracted before the noise is estimated
 MAD_TO_SIGMA = 1.4826  # a Gaussian's standard deviation per median absolute deviation
 SAMPLE = 64  # training images whose level is measured (the first ones)
 NOISE_KEY = "drgan_train_noise"  # the checkpoint entry: the training images' level (absent: no matching)
 
 
 def noise_level(image: np.ndarray) -> float:
-    """The image's fine-noise level: 1.4826 x the median absolute deviation of the image minus its Gaussian blur
-    (HIGHPASS_PX), in the image's grey units."""
-    from scipy import ndimage as ndi
+    """The image's fine-noise level: 1.4826 x the median absolute deviation of its `fine_detail` (the image minus its
+    Gaussian blur), in the image's grey units."""
+    from drgan.synthetic.noise_check import fine_detail
 
-    image = np.asarray(image, dtype=np.float64)
-    detail = image - ndi.gaussian_filter(image, HIGHPASS_PX)
+    detail = fine_detail(image)
     return float(MAD_TO_SIGMA * np.median(np.abs(detail - np.median(detail))))
 
 

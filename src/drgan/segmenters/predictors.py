@@ -91,7 +91,7 @@ class SegmenterPredictor(FunctionPredictor):
         if inference.get("pixel_scale") is None and scale != 1.0:
             how += f"; images resampled by {scale:g} (the pixel scale of its training pairs)"
         level = getattr(model, "train_noise", None)
-        if "noise_match" in inference and inference["noise_match"] is None and level:
+        if inference.get("noise_match") is None and level:
             how += f"; cleaner images brought up to its training pairs' fine-noise level {level:.4f}"
         super().__init__(source, make_predictor(model, inference), how)
         self.model = model

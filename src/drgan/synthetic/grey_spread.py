@@ -39,19 +39,27 @@ MIN_SHARE = 0.02  # a patch counts only when particles and background each cover
 EDGE_MARGIN = 2  # px: edges (blur, SEM edge brightening, a classical outline's offset) are left out of both levels
 
 
-def grey_levels(image: np.ndarray, particle: np.ndarray, margin: int = EDGE_MARGIN) -> tuple[float, float]:
-    """(background, particle) grey of ``image``: the median of the pixels farther than ``margin`` px from any
-    ``particle`` pixel, and the median of the particle pixels ``margin`` px inside their outline (all of either
-    class where nothing is left of it)."""
+def away_from_edges(particle: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
+    """(background, core): the pixels farther than ``margin`` px from any ``particle`` pixel, and the particle pixels
+    ``margin`` px inside their outline (``margin`` 0: the two classes themselves)."""
     from scipy import ndimage as ndi
 
     particle = np.asarray(particle, bool)
-    background, core = ~particle, particle
-    if margin > 0:
-        far = ~ndi.binary_dilation(particle, iterations=margin)
-        inner = ndi.binary_erosion(particle, iterations=margin, border_value=1)
-        background = far if far.any() else background
-        core = inner if inner.any() else core
+    if margin <= 0:  # (iterations=0 would mean "until nothing changes")
+        return ~particle, particle
+    return ~ndi.binary_dilation(particle, iterations=margin), ndi.binary_erosion(
+        particle, iterations=margin, border_value=1
+    )
+
+
+def grey_levels(image: np.ndarray, particle: np.ndarray, margin: int = EDGE_MARGIN) -> tuple[float, float]:
+    """(background, particle) grey of ``image``: the median of the pixels farther than ``margin`` px from any
+    ``particle`` pixel, and the median of the particle pixels ``margin`` px inside their outline (all of either
+    class where nothing is left of it: `away_from_edges`)."""
+    particle = np.asarray(particle, bool)
+    far, inner = away_from_edges(particle, margin)
+    background = far if far.any() else ~particle
+    core = inner if inner.any() else particle
     return float(np.median(image[background])), float(np.median(image[core]))
 
 

@@ -25,19 +25,23 @@ WARN_RATIO = 2.0  # a generated set this many times as noisy as the real patches
 MIN_PIXELS = 50  # a class needs this many pixels in an image to be measured there
 
 
-def fine_noise(image: np.ndarray, particle: np.ndarray, margin: int = MARGIN) -> tuple[float, float]:
-    """(background, particle) fine-scale noise of ``image`` (float grey): the standard deviation of ``image``
-    minus its Gaussian blur (HIGHPASS_PX) over the background beyond ``margin`` px from any ``particle`` pixel and over
-    the particles ``margin`` px inside their outline; NaN for a class with fewer than MIN_PIXELS such pixels."""
+def fine_detail(image: np.ndarray) -> np.ndarray:
+    """``image`` (float grey) minus its Gaussian blur of HIGHPASS_PX, as float64: its pixel-scale noise and grain (and
+    its edges); drgan.segmenters.noise_match reads its noise level from the same."""
     from scipy import ndimage as ndi
 
     image = np.asarray(image, dtype=np.float64)
-    particle = np.asarray(particle, bool)
-    detail = image - ndi.gaussian_filter(image, HIGHPASS_PX)
-    background, core = ~particle, particle
-    if margin > 0:  # (iterations=0 would mean "until nothing changes")
-        background = ~ndi.binary_dilation(particle, iterations=margin) if particle.any() else background
-        core = ndi.binary_erosion(particle, iterations=margin, border_value=1)
+    return image - ndi.gaussian_filter(image, HIGHPASS_PX)
+
+
+def fine_noise(image: np.ndarray, particle: np.ndarray, margin: int = MARGIN) -> tuple[float, float]:
+    """(background, particle) fine-scale noise of ``image`` (float grey): the standard deviation of `fine_detail`
+    over the background beyond ``margin`` px from any ``particle`` pixel and over the particles ``margin`` px inside
+    their outline (`away_from_edges`); NaN for a class with fewer than MIN_PIXELS such pixels."""
+    from drgan.synthetic.grey_spread import away_from_edges
+
+    detail = fine_detail(image)
+    background, core = away_from_edges(particle, margin)
 
     def spread(where: np.ndarray) -> float:
         return float(detail[where].std()) if where.sum() >= MIN_PIXELS else float("nan")
