@@ -4,7 +4,8 @@
 
 Training: forward + backward + Adam step of the U-Net on random crops (pairs/s = crops per second, one
 crop per pair and epoch), projected to minutes for 1,200 pairs x epochs. Inference: seconds for one
-1024 x 712 image with predict() (default tile 384, overlap 0.125, batch 8). Prints a markdown table.
+1024 x 712 image with predict() (default tile 384, overlap 0.125, batch 8), and what noise matching adds before the
+network (drgan.segmenters.noise_match: the image's level, then noise up to twice it). Prints a markdown table.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import torch
 from drgan.data.images import read_grey
 from drgan.segmenters.inference import predict, predict_probs, split_touching
 from drgan.segmenters.module import SegmenterModule, load_segmenter
+from drgan.segmenters.noise_match import match_noise, noise_level, white_gain
 
 
 def main() -> None:
@@ -65,15 +67,19 @@ def main() -> None:
     network_s = time.perf_counter() - start
     split_touching(probs)
     infer_s = time.perf_counter() - start
+    white_gain()  # measured once per process
+    start = time.perf_counter()
+    match_noise(full, 2 * noise_level(full))
+    match_s = time.perf_counter() - start
 
     n_params = sum(p.numel() for p in model.parameters())
     print(
-        f"| depth | base | params | crop | batch | threads | s/step | pairs/s | min for {args.pairs} pairs x {args.epochs} epochs | tile / overlap | s per 1024x712 image (network + split) |"
+        f"| depth | base | params | crop | batch | threads | s/step | pairs/s | min for {args.pairs} pairs x {args.epochs} epochs | tile / overlap | s per 1024x712 image (network + split) | noise matching s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     print(
         f"| {args.depth} | {args.base} | {n_params / 1e6:.2f} M | {args.crop} | {args.batch} | {args.threads} | {per_step:.3f} | "
-        f"{pairs_s:.1f} | {minutes:.1f} | {args.tile} / {args.overlap} | {infer_s:.2f} ({network_s:.2f} + {infer_s - network_s:.2f}) |"
+        f"{pairs_s:.1f} | {minutes:.1f} | {args.tile} / {args.overlap} | {infer_s:.2f} ({network_s:.2f} + {infer_s - network_s:.2f}) | {match_s:.3f} |"
     )
 
 
