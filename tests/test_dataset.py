@@ -83,9 +83,11 @@ def test_write_read_roundtrip(tmp_path):
         write_synthetic(folder, index, kept)
     write_background(folder, 0)
     assert folder.outcomes() == {0: True, 1: False, 2: True, 3: True}
-    written = mf.write_manifest(folder, settings(3), stats={"rendered": 4}, required=True)
+    facts = {"name": "tio2_sem", "clark_evans": 0.54}
+    written = mf.write_manifest(folder, settings(3), stats={"rendered": 4}, required=True, material=facts)
 
     manifest = mf.read_manifest(folder.root)
+    assert manifest["material"] == facts
     assert manifest == written == json.loads((folder.root / "manifest.json").read_text())
     assert "model_cfg" not in manifest["config"] and manifest["config"]["shard"] is None
     assert manifest["counts"] == {
@@ -396,3 +398,15 @@ def test_generated_masks_may_hold_the_ignore_value_but_no_other(tmp_path):
     io.write_png(root / "masks" / "a.png", mask)
     with pytest.raises(DataError, match=r"mask .*masks/a.png: unexpected values \[7\] .*or 255 ignore"):
         load_generated_pairs(root)
+
+
+def test_material_facts_carry_the_profiled_arrangement_and_refuse_a_bad_one():
+    """The Clark-Evans ratio a profiled material carries reaches the manifest's "material" (drgan.segment's
+    contact_weight=auto reads it); a hand-written material has none; a value that is no ratio is refused."""
+    from conftest import compose
+
+    material = compose(["material=tio2_sem", "material.clark_evans=0.6"], config_name="train").material
+    assert mf.material_facts(material) == {"name": "tio2_sem", "clark_evans": 0.6}
+    assert mf.material_facts(compose(["material=tio2_sem"], config_name="train").material)["clark_evans"] is None
+    with pytest.raises(ConfigError, match=r"material.clark_evans=-1.0: expected null or a finite number > 0"):
+        mf.material_facts(compose(["material=tio2_sem", "material.clark_evans=-1.0"], config_name="train").material)

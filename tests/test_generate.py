@@ -224,6 +224,8 @@ def test_dataset_layout_masks_and_manifest(dataset):
     assert manifest["config"]["material"] == "tio2_sem" and manifest["config"]["renderer"]["spp"] == 1
     assert manifest["config"]["contour_px"] == 1 and manifest["throughput"]["this_run"]["rendered"] >= N
     assert manifest["pixel_scale"] == 1.0  # rendered at the px of the windows the GAN learned from
+    # what the material knows of the real particles: tio2_sem is written by hand, its arrangement not measured
+    assert manifest["material"] == {"name": "tio2_sem", "clark_evans": None}
     for entry in manifest["entries"]:
         files = {k: dataset / v for k, v in entry["files"].items()}
         image, mask, labels = read(files["image"]), read(files["mask"]), read(files["label"])

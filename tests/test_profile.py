@@ -184,7 +184,13 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     chosen = saved["segmentation"]["params"]["neck_depth"]
     assert chosen in (0.0, 0.2) and cfg.data.segment.neck_depth == chosen
     report = (tmp_path / "out" / "report.md").read_text()
-    assert "weighs the pixels between touching particles 11 x: bright particles" in report  # contact_weight=auto's
+    # the particles' arrangement travels in the material, and the report says what contact_weight=auto makes of it
+    from drgan.segmenters.contacts import resolve_contact_weight
+
+    clark_evans = saved["agglomeration"]["clark_evans_median"]
+    assert clark_evans is not None and cfg.material.clark_evans == pytest.approx(clark_evans, abs=1e-4)
+    contact = resolve_contact_weight("auto", "bright", clark_evans)[1].removeprefix("auto: ")
+    assert f"(`drgan.segment model.contact_weight=auto`) takes contact weight {contact}." in report
     assert f"| data.segment.neck_depth | {chosen} | chosen by the segment sizes" in report
     assert f"- `data.segment.neck_depth`: {chosen} (" in report and "chosen with the scale" in report
     grown = saved["segmentation"]["outlines_grown"]  # the report says what the outlines' growth did

@@ -646,18 +646,23 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     assert (tmp_path / "eval" / "overlays" / "x.png").is_file()
 
 
-def with_manifest(folder: Path, polarity: str) -> Path:
-    """make_generated's pairs with the manifest.json drgan.generate writes beside them (its config's polarity)."""
+def with_manifest(folder: Path, polarity: str, clark_evans: float | None = None) -> Path:
+    """make_generated's pairs with the manifest.json drgan.generate writes beside them (its config's polarity; its
+    material's Clark-Evans ratio when given, as a profiled material's set has it)."""
     entries = [
         {"id": p.stem, "kind": "synthetic", "files": {"image": f"images/{p.name}", "mask": f"masks/{p.name}"}}
         for p in sorted((folder / "images").glob("*.png"))
     ]
-    (folder / "manifest.json").write_text(json.dumps({"config": {"polarity": polarity}, "entries": entries}))
+    manifest = {"config": {"polarity": polarity}, "entries": entries}
+    if clark_evans is not None:
+        manifest["material"] = {"name": "made", "clark_evans": clark_evans}
+    (folder / "manifest.json").write_text(json.dumps(manifest))
     return folder
 
 
-def test_contact_weight_auto_follows_the_generated_particles_polarity(tmp_path):
-    from drgan.segment import CONTACT_WEIGHT_AUTO, TrainingPairs, resolve_contact_weight, segment
+def test_contact_weight_auto_follows_the_generated_particles_polarity_and_arrangement(tmp_path):
+    from drgan.segment import TrainingPairs, segment
+    from drgan.segmenters.contacts import CONTACT_WEIGHT_AUTO, resolve_contact_weight
     from drgan.segmenters.module import load_segmenter
 
     assert compose([], config_name="segment").model.contact_weight == "auto"  # the default
@@ -665,6 +670,12 @@ def test_contact_weight_auto_follows_the_generated_particles_polarity(tmp_path):
     assert resolve_contact_weight("auto", "dark")[0] == CONTACT_WEIGHT_AUTO["dark"] == 0.0
     assert resolve_contact_weight("auto", None)[0] == 0.0  # real images: no polarity to go by
     assert resolve_contact_weight(3.0, "bright") == (3.0, "set")  # a number is kept whatever the data
+    # bright particles: clustered (Clark-Evans < 1, agglomerates) keep the weight, random or regular ones do not
+    assert resolve_contact_weight("auto", "bright", 0.54)[0] == 10.0
+    assert resolve_contact_weight("auto", "bright", 1.0)[0] == 0.0
+    weight, why = resolve_contact_weight("auto", "bright", 1.62)
+    assert weight == 0.0 and "1.62" in why
+    assert resolve_contact_weight("auto", "dark", 0.5)[0] == 0.0  # dark: 0 however clustered
     # the polarity is the generated set's (its manifest), none for real images or pairs without one
     bright = with_manifest(make_generated(tmp_path / "bright", n=4), "bright")
     dark = with_manifest(make_generated(tmp_path / "dark", n=4), "dark")
@@ -672,7 +683,10 @@ def test_contact_weight_auto_follows_the_generated_particles_polarity(tmp_path):
     assert TrainingPairs(data=str(dark)).polarity() == "dark"
     assert TrainingPairs(data=str(make_generated(tmp_path / "bare", n=2))).polarity() is None
     assert TrainingPairs(real=str(tmp_path)).polarity() is None
-    for data, weight in ((bright, 10.0), (dark, 0.0)):
+    packed = with_manifest(make_generated(tmp_path / "packed", n=4), "bright", clark_evans=1.62)
+    assert TrainingPairs(data=str(packed)).clark_evans() == 1.62
+    assert TrainingPairs(data=str(bright)).clark_evans() is None  # a set from before manifests had it
+    for data, weight in ((bright, 10.0), (dark, 0.0), (packed, 0.0)):
         out = tmp_path / f"run_{data.name}"
         cfg = compose([*tiny_segment_overrides(data, tmp_path, out, "logger=none"), "trainer.max_epochs=1",
                        "split_calibration=null"], config_name="segment")  # fmt: skip

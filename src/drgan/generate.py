@@ -54,7 +54,7 @@ from drgan.synthetic.backgrounds import write_backgrounds
 from drgan.synthetic.folder import DatasetFolder, syn_id
 from drgan.synthetic.generation_settings import GenerateSettings
 from drgan.synthetic.grey_spread import GreySpread
-from drgan.synthetic.manifest import write_manifest, write_shard_manifest
+from drgan.synthetic.manifest import material_facts, write_manifest, write_shard_manifest
 from drgan.synthetic.shards import Shard, kept_below, owned_by
 from drgan.synthetic.source import checkpoint_config, load_module, use_parameters  # noqa: F401  (checkpoint_config: imported from here)
 
@@ -217,8 +217,9 @@ def generate_dataset(given: GenerateSettings) -> dict:
     folder = DatasetFolder(out)
     shard = Shard.parse(settings.shard)
     folder.check_settings(settings.fixed())
+    facts = material_facts(saved_cfg["material"])
     if settings.merge:
-        return write_manifest(folder, settings, stats=None, required=True)
+        return write_manifest(folder, settings, stats=None, required=True, material=facts)
     folder.remove_partial(lambda item: owned_by(item, shard))
 
     model_cfg = OmegaConf.create(saved_cfg)
@@ -318,7 +319,14 @@ def generate_dataset(given: GenerateSettings) -> dict:
           + (f"{rate:.2f} images/minute ({summary['rendered_per_minute']:.2f} rendered/minute)" if rate is not None else "nothing rendered"))  # fmt: skip
     if shard.count > 1:
         write_shard_manifest(folder, settings, shard, summary, pixel_scale)
-    manifest = write_manifest(folder, settings, stats=summary, required=shard.count == 1, pixel_scale=pixel_scale)
+    manifest = write_manifest(
+        folder,
+        settings,
+        stats=summary,
+        required=shard.count == 1,
+        pixel_scale=pixel_scale,
+        material=facts,
+    )
     if manifest is not None:
         counts = manifest["counts"]
         print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "

@@ -159,6 +159,13 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
         "n_particles_min": "p10 over the same patches; a constellation draws n_particles_min..n_particles",
         "meshes.kind": f"median major/minor axis ratio {result.shape.axis_ratio_median:.2f}",
     }
+    clark_evans = result.agglomeration.clark_evans_median
+    if clark_evans is not None:
+        material["clark_evans"] = round(float(clark_evans), 4)
+        notes["clark_evans"] = (
+            "median over the images of the segmented particles' Clark-Evans ratio (< 1 clustered); it decides "
+            "drgan.segment's model.contact_weight=auto for bright particles"
+        )
     background = result.background
     # The background shows the detector's noise: it bounds the learned noise for every parent. Without the bound an
     # SEM material's learned noise rose to its parent's limit 0.2 on clean images (EMPS cej: 0.006 measured, the

@@ -447,11 +447,9 @@ inside). Rule: {edge["rule"]}. Fringe: {verdict}.
 
 def _report_head(r: ProfileResult) -> str:
     b, c, a, px = r.background, r.particles_per_patch, r.agglomeration, r.pixel_size
-    contact = (
-        "weighs the pixels between touching particles 11 x: bright particles, whose contacts merge"
-        if r.polarity.value == "bright"
-        else "weighs every pixel alike: dark particles, where the contact weight cost AP50"
-    )
+    from drgan.segmenters.contacts import resolve_contact_weight
+
+    contact = resolve_contact_weight("auto", r.polarity.value, a.clark_evans_median)[1].removeprefix("auto: ")
     return f"""# Profile: {r.name}
 
 {r.data.images} image(s) of `{r.data.dir}` (crop_rows {r.data.crop_rows}, split {r.data.split}).
@@ -476,7 +474,7 @@ Material config: `{r.material.config}` (parent `{r.material.parent}`).
 | pixel size | {px.nm_per_px} nm ({px.source}) |
 
 Particles per patch: {c.definition}.
-A segmenter trained on this material's pairs (`drgan.segment model.contact_weight=auto`) {contact}.
+A segmenter trained on this material's pairs (`drgan.segment model.contact_weight=auto`) takes contact weight {contact}.
 """
 
 

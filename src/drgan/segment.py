@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from drgan.errors import ConfigError, check_keys, setting_float, setting_int
 from drgan.io import write_json
 from drgan.runtime import stage_main, start
+from drgan.segmenters.contacts import resolve_contact_weight
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +93,13 @@ class TrainingPairs:
         polarity = ((manifest or {}).get("config") or {}).get("polarity")
         return polarity if polarity in ("bright", "dark") else None
 
+    def clark_evans(self, manifest: dict | None = None) -> float | None:
+        """The real particles' Clark-Evans ratio a generated set's material carries (manifest "material", from
+        drgan.profile); None when not measured, for real images and for sets written before manifests had it."""
+        manifest = self.manifest() if manifest is None else manifest
+        value = ((manifest or {}).get("material") or {}).get("clark_evans")
+        return float(value) if isinstance(value, (int, float)) else None
+
     def load(self):
         """The pairs (drgan.segmenters.pairs): generated, or the real dataset's train ids (never its test ids)."""
         from drgan.segmenters.pairs import load_generated_pairs, load_real_pairs, real_ids
@@ -133,27 +141,6 @@ class LoaderSettings:
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
-
-
-# model.contact_weight=auto: the weight for bright particles (SEM: agglomerates whose contacts the U-Net merges) and
-# for dark ones (transmission images), measured end to end (experiments/pipeline/README.md, "The contact weight").
-CONTACT_WEIGHT_AUTO = {"bright": 10.0, "dark": 0.0}
-
-
-def resolve_contact_weight(value, polarity: str | None) -> tuple[float, str]:
-    """``model.contact_weight`` as a number, and why: ``auto`` takes CONTACT_WEIGHT_AUTO's value for the generated
-    set's polarity (0 without one: real images, hand-made pairs); a number stays (checked by the segmenter)."""
-    if value != "auto":
-        return value, "set"
-    if polarity is None:
-        return 0.0, "auto: 0, the pairs name no particle polarity (real images or hand-made pairs)"
-    weight = CONTACT_WEIGHT_AUTO[polarity]
-    why = (
-        "bright particles: the pixels between touching particles weigh 11 x, against merged agglomerates"
-        if weight
-        else "dark particles (transmission): every pixel alike, the weight cost AP50 on TEM sets"
-    )
-    return weight, f"auto: {weight:g}, {why}"
 
 
 def checked_source(cfg: DictConfig) -> TrainingPairs:
@@ -270,7 +257,7 @@ def segment(cfg: DictConfig) -> dict:
     if "contact_weight" in cfg.model:
         with open_dict(cfg):
             cfg.model.contact_weight, contact_why = resolve_contact_weight(
-                cfg.model.contact_weight, source.polarity(manifest)
+                cfg.model.contact_weight, source.polarity(manifest), source.clark_evans(manifest)
             )
         log.info("model.contact_weight=%s (%s)", cfg.model.contact_weight, contact_why)
     model = build_segmenter(cfg.model, "model")

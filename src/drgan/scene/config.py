@@ -312,6 +312,10 @@ class Material:
     name: str = MISSING
     made_for: Optional[str] = None  # noqa: UP045  (what images it was made for: shown when data.dir is not set)
     polarity: str = "bright"  # bright: particles brighter than the background; dark: darker
+    # The real particles' arrangement, Clark-Evans ratio of their centroids as drgan.profile measured it (< 1
+    # clustered, 1 random, > 1 regular); null: not measured. Renders ignore it: it tells a segmenter trained on the
+    # material's pairs whether touching particles are agglomerates (drgan.segment, model.contact_weight=auto).
+    clark_evans: Optional[float] = None  # noqa: UP045
     n_particles: int = MISSING
     n_particles_min: Optional[int] = None  # noqa: UP045  (null: every scene holds n_particles; k: k..n_particles)
     view_width: int = 256  # px of the real image seen by the camera (= the training window)
@@ -328,6 +332,8 @@ class Material:
     def __post_init__(self):
         if self.polarity not in POLARITIES:
             raise ConfigError(f"material.polarity={self.polarity!r}: expected one of {', '.join(POLARITIES)}")
+        if self.clark_evans is not None and not (math.isfinite(self.clark_evans) and self.clark_evans > 0):
+            raise ConfigError(f"material.clark_evans={self.clark_evans}: expected null or a finite number > 0")
         if self.n_particles < 1:
             raise ConfigError(f"material.n_particles={self.n_particles}: expected >= 1")
         if self.n_particles_min is not None and not 1 <= self.n_particles_min <= self.n_particles:

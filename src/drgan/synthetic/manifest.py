@@ -1,13 +1,15 @@
 """manifest.json: what a dataset folder holds, written once it is complete and read by every consumer.
 
-    {"config": the generation settings (shard: null), "counts": {...}, "throughput": {...},
+    {"config": the generation settings (shard: null), "material": {"name": ..., "clark_evans": ...},
+     "counts": {...}, "throughput": {...},
      "entries": [{"id": "syn_000000", "kind": "synthetic", "index": 0, "files": {"image": ..., "mask": ...,
                   "label": ..., "meta": ...}}, ..., {"id": "bg_0000", "kind": "background", "files": {...}}, ...,
                  {"id": "pbg_0000", "kind": "partial_background", "files": {...}}]}
 
 Synthetic entries come first, by index, then the backgrounds, then the partial backgrounds (real windows with
 particles whose masks ignore them: drgan.synthetic.backgrounds); counts has each number, and "partial_backgrounds"
-how they were chosen (their mean ignored fraction, windows skipped). A shard writes its own part to
+how they were chosen (their mean ignored fraction, windows skipped); "material" what the checkpoint's material knows
+of the real particles beyond the settings (`material_facts`: drgan.segment's contact_weight=auto reads it). A shard writes its own part to
 manifest_shard_I.json; whichever process finds the dataset complete writes manifest.json (atomically).
 ``read_manifest`` checks a folder before anything is done with it and names the folder when it is not a
 dataset written by drgan.generate.
@@ -49,6 +51,16 @@ GENERATED_DATASET = "a dataset folder written by drgan.generate (manifest.json, 
 # --- writing ------------------------------------------------------------------------------------------------
 
 
+def material_facts(material) -> dict:
+    """What a dataset's consumers may need to know of the checkpoint's material (a ``material`` config node, typed
+    here) beyond the generation settings: its name and the real particles' arrangement (Clark-Evans ratio the
+    profile measured; None for a material written by hand)."""
+    from drgan.scene.config import typed_material
+
+    typed = typed_material(material)
+    return {"name": typed.name, "clark_evans": typed.clark_evans}
+
+
 def write_shard_manifest(
     folder: DatasetFolder, settings: GenerateSettings, shard: Shard, stats: dict, pixel_scale: float = 1.0
 ) -> None:
@@ -70,13 +82,15 @@ def write_manifest(
     stats: dict | None,
     required: bool,
     pixel_scale: float | None = None,
+    material: dict | None = None,
 ) -> dict | None:
     """manifest.json of the first n kept indices and the backgrounds, when all are done.
 
     ``pixel_scale``: image px per px of the real images the GAN learned from (render resolution / the material's
     view_width; below 1 when the GAN saw large particles in wide windows, area-averaged); None (merge=true): the
     shard manifests' (1.0 without any). A segmenter trained on the set keeps it (drgan.segment) and resamples the
-    real images it predicts by it (drgan.segmenters.inference).
+    real images it predicts by it (drgan.segmenters.inference). ``material``: `material_facts` of the checkpoint's
+    material (None: not recorded).
 
     Incomplete: a ConfigError naming what is missing when ``required`` (single process, merge=true),
     else None (a shard whose siblings are still running)."""
@@ -127,6 +141,7 @@ def write_manifest(
     manifest = {
         "config": {**settings.record(), "shard": None},
         "pixel_scale": float(pixel_scale),
+        "material": material,
         "counts": {
             "synthetic": len(kept),
             "background": len(backgrounds),
