@@ -228,6 +228,7 @@ def generate_dataset(given: GenerateSettings) -> dict:
     resolution = int(module.generator.scene.spec.render.resolution)
     pixel_scale = pairs_pixel_scale(resolution, settings.backgrounds, module.generator.scene.spec.view_width)
     spread = None  # with grey_spread, the real patches' grey levels each image takes one of
+    patches = None  # the real train patches, loaded once where they are needed (texture, grey spread, noise check)
     if module.textured or settings.grey_spread:
         from drgan.data.patches import PatchSet
 
@@ -331,21 +332,22 @@ def generate_dataset(given: GenerateSettings) -> dict:
         counts = manifest["counts"]
         print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "
               f"{counts['partial_background']} partial background items (n_background={settings.n_background})")  # fmt: skip
-        write_noise_check(out, manifest, settings, resolution)
+        write_noise_check(out, manifest, settings, resolution, patches)
     return manifest
 
 
 NOISE_CHECK = "noise_check.json"
 
 
-def write_noise_check(out: Path, manifest: dict, settings, resolution: int) -> dict | None:
+def write_noise_check(out: Path, manifest: dict, settings, resolution: int, patches=None) -> dict | None:
     """``out``/noise_check.json: the set's fine-scale noise against the real train patches'
-    (drgan.synthetic.noise_check), logged, with a warning naming a class WARN_RATIO or more off; nothing without
-    real patches (an imported generator). Seconds: 64 images on each side."""
+    (drgan.synthetic.noise_check; ``patches``: the PatchSet already loaded, else settings.backgrounds'), logged,
+    with a warning naming a class WARN_RATIO or more off; nothing without real patches (an imported generator).
+    Seconds: 64 images on each side."""
     from drgan.io import write_json
     from drgan.synthetic import noise_check
 
-    result = noise_check.check_dataset(out, manifest, settings.backgrounds, settings.polarity, resolution)
+    result = noise_check.check_dataset(out, manifest, patches or settings.backgrounds, settings.polarity, resolution)
     if result is None:
         return None
     write_json(out / NOISE_CHECK, result)

@@ -110,8 +110,8 @@ def off_by(result: dict) -> list[str]:
 
 def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: int) -> dict | None:
     """The noise check of a complete generated set (``manifest``, in folder ``root``) against the real train patches
-    of the PatchSet folder ``backgrounds`` (None, or a set without train patches: None returned): `compare`'s result
-    with the sample sizes. The patches are area-averaged to the render's ``resolution`` as training saw them, and
+    of ``backgrounds``, a PatchSet or its folder (None, or a set without train patches: None returned): `compare`'s
+    result with the sample sizes. The patches are area-averaged to the render's ``resolution`` as training saw them, and
     segmented with the patch set's settings resolved on them at their own px and scaled (as `GreySpread` does)."""
     from pathlib import Path
 
@@ -122,7 +122,7 @@ def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: 
 
     if backgrounds is None:
         return None
-    patches = PatchSet.load(backgrounds)
+    patches = backgrounds if isinstance(backgrounds, PatchSet) else PatchSet.load(backgrounds)
     if not len(patches.train):
         return None
     size = int(np.shape(patches.train)[-1])
