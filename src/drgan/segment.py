@@ -73,10 +73,10 @@ class TrainingPairs:
         manifest = self.manifest() if manifest is None else manifest
         return 1.0 if manifest is None else manifest_pixel_scale(manifest, "data")
 
-    def noise_level(self, manifest: dict | None = None) -> float | None:
+    def noise_level(self, manifest: dict | None = None, pairs=None) -> float | None:
         """The fine-noise level of a generated set's synthetic images (drgan.segmenters.noise_match: the median over
         its first ones), which inference brings cleaner real images up to; None for real images and hand-made pairs
-        (nothing to match)."""
+        (nothing to match). ``pairs``: the set's pairs already loaded (`load`), else the images are read."""
         from drgan.data.images import read_grey
         from drgan.segmenters.noise_match import SAMPLE, training_level
 
@@ -84,6 +84,9 @@ class TrainingPairs:
         if manifest is None:
             return None
         items = [e for e in manifest.get("entries", []) if e.get("kind") == "synthetic"][:SAMPLE]
+        loaded = {p.id: p.image for p in pairs or ()}
+        if all(e["id"] in loaded for e in items):
+            return training_level(loaded[e["id"]] for e in items)
         return training_level(read_grey(Path(self.data) / e["files"]["image"]) for e in items)
 
     def polarity(self, manifest: dict | None = None) -> str | None:
@@ -268,7 +271,7 @@ def segment(cfg: DictConfig) -> dict:
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
             "checkpoints)", pixel_scale, pixel_scale,
         )  # fmt: skip
-    noise = source.noise_level(manifest)
+    noise = source.noise_level(manifest, pairs)
     if noise is not None:
         log.info(
             "the generated images' fine-noise level is %.4f: inference adds white noise to cleaner images up to it "
