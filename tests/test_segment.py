@@ -301,6 +301,57 @@ def test_texture_augmentation_adds_correlated_noise_of_bounded_std_and_leaves_ma
     np.testing.assert_array_equal(val[0][0][0].numpy(), image)
 
 
+def test_contact_shading_dips_touching_particles_only_and_follows_the_crop():
+    """loader.contact_shade: the ridge between two touching instances (hand-made: a touching pair, a pair 1 px apart
+    as annotators separate them, a lone particle and one cut by the border) is pulled towards the background grey by
+    the drawn depth; every other pixel stays; the masks are never touched; a depth above 1 is refused."""
+    from scipy import ndimage as ndi
+
+    from drgan.segmenters.pairs import CropDataset, Pair, contact_ridge, shade_contacts
+
+    labels = np.zeros((32, 32), np.int32)
+    labels[4:12, 2:8], labels[4:12, 8:14] = 1, 2  # touching along the column 7 | 8
+    labels[18:26, 2:8], labels[18:26, 9:15] = 3, 4  # a 1 px line (column 8) between them
+    labels[4:12, 20:28] = 5  # alone
+    labels[28:32, 20:28] = 6  # cut by the border, alone
+    ridge = contact_ridge(labels)
+    assert ridge[4:12, 7:9].all() and ridge[18:26, 8].all()  # both sides of the touching pair; the separating line
+    # ... and the background pixels just beyond each contact's two ends (both particles within 1 px), nothing else
+    assert ridge.sum() == (8 * 2 + 2 * 2) + (8 + 2 * 1)
+    assert not ridge[:, 16:].any()
+    mask = (labels > 0).astype(np.uint8)
+    image = np.where(mask == 1, 0.8, 0.2).astype(np.float32)
+    shaded = shade_contacts(image, labels, mask, 0.5)
+    assert shaded[8, 7] == pytest.approx(0.8 + 0.5 * (0.2 - 0.8), abs=1e-3)  # the ridge: halfway to the background
+    assert shaded[21, 8] == pytest.approx(0.2, abs=1e-6)  # background pixels already at the background grey
+    far = ~ndi.binary_dilation(ridge, iterations=3)
+    np.testing.assert_allclose(shaded[far], image[far], atol=1e-6)  # a Gaussian 0.7 px wide: gone 3 px away
+    np.testing.assert_array_equal(shade_contacts(image, labels, mask, 0.0), image)
+    lone = np.where(labels == 5, 5, 0)
+    np.testing.assert_array_equal(shade_contacts(image, lone, mask, 1.0), image)  # no contact: unchanged
+    # in the loader: crops of a generated pair with its instances; masks alike with and without, images differ
+    pair = Pair("a", image, mask, labels)
+    plain = CropDataset([pair], 32, augment=True, samples_per_pair=8, brightness=0, contrast=0, texture=0)
+    shaded_set = CropDataset(
+        [pair], 32, augment=True, samples_per_pair=8, brightness=0, contrast=0, texture=0, contact_shade=1.0
+    )
+    dips = []
+    for k in range(8):
+        x, y = shaded_set[k]
+        assert set(np.unique(y.numpy())) <= {0, 1} and int((y == 1).sum()) == int(mask.sum())
+        dips.append(float(0.8 - x[0].numpy()[y.numpy() == 1].min()))
+        assert x[0].numpy().min() >= 0.2 - 1e-6 and x[0].numpy().max() <= 0.8 + 1e-6
+    assert max(dips) > 0.05  # depths drawn from [0, 1]: some crop dips
+    for k in range(4):  # without: the two grey levels only
+        x = plain[k][0].numpy()
+        assert (np.isclose(x, 0.2) | np.isclose(x, 0.8)).all()
+    from drgan.segment import LoaderSettings
+
+    cfg = compose(["loader.contact_shade=1.5"], config_name="segment")
+    with pytest.raises(ConfigError, match=r"loader.contact_shade=1.5: expected a number in \[0, 1\]"):
+        LoaderSettings.from_config(cfg)
+
+
 def test_sliding_window_matches_direct_inference():
     from drgan.segmenters.inference import predict, predict_probs
     from drgan.segmenters.unet import UNet

@@ -126,6 +126,7 @@ class LoaderSettings:
     brightness: float = 0.05  # jitter, in units of the [0, 1] grey range
     contrast: float = 0.1  # relative contrast jitter
     texture: float = 0.1  # std of the surface texture added to each crop (pairs.surface_texture); 0: none
+    contact_shade: float = 0.0  # largest depth of the dip drawn at the contacts of touching particles; 0: none
     seed: int = 0
     val_fraction: float = 0.1
 
@@ -141,9 +142,18 @@ class LoaderSettings:
             brightness=setting_float("loader.brightness", ld.brightness, 0.0),
             contrast=setting_float("loader.contrast", ld.contrast, 0.0),
             texture=setting_float("loader.texture", ld.texture, 0.0),
+            contact_shade=_fraction("loader.contact_shade", ld.contact_shade),
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
+
+
+def _fraction(key: str, value) -> float:
+    """A setting in [0, 1], or a ConfigError naming ``key``."""
+    number = setting_float(key, value, 0.0)
+    if number > 1.0:
+        raise ConfigError(f"{key}={value}: expected a number in [0, 1]")
+    return number
 
 
 def checked_source(cfg: DictConfig) -> TrainingPairs:
@@ -179,6 +189,7 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool =
         brightness=ld.brightness,
         contrast=ld.contrast,
         texture=ld.texture,
+        contact_shade=ld.contact_shade,
         seed=ld.seed,
         normalize=normalize,
         centres=centres,

@@ -331,6 +331,37 @@ def surface_texture(shape: tuple[int, int], amplitude: float, rng: np.random.Gen
     return (rng.uniform(0.0, amplitude) / max(float(field.std()), 1e-12)) * field
 
 
+CONTACT_SHADE_PX = 0.7  # Gaussian stddev (px) of the contact shading's profile across a contact line
+
+
+def contact_ridge(labels: np.ndarray) -> np.ndarray:
+    """bool (H, W): the pixels with two different instances of ``labels`` within 1 px (3 x 3 window): where two
+    particles touch (their boundary pixels on both sides; a real annotation's 1 px separating line)."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    labels = np.asarray(labels, dtype=np.int64)
+    none = int(labels.max()) + 1
+    high = maximum_filter(labels, size=3)
+    low = minimum_filter(np.where(labels > 0, labels, none), size=3)
+    return (low < none) & (high > low)
+
+
+def shade_contacts(image: np.ndarray, labels: np.ndarray, mask: np.ndarray, depth: float) -> np.ndarray:
+    """``image`` with the grey where particles touch (`contact_ridge`) pulled towards the crop's background grey
+    (the median of its background-class pixels) by ``depth`` in [0, 1] at the ridge, falling off as a Gaussian of
+    CONTACT_SHADE_PX across it: the dip a real contact shows (experiments/statistics/README.md, "What a contact looks
+    like"). Unchanged without a ridge, a depth of 0 or fewer than 16 background pixels."""
+    from scipy.ndimage import gaussian_filter
+
+    ridge = contact_ridge(labels)
+    background = mask == 0
+    if depth <= 0 or not ridge.any() or background.sum() < 16:
+        return image
+    # a Gaussian-blurred 1 px line peaks at 1 / (sqrt(2 pi) sigma): scaled so that a contact line reaches 1
+    weight = np.minimum(1.0, gaussian_filter(ridge.astype(np.float32), CONTACT_SHADE_PX) * 2.5066 * CONTACT_SHADE_PX)
+    return image + (depth * weight) * (float(np.median(image[background])) - image)
+
+
 class CropDataset(Dataset):
     """Random crops of the pairs, `samples_per_pair` per pair and epoch (one number for all, or one per pair, e.g.
     `crops_by_area`).
@@ -339,7 +370,9 @@ class CropDataset(Dataset):
     x -> clip((x - mean) * c + mean + b) with c in [1 - contrast, 1 + contrast], b in [-brightness, brightness];
     with ``texture`` > 0 also a surface texture the renderer cannot show (cracks, beads, grain of a real particle):
     Gaussian noise low-passed at a correlation length drawn from TEXTURE_PX, of a std drawn from [0, texture],
-    added to the whole crop, so that the network does not take every textured region for background.
+    added to the whole crop, so that the network does not take every textured region for background; with
+    ``contact_shade`` > 0 the contacts between touching particles (the pairs' instances) darken (brighten) towards
+    the background by a depth drawn from [0, contact_shade] (`shade_contacts`), before the jitter.
     Without augment (validation) every sample is the pair's centre crop, unchanged, so val scores are repeatable.
     Images smaller than the crop are reflect-padded, their masks likewise. Masks are only cut, padded by copying,
     rotated and flipped, never interpolated: an IGNORE (255) pixel stays 255 and no other class is made from it.
@@ -359,6 +392,7 @@ class CropDataset(Dataset):
         normalize: str = "none",
         centres: bool = False,
         texture: float = 0.0,
+        contact_shade: float = 0.0,
     ):
         if not pairs:
             raise DataError("segmentation dataset: no image/mask pairs")
@@ -374,6 +408,7 @@ class CropDataset(Dataset):
         self.stats = [normalization(p.image, mode) for p in pairs]  # (shift, scale) of each whole image
         # centre-map targets of whole images (their particles' extents), cut like the masks (an instance-aware segmenter)
         self.centres = [centre_map(p) for p in pairs] if centres else None
+        self.contact_shade = float(contact_shade)
 
     def __len__(self) -> int:
         return len(self.owner)
@@ -384,6 +419,8 @@ class CropDataset(Dataset):
         rng = np.random.default_rng() if self.augment else np.random.default_rng((self.seed, index))
         image, mask = pair.image, pair.mask
         maps = [image, mask] + ([self.centres[owner]] if self.centres is not None else [])
+        if self.augment and self.contact_shade > 0:
+            maps.append(pair.instances())  # cut like the masks; only the shading reads it
         c = self.crop
         h, w = image.shape
         if h < c or w < c:
@@ -402,6 +439,8 @@ class CropDataset(Dataset):
                 maps = [m[:, ::-1] for m in maps]
         image, mask = maps[0], maps[1]
         if self.augment:
+            if self.contact_shade > 0:
+                image = shade_contacts(image, maps[-1], mask, rng.uniform(0.0, self.contact_shade))
             mean = float(image.mean())
             c = rng.uniform(1 - self.contrast, 1 + self.contrast)
             image = np.clip((image - mean) * c + mean + rng.uniform(-self.brightness, self.brightness), 0.0, 1.0)

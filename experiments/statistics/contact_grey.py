@@ -1,0 +1,101 @@
+"""What does a contact between two touching particles look like, in generated pairs and in real annotated images?
+
+Issue 51: touching tio2_sem particles stay merged after the split, in generated-trained segmenters more than in the
+real-trained one. A segmenter can only learn to cut where the training images show a cue. For every pair of touching
+instances (generated: the exact labels; real: the annotation's instances, which a 1 px line separates), the ridge
+is the pixels with both particles within 1 px (3 x 3 window); its grey is put on the particles' own scale:
+
+    neck = (median ridge grey - background grey) / (median core grey of the two - background grey)
+
+1: the contact is as bright (dark) as the particles, no cue; 0: it falls to the background, a gap anyone can cut;
+> 1: a line brighter than the particles (an SEM edge). Core: instance pixels with no other label within 2 px;
+background: pixels with no particle within 3 px (the image's median). Prints the quartiles of ``neck`` and the
+share of contacts below 0.5 (a visible gap) and above 1.1 (a bright line), per set.
+
+    python experiments/statistics/contact_grey.py --generated runs/pipeline/bam_tio2_sem/generate \
+        --real ../shared/datasets/tio2_sem --ids train
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from drgan.data.images import read_grey
+
+
+def necks(image: np.ndarray, labels: np.ndarray, min_ridge: int = 3) -> list[float]:
+    """The normalised ridge grey of every touching pair of instances in one image (pairs with >= ``min_ridge``
+    ridge pixels and a particle contrast of at least 0.05)."""
+    labels = labels.astype(np.int64)
+    big = labels.max() + 1
+    high = ndi.maximum_filter(labels, size=3)
+    low = ndi.minimum_filter(np.where(labels > 0, labels, big), size=3)  # smallest instance id within 1 px
+    ridge = (low < big) & (high > low)
+    core = (labels > 0) & (ndi.maximum_filter(labels, size=5) == labels)
+    core &= ndi.minimum_filter(np.where(labels > 0, labels, big), size=5) == labels
+    background = ndi.maximum_filter(labels, size=7) == 0
+    if background.sum() < 100 or not ridge.any():
+        return []
+    bg = float(np.median(image[background]))
+    ids = np.arange(1, big)
+    core_grey = dict(zip(ids.tolist(), ndi.median(image, np.where(core, labels, 0), ids)))
+    pair = low[ridge] * big + high[ridge]
+    out = []
+    for key in np.unique(pair):
+        grey = image[ridge][pair == key]
+        a, b = int(key // big), int(key % big)
+        cores = [core_grey.get(a), core_grey.get(b)]
+        if grey.size < min_ridge or any(c is None or not np.isfinite(c) for c in cores):
+            continue
+        contrast = float(np.mean(cores)) - bg
+        if abs(contrast) < 0.05:
+            continue
+        out.append((float(np.median(grey)) - bg) / contrast)
+    return out
+
+
+def generated(folder: Path, n: int) -> list[float]:
+    from PIL import Image
+
+    values = []
+    for path in sorted((folder / "labels").glob("syn_*.png"))[:n]:
+        labels = np.asarray(Image.open(path)).astype(np.int32)
+        values += necks(read_grey(folder / "images" / path.name), labels)
+    return values
+
+
+def real(folder: Path, ids: str) -> list[float]:
+    from drgan.segmenters.pairs import load_real_items, real_ids
+
+    values = []
+    for item, labels in load_real_items(folder, real_ids(folder, None, ids, "real")):
+        values += necks(item.image, labels)
+    return values
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--generated", type=Path)
+    parser.add_argument("--real", type=Path)
+    parser.add_argument("--ids", default="train")
+    parser.add_argument("--n", type=int, default=200)
+    args = parser.parse_args()
+    print("| pairs | contacts | neck grey: quartiles (1 = as the particles, 0 = background) | gap (< 0.5) | line (> 1.1) |")
+    print("|---|---|---|---|---|")
+    for name, values in (
+        (f"generated ({args.generated})", generated(args.generated, args.n) if args.generated else None),
+        (f"real masks, {args.ids} ids ({args.real})", real(args.real, args.ids) if args.real else None),
+    ):
+        if values is not None:
+            v = np.asarray(values)
+            q = np.percentile(v, [25, 50, 75])
+            print(f"| {name} | {len(v)} | {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} | {np.mean(v < 0.5):.0%} | "
+                  f"{np.mean(v > 1.1):.0%} |")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
