@@ -84,7 +84,9 @@ def main() -> None:
     parser.add_argument("--ids", default="train")
     parser.add_argument("--n", type=int, default=200)
     args = parser.parse_args()
-    print("| pairs | contacts | neck grey: quartiles (1 = as the particles, 0 = background) | gap (< 0.5) | line (> 1.1) |")
+    print(
+        "| pairs | contacts | neck grey: quartiles (1 = as the particles, 0 = background) | gap (< 0.5) | line (> 1.1) |"
+    )
     print("|---|---|---|---|---|")
     for name, values in (
         (f"generated ({args.generated})", generated(args.generated, args.n) if args.generated else None),
