@@ -61,24 +61,28 @@ def offsets(image: np.ndarray, labels: np.ndarray, polarity: str) -> list[float]
     return out
 
 
-def generated(folder: Path, polarity: str, n: int) -> list[float]:
+def generated_images(folder: Path, n: int):
+    """(image, exact instance labels) of the first ``n`` synthetic pairs of a generated set."""
     from PIL import Image
 
-    values = []
     for path in sorted((folder / "labels").glob("syn_*.png"))[:n]:
-        labels = np.asarray(Image.open(path)).astype(np.int32)
-        image = read_grey(folder / "images" / path.name)
-        values += offsets(image, labels, polarity)
-    return values
+        yield read_grey(folder / "images" / path.name), np.asarray(Image.open(path)).astype(np.int32)
+
+
+def real_images(folder: Path, ids: str):
+    """(image, annotated instance labels) of a real dataset's ``ids`` subset (train / test / all)."""
+    from drgan.segmenters.pairs import load_real_items, real_ids
+
+    for item, labels in load_real_items(folder, real_ids(folder, None, ids, "real")):
+        yield item.image, labels
+
+
+def generated(folder: Path, polarity: str, n: int) -> list[float]:
+    return [v for image, labels in generated_images(folder, n) for v in offsets(image, labels, polarity)]
 
 
 def real(folder: Path, ids: str, polarity: str) -> list[float]:
-    from drgan.segmenters.pairs import load_real_items, real_ids
-
-    values = []
-    for item, labels in load_real_items(folder, real_ids(folder, None, ids, "real")):
-        values += offsets(item.image, labels, polarity)
-    return values
+    return [v for image, labels in real_images(folder, ids) for v in offsets(image, labels, polarity)]
 
 
 def main() -> None:

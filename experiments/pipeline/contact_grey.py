@@ -12,7 +12,7 @@ is the pixels with both particles within 1 px (3 x 3 window); its grey is put on
 background: pixels with no particle within 3 px (the image's median). Prints the quartiles of ``neck`` and the
 share of contacts below 0.5 (a visible gap) and above 1.1 (a bright line), per set.
 
-    python experiments/statistics/contact_grey.py --generated runs/pipeline/bam_tio2_sem/generate \
+    python experiments/pipeline/contact_grey.py --generated runs/pipeline/bam_tio2_sem/generate \
         --real ../shared/datasets/tio2_sem --ids train
 """
 
@@ -22,9 +22,8 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from edge_offset import generated_images, real_images  # beside this script
 from scipy import ndimage as ndi
-
-from drgan.data.images import read_grey
 
 
 def necks(image: np.ndarray, labels: np.ndarray, min_ridge: int = 3) -> list[float]:
@@ -58,25 +57,6 @@ def necks(image: np.ndarray, labels: np.ndarray, min_ridge: int = 3) -> list[flo
     return out
 
 
-def generated(folder: Path, n: int) -> list[float]:
-    from PIL import Image
-
-    values = []
-    for path in sorted((folder / "labels").glob("syn_*.png"))[:n]:
-        labels = np.asarray(Image.open(path)).astype(np.int32)
-        values += necks(read_grey(folder / "images" / path.name), labels)
-    return values
-
-
-def real(folder: Path, ids: str) -> list[float]:
-    from drgan.segmenters.pairs import load_real_items, real_ids
-
-    values = []
-    for item, labels in load_real_items(folder, real_ids(folder, None, ids, "real")):
-        values += necks(item.image, labels)
-    return values
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--generated", type=Path)
@@ -89,11 +69,11 @@ def main() -> None:
     )
     print("|---|---|---|---|---|")
     for name, values in (
-        (f"generated ({args.generated})", generated(args.generated, args.n) if args.generated else None),
-        (f"real masks, {args.ids} ids ({args.real})", real(args.real, args.ids) if args.real else None),
+        (f"generated ({args.generated})", generated_images(args.generated, args.n) if args.generated else None),
+        (f"real masks, {args.ids} ids ({args.real})", real_images(args.real, args.ids) if args.real else None),
     ):
         if values is not None:
-            v = np.asarray(values)
+            v = np.asarray([x for image, labels in values for x in necks(image, labels)])
             q = np.percentile(v, [25, 50, 75])
             print(f"| {name} | {len(v)} | {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} | {np.mean(v < 0.5):.0%} | "
                   f"{np.mean(v > 1.1):.0%} |")  # fmt: skip
