@@ -358,7 +358,9 @@ def shade_contacts(image: np.ndarray, labels: np.ndarray, mask: np.ndarray, dept
     if depth <= 0 or not ridge.any() or background.sum() < 16:
         return image
     # a Gaussian-blurred 1 px line peaks at 1 / (sqrt(2 pi) sigma): scaled so that a contact line reaches 1
-    weight = np.minimum(1.0, gaussian_filter(ridge.astype(np.float32), CONTACT_SHADE_PX) * 2.5066 * CONTACT_SHADE_PX)
+    weight = np.minimum(
+        1.0, gaussian_filter(ridge.astype(np.float32), CONTACT_SHADE_PX) * np.sqrt(2 * np.pi) * CONTACT_SHADE_PX
+    )
     return image + (depth * weight) * (float(np.median(image[background])) - image)
 
 
