@@ -650,7 +650,7 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     data = make_generated(tmp_path / "gen")
     # pairs of a GAN that learned from windows twice its render: every checkpoint carries the scale to inference
     monkeypatch.setattr(TrainingPairs, "pixel_scale", lambda self, manifest=None: 0.5)
-    monkeypatch.setattr(TrainingPairs, "noise_level", lambda self, manifest=None, pairs=None: 0.02)
+    monkeypatch.setattr(TrainingPairs, "noise_level", lambda self, pairs, manifest=None: 0.02)
     out = tmp_path / "run"
     common = tiny_segment_overrides(
         data, tmp_path, out, "trainer.log_every_n_steps=1", "name=tiny", "model.normalize=zscore"

@@ -347,7 +347,9 @@ def write_noise_check(out: Path, manifest: dict, settings, resolution: int, patc
     from drgan.io import write_json
     from drgan.synthetic import noise_check
 
-    result = noise_check.check_dataset(out, manifest, patches or settings.backgrounds, settings.polarity, resolution)
+    result = noise_check.check_dataset(
+        out, manifest, settings.backgrounds if patches is None else patches, settings.polarity, resolution
+    )
     if result is None:
         return None
     write_json(out / NOISE_CHECK, result)

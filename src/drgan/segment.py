@@ -73,21 +73,18 @@ class TrainingPairs:
         manifest = self.manifest() if manifest is None else manifest
         return 1.0 if manifest is None else manifest_pixel_scale(manifest, "data")
 
-    def noise_level(self, manifest: dict | None = None, pairs=None) -> float | None:
+    def noise_level(self, pairs, manifest: dict | None = None) -> float | None:
         """The fine-noise level of a generated set's synthetic images (drgan.segmenters.noise_match: the median over
-        its first ones), which inference brings cleaner real images up to; None for real images and hand-made pairs
-        (nothing to match). ``pairs``: the set's pairs already loaded (`load`), else the images are read."""
-        from drgan.data.images import read_grey
+        its first ones, from ``pairs``, the set as `load` gives it), which inference brings cleaner real images up
+        to; None for real images and hand-made pairs (nothing to match)."""
         from drgan.segmenters.noise_match import SAMPLE, training_level
 
         manifest = self.manifest() if manifest is None else manifest
         if manifest is None:
             return None
+        images = {p.id: p.image for p in pairs}
         items = [e for e in manifest.get("entries", []) if e.get("kind") == "synthetic"][:SAMPLE]
-        loaded = {p.id: p.image for p in pairs or ()}
-        if all(e["id"] in loaded for e in items):
-            return training_level(loaded[e["id"]] for e in items)
-        return training_level(read_grey(Path(self.data) / e["files"]["image"]) for e in items)
+        return training_level(images[e["id"]] for e in items)
 
     def polarity(self, manifest: dict | None = None) -> str | None:
         """The particles' polarity (bright / dark) of a generated set (its manifest: the checkpoint material's);
@@ -282,7 +279,7 @@ def segment(cfg: DictConfig) -> dict:
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
             "checkpoints)", pixel_scale, pixel_scale,
         )  # fmt: skip
-    noise = source.noise_level(manifest, pairs)
+    noise = source.noise_level(pairs, manifest)
     if noise is not None:
         log.info(
             "the generated images' fine-noise level is %.4f: inference adds white noise to cleaner images up to it "
@@ -309,8 +306,12 @@ def segment(cfg: DictConfig) -> dict:
     )
     scores = ScoreHistory()
     callbacks = [
-        CheckpointEntries({PIXEL_SCALE_KEY: pixel_scale, NOISE_KEY: noise}), ResumeCheckpoint(), checkpoint, scores, *([stopper] if stopper is not None else [])
-    ]  # fmt: skip
+        CheckpointEntries({PIXEL_SCALE_KEY: pixel_scale, NOISE_KEY: noise}),
+        ResumeCheckpoint(),
+        checkpoint,
+        scores,
+        *([stopper] if stopper is not None else []),
+    ]
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     start_loggers(loggers)
 

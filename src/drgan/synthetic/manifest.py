@@ -9,8 +9,9 @@
 Synthetic entries come first, by index, then the backgrounds, then the partial backgrounds (real windows with
 particles whose masks ignore them: drgan.synthetic.backgrounds); counts has each number, and "partial_backgrounds"
 how they were chosen (their mean ignored fraction, windows skipped); "material" what the checkpoint's material knows
-of the real particles beyond the settings (`material_facts`: drgan.segment's contact_weight=auto reads it). A shard writes its own part to
-manifest_shard_I.json; whichever process finds the dataset complete writes manifest.json (atomically).
+of the real particles beyond the settings (`material_facts`: drgan.segment's contact_weight=auto reads it). A shard
+writes its own part to manifest_shard_I.json; whichever process finds the dataset complete writes manifest.json
+(atomically).
 ``read_manifest`` checks a folder before anything is done with it and names the folder when it is not a
 dataset written by drgan.generate.
 """
