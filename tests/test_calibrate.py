@@ -67,6 +67,33 @@ def test_ties_keep_the_more_lenient_setting_and_max_pairs_caps_the_work():
     assert (result["split_depth"], result["split_core"], result["n_pairs"]) == (1.0, None, 3)
 
 
+def test_ties_between_depths_follow_the_particles_size():
+    from drgan.metrics.instance_scores import binarize_and_label
+    from drgan.segmenters.calibrate import LARGE_PARTICLE_PX, calibrate_split, median_diameter, tied_best
+
+    rows = [
+        {"split_depth": 2.0, "split_core": None, "ap50": 0.9051},
+        {"split_depth": 4.0, "split_core": None, "ap50": 0.8800},
+        {"split_depth": 8.0, "split_core": None, "ap50": 0.9040},  # within TIE (0.002) of the best
+        {"split_depth": 8.0, "split_core": 0.7, "ap50": 0.9048},
+        {"split_depth": 16.0, "split_core": None, "ap50": 0.8900},
+    ]
+    assert tied_best(rows, 25.0) is rows[0]  # small particles: the smaller tied depth (fewer merges)
+    assert tied_best(rows, LARGE_PARTICLE_PX) is rows[2]  # large: the larger depth, its first (most lenient) core
+    assert tied_best(rows, float("nan")) is rows[0]
+    assert tied_best([{"seed_level": 0.3, "ap50": 0.5}, {"seed_level": 0.4, "ap50": 0.5}], 300.0)["seed_level"] == 0.3
+    # equivalent-circle diameters: a 10 x 10 square (d = 11.28) and a 4 x 4 square (4.51), median of two
+    labels = np.zeros((20, 20), np.int32)
+    labels[:10, :10], labels[12:16, 12:16] = 1, 2
+    assert median_diameter([labels]) == pytest.approx((2 * np.sqrt(100 / np.pi) + 2 * np.sqrt(16 / np.pi)) / 2)
+    assert np.isnan(median_diameter([np.zeros((4, 4), np.int32)]))
+    # calibrate_split measures the validation particles' size and records it with the choice
+    apart = _pair(_two_touching_discs(r=7.0, gap=20.0))
+    result = calibrate_split(ProbabilityImage(), [apart], {"cores": [None], "depths": [1.0, 2.0]}, tile=48)
+    truth = median_diameter([binarize_and_label(apart.mask)])
+    assert result["particle_px"] == pytest.approx(truth) and 10 < truth < 15  # two r = 7 discs, contour removed
+
+
 @pytest.mark.parametrize(
     "grid, message",
     [

@@ -398,8 +398,9 @@ def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) 
         else f"split_depth {calibration['split_depth']}, split_core {calibration['split_core']}"
     )
     log.info(
-        "split chosen on %d validation pairs: %s (AP50 %.3f); stored in %s\n%s",
+        "split chosen on %d validation pairs (particles %.0f px across, median): %s (AP50 %.3f); stored in %s\n%s",
         calibration["n_pairs"],
+        calibration.get("particle_px", float("nan")),
         chosen,
         calibration["ap50"],
         last,

@@ -8,6 +8,9 @@ training, ``drgan.segment`` scores a small grid of (split_depth, split_core) on 
 test images), keeps the setting with the highest pooled AP50 and stores it in the checkpoint under
 ``CHECKPOINT_KEY``; ``inference.split_core: auto`` / ``split_depth: auto`` of evaluate and analyze read it back.
 
+Settings within ``TIE`` of the best AP50 are ties: on particles of ``LARGE_PARTICLE_PX`` and more (median over the
+validation pairs) the largest tied depth wins, else the smallest; then the most lenient core of that depth.
+
 Validation instances are the 4-connected components of each pair's particle class (the contour class separates
 touching particles in the targets), compared with the particle-class components of the split's class map, the way
 ``drgan.evaluate`` scores a class map.
@@ -34,7 +37,12 @@ GRID_DEFAULTS = {
     "levels": [0.3, 0.4, 0.5, 0.6, 0.7],  # the instance-aware segmenter's seed levels (drgan.segmenters.instances)
     "max_pairs": 100,
 }
-TIE = 0.002  # AP50 differences below this are ties: the earlier (more lenient) grid setting wins
+TIE = 0.002  # AP50 differences below this are ties, broken by the particles' size (tied_best)
+# Median diameter (px) of the validation pairs' particles from which a tie between split depths goes to the larger
+# depth. Measured on the annotated train ids of every tie among 39 calibrated runs (experiments/pipeline/README.md,
+# "Tied split depths"): the larger depth won for particles of 58 and 221 px (EMPS cej, saa890: fewer fragments of
+# rough or faceted outlines, AP50 +0.05 and +0.36), the smaller for 25-27 px (tio2_sem, tio2_tsem: fewer merges).
+LARGE_PARTICLE_PX = 40.0
 # Image px per real px of the pairs a segmenter learned from (a generated set's manifest pixel_scale: below 1 when
 # the GAN saw large particles in windows wider than its render); inference resamples real images by it.
 PIXEL_SCALE_KEY = "drgan_pixel_scale"
@@ -121,8 +129,8 @@ def calibrate_split(
     scored = [row for row in table if not math.isnan(row["ap50"])]
     if not scored:
         raise ValueError("calibrate_split: the validation pairs hold no particles and no prediction found any")
-    top = max(row["ap50"] for row in scored)
-    best = next(row for row in scored if row["ap50"] >= top - TIE)
+    particle_px = median_diameter(truths)
+    best = tied_best(scored, particle_px)
     chosen_setting = {"split": "centres", "seed_level": best["seed_level"]} if centres else {"split": "watershed"}
     return {
         **chosen_setting,
@@ -131,8 +139,29 @@ def calibrate_split(
         "split_smooth": float(split_smooth),
         "ap50": best["ap50"],
         "n_pairs": len(chosen),
+        "particle_px": particle_px,
         "table": table,
     }
+
+
+def median_diameter(labels: Sequence[np.ndarray]) -> float:
+    """Median equivalent-circle diameter (px) of the instances of ``labels`` (label images); nan without any."""
+    areas = [np.bincount(label.ravel())[1:] for label in labels]
+    areas = np.concatenate(areas) if areas else np.zeros(0)
+    areas = areas[areas > 0]
+    return float(np.median(2.0 * np.sqrt(areas / np.pi))) if areas.size else math.nan
+
+
+def tied_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:
+    """The calibration table's chosen row: among the rows within ``TIE`` of the best AP50 (in grid order), the
+    largest split depth's first row when the particles are ``LARGE_PARTICLE_PX`` or more across, else the first.
+    Rows without a depth (the instance-aware segmenter's seed levels) keep the first."""
+    top = max(row["ap50"] for row in rows)
+    tied = [row for row in rows if row["ap50"] >= top - TIE]
+    if particle_px >= LARGE_PARTICLE_PX and "split_depth" in tied[0]:
+        deepest = max(row["split_depth"] for row in tied)
+        return next(row for row in tied if row["split_depth"] == deepest)
+    return tied[0]
 
 
 def stored_pixel_scale(checkpoint: Mapping, source: str = "checkpoint") -> float:
