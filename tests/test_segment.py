@@ -371,6 +371,28 @@ def test_sliding_window_matches_direct_inference():
     assert predict(net, image, tile=32).dtype == np.uint8
 
 
+def test_mirrored_inference_is_the_mean_over_four_mirror_images_and_mirror_equivariant():
+    from drgan.segmenters.inference import make_predictor, predict_probs
+    from drgan.segmenters.unet import UNet
+
+    torch.manual_seed(0)
+    net = UNet(1, 3, 3, 4).eval()  # random weights: not mirror-symmetric, so a missing flip-back shows
+    image = np.random.default_rng(0).random((32, 32)).astype(np.float32)
+    x = torch.from_numpy(image)[None, None]
+    with torch.no_grad():
+        by_hand = sum(net(x.flip(d)).softmax(1).flip(d) for d in ((), (-1,), (-2,), (-2, -1)))[0].numpy() / 4
+    mirrored = predict_probs(net, image, tile=32, mirror=True)
+    np.testing.assert_allclose(mirrored, by_hand, atol=1e-5)
+    plain = predict_probs(net, image, tile=32)
+    assert np.abs(plain - mirrored).max() > 1e-3  # the network alone is not mirror-symmetric
+    # mirrored inference of a mirrored image is the mirror of the prediction (tiles covering the image exactly)
+    np.testing.assert_allclose(
+        predict_probs(net, image[:, ::-1].copy(), tile=32, mirror=True), mirrored[:, :, ::-1], atol=1e-5
+    )
+    assert not np.allclose(predict_probs(net, image[:, ::-1].copy(), tile=32), plain[:, :, ::-1], atol=1e-3)
+    make_predictor(net, {"mirror": True, "tile": 32})  # a known inference setting
+
+
 def test_zscore_segmenter_ignores_detector_brightness_and_contrast():
     """A "zscore" model predicts the same on a*x + b as on x (whole-image statistics, at inference as in
     training crops); the raw "none" model does not, so the check can fail."""

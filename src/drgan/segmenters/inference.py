@@ -46,15 +46,24 @@ def _starts(size: int, tile: int, stride: int) -> list[int]:
     return starts
 
 
+MIRRORS = ((), (-1,), (-2,), (-2, -1))  # identity, left-right, up-down, both: the test-time mirrorings
+
+
 @torch.no_grad()
 def predict_probs(
-    model: torch.nn.Module, image: np.ndarray, tile: int = 384, overlap: float = 0.125, batch_size: int = 8
+    model: torch.nn.Module,
+    image: np.ndarray,
+    tile: int = 384,
+    overlap: float = 0.125,
+    batch_size: int = 8,
+    mirror: bool = False,
 ) -> np.ndarray:
     """(H, W) float image in [0, 1] -> (C, H, W) float32 class probabilities.
 
     The whole image is normalised first as the model was trained (its ``input_normalization``, e.g. "zscore";
     "none" for plain modules), then cut into overlapping tiles whose probabilities are blended with a
-    Gaussian weight."""
+    Gaussian weight. ``mirror``: each tile's probabilities are the mean over its four mirror images (``MIRRORS``,
+    each prediction flipped back; test-time augmentation as nnU-Net's mirroring), 4 x the network's work."""
     image = np.asarray(image, dtype=np.float32)
     if image.ndim != 2:
         raise DataError(f"predict: expected a 2-D grey image, got shape {image.shape}")
@@ -77,14 +86,21 @@ def predict_probs(
     for k in range(0, len(corners), batch_size):
         chunk = corners[k : k + batch_size]
         batch = torch.stack([src[y : y + tile, x : x + tile] for y, x in chunk])[:, None]
-        output = model(batch)
-        probs = model.probabilities(output) if hasattr(model, "probabilities") else output.softmax(dim=1)
+        if mirror:
+            probs = sum(_probabilities(model, batch.flip(d)).flip(d) for d in MIRRORS) / len(MIRRORS)
+        else:
+            probs = _probabilities(model, batch)
         if acc is None:
             acc = torch.zeros(probs.shape[1], ph, pw)
         for (y, x), p in zip(chunk, probs):
             acc[:, y : y + tile, x : x + tile] += p * weight
             norm[y : y + tile, x : x + tile] += weight
     return (acc / norm)[:, :h, :w].numpy()
+
+
+def _probabilities(model: torch.nn.Module, batch: torch.Tensor) -> torch.Tensor:
+    output = model(batch)
+    return model.probabilities(output) if hasattr(model, "probabilities") else output.softmax(dim=1)
 
 
 def split_of(model, split: str = "auto") -> str:
