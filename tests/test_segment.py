@@ -391,6 +391,8 @@ def test_mirrored_inference_is_the_mean_over_four_mirror_images_and_mirror_equiv
     )
     assert not np.allclose(predict_probs(net, image[:, ::-1].copy(), tile=32), plain[:, :, ::-1], atol=1e-3)
     make_predictor(net, {"mirror": True, "tile": 32})  # a known inference setting
+    with pytest.raises(ConfigError, match=r"inference.mirror='yes': expected true or false"):
+        make_predictor(net, {"mirror": "yes"})
 
 
 def test_zscore_segmenter_ignores_detector_brightness_and_contrast():

@@ -39,9 +39,10 @@ GRID_DEFAULTS = {
 }
 TIE = 0.002  # AP50 differences below this are ties, broken by the particles' size (tied_best)
 # Median diameter (px) of the validation pairs' particles from which a tie between split depths goes to the larger
-# depth. Measured on the annotated train ids of every tie among 39 calibrated runs (experiments/pipeline/README.md,
-# "Tied split depths"): the larger depth won for particles of 58 and 221 px (EMPS cej, saa890: fewer fragments of
-# rough or faceted outlines, AP50 +0.05 and +0.36), the smaller for 25-27 px (tio2_sem, tio2_tsem: fewer merges).
+# depth. Placed by four ties scored both ways on annotated train ids (experiments/pipeline/README.md, "Tied split
+# depths"): the larger depth won for particles of 58 and 221 px (EMPS cej, saa890: fewer fragments of rough or
+# faceted outlines, AP50 +0.05 and +0.36), the smaller for 25-27 px (tio2_sem, tio2_tsem: fewer merges); two ties
+# held out (EMPS actbio 103 px, apsusc 87 px) agree.
 LARGE_PARTICLE_PX = 40.0
 # Image px per real px of the pairs a segmenter learned from (a generated set's manifest pixel_scale: below 1 when
 # the GAN saw large particles in windows wider than its render); inference resamples real images by it.

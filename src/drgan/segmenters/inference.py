@@ -324,4 +324,6 @@ def make_predictor(model: torch.nn.Module, inference: dict):
     if settings["pixel_scale"] is not None:
         check_pixel_scale(settings["pixel_scale"])
     check_noise_match(settings["noise_match"])
+    if not isinstance(settings["mirror"], bool):
+        raise ConfigError(f"inference.mirror={settings['mirror']!r}: expected true or false")
     return lambda image: predict(model, image, **inference)
