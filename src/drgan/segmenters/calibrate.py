@@ -146,11 +146,12 @@ def calibrate_split(
 
 
 def median_diameter(labels: Sequence[np.ndarray]) -> float:
-    """Median equivalent-circle diameter (px) of the instances of ``labels`` (label images); nan without any."""
-    areas = [np.bincount(label.ravel())[1:] for label in labels]
-    areas = np.concatenate(areas) if areas else np.zeros(0)
-    areas = areas[areas > 0]
-    return float(np.median(2.0 * np.sqrt(areas / np.pi))) if areas.size else math.nan
+    """Median equivalent-circle diameter (px) of the instances of ``labels`` (label images, sized as
+    drgan.metrics.statistics.particles sizes them); nan without any."""
+    from drgan.metrics.statistics import particles
+
+    diameters = np.concatenate([particles(label).diameter for label in labels] or [np.zeros(0)])
+    return float(np.median(diameters)) if diameters.size else math.nan
 
 
 def tied_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:
