@@ -175,3 +175,67 @@ def test_an_instance_map_annotation_keeps_touching_particles_apart(tmp_path):
     # the same particles as a binary mask: touching, so one 4-connected component
     tifffile.imwrite(folder / "masks" / "a.tif", ((labels > 0) * 255).astype(np.uint8))
     assert load_real_items(folder, ["a"])[0][1].max() == 1
+
+
+def test_a_pair_shrunk_to_the_working_scale_keeps_its_instances_exactly():
+    from drgan.scene.labels import IGNORE
+    from drgan.segmenters.pairs import Pair, shrink_pair
+
+    small = touching_pair()
+    big = np.kron(small, np.ones((4, 4), np.int32))  # every pixel a 4 x 4 block
+    mask = class_mask(big, 1)
+    mask[:8, :8] = IGNORE  # two blocks no class is known for
+    image = (big > 0).astype(np.float32) * 0.8 + 0.1
+    shrunk = shrink_pair(Pair("p", image, mask, big), 0.25, contour_px=1)
+    assert shrunk.image.shape == small.shape and shrunk.image.dtype == np.float32
+    assert (shrunk.labels == small).all()  # nearest neighbour from each new pixel's centre: the blocks' ids
+    expected = class_mask(small, 1)
+    expected[:2, :2] = IGNORE
+    assert (shrunk.mask == expected).all()
+    # area-averaged: flat inside a particle and outside, the particles' share of grey on the outline
+    assert shrunk.image[7, 6] == pytest.approx(0.9, abs=1e-3) and shrunk.image[0, 21] == pytest.approx(0.1, abs=1e-3)
+
+
+def test_the_working_scale_follows_the_median_particle_and_stops_at_one_crop():
+    from drgan.metrics.statistics import particles
+    from drgan.segmenters.pairs import Pair, working_scale
+
+    labels = [disc_labels(128, n=4, seed=s) for s in range(3)]
+    pairs = [Pair(str(k), disc_image(lab), class_mask(lab, 1), lab) for k, lab in enumerate(labels)]
+    median = float(np.median(np.concatenate([particles(lab).diameter for lab in labels])))
+    scale, measured = working_scale(pairs, median / 4, crop=16)
+    assert measured == pytest.approx(median) and scale == pytest.approx(0.25)
+    assert working_scale(pairs, median / 4, crop=64)[0] == pytest.approx(0.5)  # 128-px pairs keep a 64-px crop
+    assert working_scale(pairs, 2 * median, crop=16)[0] == 1.0  # particles already smaller: unchanged
+    assert working_scale(pairs, None, crop=16)[0] == 1.0  # off
+
+
+def test_the_instance_aware_segmenter_learns_at_its_working_scale_and_infers_at_the_same(tmp_path):
+    from drgan.evaluate import evaluate
+    from drgan.segment import LoaderSettings, segment, working_px_of
+    from drgan.segmenters.module import SegmenterModule
+    from drgan.segmenters.pairs import CENTRE_WORKING_PX
+    from drgan.segmenters.registry import load_segmenter
+
+    assert working_px_of("auto", SegmenterModule) is None  # the U-Net: pairs as they are
+    assert working_px_of("auto", type("Centres", (), {"needs_centres": True})) == CENTRE_WORKING_PX
+    for bad in (0.5, "large"):
+        with pytest.raises(ConfigError, match="loader.working_px"):
+            LoaderSettings.from_config(compose([f"loader.working_px={bad}"], config_name="segment"))
+
+    data = make_generated_with_labels(tmp_path / "gen", n=4, size=64)
+    out = tmp_path / "run"
+    overrides = tiny_segment_overrides(
+        data, tmp_path, out, "logger=none", "trainer.max_epochs=1", "loader.working_px=4",
+        "model._target_=drgan.segmenters.instances.CentreSegmenterModule",
+    )  # fmt: skip
+    segment(compose(overrides, config_name="segment"))
+    model = load_segmenter(out / "checkpoints" / "last.ckpt")
+    assert model.pixel_scale == pytest.approx(0.5)  # 64-px pairs shrunk to one 32-px crop, not to 4-px particles
+    assert json.loads((out / "metrics.json").read_text())["pixel_scale"] == pytest.approx(0.5)
+    labels = disc_labels(48, n=4, seed=7)
+    real = make_real(tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255},
+                     {"train": [], "test": ["x"]})  # fmt: skip
+    result = evaluate(eval_cfg(real, tmp_path / "eval", [f"model={out / 'checkpoints' / 'last.ckpt'}",
+                                                          "inference.tile=32"]))  # fmt: skip
+    assert 0.0 <= result["mean"]["dsc"] <= 1.0  # the 48-px image shrunk to 24 px, its class map brought back

@@ -73,6 +73,14 @@ class TrainingPairs:
         manifest = self.manifest() if manifest is None else manifest
         return 1.0 if manifest is None else manifest_pixel_scale(manifest, "data")
 
+    def contour_width(self, manifest: dict | None = None) -> int:
+        """The contour class's width (px) in the pairs' masks: a generated set's (its manifest's generate config;
+        1 for hand-made pairs), ``contour_px`` for real images."""
+        if not self.data:
+            return self.contour_px
+        value = ((manifest or {}).get("config") or {}).get("contour_px", 1)
+        return int(value) if isinstance(value, int) and value >= 0 else 1
+
     def noise_level(self, pairs, manifest: dict | None = None) -> float | None:
         """The fine-noise level of a generated set's synthetic images (drgan.segmenters.noise_match: the median over
         its first ones, from ``pairs``, the set as `load` gives it), which inference brings cleaner real images up
@@ -124,6 +132,7 @@ class LoaderSettings:
     contrast: float = 0.1  # relative contrast jitter
     texture: float = 0.1  # std of the surface texture added to each crop (pairs.surface_texture); 0: none
     contact_shade: float = 0.0  # largest depth of the dip drawn at the contacts of touching particles; 0: none
+    working_px: float | str | None = "auto"  # the median particle's diameter in the crops (pairs.working_scale)
     seed: int = 0
     val_fraction: float = 0.1
 
@@ -140,9 +149,51 @@ class LoaderSettings:
             contrast=setting_float("loader.contrast", ld.contrast, 0.0),
             texture=setting_float("loader.texture", ld.texture, 0.0),
             contact_shade=_fraction("loader.contact_shade", ld.contact_shade),
+            working_px=_working_px(ld.get("working_px", "auto")),
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
+
+
+def _working_px(value) -> float | str | None:
+    """``loader.working_px``: "auto", null (off) or a diameter in px (> 1), else a ConfigError naming the key."""
+    if value is None or value == "auto":
+        return value
+    number = setting_float("loader.working_px", value, 0.0)
+    if not number > 1.0:
+        raise ConfigError(f"loader.working_px={value}: expected a particle diameter in px (> 1), auto or null (off)")
+    return number
+
+
+def working_px_of(setting: float | str | None, model) -> float | None:
+    """The working diameter a segmenter learns at: ``setting`` as given; "auto": ``CENTRE_WORKING_PX`` for a
+    segmenter with a centre map (``needs_centres``: it needs whole particles in a crop), None (the pairs as they
+    are) for the U-Net, whose classes are local."""
+    from drgan.segmenters.pairs import CENTRE_WORKING_PX
+
+    if setting == "auto":
+        return CENTRE_WORKING_PX if getattr(model, "needs_centres", False) else None
+    return setting
+
+
+def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_px: int):
+    """(pairs, pixel_scale): the pairs shrunk to the model's working diameter (`working_px_of`,
+    drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike (inference shrinks real images by it);
+    unchanged when no shrinking is needed."""
+    from drgan.segmenters.pairs import shrink_pair, working_scale
+
+    ld = LoaderSettings.from_config(cfg)
+    working_px = working_px_of(ld.working_px, model)
+    scale, median = working_scale(pairs, working_px, ld.crop)
+    if scale >= 1.0:
+        return pairs, pixel_scale
+    contour = max(1, int(round(contour_px * scale))) if contour_px > 0 else 0
+    log.info(
+        "loader.working_px=%s: the pairs' median particle spans %.0f px; the pairs are shrunk by %.3g (to %.0f px "
+        "particles, contour %d px), and inference shrinks images alike (pixel scale %.3g, stored in the "
+        "checkpoints)", ld.working_px, median, scale, median * scale, contour, pixel_scale * scale,
+    )  # fmt: skip
+    return [shrink_pair(p, scale, contour) for p in pairs], round(pixel_scale * scale, 6)
 
 
 def _fraction(key: str, value) -> float:
@@ -274,6 +325,7 @@ def segment(cfg: DictConfig) -> dict:
     model = build_segmenter(cfg.model, "model")
     pairs = source.load()
     pixel_scale = source.pixel_scale(manifest)
+    pairs, pixel_scale = at_working_scale(cfg, model, pairs, pixel_scale, source.contour_width(manifest))
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
