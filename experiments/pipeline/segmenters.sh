@@ -10,6 +10,8 @@
 #   tex         the U-Net with loader.texture=0.1 (a random surface texture on every training crop)
 #   unet_0      the U-Net with model.contact_weight=0 (the default before contact_weight=auto; its seed 0 is the
 #               pipeline's own segmenter for runs from before auto: link RUN/segment as RUN/extra/unet_0_0)
+#   unet_w      the U-Net at the instance-aware segmenter's working scale (loader.working_px=40: pairs of larger
+#               particles shrunk to a 40-px median particle, inference alike)
 #   centres     the instance-aware CentreSegmenterModule      centres_z   the same with model.normalize=zscore
 #   real_unet / real_centres   trained on the real annotated train images instead (contour 1 px, area-based epochs)
 # Each variant's 3 seeds are scored together on the annotated test ids (drgan.evaluate models=[...]), and once the
@@ -30,6 +32,7 @@ for variant in $VARIANTS; do
     unet_z) args=(data="$RUN/generate" model.normalize=zscore) ;;
     unet_c) args=(data="$RUN/generate" model.contact_weight=10) ;;
     unet_0) args=(data="$RUN/generate" model.contact_weight=0) ;;
+    unet_w) args=(data="$RUN/generate" loader.working_px=40) ;;
     tex) args=(data="$RUN/generate" loader.texture=0.1) ;;
     centres) args=(data="$RUN/generate" "${centres[@]}") ;;
     centres_z) args=(data="$RUN/generate" "${centres[@]}" model.normalize=zscore) ;;

@@ -1,8 +1,9 @@
 """How high does the instance-aware segmenter's centre map rise inside a particle, by the particle's size? Its target
 is 1 on every particle's medial core whatever the size (drgan.segmenters.instances); a network whose receptive field
 is smaller than the particle cannot tell the core from the rim and leaves a plateau below the seed levels. Prints,
-per diameter bin of the exact instances of N generated pairs (not cut by the border), the median and 90th percentile
-of the predicted centre map's maximum inside each particle, and the target's (1 by construction).
+per diameter bin (px of the generated pairs) of the exact instances of N generated pairs (not cut by the border), the
+median, 10th and 90th percentile of the predicted centre map's maximum inside each particle (the target's is 1 by
+construction); a model that learnt at a working scale (loader.working_px) sees each pair shrunk as inference would.
 
     python experiments/statistics/centre_peaks.py runs/pipeline/saa890/extra/centres_0/checkpoints/last.ckpt \
         runs/pipeline/saa890/generate --n 30
@@ -17,7 +18,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from drgan.data.images import read_grey
-from drgan.segmenters.inference import predict_probs
+from drgan.segmenters.inference import predict_probs, resample, resample_probs
 from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import read_raw_mask
 from drgan.segmenters.registry import load_segmenter
@@ -27,7 +28,10 @@ BINS = (0, 16, 32, 64, 128, 256, 1024)  # equivalent diameter, px
 
 def peaks(model, image: np.ndarray, labels: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
     """(diameter, centre-map maximum) per particle of ``labels`` not touching the image border."""
-    centre = predict_probs(model, match_noise(image, level) if level else image)[3]
+    scale = float(getattr(model, "pixel_scale", 1.0))  # the working scale it learnt at (loader.working_px)
+    small = resample(image, scale)
+    probs = predict_probs(model, match_noise(small, level) if level else small)
+    centre = (resample_probs(probs, image.shape) if scale != 1.0 else probs)[3]
     ids = np.arange(1, labels.max() + 1)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     area = np.bincount(labels.ravel(), minlength=ids.size + 1)[1:]
