@@ -177,7 +177,7 @@ def working_px_of(setting: float | str | None, model) -> float | None:
 
 
 def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_px: int):
-    """(pairs, pixel_scale): the pairs shrunk to the model's working diameter (`working_px_of`,
+    """(pairs, pixel_scale, scale): the pairs shrunk to the model's working diameter (`working_px_of`,
     drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike (inference shrinks real images by it);
     unchanged when no shrinking is needed."""
     from drgan.segmenters.pairs import shrink_pair, working_scale
@@ -186,14 +186,14 @@ def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_
     working_px = working_px_of(ld.working_px, model)
     scale, median = working_scale(pairs, working_px, ld.crop)
     if scale >= 1.0:
-        return pairs, pixel_scale
+        return pairs, pixel_scale, 1.0
     contour = max(1, int(round(contour_px * scale))) if contour_px > 0 else 0
     log.info(
         "loader.working_px=%s: the pairs' median particle spans %.0f px; the pairs are shrunk by %.3g (to %.0f px "
         "particles, contour %d px), and inference shrinks images alike (pixel scale %.3g, stored in the "
         "checkpoints)", ld.working_px, median, scale, median * scale, contour, pixel_scale * scale,
     )  # fmt: skip
-    return [shrink_pair(p, scale, contour) for p in pairs], round(pixel_scale * scale, 6)
+    return [shrink_pair(p, scale, contour) for p in pairs], round(pixel_scale * scale, 6), scale
 
 
 def _fraction(key: str, value) -> float:
@@ -217,10 +217,11 @@ def load_training_pairs(cfg: DictConfig):
     return checked_source(cfg).load()
 
 
-def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool = False):
+def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool = False, scale: float = 1.0):
     """Train and validation loaders of the pairs; ``normalize``: the segmenter's input normalisation, which its
     training crops get as its inference will (``input_normalization``); ``centres``: the crops carry centre-map
-    targets too (an instance-aware segmenter, ``needs_centres``)."""
+    targets too (an instance-aware segmenter, ``needs_centres``); ``scale``: the working scale the pairs were shrunk
+    by (`at_working_scale`), so that real images keep the crops per epoch of their original area."""
     from torch.utils.data import DataLoader
 
     from drgan.segmenters.pairs import CropDataset, crops_by_area, split_pairs
@@ -231,7 +232,7 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool =
     if per_pair == "auto":
         # Real images are sampled by their area (an epoch of 20 large tiles is not 20 crops); generated pairs are
         # windows the GAN rendered, sampled once each, as their number (1,000 and more) already sets the epoch.
-        per_pair = crops_by_area(train_pairs, ld.crop) if cfg.get("real") else 1
+        per_pair = crops_by_area(train_pairs, ld.crop * scale) if cfg.get("real") else 1
     kw = dict(
         crop=ld.crop,
         brightness=ld.brightness,
@@ -325,7 +326,7 @@ def segment(cfg: DictConfig) -> dict:
     model = build_segmenter(cfg.model, "model")
     pairs = source.load()
     pixel_scale = source.pixel_scale(manifest)
-    pairs, pixel_scale = at_working_scale(cfg, model, pairs, pixel_scale, source.contour_width(manifest))
+    pairs, pixel_scale, working = at_working_scale(cfg, model, pairs, pixel_scale, source.contour_width(manifest))
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
@@ -338,7 +339,11 @@ def segment(cfg: DictConfig) -> dict:
             "(inference.noise_match; stored in the checkpoints)", noise,
         )  # fmt: skip
     train_loader, val_loader, n_train, n_val = dataloaders(
-        cfg, pairs, str(getattr(model, "input_normalization", "none")), bool(getattr(model, "needs_centres", False))
+        cfg,
+        pairs,
+        str(getattr(model, "input_normalization", "none")),
+        bool(getattr(model, "needs_centres", False)),
+        working,
     )
     out.mkdir(parents=True, exist_ok=True)
 

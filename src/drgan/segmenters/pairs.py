@@ -359,9 +359,10 @@ def centre_map(pair: Pair) -> np.ndarray:
     return centre_distance(pair.instances()).astype(np.float16)
 
 
-def crops_by_area(pairs: list[Pair], crop: int) -> list[int]:
+def crops_by_area(pairs: list[Pair], crop: float) -> list[int]:
     """Crops per pair and epoch in proportion to each image's area: round(area / crop^2), at least 1, so that an epoch
-    covers the images' area about once whatever their number (20 large tiles are not 20 samples)."""
+    covers the images' area about once whatever their number (20 large tiles are not 20 samples). Pairs shrunk to a
+    working scale s pass crop x s: they keep the crops (the training steps) of their original size."""
     return [max(1, round(p.image.size / float(crop * crop))) for p in pairs]
 
 
