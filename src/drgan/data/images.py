@@ -266,3 +266,17 @@ def read_split(path: str | Path) -> dict[str, list[str]]:
                 raise DataError(f"split file {path}: id {i!r} appears {where} (splits must not overlap)")
             seen[i] = name
     return {name: list(ids) for name, ids in split.items()}
+
+
+def resample(image: np.ndarray, scale: float) -> np.ndarray:
+    """``image`` (H, W) resized by ``scale`` (at least 1 px a side): area-averaged (anti-aliased) when shrinking,
+    as the GAN's real patches were (drgan.data.patches.resample_patches); unchanged for 1. Inference resamples real
+    images by a segmenter's pixel scale with it (drgan.segmenters.inference), drgan.segment its pairs to a working
+    scale (drgan.segmenters.pairs.shrink_pair)."""
+    if scale == 1.0:
+        return image
+    from skimage.transform import resize
+
+    image = np.asarray(image, dtype=np.float32)
+    shape = tuple(max(1, int(round(n * scale))) for n in image.shape)
+    return resize(image, shape, order=1, anti_aliasing=scale < 1, preserve_range=True).astype(np.float32)

@@ -25,6 +25,7 @@ import inspect
 import numpy as np
 import torch
 
+from drgan.data.images import resample
 from drgan.errors import ConfigError, DataError, check_keys
 from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import normalization
@@ -287,18 +288,6 @@ def check_pixel_scale(value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 16:
         raise ConfigError(f"inference.pixel_scale={value!r}: expected a factor in (0, 16] (null: the model's own)")
     return float(value)
-
-
-def resample(image: np.ndarray, scale: float) -> np.ndarray:
-    """``image`` (H, W) resized by ``scale`` (at least 1 px a side): area-averaged (anti-aliased) when shrinking,
-    as the GAN's real patches were (drgan.data.patches.resample_patches); unchanged for 1."""
-    if scale == 1.0:
-        return image
-    from skimage.transform import resize
-
-    image = np.asarray(image, dtype=np.float32)
-    shape = tuple(max(1, int(round(n * scale))) for n in image.shape)
-    return resize(image, shape, order=1, anti_aliasing=scale < 1, preserve_range=True).astype(np.float32)
 
 
 def resample_probs(probs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -25,7 +25,7 @@ import torch
 from scipy import ndimage
 from torch.utils.data import Dataset
 
-from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split, resolve_crop_rows
+from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split, resample, resolve_crop_rows
 from drgan.errors import ConfigError, DataError
 from drgan.scene.labels import BACKGROUND, CONTOUR, IGNORE, PARTICLE, centre_distance, class_mask
 from drgan.synthetic.manifest import image_mask_pairs
@@ -323,11 +323,12 @@ def working_scale(pairs: list[Pair], working_px: float | None, crop: int) -> tup
     core, drgan.segmenters.instances) can only be learnt where a crop shows the whole particle: on EMPS saa890
     (221 px particles, 128-px crops) its centre map stayed a flat 0.52 over every particle. Cellpose rescales to a
     working diameter (30 px) for the same reason."""
-    from drgan.segmenters.calibrate import median_diameter
+    from drgan.metrics.statistics import particles
 
     if working_px is None or not pairs:
         return 1.0, math.nan
-    median = median_diameter([p.instances() for p in pairs[:WORKING_SAMPLE]])
+    diameters = np.concatenate([particles(p.instances()).diameter for p in pairs[:WORKING_SAMPLE]])
+    median = float(np.median(diameters)) if diameters.size else math.nan
     if not median > working_px:
         return 1.0, median
     floor = crop / min(min(p.image.shape) for p in pairs)
@@ -343,10 +344,8 @@ def _nearest(array: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 def shrink_pair(pair: Pair, scale: float, contour_px: int = 1) -> Pair:
     """``pair`` at ``scale`` (< 1): the image area-averaged as inference resamples real images
-    (drgan.segmenters.inference.resample), the instances by nearest neighbour, the classes drawn anew from them
+    (drgan.data.images.resample), the instances by nearest neighbour, the classes drawn anew from them
     (``contour_px`` wide, as drgan.scene.labels.class_mask draws them) with the pair's IGNORE pixels kept."""
-    from drgan.segmenters.inference import resample
-
     image = resample(pair.image, scale)
     labels = _nearest(pair.instances(), image.shape).astype(np.int32)
     mask = class_mask(labels, contour_px).astype(np.uint8)
