@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
-from drgan.data.images import read_grey
-from drgan.segmenters.inference import predict_probs, resample, resample_probs
+from drgan.data.images import read_grey, resample
+from drgan.metrics.statistics import particles
+from drgan.segmenters.inference import predict_probs, resample_probs
 from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import read_raw_mask
 from drgan.segmenters.registry import load_segmenter
@@ -32,12 +33,9 @@ def peaks(model, image: np.ndarray, labels: np.ndarray, level: float) -> tuple[n
     small = resample(image, scale)
     probs = predict_probs(model, match_noise(small, level) if level else small)
     centre = (resample_probs(probs, image.shape) if scale != 1.0 else probs)[3]
-    ids = np.arange(1, labels.max() + 1)
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    area = np.bincount(labels.ravel(), minlength=ids.size + 1)[1:]
-    top = ndi.maximum(centre, labels, ids)
-    keep = (area > 0) & ~np.isin(ids, border)
-    return 2.0 * np.sqrt(area[keep] / np.pi), np.asarray(top)[keep]
+    sized = particles(labels)  # in label order, as the ids below
+    top = np.asarray(ndi.maximum(centre, labels, np.unique(labels[labels > 0])))
+    return sized.diameter[~sized.border], top[~sized.border]
 
 
 def main() -> None:

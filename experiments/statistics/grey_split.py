@@ -18,7 +18,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.morphology import h_maxima
 
-from drgan.data.classical.watershed import flood
+from drgan.data.classical.watershed import distance_watershed, flood
 from drgan.metrics.instance_scores import binarize_and_label, error_sources, match_instances
 from drgan.segmenters.inference import predict_probs, separate_regions, without_annotations
 from drgan.segmenters.noise_match import match_noise
@@ -36,9 +36,14 @@ def grey_scale(image: np.ndarray, foreground: np.ndarray, smooth: float = 1.0) -
     return np.clip((grey - outside) / (inside - outside), 0.0, 1.0)
 
 
-def grey_split(probs, image, depth, core_level, gamma, smooth=1.0):
-    foreground = probs[1] + probs[2] > 0.5
+def foreground_and_core(probs: np.ndarray, core_level: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """The U-Net split's foreground (particle + contour > 0.5) and seed core, as drgan.segmenters.inference has them."""
     core = probs.argmax(axis=0) == 1 if core_level is None else probs[1] > core_level
+    return probs[1] + probs[2] > 0.5, core
+
+
+def grey_split(probs, image, depth, core_level, gamma, smooth=1.0):
+    foreground, core = foreground_and_core(probs, core_level)
     if not core.any():
         return np.zeros(core.shape, np.uint8)
     distance = ndi.gaussian_filter(ndi.distance_transform_edt(core), smooth)
@@ -56,10 +61,8 @@ def region_table(cached, depth, core_level) -> None:
 
     rows = []
     for probs, _, truth in cached:
-        foreground = probs[1] + probs[2] > 0.5
-        core = probs.argmax(axis=0) == 1 if core_level is None else probs[1] > core_level
-        distance = ndi.gaussian_filter(ndi.distance_transform_edt(core), 1.0)
-        regions = regionprops(flood(distance, h_maxima(distance, depth).astype(bool), foreground))
+        foreground, core = foreground_and_core(probs, core_level)
+        regions = regionprops(distance_watershed(core, foreground, smooth=1.0, depth=depth))  # the default split
         median = np.median([r.area for r in regions]) if regions else 1.0
         true_area = np.bincount(truth.ravel())
         for r in regions:

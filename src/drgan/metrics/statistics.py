@@ -79,6 +79,13 @@ def particles(labels: np.ndarray) -> Particles:
     return Particles(np.array(area), np.array(diameter), np.array(ratio), np.array(border, dtype=bool))
 
 
+def median_diameter(labels: Sequence[np.ndarray]) -> float:
+    """Median equivalent-circle diameter (px) of the instances of ``labels`` (label images, sized by `particles`,
+    border-cut ones included); nan without any. The segmenter's split calibration and working scale compare it."""
+    diameters = np.concatenate([particles(label).diameter for label in labels] or [np.zeros(0)])
+    return float(np.median(diameters)) if diameters.size else float("nan")
+
+
 def ks_statistic(a: np.ndarray, b: np.ndarray) -> float:
     """Two-sample Kolmogorov-Smirnov statistic: the largest gap between the empirical CDFs of ``a`` and ``b``."""
     a, b = np.sort(np.asarray(a, float)), np.sort(np.asarray(b, float))

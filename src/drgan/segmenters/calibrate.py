@@ -25,6 +25,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from drgan.errors import ConfigError
+from drgan.metrics.statistics import median_diameter
 
 log = logging.getLogger(__name__)
 
@@ -143,15 +144,6 @@ def calibrate_split(
         "particle_px": particle_px,
         "table": table,
     }
-
-
-def median_diameter(labels: Sequence[np.ndarray]) -> float:
-    """Median equivalent-circle diameter (px) of the instances of ``labels`` (label images, sized as
-    drgan.metrics.statistics.particles sizes them); nan without any."""
-    from drgan.metrics.statistics import particles
-
-    diameters = np.concatenate([particles(label).diameter for label in labels] or [np.zeros(0)])
-    return float(np.median(diameters)) if diameters.size else math.nan
 
 
 def tied_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:

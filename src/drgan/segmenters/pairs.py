@@ -323,12 +323,11 @@ def working_scale(pairs: list[Pair], working_px: float | None, crop: int) -> tup
     core, drgan.segmenters.instances) can only be learnt where a crop shows the whole particle: on EMPS saa890
     (221 px particles, 128-px crops) its centre map stayed a flat 0.52 over every particle. Cellpose rescales to a
     working diameter (30 px) for the same reason."""
-    from drgan.metrics.statistics import particles
+    from drgan.metrics.statistics import median_diameter
 
     if working_px is None or not pairs:
         return 1.0, math.nan
-    diameters = np.concatenate([particles(p.instances()).diameter for p in pairs[:WORKING_SAMPLE]])
-    median = float(np.median(diameters)) if diameters.size else math.nan
+    median = median_diameter([p.instances() for p in pairs[:WORKING_SAMPLE]])
     if not median > working_px:
         return 1.0, median
     floor = crop / min(min(p.image.shape) for p in pairs)
