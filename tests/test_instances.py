@@ -212,6 +212,7 @@ def test_the_working_scale_follows_the_median_particle_and_stops_at_one_crop():
 
 def test_the_instance_aware_segmenter_learns_at_its_working_scale_and_infers_at_the_same(tmp_path):
     from drgan.evaluate import evaluate
+    from drgan.metrics.statistics import median_diameter
     from drgan.segment import LoaderSettings, segment, working_px_of
     from drgan.segmenters.module import SegmenterModule
     from drgan.segmenters.pairs import CENTRE_WORKING_PX
@@ -233,9 +234,17 @@ def test_the_instance_aware_segmenter_learns_at_its_working_scale_and_infers_at_
     model = load_segmenter(out / "checkpoints" / "last.ckpt")
     assert model.pixel_scale == pytest.approx(0.5)  # 64-px pairs shrunk to one 32-px crop, not to 4-px particles
     assert json.loads((out / "metrics.json").read_text())["pixel_scale"] == pytest.approx(0.5)
+    # the pairs' median particle after shrinking: what inference's pixel_scale=per_image brings each image's to
+    median = median_diameter([disc_labels(64, n=4, seed=i) for i in range(4)])
+    assert model.working_diameter == pytest.approx(0.5 * median, abs=1e-3)
+    assert json.loads((out / "metrics.json").read_text())["working_diameter"] == model.working_diameter
     labels = disc_labels(48, n=4, seed=7)
     real = make_real(tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255},
                      {"train": [], "test": ["x"]})  # fmt: skip
     result = evaluate(eval_cfg(real, tmp_path / "eval", [f"model={out / 'checkpoints' / 'last.ckpt'}",
                                                           "inference.tile=32"]))  # fmt: skip
     assert 0.0 <= result["mean"]["dsc"] <= 1.0  # the 48-px image shrunk to 24 px, its class map brought back
+    per_image = evaluate(eval_cfg(real, tmp_path / "eval_per_image", [f"model={out / 'checkpoints' / 'last.ckpt'}",
+                                                                      "inference.tile=32",
+                                                                      "inference.pixel_scale=per_image"]))  # fmt: skip
+    assert 0.0 <= per_image["mean"]["dsc"] <= 1.0

@@ -517,6 +517,40 @@ def test_a_segmenter_of_large_particles_sees_the_image_at_its_pixel_scale_and_an
         make_predictor(model, {"pixel_scale": 0})
 
 
+def test_per_image_scale_brings_each_images_particles_to_the_training_diameter(monkeypatch):
+    """A segmenter that learned 24-px particles at pixel scale 0.25 (large particles shrunk to its working
+    diameter) shrinks an image of 12-px particles to 3-px ones. pixel_scale=per_image measures them on that first
+    pass and predicts the image again at the scale that brings them to 24 px; an image of training-size particles,
+    or one with too few particles to measure, keeps the first pass."""
+    from drgan.metrics.instance_scores import binarize_and_label, match_instances
+    from drgan.segmenters import inference
+    from drgan.segmenters.inference import make_predictor, predict
+
+    scales: list[float] = []
+    real_resample = inference.resample
+    monkeypatch.setattr(inference, "resample", lambda image, scale: scales.append(scale) or real_resample(image, scale))
+    model = _Threshold()
+    model.pixel_scale, model.working_diameter = 0.25, 24.0
+    small = disc_labels(96, n=6, radius=6.0, seed=3)  # 12-px particles
+    settings = {"tile": 64, "split": "watershed", "split_core": None, "annotations": False, "pixel_scale": "per_image"}
+    classes = make_predictor(model, settings)(disc_image(small))
+    assert scales[0] == 0.25 and len(scales) == 2 and 1.6 < scales[1] < 2.5  # 24 / ~12 px
+    m = match_instances(binarize_and_label(classes.astype(np.int64)), small, 0.5)
+    assert m.tp == small.max() and m.fp == 0
+    scales.clear()
+    large = disc_labels(384, n=6, radius=48.0, seed=3)  # 96-px particles: 24 px at 0.25 already
+    predict(model, disc_image(large), **settings)
+    assert scales == [0.25]
+    scales.clear()
+    predict(model, disc_image(disc_labels(96, n=2, radius=6.0, seed=3)), **settings)  # two particles measure nothing
+    assert scales == [0.25]
+    del model.working_diameter  # a checkpoint from before it was stored: refused before any image
+    with pytest.raises(ConfigError, match="per_image: this segmenter's checkpoint stores no working diameter"):
+        make_predictor(model, settings)
+    with pytest.raises(ConfigError, match="pixel_scale='large'"):
+        make_predictor(model, {"pixel_scale": "large"})
+
+
 def test_particles_on_a_figures_panel_letters_are_dropped_as_the_classical_segmentation_drops_them():
     """Figure crops carry panel letters and scale-bar text in pure white, which a segmenter of bright particles
     reads as particles. Inference drops what lies on the annotations the classical segmentation finds, unless told

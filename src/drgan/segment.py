@@ -177,23 +177,25 @@ def working_px_of(setting: float | str | None, model) -> float | None:
 
 
 def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_px: int):
-    """(pairs, pixel_scale, scale): the pairs shrunk to the model's working diameter (`working_px_of`,
-    drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike (inference shrinks real images by it);
-    unchanged when no shrinking is needed."""
+    """(pairs, pixel_scale, scale, diameter): the pairs shrunk to the model's working diameter (`working_px_of`,
+    drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike (inference shrinks real images by it),
+    and their median particle diameter after it (px; None without particles: inference's per-image scale aims at
+    it); unchanged when no shrinking is needed."""
     from drgan.segmenters.pairs import shrink_pair, working_scale
 
     ld = LoaderSettings.from_config(cfg)
     working_px = working_px_of(ld.working_px, model)
     scale, median = working_scale(pairs, working_px, ld.crop)
+    diameter = round(median * scale, 3) if median > 0 else None  # nan (no particle) fails the test too
     if scale >= 1.0:
-        return pairs, pixel_scale, 1.0
+        return pairs, pixel_scale, 1.0, diameter
     contour = max(1, int(round(contour_px * scale))) if contour_px > 0 else 0
     log.info(
         "loader.working_px=%s: the pairs' median particle spans %.0f px; the pairs are shrunk by %.3g (to %.0f px "
         "particles, contour %d px), and inference shrinks images alike (pixel scale %.3g, stored in the "
         "checkpoints)", ld.working_px, median, scale, median * scale, contour, pixel_scale * scale,
     )  # fmt: skip
-    return [shrink_pair(p, scale, contour) for p in pairs], round(pixel_scale * scale, 6), scale
+    return [shrink_pair(p, scale, contour) for p in pairs], round(pixel_scale * scale, 6), scale, diameter
 
 
 def _fraction(key: str, value) -> float:
@@ -299,7 +301,7 @@ def segment(cfg: DictConfig) -> dict:
 
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
-    from drgan.segmenters.calibrate import PIXEL_SCALE_KEY, check_grid
+    from drgan.segmenters.calibrate import PIXEL_SCALE_KEY, WORKING_DIAMETER_KEY, check_grid
     from drgan.segmenters.module import CheckpointEntries, ScoreHistory, settled
     from drgan.segmenters.noise_match import NOISE_KEY
     from drgan.segmenters.registry import build_segmenter
@@ -326,7 +328,9 @@ def segment(cfg: DictConfig) -> dict:
     model = build_segmenter(cfg.model, "model")
     pairs = source.load()
     pixel_scale = source.pixel_scale(manifest)
-    pairs, pixel_scale, working = at_working_scale(cfg, model, pairs, pixel_scale, source.contour_width(manifest))
+    pairs, pixel_scale, working, diameter = at_working_scale(
+        cfg, model, pairs, pixel_scale, source.contour_width(manifest)
+    )
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
@@ -363,7 +367,7 @@ def segment(cfg: DictConfig) -> dict:
     )
     scores = ScoreHistory()
     callbacks = [
-        CheckpointEntries({PIXEL_SCALE_KEY: pixel_scale, NOISE_KEY: noise}),
+        CheckpointEntries({PIXEL_SCALE_KEY: pixel_scale, NOISE_KEY: noise, WORKING_DIAMETER_KEY: diameter}),
         ResumeCheckpoint(),
         checkpoint,
         scores,
@@ -423,6 +427,7 @@ def segment(cfg: DictConfig) -> dict:
             "val_dsc_history": scores.history,
             "split_calibration": calibration,
             "pixel_scale": pixel_scale,
+            "working_diameter": diameter,
             "noise_level": noise,
             "contact_weight": {"value": cfg.model.get("contact_weight"), "why": contact_why},
             **metrics,

@@ -48,6 +48,9 @@ LARGE_PARTICLE_PX = 40.0
 # Image px per real px of the pairs a segmenter learned from (a generated set's manifest pixel_scale: below 1 when
 # the GAN saw large particles in windows wider than its render); inference resamples real images by it.
 PIXEL_SCALE_KEY = "drgan_pixel_scale"
+# Median diameter (px, at the network's scale) of the particles of the pairs a segmenter learned from: inference with
+# pixel_scale=per_image resamples each image so that its particles span it (drgan.segmenters.inference).
+WORKING_DIAMETER_KEY = "drgan_working_diameter"
 
 
 def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | None:
@@ -167,6 +170,15 @@ def stored_pixel_scale(checkpoint: Mapping, source: str = "checkpoint") -> float
     if isinstance(entry, bool) or not isinstance(entry, (int, float)) or not 0 < entry < math.inf:
         log.warning("%s: its %s entry %r is not a pixel scale; 1.0 used", source, PIXEL_SCALE_KEY, entry)
         return 1.0
+    return float(entry)
+
+
+def stored_working_diameter(checkpoint: Mapping) -> float | None:
+    """The training pairs' median particle diameter a checkpoint holds (``WORKING_DIAMETER_KEY``, px at the
+    network's scale), or None (checkpoints from before it was stored, or a malformed entry)."""
+    entry = checkpoint.get(WORKING_DIAMETER_KEY)
+    if isinstance(entry, bool) or not isinstance(entry, (int, float)) or not 0 < entry < math.inf:
+        return None
     return float(entry)
 
 

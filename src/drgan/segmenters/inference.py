@@ -21,6 +21,7 @@ real *train* images of TiO2 SEM (experiments/tio2_sem/RESULTS.md), never on test
 from __future__ import annotations
 
 import inspect
+import logging
 
 import numpy as np
 import torch
@@ -30,6 +31,7 @@ from drgan.errors import ConfigError, DataError, check_keys
 from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import normalization
 
+log = logging.getLogger(__name__)
 SPLITS = ("auto", "watershed", "centres", "none")  # auto: the segmenter's own (`split_of`)
 
 
@@ -209,7 +211,7 @@ def predict(
     split_smooth: float = 1.0,
     split_core: float | None = None,
     seed_level: float = 0.5,
-    pixel_scale: float | None = None,
+    pixel_scale: float | str | None = None,
     noise_match: float | bool | None = None,
     annotations: bool = True,
     **kw,
@@ -223,7 +225,9 @@ def predict(
     ``pixel_scale``: the network sees the image resampled by this factor (area-averaged when below 1) and its
     probabilities are brought back to the image's size; None: the model's own (``model.pixel_scale``, stored by
     drgan.segment from its generated pairs: their px per real px; 1.0 for real-trained models). The split's lengths
-    (``split_depth``, ``split_smooth``: px at the network's scale, as calibrated) are scaled with it.
+    (``split_depth``, ``split_smooth``: px at the network's scale, as calibrated) are scaled with it. "per_image":
+    a first pass at the model's own scale, then each image again at the scale its particles measure (`image_scale`:
+    their median diameter brought to the training pairs' own, ``model.working_diameter``).
 
     ``noise_match``: the network sees the (resampled) image with white noise up to this fine-noise level when it is
     cleaner (drgan.segmenters.noise_match); None: the model's own (``model.train_noise``, stored by drgan.segment from
@@ -233,24 +237,72 @@ def predict(
     (drgan.data.annotations.annotation_mask, as the classical segmentation leaves them out) are dropped."""
     check_split(split, split_depth, split_smooth, split_core)
     split = split_of(model, split)
-    scale = check_pixel_scale(getattr(model, "pixel_scale", 1.0) if pixel_scale is None else pixel_scale)
+    own = getattr(model, "pixel_scale", 1.0)
+    per_image = pixel_scale == PER_IMAGE
+    if per_image:
+        check_working_diameter(model)
+    scale = check_pixel_scale(own if pixel_scale is None or per_image else pixel_scale)
     level = check_noise_match(getattr(model, "train_noise", None) if noise_match is None else noise_match)
-    probs = predict_probs(model, match_noise(resample(image, scale), level), **kw)
-    if scale != 1.0:
-        probs = resample_probs(probs, np.shape(image))
-        split_depth, split_smooth = split_depth / scale, split_smooth / scale
-    if split == "centres":
-        if probs.shape[0] != 4:
-            raise ConfigError(
-                "inference.split=centres: this segmenter has no centre map (only drgan.segmenters.instances."
-                "CentreSegmenterModule has); use split=watershed or auto"
-            )
-        classes = split_by_centres(probs, seed_level)
-    elif split == "none":
-        classes = probs[:3].argmax(axis=0).astype(np.uint8)
-    else:
-        classes = split_touching(probs[:3], split_depth, split_smooth, split_core)
+
+    def classes_at(scale: float) -> tuple[np.ndarray, np.ndarray]:
+        probs = predict_probs(model, match_noise(resample(image, scale), level), **kw)
+        depth, smooth = split_depth, split_smooth
+        if scale != 1.0:
+            probs = resample_probs(probs, np.shape(image))
+            depth, smooth = split_depth / scale, split_smooth / scale
+        argmax = probs[:3].argmax(axis=0).astype(np.uint8)
+        if split == "centres":
+            if probs.shape[0] != 4:
+                raise ConfigError(
+                    "inference.split=centres: this segmenter has no centre map (only drgan.segmenters.instances."
+                    "CentreSegmenterModule has); use split=watershed or auto"
+                )
+            return split_by_centres(probs, seed_level), argmax
+        if split == "none":
+            return argmax, argmax
+        return split_touching(probs[:3], depth, smooth, split_core), argmax
+
+    classes, argmax = classes_at(scale)
+    for _ in range(RESCALE_PASSES if per_image else 0):
+        better = image_scale(classes, argmax, model.working_diameter, scale)
+        if better is None:
+            break
+        log.info("pixel_scale=%s: image resampled by %.3g (was %.3g)", PER_IMAGE, better, scale)
+        scale = better
+        classes, argmax = classes_at(scale)
     return without_annotations(classes, image) if annotations else classes
+
+
+PER_IMAGE = "per_image"  # inference.pixel_scale: each image's own scale (`image_scale`)
+RESCALE_PASSES = 2  # per_image: passes after the first at most (each at the scale the last one measured)
+RESCALE_TOLERANCE = 1.5  # per_image: a measured scale within this factor of the last one's is kept
+RESCALE_MIN_PARTICLES = 3  # per_image: fewer particles found measure nothing (the scale is kept)
+RESCALE_MAX = 4.0  # per_image: images are never enlarged more than this (memory)
+
+
+def image_scale(classes: np.ndarray, argmax: np.ndarray, working_diameter: float, scale: float) -> float | None:
+    """The pixel scale at which the particles of a class map predicted at ``scale`` would span ``working_diameter``
+    px (the median particle of the segmenter's training pairs, at the network's scale), or None to keep ``scale``:
+    fewer than RESCALE_MIN_PARTICLES particles, or a scale within RESCALE_TOLERANCE of it. Capped at RESCALE_MAX.
+    The particles are those of the split ``classes``, else (fewer than RESCALE_MIN_PARTICLES there: particles too
+    small for the split's seeds at this scale) the 4-connected regions of the network's plain ``argmax``.
+
+    Why: a segmenter learns one particle size from its pairs (the instance-aware one a 40-px working diameter:
+    drgan.segmenters.pairs.working_scale); an image whose particles are ten times smaller (EMPS saa890's test ids
+    mix 300-px and 22-px particles) is shrunk with the rest until its particles vanish. Cellpose estimates each
+    image's diameter for the same reason; here the first pass's own particles measure it."""
+    from drgan.metrics.instance_scores import binarize_and_label
+    from drgan.metrics.statistics import particles
+
+    diameters = particles(binarize_and_label(classes)).diameter
+    if len(diameters) < RESCALE_MIN_PARTICLES:
+        diameters = particles(binarize_and_label(argmax)).diameter
+    if len(diameters) < RESCALE_MIN_PARTICLES:
+        return None
+    better = min(RESCALE_MAX, working_diameter / float(np.median(diameters)))
+    if max(better / scale, scale / better) < RESCALE_TOLERANCE:
+        return None
+    return float(better)
 
 
 def without_annotations(classes: np.ndarray, image: np.ndarray, share: float = 0.5) -> np.ndarray:
@@ -284,9 +336,26 @@ def check_noise_match(value) -> float | None:
     return float(value)
 
 
-def check_pixel_scale(value) -> float:
+def check_working_diameter(model) -> float:
+    """The training pairs' median diameter ``inference.pixel_scale=per_image`` aims at, or a ConfigError."""
+    diameter = getattr(model, "working_diameter", None)
+    if not diameter:
+        raise ConfigError(
+            f"inference.pixel_scale={PER_IMAGE}: this segmenter's checkpoint stores no working diameter (segmenters "
+            "trained by drgan.segment from 2026-11-29 on do); use null (its own scale) or a factor"
+        )
+    return float(diameter)
+
+
+def check_pixel_scale(value, per_image: bool = False) -> float | str:
+    """``inference.pixel_scale`` as a factor (or ``PER_IMAGE`` where ``per_image`` allows it), else a ConfigError."""
+    if per_image and value == PER_IMAGE:
+        return value
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 16:
-        raise ConfigError(f"inference.pixel_scale={value!r}: expected a factor in (0, 16] (null: the model's own)")
+        raise ConfigError(
+            f"inference.pixel_scale={value!r}: expected a factor in (0, 16], {PER_IMAGE} (each image resampled so "
+            "that its particles span the segmenter's training diameter) or null (the model's own)"
+        )
     return float(value)
 
 
@@ -310,8 +379,8 @@ def make_predictor(model: torch.nn.Module, inference: dict):
     check_keys("inference", inference, defaults, "setting")
     settings = {**defaults, **inference}
     check_split(settings["split"], settings["split_depth"], settings["split_smooth"], settings["split_core"])
-    if settings["pixel_scale"] is not None:
-        check_pixel_scale(settings["pixel_scale"])
+    if settings["pixel_scale"] is not None and check_pixel_scale(settings["pixel_scale"], True) == PER_IMAGE:
+        check_working_diameter(model)
     check_noise_match(settings["noise_match"])
     if not isinstance(settings["mirror"], bool):
         raise ConfigError(f"inference.mirror={settings['mirror']!r}: expected true or false")

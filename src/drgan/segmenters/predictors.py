@@ -90,6 +90,11 @@ class SegmenterPredictor(FunctionPredictor):
         scale = getattr(model, "pixel_scale", 1.0)
         if inference.get("pixel_scale") is None and scale != 1.0:
             how += f"; images resampled by {scale:g} (the pixel scale of its training pairs)"
+        elif inference.get("pixel_scale") == "per_image":
+            how += (
+                f"; each image resampled so that its particles span {getattr(model, 'working_diameter', 0):.0f} px "
+                "(its training pairs' median, measured on a first pass)"
+            )
         level = getattr(model, "train_noise", None)
         if inference.get("noise_match") is None and level:
             how += f"; cleaner images brought up to its training pairs' fine-noise level {level:.4f}"

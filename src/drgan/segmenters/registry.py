@@ -32,7 +32,7 @@ from pathlib import Path
 
 from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import ConfigError, DataError
-from drgan.segmenters.calibrate import stored_pixel_scale, stored_split
+from drgan.segmenters.calibrate import stored_pixel_scale, stored_split, stored_working_diameter
 from drgan.segmenters.noise_match import stored_level
 from drgan.targets import target_path
 
@@ -197,4 +197,6 @@ def load_segmenter(path: str | Path, setting: str = "model"):
     model.pixel_scale = stored_pixel_scale(checkpoint, f"{setting}={path}")
     # the fine-noise level of its generated training images: inference brings cleaner images up to it (None: off)
     model.train_noise = stored_level(checkpoint)
+    # its training pairs' median particle diameter (px at the network's scale): pixel_scale=per_image's target
+    model.working_diameter = stored_working_diameter(checkpoint)
     return model.eval()
