@@ -518,33 +518,42 @@ def test_a_segmenter_of_large_particles_sees_the_image_at_its_pixel_scale_and_an
 
 
 def test_per_image_scale_brings_each_images_particles_to_the_training_diameter(monkeypatch):
-    """A segmenter that learned 24-px particles at pixel scale 0.25 (large particles shrunk to its working
-    diameter) shrinks an image of 12-px particles to 3-px ones. pixel_scale=per_image measures them on that first
-    pass and predicts the image again at the scale that brings them to 24 px; an image of training-size particles,
-    or one with too few particles to measure, keeps the first pass."""
+    """A segmenter that learned 20-px particles at pixel scale 0.5 (larger particles shrunk to its working
+    diameter) halves an image of 12-px particles to 6-px ones. pixel_scale=per_image measures them on that first
+    pass and predicts the image once more at the scale that brings them to 20 px. An image of training-size
+    particles keeps the first pass, even with specks beside them (the area-weighted median is the particles'), and
+    so does one with too few particles to measure."""
     from drgan.metrics.instance_scores import binarize_and_label, match_instances
     from drgan.segmenters import inference
-    from drgan.segmenters.inference import make_predictor, predict
+    from drgan.segmenters.inference import make_predictor, predict, resolve_pixel_scale
 
     scales: list[float] = []
     real_resample = inference.resample
     monkeypatch.setattr(inference, "resample", lambda image, scale: scales.append(scale) or real_resample(image, scale))
     model = _Threshold()
-    model.pixel_scale, model.working_diameter = 0.25, 24.0
+    model.pixel_scale, model.working_diameter = 0.5, 20.0
     small = disc_labels(96, n=6, radius=6.0, seed=3)  # 12-px particles
     settings = {"tile": 64, "split": "watershed", "split_core": None, "annotations": False, "pixel_scale": "per_image"}
     classes = make_predictor(model, settings)(disc_image(small))
-    assert scales[0] == 0.25 and len(scales) == 2 and 1.6 < scales[1] < 2.5  # 24 / ~12 px
+    assert scales[0] == 0.5 and len(scales) == 2 and 1.4 < scales[1] < 2.0  # 20 / ~12 px
     m = match_instances(binarize_and_label(classes.astype(np.int64)), small, 0.5)
     assert m.tp == small.max() and m.fp == 0
     scales.clear()
-    large = disc_labels(384, n=6, radius=48.0, seed=3)  # 96-px particles: 24 px at 0.25 already
-    predict(model, disc_image(large), **settings)
-    assert scales == [0.25]
+    large = disc_labels(192, n=3, radius=20.0, seed=3)  # 40-px particles: 20 px at 0.5 already
+    image = disc_image(large)
+    for y, x in ((4, 4), (4, 180), (180, 4), (180, 180)):  # four 4 x 4 px specks: the plain median would be theirs
+        image[y : y + 4, x : x + 4] = 0.9
+    predict(model, image, **settings)
+    assert scales == [0.5]
     scales.clear()
     predict(model, disc_image(disc_labels(96, n=2, radius=6.0, seed=3)), **settings)  # two particles measure nothing
-    assert scales == [0.25]
+    assert scales == [0.5]
+    # auto: per_image for the instance-aware segmenter (one working diameter learnt), the own scale for the U-Net
+    assert resolve_pixel_scale(model, "auto") is None and resolve_pixel_scale(model, 0.7) == 0.7
+    model.needs_centres = True
+    assert resolve_pixel_scale(model, "auto") == "per_image"
     del model.working_diameter  # a checkpoint from before it was stored: refused before any image
+    assert resolve_pixel_scale(model, "auto") is None
     with pytest.raises(ConfigError, match="per_image: this segmenter's checkpoint stores no working diameter"):
         make_predictor(model, settings)
     with pytest.raises(ConfigError, match="pixel_scale='large'"):

@@ -198,3 +198,17 @@ def test_error_sources_name_what_became_of_each_true_particle():
     # a prediction 3 x the particle's area holds all of it, IoU 1/3: badly outlined, not merged or missed
     wide = error_sources(squares(20, [(2, 2, 9, 9)]), squares(20, [(5, 5, 3, 9)]))
     assert (wide["outline"], wide["matched"], wide["false"]) == (1, 0, 0)
+
+
+def test_the_area_weighted_median_is_the_large_particles_size_among_specks():
+    from drgan.metrics.statistics import area_median, median_diameter
+
+    # areas 1, 1, 1, 100 (x pi / 4): the three specks hold 3 of 103, so half the area lies in the 10-px particle
+    assert area_median(np.array([1.0, 1.0, 10.0, 1.0])) == 10.0
+    # equal halves: the smallest diameter whose cumulative share reaches one half
+    assert area_median(np.array([3.0, 4.0, 5.0])) == 4.0  # shares 9 / 50, 25 / 50: 4 reaches 0.5 exactly
+    assert np.isnan(area_median(np.zeros(0)))
+    labels = np.zeros((40, 40), np.int32)
+    labels[2:4, 2:4], labels[2:4, 30:32], labels[10:30, 10:30] = 1, 2, 3  # two 2 x 2 specks, one 20 x 20 square
+    assert median_diameter([labels]) == pytest.approx(2 * np.sqrt(4 / np.pi))
+    assert median_diameter([labels], by_area=True) == pytest.approx(2 * np.sqrt(400 / np.pi))

@@ -179,14 +179,16 @@ def working_px_of(setting: float | str | None, model) -> float | None:
 def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_px: int):
     """(pairs, pixel_scale, scale, diameter): the pairs shrunk to the model's working diameter (`working_px_of`,
     drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike (inference shrinks real images by it),
-    and their median particle diameter after it (px; None without particles: inference's per-image scale aims at
-    it); unchanged when no shrinking is needed."""
-    from drgan.segmenters.pairs import shrink_pair, working_scale
+    and their particles' area-weighted median diameter after it (px, drgan.metrics.statistics.area_median; None
+    without particles: inference's per-image scale aims at it); unchanged when no shrinking is needed."""
+    from drgan.metrics.statistics import median_diameter
+    from drgan.segmenters.pairs import WORKING_SAMPLE, shrink_pair, working_scale
 
     ld = LoaderSettings.from_config(cfg)
     working_px = working_px_of(ld.working_px, model)
     scale, median = working_scale(pairs, working_px, ld.crop)
-    diameter = round(median * scale, 3) if median > 0 else None  # nan (no particle) fails the test too
+    by_area = median_diameter([p.instances() for p in pairs[:WORKING_SAMPLE]], by_area=True)
+    diameter = round(by_area * scale, 3) if by_area > 0 else None  # nan (no particle) fails the test too
     if scale >= 1.0:
         return pairs, pixel_scale, 1.0, diameter
     contour = max(1, int(round(contour_px * scale))) if contour_px > 0 else 0

@@ -79,11 +79,24 @@ def particles(labels: np.ndarray) -> Particles:
     return Particles(np.array(area), np.array(diameter), np.array(ratio), np.array(border, dtype=bool))
 
 
-def median_diameter(labels: Sequence[np.ndarray]) -> float:
+def median_diameter(labels: Sequence[np.ndarray], by_area: bool = False) -> float:
     """Median equivalent-circle diameter (px) of the instances of ``labels`` (label images, sized by `particles`,
-    border-cut ones included); nan without any. The segmenter's split calibration and working scale compare it."""
+    border-cut ones included); nan without any. The segmenter's split calibration and working scale compare it.
+    ``by_area``: the area-weighted median (`area_median`), which a few specks or fragments do not move."""
     diameters = np.concatenate([particles(label).diameter for label in labels] or [np.zeros(0)])
-    return float(np.median(diameters)) if diameters.size else float("nan")
+    if not diameters.size:
+        return float("nan")
+    return area_median(diameters) if by_area else float(np.median(diameters))
+
+
+def area_median(diameters: np.ndarray) -> float:
+    """The smallest diameter d such that the particles of diameter <= d hold at least half of the particles' area
+    (the area-weighted median, as a D50 by volume is for sieves): one large particle among specks keeps its size."""
+    d = np.sort(np.asarray(diameters, float))
+    if not d.size:
+        return float("nan")
+    share = np.cumsum(d**2) / np.sum(d**2)
+    return float(d[np.searchsorted(share, 0.5)])
 
 
 def ks_statistic(a: np.ndarray, b: np.ndarray) -> float:

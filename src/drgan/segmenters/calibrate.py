@@ -48,8 +48,9 @@ LARGE_PARTICLE_PX = 40.0
 # Image px per real px of the pairs a segmenter learned from (a generated set's manifest pixel_scale: below 1 when
 # the GAN saw large particles in windows wider than its render); inference resamples real images by it.
 PIXEL_SCALE_KEY = "drgan_pixel_scale"
-# Median diameter (px, at the network's scale) of the particles of the pairs a segmenter learned from: inference with
-# pixel_scale=per_image resamples each image so that its particles span it (drgan.segmenters.inference).
+# Area-weighted median diameter (px, at the network's scale; drgan.metrics.statistics.area_median) of the particles
+# of the pairs a segmenter learned from: inference with pixel_scale=per_image resamples each image so that its
+# particles' own span it (drgan.segmenters.inference).
 WORKING_DIAMETER_KEY = "drgan_working_diameter"
 
 

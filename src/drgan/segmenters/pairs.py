@@ -317,8 +317,7 @@ def working_scale(pairs: list[Pair], working_px: float | None, crop: int) -> tup
     """(scale, median diameter px): the factor (<= 1) the pairs are shrunk by so that their median particle (over
     the instances of the first ``WORKING_SAMPLE`` pairs, sized as drgan.metrics.statistics sizes them) spans
     ``working_px`` px, but never so far that the smallest pair gets narrower than one ``crop``; 1 when
-    ``working_px`` is None, the particles are already that small, or no pair holds a particle (the median is
-    measured in every case: the checkpoint stores it for inference's per-image scale).
+    ``working_px`` is None, the particles are already that small, or no pair holds a particle.
 
     Why: a segmenter learns from ``crop``-px crops, and the instance-aware one's centre map (1 on each particle's
     core, drgan.segmenters.instances) can only be learnt where a crop shows the whole particle: on EMPS saa890
@@ -326,10 +325,10 @@ def working_scale(pairs: list[Pair], working_px: float | None, crop: int) -> tup
     working diameter (30 px) for the same reason."""
     from drgan.metrics.statistics import median_diameter
 
-    if not pairs:
+    if working_px is None or not pairs:
         return 1.0, math.nan
     median = median_diameter([p.instances() for p in pairs[:WORKING_SAMPLE]])
-    if working_px is None or not median > working_px:
+    if not median > working_px:
         return 1.0, median
     floor = crop / min(min(p.image.shape) for p in pairs)
     return float(min(1.0, max(working_px / median, floor))), median

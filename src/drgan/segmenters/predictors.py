@@ -81,19 +81,20 @@ class SegmenterPredictor(FunctionPredictor):
 
     def __init__(self, source: str, model, inference: Mapping):
         from drgan.segmenters.calibrate import resolve_auto
-        from drgan.segmenters.inference import make_predictor
+        from drgan.segmenters.inference import PER_IMAGE, make_predictor, resolve_pixel_scale
 
         inference, note = resolve_auto(inference, getattr(model, "split_calibration", None), source)
         own = ("pixel_scale", "noise_match")  # null: the model's own, said below
         shown = {k: v for k, v in inference.items() if not (k in own and v is None)}
         how = ", ".join(f"{k} {v}" for k, v in shown.items()) + (f" (split {note})" if note else "")
         scale = getattr(model, "pixel_scale", 1.0)
-        if inference.get("pixel_scale") is None and scale != 1.0:
+        chosen = resolve_pixel_scale(model, inference.get("pixel_scale"))
+        if chosen is None and scale != 1.0:
             how += f"; images resampled by {scale:g} (the pixel scale of its training pairs)"
-        elif inference.get("pixel_scale") == "per_image":
+        elif chosen == PER_IMAGE:
             how += (
                 f"; each image resampled so that its particles span {getattr(model, 'working_diameter', 0):.0f} px "
-                "(its training pairs' median, measured on a first pass)"
+                "(its training pairs' area-weighted median; measured on a first pass)"
             )
         level = getattr(model, "train_noise", None)
         if inference.get("noise_match") is None and level:
