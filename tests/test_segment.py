@@ -522,7 +522,8 @@ def test_per_image_scale_brings_each_images_particles_to_the_training_diameter(m
     diameter) halves an image of 12-px particles to 6-px ones. pixel_scale=per_image measures them on that first
     pass and predicts the image once more at the scale that brings them to 20 px. An image of training-size
     particles keeps the first pass, even with specks beside them (the area-weighted median is the particles'), and
-    so does one with too few particles to measure."""
+    so do one with too few particles to measure and one of larger particles (only enlarging: merges measure
+    large)."""
     from drgan.metrics.instance_scores import binarize_and_label, match_instances
     from drgan.segmenters import inference
     from drgan.segmenters.inference import make_predictor, predict, resolve_pixel_scale
@@ -547,6 +548,9 @@ def test_per_image_scale_brings_each_images_particles_to_the_training_diameter(m
     assert scales == [0.5]
     scales.clear()
     predict(model, disc_image(disc_labels(96, n=2, radius=6.0, seed=3)), **settings)  # two particles measure nothing
+    assert scales == [0.5]
+    scales.clear()
+    predict(model, disc_image(disc_labels(192, n=3, radius=40.0, seed=3)), **settings)  # larger ones: never shrunk
     assert scales == [0.5]
     # auto: per_image for the instance-aware segmenter (one working diameter learnt), the own scale for the U-Net
     assert resolve_pixel_scale(model, "auto") is None and resolve_pixel_scale(model, 0.7) == 0.7
