@@ -223,9 +223,10 @@ def predict(
     network's argmax; "auto": the model's own (`split_of`).
 
     ``pixel_scale``: the network sees the image resampled by this factor (area-averaged when below 1) and its
-    probabilities are brought back to the image's size; "auto": `resolve_pixel_scale`; None: the model's own (``model.pixel_scale``, stored by
-    drgan.segment from its generated pairs: their px per real px; 1.0 for real-trained models). The split's lengths
-    (``split_depth``, ``split_smooth``: px at the network's scale, as calibrated) are scaled with it. "per_image":
+    probabilities are brought back to the image's size; None: the model's own (``model.pixel_scale``, stored by
+    drgan.segment from its generated pairs: their px per real px, times the working scale; 1.0 for real-trained
+    U-Nets); "auto": `resolve_pixel_scale`. The split's lengths (``split_depth``, ``split_smooth``: px at the
+    network's scale, as calibrated) are scaled with it. "per_image":
     a first pass at the model's own scale, then the image again at the scale its particles measure (`image_scale`:
     their area-weighted median diameter brought to the training pairs' own, ``model.working_diameter``).
 
