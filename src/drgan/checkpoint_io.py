@@ -22,8 +22,10 @@ Lightning does the reading.
 
 from __future__ import annotations
 
+import math
 import pickle
 import re
+from collections.abc import Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -84,6 +86,15 @@ def load_checkpoint(
             f"{what}={path}: a PyTorch file but not a Lightning checkpoint (no state_dict); expected {expected}"
         )
     return checkpoint
+
+
+def positive_entry(checkpoint: Mapping, key: str) -> float | None:
+    """A checkpoint's entry ``key`` as a positive finite number, or None (absent, or anything else: a bool, a string,
+    zero, a negative number, inf or nan)."""
+    entry = checkpoint.get(key)
+    if isinstance(entry, bool) or not isinstance(entry, (int, float)) or not 0 < entry < math.inf:
+        return None
+    return float(entry)
 
 
 def add_entry(path, key: str, value, what: str = "ckpt") -> None:

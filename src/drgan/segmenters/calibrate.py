@@ -24,6 +24,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from drgan.checkpoint_io import positive_entry
 from drgan.errors import ConfigError
 from drgan.metrics.statistics import median_diameter
 
@@ -165,22 +166,18 @@ def tied_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:
 def stored_pixel_scale(checkpoint: Mapping, source: str = "checkpoint") -> float:
     """The pixel scale a checkpoint holds (``PIXEL_SCALE_KEY``); 1.0 when it holds none (checkpoints from before it
     was stored, real-trained ones) or a malformed one (with a warning: the checkpoint still loads)."""
-    entry = checkpoint.get(PIXEL_SCALE_KEY)
-    if entry is None:
-        return 1.0
-    if isinstance(entry, bool) or not isinstance(entry, (int, float)) or not 0 < entry < math.inf:
-        log.warning("%s: its %s entry %r is not a pixel scale; 1.0 used", source, PIXEL_SCALE_KEY, entry)
-        return 1.0
-    return float(entry)
+    scale = positive_entry(checkpoint, PIXEL_SCALE_KEY)
+    if scale is None and checkpoint.get(PIXEL_SCALE_KEY) is not None:
+        log.warning(
+            "%s: its %s entry %r is not a pixel scale; 1.0 used", source, PIXEL_SCALE_KEY, checkpoint[PIXEL_SCALE_KEY]
+        )
+    return 1.0 if scale is None else scale
 
 
 def stored_working_diameter(checkpoint: Mapping) -> float | None:
-    """The training pairs' median particle diameter a checkpoint holds (``WORKING_DIAMETER_KEY``, px at the
-    network's scale), or None (checkpoints from before it was stored, or a malformed entry)."""
-    entry = checkpoint.get(WORKING_DIAMETER_KEY)
-    if isinstance(entry, bool) or not isinstance(entry, (int, float)) or not 0 < entry < math.inf:
-        return None
-    return float(entry)
+    """The training pairs' area-weighted median particle diameter a checkpoint holds (``WORKING_DIAMETER_KEY``, px
+    at the network's scale), or None (checkpoints from before it was stored, or a malformed entry)."""
+    return positive_entry(checkpoint, WORKING_DIAMETER_KEY)
 
 
 def stored_split(checkpoint: Mapping, source: str = "checkpoint") -> dict | None:

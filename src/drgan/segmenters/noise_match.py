@@ -24,6 +24,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from drgan.checkpoint_io import positive_entry
+
 MAD_TO_SIGMA = 1.4826  # a Gaussian's standard deviation per median absolute deviation
 SAMPLE = 64  # training images whose level is measured (the first ones)
 NOISE_KEY = "drgan_train_noise"  # the checkpoint entry: the training images' level (absent: no matching)
@@ -74,7 +76,4 @@ def match_noise(image: np.ndarray, train_level: float | None) -> np.ndarray:
 def stored_level(checkpoint: Mapping) -> float | None:
     """The training images' level a checkpoint holds (`NOISE_KEY`), or None (real-trained, from before it was
     stored, or malformed)."""
-    entry = checkpoint.get(NOISE_KEY)
-    if isinstance(entry, bool) or not isinstance(entry, (int, float)) or not 0 < entry < math.inf:
-        return None
-    return float(entry)
+    return positive_entry(checkpoint, NOISE_KEY)
