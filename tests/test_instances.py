@@ -212,7 +212,7 @@ def test_the_working_scale_follows_the_median_particle_and_stops_at_one_crop():
 
 def test_the_instance_aware_segmenter_learns_at_its_working_scale_and_infers_at_the_same(tmp_path):
     from drgan.evaluate import evaluate
-    from drgan.metrics.statistics import median_diameter
+    from drgan.metrics.statistics import area_median, diameters_of
     from drgan.segment import LoaderSettings, segment, working_px_of
     from drgan.segmenters.module import SegmenterModule
     from drgan.segmenters.pairs import CENTRE_WORKING_PX
@@ -235,7 +235,7 @@ def test_the_instance_aware_segmenter_learns_at_its_working_scale_and_infers_at_
     assert model.pixel_scale == pytest.approx(0.5)  # 64-px pairs shrunk to one 32-px crop, not to 4-px particles
     assert json.loads((out / "metrics.json").read_text())["pixel_scale"] == pytest.approx(0.5)
     # the pairs' area-weighted median particle after shrinking: what inference's pixel_scale=per_image brings each image's to
-    median = median_diameter([disc_labels(64, n=4, seed=i) for i in range(4)], by_area=True)
+    median = area_median(diameters_of([disc_labels(64, n=4, seed=i) for i in range(4)]))
     assert model.working_diameter == pytest.approx(0.5 * median, abs=1e-3)
     assert json.loads((out / "metrics.json").read_text())["working_diameter"] == model.working_diameter
     labels = disc_labels(48, n=4, seed=7)

@@ -201,7 +201,7 @@ def test_error_sources_name_what_became_of_each_true_particle():
 
 
 def test_the_area_weighted_median_is_the_large_particles_size_among_specks():
-    from drgan.metrics.statistics import area_median, median_diameter
+    from drgan.metrics.statistics import area_median, diameters_of, median_diameter
 
     # areas 1, 1, 1, 100 (x pi / 4): the three specks hold 3 of 103, so half the area lies in the 10-px particle
     assert area_median(np.array([1.0, 1.0, 10.0, 1.0])) == 10.0
@@ -211,4 +211,4 @@ def test_the_area_weighted_median_is_the_large_particles_size_among_specks():
     labels = np.zeros((40, 40), np.int32)
     labels[2:4, 2:4], labels[2:4, 30:32], labels[10:30, 10:30] = 1, 2, 3  # two 2 x 2 specks, one 20 x 20 square
     assert median_diameter([labels]) == pytest.approx(2 * np.sqrt(4 / np.pi))
-    assert median_diameter([labels], by_area=True) == pytest.approx(2 * np.sqrt(400 / np.pi))
+    assert area_median(diameters_of([labels])) == pytest.approx(2 * np.sqrt(400 / np.pi))

@@ -181,13 +181,13 @@ def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_
     drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike (inference shrinks real images by it),
     and their particles' area-weighted median diameter after it (px, drgan.metrics.statistics.area_median; None
     without particles: inference's per-image scale aims at it); unchanged when no shrinking is needed."""
-    from drgan.metrics.statistics import median_diameter
-    from drgan.segmenters.pairs import WORKING_SAMPLE, shrink_pair, working_scale
+    from drgan.metrics.statistics import area_median
+    from drgan.segmenters.pairs import sample_diameters, shrink_pair, working_scale
 
     ld = LoaderSettings.from_config(cfg)
-    working_px = working_px_of(ld.working_px, model)
-    scale, median = working_scale(pairs, working_px, ld.crop)
-    by_area = median_diameter([p.instances() for p in pairs[:WORKING_SAMPLE]], by_area=True)
+    diameters = sample_diameters(pairs)
+    scale, median = working_scale(pairs, working_px_of(ld.working_px, model), ld.crop, diameters)
+    by_area = area_median(diameters)
     diameter = round(by_area * scale, 3) if by_area > 0 else None  # nan (no particle) fails the test too
     if scale >= 1.0:
         return pairs, pixel_scale, 1.0, diameter

@@ -79,14 +79,17 @@ def particles(labels: np.ndarray) -> Particles:
     return Particles(np.array(area), np.array(diameter), np.array(ratio), np.array(border, dtype=bool))
 
 
-def median_diameter(labels: Sequence[np.ndarray], by_area: bool = False) -> float:
-    """Median equivalent-circle diameter (px) of the instances of ``labels`` (label images, sized by `particles`,
-    border-cut ones included); nan without any. The segmenter's split calibration and working scale compare it.
-    ``by_area``: the area-weighted median (`area_median`), which a few specks or fragments do not move."""
-    diameters = np.concatenate([particles(label).diameter for label in labels] or [np.zeros(0)])
-    if not diameters.size:
-        return float("nan")
-    return area_median(diameters) if by_area else float(np.median(diameters))
+def diameters_of(labels: Sequence[np.ndarray]) -> np.ndarray:
+    """Equivalent-circle diameters (px) of the instances of ``labels`` (label images, sized by `particles`,
+    border-cut ones included), pooled."""
+    return np.concatenate([particles(label).diameter for label in labels] or [np.zeros(0)])
+
+
+def median_diameter(labels: Sequence[np.ndarray]) -> float:
+    """Median of `diameters_of` ``labels``; nan without any. The segmenter's split calibration and working scale
+    compare it."""
+    diameters = diameters_of(labels)
+    return float(np.median(diameters)) if diameters.size else float("nan")
 
 
 def area_median(diameters: np.ndarray) -> float:

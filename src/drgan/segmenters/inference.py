@@ -252,20 +252,19 @@ def predict(
         if scale != 1.0:
             probs = resample_probs(probs, np.shape(image))
             depth, smooth = split_depth / scale, split_smooth / scale
-        argmax = probs[:3].argmax(axis=0).astype(np.uint8)
         if split == "centres":
             if probs.shape[0] != 4:
                 raise ConfigError(
                     "inference.split=centres: this segmenter has no centre map (only drgan.segmenters.instances."
                     "CentreSegmenterModule has); use split=watershed or auto"
                 )
-            return split_by_centres(probs, seed_level), argmax
+            return split_by_centres(probs, seed_level), probs
         if split == "none":
-            return argmax, argmax
-        return split_touching(probs[:3], depth, smooth, split_core), argmax
+            return probs[:3].argmax(axis=0).astype(np.uint8), probs
+        return split_touching(probs[:3], depth, smooth, split_core), probs
 
-    classes, argmax = classes_at(scale)
-    better = image_scale(classes, argmax, model.working_diameter, scale) if per_image else None
+    classes, probs = classes_at(scale)
+    better = image_scale(classes, probs, model.working_diameter, scale) if per_image else None
     if better is not None:
         log.info("pixel_scale=%s: image resampled by %.3g (the segmenter's own: %.3g)", PER_IMAGE, better, scale)
         classes, _ = classes_at(better)
@@ -291,7 +290,7 @@ RESCALE_RANGE = 4.0  # per_image: images are enlarged at most this factor beyond
 RESCALE_MIN_PARTICLES = 3  # per_image: fewer particles found measure nothing (the segmenter's own scale is kept)
 
 
-def image_scale(classes: np.ndarray, argmax: np.ndarray, working_diameter: float, scale: float) -> float | None:
+def image_scale(classes: np.ndarray, probs: np.ndarray, working_diameter: float, scale: float) -> float | None:
     """The larger pixel scale at which the particles of a class map predicted at ``scale`` (the segmenter's own)
     would span ``working_diameter`` px (the area-weighted median particle of its training pairs, at the network's
     scale), or None to keep ``scale``: fewer than RESCALE_MIN_PARTICLES particles, or a scale less than
@@ -300,7 +299,7 @@ def image_scale(classes: np.ndarray, argmax: np.ndarray, working_diameter: float
     of small particles is trusted (EMPS saa890, held-out train images: shrinking an image whose first pass merged
     62 % of its particles merged 75 %). The particles are those of the split ``classes``,
     else (fewer than RESCALE_MIN_PARTICLES there: particles too small for the split's seeds at this scale) the
-    4-connected regions of the network's plain ``argmax``; their size is the area-weighted median
+    4-connected regions of the plain argmax of its class probabilities ``probs``; their size is the area-weighted median
     (drgan.metrics.statistics.area_median), which the specks and fragments of a first pass at the wrong scale do not
     move (EMPS saa890: a plain median of one 395-px particle and its fragments asked for 14 x its scale).
 
@@ -314,7 +313,7 @@ def image_scale(classes: np.ndarray, argmax: np.ndarray, working_diameter: float
 
     diameters = particles(binarize_and_label(classes)).diameter
     if len(diameters) < RESCALE_MIN_PARTICLES:
-        diameters = particles(binarize_and_label(argmax)).diameter
+        diameters = particles(binarize_and_label(probs[:3].argmax(axis=0))).diameter
     if len(diameters) < RESCALE_MIN_PARTICLES:
         return None
     better = float(min(16.0, scale * RESCALE_RANGE, working_diameter / area_median(diameters)))
@@ -353,7 +352,8 @@ def check_noise_match(value) -> float | None:
 
 
 def check_working_diameter(model) -> float:
-    """The training pairs' median diameter ``inference.pixel_scale=per_image`` aims at, or a ConfigError."""
+    """The training pairs' area-weighted median diameter ``inference.pixel_scale=per_image`` aims at, or a
+    ConfigError."""
     diameter = getattr(model, "working_diameter", None)
     if not diameter:
         raise ConfigError(

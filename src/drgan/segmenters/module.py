@@ -197,7 +197,7 @@ class CheckpointEntries(L.Callback):
     """Writes ``entries`` (key -> value; None values are left out) into every checkpoint the run saves, last.ckpt and
     the epoch files: what inference needs of the training pairs, read back by load_segmenter. drgan.segment stores
     the pairs' pixel scale (drgan.segmenters.calibrate.PIXEL_SCALE_KEY: inference resamples real images by it),
-    their median particle diameter (WORKING_DIAMETER_KEY: inference's per-image scale aims at it) and their
+    their area-weighted median particle diameter (WORKING_DIAMETER_KEY: inference's per-image scale aims at it) and their
     fine-noise level (drgan.segmenters.noise_match.NOISE_KEY: inference brings cleaner images up to it)."""
 
     def __init__(self, entries: dict):

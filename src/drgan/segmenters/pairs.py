@@ -313,21 +313,30 @@ CENTRE_WORKING_PX = 40.0  # working_px=auto for a segmenter with a centre map (`
 WORKING_SAMPLE = 200  # pairs whose instances give the median diameter `working_scale` compares
 
 
-def working_scale(pairs: list[Pair], working_px: float | None, crop: int) -> tuple[float, float]:
+def sample_diameters(pairs: list[Pair]) -> np.ndarray:
+    """The instances' diameters (drgan.metrics.statistics.diameters_of) of the first ``WORKING_SAMPLE`` pairs."""
+    from drgan.metrics.statistics import diameters_of
+
+    return diameters_of([p.instances() for p in pairs[:WORKING_SAMPLE]])
+
+
+def working_scale(
+    pairs: list[Pair], working_px: float | None, crop: int, diameters: np.ndarray | None = None
+) -> tuple[float, float]:
     """(scale, median diameter px): the factor (<= 1) the pairs are shrunk by so that their median particle (over
     the instances of the first ``WORKING_SAMPLE`` pairs, sized as drgan.metrics.statistics sizes them) spans
     ``working_px`` px, but never so far that the smallest pair gets narrower than one ``crop``; 1 when
-    ``working_px`` is None, the particles are already that small, or no pair holds a particle.
+    ``working_px`` is None, the particles are already that small, or no pair holds a particle. ``diameters``: the
+    pairs' `sample_diameters` where the caller has them already.
 
     Why: a segmenter learns from ``crop``-px crops, and the instance-aware one's centre map (1 on each particle's
     core, drgan.segmenters.instances) can only be learnt where a crop shows the whole particle: on EMPS saa890
     (221 px particles, 128-px crops) its centre map stayed a flat 0.52 over every particle. Cellpose rescales to a
     working diameter (30 px) for the same reason."""
-    from drgan.metrics.statistics import median_diameter
-
     if working_px is None or not pairs:
         return 1.0, math.nan
-    median = median_diameter([p.instances() for p in pairs[:WORKING_SAMPLE]])
+    diameters = sample_diameters(pairs) if diameters is None else diameters
+    median = float(np.median(diameters)) if diameters.size else math.nan
     if not median > working_px:
         return 1.0, median
     floor = crop / min(min(p.image.shape) for p in pairs)
