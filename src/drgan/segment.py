@@ -344,6 +344,7 @@ def segment(cfg: DictConfig) -> dict:
             "the generated images' fine-noise level is %.4f: inference adds white noise to cleaner images up to it "
             "(inference.noise_match; stored in the checkpoints)", noise,
         )  # fmt: skip
+    pairs, check_pairs = held_out_check(cfg, source, pairs)
     train_loader, val_loader, n_train, n_val = dataloaders(
         cfg,
         pairs,
@@ -414,8 +415,13 @@ def segment(cfg: DictConfig) -> dict:
     )
     if calibration is not None:
         metrics["split/ap50"] = calibration["ap50"]
+    check = closed_loop_check(model, check_pairs, calibration, last, bool(cfg.trainer.get("enable_progress_bar", True)))
+    if check is not None:
+        metrics.update(check_metrics(check))
     for logger in loggers:
-        logger.log_metrics({"time/wall_s": metrics["time/wall_s"]}, step=trainer.global_step)
+        logger.log_metrics(
+            {k: v for k, v in metrics.items() if k == "time/wall_s" or k.startswith("check/")}, step=trainer.global_step
+        )
         if hasattr(logger, "experiment") and getattr(logger, "run_id", None) and last.is_file():
             logger.experiment.log_artifact(logger.run_id, str(last), artifact_path="checkpoints")
     write_json(
@@ -428,6 +434,7 @@ def segment(cfg: DictConfig) -> dict:
             "settled_why": why,
             "val_dsc_history": scores.history,
             "split_calibration": calibration,
+            "closed_loop": check,
             "pixel_scale": pixel_scale,
             "working_diameter": diameter,
             "noise_level": noise,
@@ -471,6 +478,50 @@ def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) 
         markdown_table(calibration),
     )
     return calibration
+
+
+def held_out_check(cfg: DictConfig, source: TrainingPairs, pairs) -> tuple[list, list]:
+    """(pairs to train and validate on, pairs of the closed-loop check): ``check_fraction`` of a generated set's
+    rendered pairs set aside (drgan.segmenters.closed_loop.hold_out); real images keep every pair (their truth is an
+    annotator's, which drgan.evaluate scores on the test ids)."""
+    from drgan.segmenters.closed_loop import hold_out
+
+    fraction = setting_float("check_fraction", cfg.get("check_fraction", 0.0), 0.0)
+    if not source.data:
+        return pairs, []
+    rest, check = hold_out(pairs, fraction, int(cfg.seed))
+    if fraction > 0 and not check:
+        log.warning(
+            "check_fraction=%g: too few rendered pairs with exact labels (%d) to hold out a closed-loop check; "
+            "every pair trains", fraction, len(pairs),
+        )  # fmt: skip
+    elif check:
+        log.info("closed-loop check: %d rendered pairs held out (never trained on, never used to choose)", len(check))
+    return rest, check
+
+
+def closed_loop_check(model, pairs, calibration: dict | None, last: Path, progress: bool) -> dict | None:
+    """The segmenter scored on its held-out generated pairs (drgan.segmenters.closed_loop), with the split just
+    calibrated; stored in ``last`` (evaluate/analyze and the pipeline's report quote it). None without pairs."""
+    from drgan.checkpoint_io import add_entry
+    from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, log_summary
+
+    if not pairs:
+        return None
+    if not last.is_file():
+        log.warning("closed-loop check skipped: no %s", last)
+        return None
+    check = closed_loop(model.eval(), pairs, calibration, progress=progress)
+    add_entry(last, CLOSED_LOOP_KEY, check, "ckpt_path")
+    log_summary(check)
+    return check
+
+
+def check_metrics(check: dict) -> dict[str, float]:
+    """The closed-loop check as flat metrics (MLflow, metrics.json's top level): check/median_error ..."""
+    flat = {f"check/{k}": check[k]["value"] for k in ("median_error", "mean_error", "count_error")}
+    flat.update({f"check/{k}": check[k] for k in ("edge_offset_px", "merged", "split", "missed", "ap50", "dsc")})
+    return {k: float(v) for k, v in flat.items() if v is not None}
 
 
 @stage_main("conf/segmentation", "segment")

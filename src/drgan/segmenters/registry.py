@@ -33,6 +33,7 @@ from pathlib import Path
 from drgan.checkpoint_io import load_checkpoint
 from drgan.errors import ConfigError, DataError
 from drgan.segmenters.calibrate import stored_pixel_scale, stored_split, stored_working_diameter
+from drgan.segmenters.closed_loop import stored_closed_loop
 from drgan.segmenters.noise_match import stored_level
 from drgan.targets import target_path
 
@@ -199,4 +200,6 @@ def load_segmenter(path: str | Path, setting: str = "model"):
     model.train_noise = stored_level(checkpoint)
     # its training pairs' median particle diameter (px at the network's scale): pixel_scale=per_image's target
     model.working_diameter = stored_working_diameter(checkpoint)
+    # its closed-loop check on held-out generated pairs (drgan.segmenters.closed_loop): reports quote it
+    model.closed_loop = stored_closed_loop(checkpoint)
     return model.eval()

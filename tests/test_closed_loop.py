@@ -1,0 +1,132 @@
+"""The closed-loop check: a segmenter measured on held-out generated pairs against their exact outlines."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy import ndimage
+
+from drgan.scene.labels import IGNORE, class_mask
+from drgan.segmenters.closed_loop import closed_loop, hold_out, stored_closed_loop, trust_line
+from drgan.segmenters.pairs import Pair
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def squares(n=3, side=10, size=64, gap=8) -> np.ndarray:
+    """n separate side x side squares in a row (ids 1..n), none touching another or the border."""
+    labels = np.zeros((size, size), np.int32)
+    for k in range(n):
+        x = gap + k * (side + gap)
+        labels[gap : gap + side, x : x + side] = k + 1
+    return labels
+
+
+def pair_of(labels: np.ndarray, name="p") -> Pair:
+    image = np.where(labels > 0, 0.8, 0.2).astype(np.float32)
+    return Pair(name, image, class_mask(labels, 1), labels)
+
+
+def exact(labels_of):
+    """A predictor returning the exact particles as the particle class."""
+    return lambda image: (labels_of[id(image)] > 0).astype(np.uint8)
+
+
+def run(pairs, transform=lambda labels: labels > 0):
+    by_image = {id(p.image): p.labels for p in pairs}
+    return closed_loop(None, pairs, predictor=lambda image: transform(by_image[id(image)]).astype(np.uint8), n_boot=50)
+
+
+def test_a_predictor_returning_the_exact_labels_scores_no_error():
+    pairs = [pair_of(squares(n=k + 1), f"p{k}") for k in range(4)]
+    check = run(pairs)
+    assert check["median_error"]["value"] == 0.0 and check["mean_error"]["value"] == 0.0
+    assert check["count_error"]["value"] == 0.0 and check["count_error"]["low"] == 0.0
+    assert check["diameter_offset_px"] == 0.0 and check["edge_offset_px"] == 0.0
+    assert check["matched"] == 1.0 and check["merged"] == check["split"] == check["missed"] == 0.0
+    assert check["ap50"] == 1.0 and check["dsc"] == 1.0 and check["n_true"] == 10 and check["n_pairs"] == 4
+    assert json.loads(json.dumps(check)) == check  # plain numbers: JSON and weights_only checkpoints take them
+
+
+def test_a_one_pixel_dilation_gives_the_offset_computed_by_hand():
+    # a 10 x 10 square grown by the 4-neighbour cross: 12 x 12 less its 4 corners = 140 px
+    grow = lambda labels: ndimage.binary_dilation(labels > 0)  # noqa: E731
+    check = run([pair_of(squares(n=3))], grow)
+    d_true, d_pred = 2 * math.sqrt(100 / math.pi), 2 * math.sqrt(140 / math.pi)
+    assert check["diameter_offset_px"] == pytest.approx(d_pred - d_true)
+    assert check["edge_offset_px"] == pytest.approx((d_pred - d_true) / 2)
+    assert check["median_error"]["value"] == pytest.approx(d_pred / d_true - 1)  # sqrt(1.4) - 1: +18.3 %
+    assert check["count_error"]["value"] == 0.0 and check["matched"] == 1.0
+
+
+def test_touching_particles_predicted_as_one_are_counted_as_merged():
+    labels = np.zeros((64, 64), np.int32)
+    labels[8:18, 8:18], labels[8:18, 18:28], labels[8:18, 40:50] = 1, 2, 3  # 1 and 2 touch
+    merged = lambda lab: lab > 0  # noqa: E731  (one 4-connected region for the touching two)
+    check = run([pair_of(labels)], merged)
+    assert check["count_error"]["value"] == pytest.approx(2 / 3 - 1)
+    assert check["merged"] == pytest.approx(2 / 3) and check["matched"] == pytest.approx(1 / 3)
+
+
+def test_the_check_pairs_are_rendered_ones_seeded_and_never_most_of_the_set():
+    rendered = [pair_of(squares(), f"r{k}") for k in range(40)]
+    partial = Pair("bg", rendered[0].image, np.full((64, 64), IGNORE, np.uint8), rendered[0].labels)
+    handmade = Pair("hand", rendered[0].image, rendered[0].mask, None)
+    pairs = [*rendered, partial, handmade]
+    rest, check = hold_out(pairs, 0.1, seed=3)
+    assert len(check) == 4 and {p.id for p in check} <= {p.id for p in rendered}
+    assert len(rest) + len(check) == len(pairs) and not {p.id for p in rest} & {p.id for p in check}
+    assert [p.id for p in hold_out(pairs, 0.1, seed=3)[1]] == [p.id for p in check]
+    assert hold_out(pairs, 0.0, seed=3) == (pairs, [])
+    assert hold_out(rendered[:10], 0.05, seed=0) == (rendered[:10], [])  # 4 of 10 would be too many
+    with pytest.raises(Exception, match="check_fraction"):
+        hold_out(pairs, 0.7, seed=0)
+
+
+def test_the_trust_line_quotes_the_errors_with_their_intervals():
+    check = run([pair_of(squares(n=k + 1), f"p{k}") for k in range(3)], lambda lab: ndimage.binary_dilation(lab > 0))
+    line = trust_line(check)
+    assert "3 generated images" in line and "6 particles" in line
+    assert "median diameters +18.3 % [+18.3 %, +18.3 %]" in line and "counts +0.0 %" in line
+    assert f"{check['edge_offset_px']:+.2f} px" in line
+
+
+def make_labelled_set(folder: Path, n=24, size=32) -> Path:
+    """Rendered-style pairs with their exact instance labels (labels/), as drgan.generate writes them."""
+    from test_segment import disc_image, disc_labels
+
+    for d in ("images", "masks", "labels"):
+        (folder / d).mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        labels = disc_labels(size, seed=i)
+        Image.fromarray((disc_image(labels, i) * 255).astype(np.uint8)).save(folder / "images" / f"{i:03d}.png")
+        Image.fromarray(class_mask(labels, 1)).save(folder / "masks" / f"{i:03d}.png")
+        Image.fromarray(labels.astype(np.uint8)).save(folder / "labels" / f"{i:03d}.png")
+    return folder
+
+
+def test_segment_scores_itself_on_held_out_pairs_and_stores_the_check(tmp_path):
+    import torch
+    from test_segment import tiny_segment_overrides
+
+    from conftest import compose
+    from drgan.segment import segment
+    from drgan.segmenters.module import load_segmenter
+
+    data = make_labelled_set(tmp_path / "gen")
+    out = tmp_path / "run"
+    overrides = tiny_segment_overrides(data, tmp_path, out, "trainer.max_epochs=1", "check_fraction=0.2")
+    metrics = segment(compose(overrides, config_name="segment"))
+    written = json.loads((out / "metrics.json").read_text())
+    check = written["closed_loop"]
+    assert check["n_pairs"] == 5 and check["n_true"] > 0  # 0.2 of 24, never trained on
+    assert {"check/count_error", "check/ap50"} <= set(metrics)  # a 1-epoch net may size no particle: no median
+    assert metrics["check/count_error"] == pytest.approx(check["count_error"]["value"])
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert stored_closed_loop(ckpt) == check
+    assert load_segmenter(out / "checkpoints" / "last.ckpt").closed_loop == check
