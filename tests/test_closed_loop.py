@@ -112,9 +112,9 @@ def make_labelled_set(folder: Path, n=24, size=32) -> Path:
 
 def test_segment_scores_itself_on_held_out_pairs_and_stores_the_check(tmp_path):
     import torch
+    from conftest import compose
     from test_segment import tiny_segment_overrides
 
-    from conftest import compose
     from drgan.segment import segment
     from drgan.segmenters.module import load_segmenter
 
