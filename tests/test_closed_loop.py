@@ -130,3 +130,33 @@ def test_segment_scores_itself_on_held_out_pairs_and_stores_the_check(tmp_path):
     ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert stored_closed_loop(ckpt) == check
     assert load_segmenter(out / "checkpoints" / "last.ckpt").closed_loop == check
+    # analyze's statistics.md quotes the check; the pipeline's report compares its sizes with the classical ones
+    from drgan.analyze import analyze
+
+    last = out / "checkpoints" / "last.ckpt"
+    cfg = compose([f"model={last}", f"images={data / 'images'}", f"out={tmp_path / 'an'}", "bootstrap=0"], "analyze")
+    analyze(cfg)
+    assert trust_line(check) in (tmp_path / "an" / "statistics.md").read_text()
+    assert json.loads((tmp_path / "an" / "summary.json").read_text())["closed_loop"] == check
+
+
+def check_of(value, low, high) -> dict:
+    return {"median_error": {"value": value, "low": low, "high": high}}
+
+
+def test_the_report_says_when_the_segmenter_and_the_classical_sizes_disagree_and_which_it_trusts():
+    from drgan.segmenters.closed_loop import compare_with_classical
+
+    exact = check_of(0.01, -0.01, 0.03)
+    agree = compare_with_classical(51.0, 50.0, exact)
+    assert "+2.0 %" in agree and "agree" in agree and "trusts these sizes" in agree
+    # a 16 % gap, beyond the interval widened by 5 %: the exact segmenter is trusted, the user is told to compare
+    apart = compare_with_classical(58.0, 50.0, exact)
+    assert "+16.0 %" in apart and "beyond the closed-loop interval" in apart and "trusts the segmenter" in apart
+    # a segmenter biased by +20 % on exact truth, 16 % above the classical sizes: its bias explains the gap
+    biased = compare_with_classical(58.0, 50.0, check_of(0.20, 0.15, 0.25))
+    assert "what the closed-loop check predicts" in biased and "trusts the classical sizes" in biased
+    # biased and beyond its own bias: neither
+    assert "Neither is trusted" in compare_with_classical(80.0, 50.0, check_of(0.20, 0.15, 0.25))
+    assert "without a closed-loop check" in compare_with_classical(58.0, 50.0, None)
+    assert "missing" in compare_with_classical(None, 50.0, exact)

@@ -269,8 +269,12 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     area_unit = "µm²" if in_nm else "Mpx"
     areas = [item.image.size * (f * f * 1e-6 if in_nm else 1e-6) for item, f in zip(items, factors)]
     stats = size_statistics(found, factors, areas, n_boot, s.seed)
+    whole = np.concatenate([p.whole().diameter for p in found] or [np.zeros(0)])
     summary = {
         "images": len(items),
+        "median_diameter_px": float(np.median(whole)) if whole.size else None,
+        # the segmenter's own error on held-out generated pairs (drgan.segmenters.closed_loop), when it has one
+        "closed_loop": getattr(getattr(predictor, "model", None), "closed_loop", None),
         "unit": unit,
         "area_unit": area_unit,
         "pixel_size": pixel_note,
@@ -367,9 +371,24 @@ def statistics_markdown(summary: dict) -> str:
     if model:
         bics = ", ".join(f"{f['kind']} {f['bic']:.1f}" for f in model["fits"])
         lines += ["", f"The sizes fit a **{model['chosen']}** distribution best (lowest BIC: {bics})."]
+    lines += ["", "## How far these sizes can be trusted", "", trust_paragraph(summary.get("closed_loop"))]
     lines += ["", "| image | particles | cut by the border |", "|---|---|---|"]
     lines += [f"| {r['image']} | {r['count']} | {r['cut_by_border']} |" for r in summary["per_image"]]
     return "\n".join(lines) + "\n"
+
+
+def trust_paragraph(check: dict | None) -> str:
+    """statistics.md's words on the segmenter's own error: its closed-loop check (drgan.segmenters.closed_loop), or
+    why there is none."""
+    from drgan.segmenters.closed_loop import trust_line
+
+    if not check:
+        return (
+            "No closed-loop check: this segmenter was not trained on generated pairs with exact outlines held out "
+            "(trained on real images, before drgan.segment held them out, or with check_fraction=0), so its own size "
+            "error is unknown; drgan.evaluate on annotated images measures it."
+        )
+    return trust_line(check)
 
 
 def _density(model: dict | None, x: np.ndarray) -> tuple[np.ndarray, str] | None:

@@ -108,11 +108,21 @@ def segment_summary(folder: Path) -> dict:
     calibration = metrics.get("split_calibration") or {}
     contact = metrics.get("contact_weight") or {}
     weight = f", contact weight {contact['value']:g} ({contact.get('why')})" if contact.get("value") is not None else ""
+    check = metrics.get("closed_loop") or {}
+    checked = ""
+    if check.get("median_error"):
+        checked = (
+            f"; on {check.get('n_pairs')} held-out generated pairs median diameter "
+            f"{_number((check['median_error'] or {}).get('value'), '{:+.1%}')}, count "
+            f"{_number((check.get('count_error') or {}).get('value'), '{:+.1%}')}, edge "
+            f"{_number(check.get('edge_offset_px'), '{:+.2f}')} px"
+        )
     return {
         "line": f"{metrics.get('epoch')} epochs ({metrics.get('stop_reason')}), val DSC "
         f"{_number(metrics.get('val/dsc'))}, split depth {calibration.get('split_depth')} core "
-        f"{calibration.get('split_core')}{weight}",
-        "metrics": {"segment/val_dsc": metrics.get("val/dsc"), "segment/epochs": metrics.get("epoch")},
+        f"{calibration.get('split_core')}{weight}{checked}",
+        "metrics": {"segment/val_dsc": metrics.get("val/dsc"), "segment/epochs": metrics.get("epoch")}
+        | {k: metrics[k] for k in ("check/median_error", "check/count_error", "check/edge_offset_px") if k in metrics},
         "val_dsc": metrics.get("val/dsc"),
         "stop_reason": metrics.get("stop_reason"),
         "settled": metrics.get("settled"),
@@ -138,7 +148,11 @@ def analyze_summary(folder: Path) -> dict:
     interval = (
         f" [{_number(low, '{:.1f}')}, {_number(high, '{:.1f}')}]" if isinstance(low, float) and low == low else ""
     )
+    classical = (_json(folder.parent / "profile" / "profile.json").get("sizes") or {}).get("median_diameter_px")
     return {
+        "closed_loop": summary.get("closed_loop"),
+        "median_diameter_px": summary.get("median_diameter_px"),
+        "classical_median_px": classical,
         "line": f"{_number(count, '{:.0f}')} particles in {summary.get('images')} images, median diameter "
         f"{_number(median, '{:.1f}')}{interval} {unit}" + (f", {model}" if model else ""),
         "metrics": {"analyze/particles": count, f"analyze/median_diameter_{unit}": median},
@@ -165,6 +179,24 @@ def evaluate_summary(folder: Path) -> dict:
         "scores": scores,
         "statistics": {k: stats[k] for k in ("median_error", "count_error", "ks", "w1") if k in stats},
     }
+
+
+def analyze_details(summary: dict, settings) -> list[str]:
+    """The analyze stage's report lines: how far its sizes can be trusted (the segmenter's closed-loop check) and how
+    they compare with the profile's classical ones (drgan.segmenters.closed_loop)."""
+    from drgan.segmenters.closed_loop import compare_with_classical, trust_line
+
+    if not summary:
+        return []
+    check = summary.get("closed_loop")
+    lines = [f"- how far these sizes can be trusted: {trust_line(check)}" if check else (
+        "- how far these sizes can be trusted: the segmenter has no closed-loop check (no held-out generated pairs)"
+    )]  # fmt: skip
+    lines.append(
+        "- against the profile: "
+        + compare_with_classical(summary.get("median_diameter_px"), summary.get("classical_median_px"), check)
+    )
+    return lines
 
 
 # --- report.md ---------------------------------------------------------------------------------------------

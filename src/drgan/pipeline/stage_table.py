@@ -136,6 +136,7 @@ PIPELINE: list[StageSpec] = [
         keys=("model", "images", "out"),
         done=lambda c: c.folder("analyze") / "particles.csv",
         summary=report.analyze_summary,
+        details=report.analyze_details,
         what="segments every image of the folder and measures each particle",
         links=(("statistics", "statistics.md"), ("size distribution", "sizes.png"), ("particles", "particles.csv"),
                ("overlays", "overlays")),
