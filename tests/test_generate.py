@@ -247,6 +247,11 @@ def test_dataset_layout_masks_and_manifest(dataset):
         assert set(row) == {"real", "generated", "ratio"}
         if row["ratio"] is not None:
             assert row["ratio"] == pytest.approx(row["generated"] / row["real"], rel=1e-2)
+    # The edge check (drgan.synthetic.edge_check): written with its figure; 24 px renders hold no isolated particle
+    # with the background ring the profile needs, so its sides may be empty, but never half-written
+    edges = json.loads((dataset / "edge_check.json").read_text())
+    assert set(edges) >= {"real", "generated", "generated_mask", "half_px_difference", "width_ratio", "images"}
+    assert edges["images"]["generated"] == N and (dataset / "edge_check.png").is_file()
     # Nothing half-written: no temporary files anywhere.
     assert not [p for p in dataset.rglob("*") if p.name.startswith(".") or ".tmp" in p.name]
 

@@ -14,7 +14,7 @@ What `closed_loop` returns (and drgan.segment stores in the checkpoint as ``CLOS
 predicted minus true equivalent diameter of the matched particles: twice the outline's offset from the true edge;
 ``edge_offset_px`` is that offset itself); ``merged`` / ``split`` / ``missed`` / ``outline`` (shares of the true
 particles, drgan.metrics.instance_scores.error_sources), ``false`` (share of the predictions); AP50, DSC and SQ;
-``n_pairs`` and ``n_true``. A report quotes it as "on generated images like yours this segmenter measures diameters
+``n_pairs``, ``n_true`` and the pairs' ``ids``. A report quotes it as "on generated images like yours this segmenter measures diameters
 +x % [interval] and counts y %" (`trust_line`).
 """
 
@@ -105,7 +105,7 @@ def closed_loop(
         truth.append(particles(true_labels).at_least(min_area_px))
         sources.append(error_sources(pred_labels, true_labels))
         scores.append(segmentation_scores(pred_labels, true_labels))
-    return summarise(found, truth, sources, scores, n_boot, seed)
+    return {**summarise(found, truth, sources, scores, n_boot, seed), "ids": [str(p.id) for p in pairs]}
 
 
 def summarise(found, truth, sources, scores, n_boot: int = 200, seed: int = 0) -> dict:

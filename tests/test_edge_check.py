@@ -1,0 +1,46 @@
+"""The generated-against-real edge check: the profile's edge measurement recovers a known blur."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from drgan.synthetic.edge_check import compare, crossing, edge_of
+
+
+def blurred_discs(sigma: float, n: int = 12, size: int = 96, radius: float = 11.0):
+    """n images of one bright disc (grey 0.8 on 0.2) blurred by a Gaussian of ``sigma`` px, with its pixel-centre mask."""
+    images, labels = [], []
+    for k in range(n):
+        centre = size / 2 + 0.37 * k % 1.0  # sub-pixel positions differ
+        fine = 4  # the disc drawn at 4 x and area-averaged: a continuous edge
+        yy, xx = (np.mgrid[: size * fine, : size * fine] + 0.5) / fine
+        disc = ((yy - centre) ** 2 + (xx - centre) ** 2 <= radius**2).astype(float)
+        disc = disc.reshape(size, fine, size, fine).mean(axis=(1, 3))
+        images.append(0.2 + 0.6 * ndi.gaussian_filter(disc, sigma))
+        y, x = np.mgrid[:size, :size] + 0.5
+        labels.append(((y - centre) ** 2 + (x - centre) ** 2 <= radius**2).astype(np.int32))
+    return images, labels
+
+
+def test_crossing_interpolates_between_bins():
+    assert crossing([-1, 0, 1, 2], [1.0, 0.8, 0.4, 0.0], 0.5) == pytest.approx(0.75)
+    assert np.isnan(crossing([0, 1], [1.0, 0.9], 0.5))
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.0])
+def test_the_edge_profile_recovers_a_known_blur_and_puts_half_contrast_on_the_true_edge(sigma):
+    images, labels = blurred_discs(sigma)
+    ramp = edge_of(images, lambda k: labels[k], lambda k: labels[k] > 0)
+    assert ramp["particles"] == 12
+    # a Gaussian-blurred straight edge rises from 10 to 90 % over 2 x 1.2816 sigma (the disc's curvature adds little)
+    assert ramp["width_px"] == pytest.approx(2.5631 * sigma, rel=0.15)
+    assert abs(ramp["half_px"]) < 0.35  # a symmetric blur keeps half contrast on the edge
+
+
+def test_a_wider_rendered_blur_is_reported_as_a_wider_ramp():
+    sharp, wide = blurred_discs(1.0), blurred_discs(2.0)
+    real = edge_of(sharp[0], lambda k: sharp[1][k], lambda k: sharp[1][k] > 0)
+    generated = edge_of(wide[0], lambda k: wide[1][k], lambda k: wide[1][k] > 0)
+    assert compare(real, generated)["width_ratio"] == pytest.approx(2.0, rel=0.2)
