@@ -160,3 +160,19 @@ def test_the_report_says_when_the_segmenter_and_the_classical_sizes_disagree_and
     assert "Neither is trusted" in compare_with_classical(80.0, 50.0, check_of(0.20, 0.15, 0.25))
     assert "without a closed-loop check" in compare_with_classical(58.0, 50.0, None)
     assert "missing" in compare_with_classical(None, 50.0, exact)
+
+
+def test_the_rendered_pairs_contour_is_redrawn_from_their_labels_and_ignored_pixels_stay_ignored():
+    from drgan.segment import redrawn_contours
+
+    labels = np.zeros((64, 64), np.int32)
+    labels[8:18, 8:18], labels[8:18, 18:28] = 1, 2
+    rendered = pair_of(labels, "r")
+    rendered.mask[0:4, 0:4] = IGNORE
+    handmade = Pair("h", rendered.image, class_mask(labels, 1), None)
+    wide, kept = redrawn_contours([rendered, handmade], 3)
+    expected = class_mask(labels, 3)
+    expected[0:4, 0:4] = IGNORE
+    np.testing.assert_array_equal(wide.mask, expected)
+    assert (wide.mask == 2).sum() > (class_mask(labels, 1) == 2).sum()  # a wider line between the touching two
+    assert kept is handmade and redrawn_contours([rendered], None) == [rendered]

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from drgan.errors import ConfigError, check_keys, setting_float, setting_int
@@ -133,6 +134,9 @@ class LoaderSettings:
     texture: float = 0.1  # std of the surface texture added to each crop (pairs.surface_texture); 0: none
     contact_shade: float = 0.0  # largest depth of the dip drawn at the contacts of touching particles; 0: none
     working_px: float | str | None = "auto"  # the median particle's diameter in the crops (pairs.working_scale)
+    contour_px: int | None = (
+        None  # generated pairs' contour class redrawn from their exact labels this wide; None: theirs
+    )
     seed: int = 0
     val_fraction: float = 0.1
 
@@ -150,6 +154,7 @@ class LoaderSettings:
             texture=setting_float("loader.texture", ld.texture, 0.0),
             contact_shade=_fraction("loader.contact_shade", ld.contact_shade),
             working_px=_working_px(ld.get("working_px", "auto")),
+            contour_px=None if ld.get("contour_px") is None else setting_int("loader.contour_px", ld.contour_px, 0),
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
@@ -198,6 +203,26 @@ def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_
         "checkpoints)", ld.working_px, median, scale, median * scale, contour, pixel_scale * scale,
     )  # fmt: skip
     return [shrink_pair(p, scale, contour) for p in pairs], round(pixel_scale * scale, 6), scale, diameter
+
+
+def redrawn_contours(pairs, contour_px: int | None):
+    """``pairs`` with the contour class of those that carry exact instance labels (rendered pairs) drawn anew
+    ``contour_px`` wide (drgan.scene.labels.class_mask; IGNORE pixels kept); unchanged for None."""
+    from drgan.scene.labels import IGNORE, class_mask
+    from drgan.segmenters.pairs import Pair
+
+    if contour_px is None:
+        return pairs
+    out = []
+    for pair in pairs:
+        if pair.labels is None:
+            out.append(pair)
+            continue
+        mask = class_mask(pair.labels, contour_px).astype(np.uint8)
+        mask[pair.mask == IGNORE] = IGNORE
+        out.append(Pair(pair.id, pair.image, mask, pair.labels))
+    log.info("loader.contour_px=%d: the rendered pairs' contour class redrawn from their exact labels", contour_px)
+    return out
 
 
 def _fraction(key: str, value) -> float:
@@ -328,11 +353,11 @@ def segment(cfg: DictConfig) -> dict:
             )
         log.info("model.contact_weight=%s (%s)", cfg.model.contact_weight, contact_why)
     model = build_segmenter(cfg.model, "model")
-    pairs = source.load()
+    redraw = LoaderSettings.from_config(cfg).contour_px
+    pairs = redrawn_contours(source.load(), redraw)
     pixel_scale = source.pixel_scale(manifest)
-    pairs, pixel_scale, working, diameter = at_working_scale(
-        cfg, model, pairs, pixel_scale, source.contour_width(manifest)
-    )
+    contour_width = source.contour_width(manifest) if redraw is None else redraw
+    pairs, pixel_scale, working, diameter = at_working_scale(cfg, model, pairs, pixel_scale, contour_width)
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
