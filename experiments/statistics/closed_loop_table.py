@@ -24,7 +24,7 @@ def main() -> None:
             continue
         m = c["median_error"]
         interval = f" [{percent(m['low'])}, {percent(m['high'])}]" if m.get("low") is not None else ""
-        share = lambda k: "n/a" if c.get(k) is None else f"{100 * c[k]:.1f} %"  # noqa: E731
+        share = lambda k, c=c: "n/a" if c.get(k) is None else f"{100 * c[k]:.1f} %"  # noqa: E731
         print(
             f"| {Path(path).parent.name} | {c['n_pairs']} | {c['n_true']} | {percent(m)}{interval} | "
             f"{percent(c['mean_error'])} | {percent(c['count_error'])} | {c['edge_offset_px']:+.2f} | {share('merged')} "
