@@ -116,6 +116,28 @@ def hand_losses(logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0) ->
     return ce / max(count, 1), 1.0 - float(np.mean((2 * inter + eps) / (total + eps)))
 
 
+def test_the_extent_dice_is_the_two_class_dice_of_background_and_particle_plus_contour():
+    from drgan.segmenters.module import SegmenterModule, extent_dice_loss
+
+    torch.manual_seed(0)
+    logits = torch.randn(2, 3, 6, 6)
+    target = torch.randint(0, 3, (2, 6, 6))
+    target[0, :2] = 255
+    probs = logits.double().softmax(1).numpy()
+    valid = target.numpy() != 255
+    fg_p, fg_t = (probs[:, 1] + probs[:, 2])[valid], (target.numpy() > 0)[valid] * 1.0
+    bg_p, bg_t = probs[:, 0][valid], 1.0 - fg_t
+    by_hand = 1 - np.mean([(2 * (p * t).sum() + 1) / (p.sum() + t.sum() + 1) for p, t in ((bg_p, bg_t), (fg_p, fg_t))])
+    assert float(extent_dice_loss(logits, target)) == pytest.approx(by_hand, rel=1e-5)
+    # how the extent's probability is shared between particle and contour does not move it
+    moved = logits.clone()
+    moved[:, 1] = torch.logaddexp(logits[:, 1], logits[:, 2]) - np.log(2)
+    moved[:, 2] = moved[:, 1]
+    assert float(extent_dice_loss(moved, target)) == pytest.approx(float(extent_dice_loss(logits, target)), rel=1e-5)
+    with pytest.raises(ConfigError, match="model.dice"):
+        SegmenterModule(dice="contour")
+
+
 def test_losses_and_val_dsc_leave_ignored_pixels_out():
     import torch.nn.functional as F
 

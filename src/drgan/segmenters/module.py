@@ -32,6 +32,7 @@ __all__ = [
     "cross_entropy",
     "load_segmenter",
     "particle_dsc",
+    "extent_dice_loss",
     "soft_dice_loss",
 ]
 
@@ -49,6 +50,21 @@ def soft_dice_loss(
     inter = (probs * onehot).sum(dim=(0, 2, 3))
     total = probs.sum(dim=(0, 2, 3)) + onehot.sum(dim=(0, 2, 3))
     return 1.0 - ((2 * inter + eps) / (total + eps)).mean()
+
+
+def extent_dice_loss(
+    logits: torch.Tensor, target: torch.Tensor, eps: float = 1.0, ignore_index: int = IGNORE
+) -> torch.Tensor:
+    """`soft_dice_loss` of the two-class map the instances are cut from: background against the particle's extent
+    (particle + contour probabilities; target classes 1 and 2), so that a thin contour class is not a Dice class of
+    its own (whose soft Dice rewards a wider predicted rim, partly outside the particle)."""
+    probs = logits.softmax(dim=1)
+    extent = torch.stack([probs[:, 0], probs[:, 1:].sum(dim=1)], dim=1)
+    two = torch.where(target == ignore_index, target, (target > 0).to(target.dtype))
+    return soft_dice_loss(extent.clamp_min(1e-12).log(), two, eps, ignore_index)
+
+
+DICE_MODES = ("classes", "extent")  # SegmenterModule's dice: over the three classes, or over background / extent
 
 
 def cross_entropy(
@@ -122,6 +138,7 @@ class SegmenterModule(L.LightningModule):
         normalize: str = "none",
         contact_weight: float = 0.0,
         contact_reach: int = 3,
+        dice: str = "classes",
     ):
         super().__init__()
         # "none" by default: the synthetic images' grey levels are the real ones, so no normalisation is needed.
@@ -130,6 +147,8 @@ class SegmenterModule(L.LightningModule):
             raise ConfigError(f"model.contact_weight={contact_weight!r}: expected a number >= 0 (0: every pixel alike)")
         if isinstance(contact_reach, bool) or not isinstance(contact_reach, int) or contact_reach < 1:
             raise ConfigError(f"model.contact_reach={contact_reach!r}: expected a whole number of px >= 1")
+        if dice not in DICE_MODES:
+            raise ConfigError(f"model.dice={dice!r}: expected one of {', '.join(DICE_MODES)}")
         self.save_hyperparameters()
         self.net = UNet(1, n_classes, depth, base)
 
@@ -153,8 +172,14 @@ class SegmenterModule(L.LightningModule):
         if self.hparams.contact_weight > 0:
             weight = 1.0 + self.hparams.contact_weight * contact_pixels(mask, self.hparams.contact_reach).float()
         ce = cross_entropy(logits, mask, weight=weight)
-        dl = soft_dice_loss(logits, mask)
+        dl = self.dice_loss(logits, mask)
         return logits, ce, dl, self.hparams.ce_weight * ce + self.hparams.dice_weight * dl
+
+    def dice_loss(self, logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """The soft Dice of ``model.dice``: over the three classes, or over background and the particles' extent."""
+        if self.hparams.get("dice", "classes") == "extent":
+            return extent_dice_loss(logits, mask)
+        return soft_dice_loss(logits, mask)
 
     def training_step(self, batch, batch_idx):
         _, ce, dl, loss = self._losses(batch)

@@ -25,6 +25,8 @@ import math
 
 import numpy as np
 
+from drgan.data.particle_edge import MIN_BIN_PARTICLES
+
 log = logging.getLogger(__name__)
 
 SAMPLE = 64  # images measured on each side (the first ones)
@@ -48,7 +50,9 @@ def ramp(edge) -> dict | None:
     itself (for figures); None without a profile."""
     if edge is None:
         return None
-    use = edge.usable
+    # bins seen on enough particles; saturated ones too (a clipped background or rim still places the ramp, which the
+    # profile's fringe fit, drgan.data.particle_edge, cannot use)
+    use = (edge.particles_per_bin >= MIN_BIN_PARTICLES) & np.isfinite(edge.profile)
     d, p = edge.distance_px[use], edge.profile[use]
     half, inner, outer = (crossing(d, p, level) for level in (0.5, 0.9, 0.1))
     return {
