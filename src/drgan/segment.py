@@ -246,11 +246,14 @@ def load_training_pairs(cfg: DictConfig):
     return checked_source(cfg).load()
 
 
-def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool = False, scale: float = 1.0):
+def dataloaders(
+    cfg: DictConfig, pairs, normalize: str = "none", centres: bool = False, scale: float = 1.0, rays=(0, 64)
+):
     """Train and validation loaders of the pairs; ``normalize``: the segmenter's input normalisation, which its
     training crops get as its inference will (``input_normalization``); ``centres``: the crops carry centre-map
     targets too (an instance-aware segmenter, ``needs_centres``); ``scale``: the working scale the pairs were shrunk
-    by (`at_working_scale`), so that real images keep the crops per epoch of their original area."""
+    by (`at_working_scale`), so that real images keep the crops per epoch of their original area; ``rays``: (number,
+    longest px) of the ray distances the crops carry (the star-convex segmenter, drgan.segmenters.star; 0: none)."""
     from torch.utils.data import DataLoader
 
     from drgan.segmenters.pairs import CropDataset, crops_by_area, split_pairs
@@ -271,6 +274,8 @@ def dataloaders(cfg: DictConfig, pairs, normalize: str = "none", centres: bool =
         seed=ld.seed,
         normalize=normalize,
         centres=centres,
+        rays=rays[0],
+        ray_px=rays[1],
     )
     crops = CropDataset(train_pairs, augment=True, samples_per_pair=per_pair, **kw)
     train = DataLoader(
@@ -376,6 +381,7 @@ def segment(cfg: DictConfig) -> dict:
         str(getattr(model, "input_normalization", "none")),
         bool(getattr(model, "needs_centres", False)),
         working,
+        (int(getattr(model, "rays", 0)), int(getattr(model, "hparams", {}).get("ray_px", 64))),
     )
     out.mkdir(parents=True, exist_ok=True)
 
@@ -490,7 +496,7 @@ def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) 
     add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
     chosen = (
         f"seed_level {calibration['seed_level']}"
-        if calibration.get("split") == "centres"
+        if calibration.get("split") in ("centres", "star")
         else f"split_depth {calibration['split_depth']}, split_core {calibration['split_core']}"
     )
     log.info(

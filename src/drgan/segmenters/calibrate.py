@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_KEY = "drgan_split"
 # the defaults of evaluate/analyze for a checkpoint that has no calibration (chosen on TiO2 SEM train images)
+SEEDED = ("centres", "star")  # splits seeded at a level of a predicted map (seed_level), not at a split depth
 UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95, "seed_level": 0.5}
 GRID_DEFAULTS = {
     "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
@@ -111,11 +112,13 @@ def calibrate_split(
     for pair in iterator:
         probs.append(predict_probs(model, pair.image, **predict_kw))
         truths.append(binarize_and_label(pair.mask))  # the particle class's 4-connected components
-    centres = split_of(model) == "centres"
+    own = split_of(model)
+    centres = own in SEEDED
     if centres:
-        candidates = [
-            ({"seed_level": level}, lambda p, v=level: split_by_centres(p, v)) for level in settings["levels"]
-        ]
+        from drgan.segmenters.star import split_by_stars
+
+        seeded = split_by_stars if own == "star" else split_by_centres
+        candidates = [({"seed_level": level}, lambda p, v=level: seeded(p, v)) for level in settings["levels"]]
     else:
         candidates = [
             (
@@ -138,7 +141,7 @@ def calibrate_split(
         raise ValueError("calibrate_split: the validation pairs hold no particles and no prediction found any")
     particle_px = median_diameter(truths)
     best = tied_best(scored, particle_px)
-    chosen_setting = {"split": "centres", "seed_level": best["seed_level"]} if centres else {"split": "watershed"}
+    chosen_setting = {"split": own, "seed_level": best["seed_level"]} if centres else {"split": "watershed"}
     return {
         **chosen_setting,
         "split_depth": best.get("split_depth", UNCALIBRATED["split_depth"]),
@@ -231,7 +234,7 @@ def markdown_table(calibration: Mapping) -> str:
     """The calibration grid as a markdown table (depth rows, core columns, AP50; a seed level row for the
     instance-aware segmenter)."""
     rows = calibration["table"]
-    if calibration.get("split") == "centres":
+    if calibration.get("split") in SEEDED:
         levels = [row["seed_level"] for row in rows]
         cells = [
             f"**{row['ap50']:.3f}**" if row["seed_level"] == calibration["seed_level"] else f"{row['ap50']:.3f}"

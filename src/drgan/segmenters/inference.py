@@ -32,7 +32,7 @@ from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import normalization
 
 log = logging.getLogger(__name__)
-SPLITS = ("auto", "watershed", "centres", "none")  # auto: the segmenter's own (`split_of`)
+SPLITS = ("auto", "watershed", "centres", "star", "none")  # auto: the segmenter's own (`split_of`)
 
 
 def gaussian_weight(tile: int, sigma_fraction: float = 0.125) -> torch.Tensor:
@@ -252,6 +252,17 @@ def predict(
         if scale != 1.0:
             probs = resample_probs(probs, np.shape(image))
             depth, smooth = split_depth / scale, split_smooth / scale
+        if split == "star":
+            if probs.shape[0] < 6:
+                raise ConfigError(
+                    "inference.split=star: this segmenter has no ray distances (only drgan.segmenters.star."
+                    "StarSegmenterModule has); use split=watershed or auto"
+                )
+            from drgan.segmenters.star import split_by_stars
+
+            if scale != 1.0:
+                probs[4:] /= scale  # ray lengths in px of the network's scale -> of the image's
+            return split_by_stars(probs, seed_level), probs
         if split == "centres":
             if probs.shape[0] != 4:
                 raise ConfigError(

@@ -455,6 +455,8 @@ class CropDataset(Dataset):
         centres: bool = False,
         texture: float = 0.0,
         contact_shade: float = 0.0,
+        rays: int = 0,
+        ray_px: int = 64,
     ):
         if not pairs:
             raise DataError("segmentation dataset: no image/mask pairs")
@@ -471,6 +473,8 @@ class CropDataset(Dataset):
         # centre-map targets of whole images (their particles' extents), cut like the masks (an instance-aware segmenter)
         self.centres = [centre_map(p) for p in pairs] if centres else None
         self.contact_shade = float(contact_shade)
+        # ray distances of each crop's instances (the star-convex segmenter, drgan.segmenters.star), with the centres
+        self.rays, self.ray_px = (int(rays), int(ray_px)) if centres else (0, int(ray_px))
 
     def __len__(self) -> int:
         return len(self.owner)
@@ -481,8 +485,9 @@ class CropDataset(Dataset):
         rng = np.random.default_rng() if self.augment else np.random.default_rng((self.seed, index))
         image, mask = pair.image, pair.mask
         maps = [image, mask] + ([self.centres[owner]] if self.centres is not None else [])
-        if self.augment and self.contact_shade > 0:
-            maps.append(pair.instances())  # cut like the masks; only the shading reads it
+        with_instances = (self.augment and self.contact_shade > 0) or self.rays > 0
+        if with_instances:
+            maps.append(pair.instances())  # cut like the masks; the shading and the rays read it
         c = self.crop
         h, w = image.shape
         if h < c or w < c:
@@ -515,4 +520,9 @@ class CropDataset(Dataset):
         )
         if self.centres is None:
             return sample
-        return (*sample, torch.from_numpy(np.ascontiguousarray(maps[2], dtype=np.float32)))
+        sample = (*sample, torch.from_numpy(np.ascontiguousarray(maps[2], dtype=np.float32)))
+        if not self.rays:
+            return sample
+        from drgan.segmenters.star import ray_distances
+
+        return (*sample, torch.from_numpy(ray_distances(np.ascontiguousarray(maps[-1]), self.rays, self.ray_px)))

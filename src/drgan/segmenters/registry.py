@@ -48,7 +48,7 @@ __all__ = [
 
 ENTRY_POINT_GROUP = "drgan.segmenters"
 # Modules whose import registers drgan's own segmenters; a lookup imports them (constant names, never a file's).
-BUILTIN_MODULES = ("drgan.segmenters.module", "drgan.segmenters.instances")
+BUILTIN_MODULES = ("drgan.segmenters.module", "drgan.segmenters.instances", "drgan.segmenters.star")
 EXPECTED = "a segmenter checkpoint written by `python -m drgan.segment`"
 # Checkpoints written before the package was named drgan.segmenters name their class by its old module path.
 _OLD_PACKAGE, _PACKAGE = "drgan.segmentation.", "drgan.segmenters."
