@@ -48,7 +48,9 @@ def test_the_core_that_opens_an_unsure_neck_is_chosen_and_the_table_is_exact():
     from drgan.segmenters.calibrate import calibrate_split
 
     pair = _pair(_two_touching_discs(r=10.0, gap=7.0), neck_probability=0.6)
-    result = calibrate_split(ProbabilityImage(), [pair, pair], {"cores": [None, 0.7], "depths": [2.0]}, tile=48)
+    result = calibrate_split(
+        ProbabilityImage(), [pair, pair], {"cores": [None, 0.7], "depths": [2.0], "seeds": ["hmaxima"]}, tile=48
+    )
     argmax, strict = result["table"]
     # the argmax core sees one blob per image, matching neither disc (IoU < 0.5 with each half)
     assert (argmax["tp"], argmax["fp"], argmax["fn"]) == (0, 2, 4) and argmax["ap50"] == 0.0
@@ -61,7 +63,10 @@ def test_ties_keep_the_more_lenient_setting_and_max_pairs_caps_the_work():
 
     apart = _pair(_two_touching_discs(r=7.0, gap=20.0))  # well apart: every setting finds both
     result = calibrate_split(
-        ProbabilityImage(), [apart] * 5, {"cores": [None, 0.9], "depths": [1.0, 2.0], "max_pairs": 3}, tile=48
+        ProbabilityImage(),
+        [apart] * 5,
+        {"cores": [None, 0.9], "depths": [1.0, 2.0], "max_pairs": 3, "seeds": ["hmaxima"]},
+        tile=48,
     )
     assert all(row["ap50"] == 1.0 for row in result["table"]) and len(result["table"]) == 4
     assert (result["split_depth"], result["split_core"], result["n_pairs"]) == (1.0, None, 3)
@@ -102,6 +107,7 @@ def test_ties_between_depths_follow_the_particles_size():
         ({"cores": []}, "at least one value"),
         ({"max_pairs": 0}, "max_pairs: 0"),
         ({"core": [0.5]}, "unknown key"),
+        ({"seeds": ["peaks"]}, "seeds"),
     ],
 )
 def test_bad_grids_are_config_errors_naming_the_entry(grid, message):
@@ -151,3 +157,38 @@ def test_segment_yaml_grid_is_the_calibration_default():
 
     grid = OmegaConf.to_container(compose(["data=D"], config_name="segment").split_calibration)
     assert check_grid(grid) == check_grid(GRID_DEFAULTS) and grid == GRID_DEFAULTS
+
+
+def test_every_core_piece_the_contour_cut_off_keeps_a_seed():
+    from drgan.metrics.instance_scores import binarize_and_label
+    from drgan.segmenters.inference import split_touching
+
+    # a small particle (r 3.5) touching a large one (r 8): its core's dome is lower than the h-maxima depth of 2 px, so
+    # it gets no seed and the large one's flood takes it (one merged particle); every piece keeps a seed: both exact
+    yy, xx = np.mgrid[:32, :32]
+    labels = np.zeros((32, 32), np.int32)
+    labels[(yy - 16) ** 2 + (xx - 11) ** 2 <= 8**2] = 1
+    labels[((yy - 16) ** 2 + (xx - 22.5) ** 2 <= 3.5**2) & (labels == 0)] = 2
+    classes = class_mask(labels, 1)
+    probs = np.stack([(classes == c).astype(np.float32) for c in range(3)])
+    merged = binarize_and_label(split_touching(probs, 2.0, 1.0, None, "hmaxima"))
+    apart = binarize_and_label(split_touching(probs, 2.0, 1.0, None, "components"))
+    assert merged.max() == 1 and (merged > 0).sum() == (labels > 0).sum()
+    assert apart.max() == 2 and sorted(np.bincount(apart.ravel())[1:]) == [(labels == 2).sum() - 1, (labels == 1).sum()]
+    with pytest.raises(ConfigError, match="split_seeds"):
+        split_touching(probs, 2.0, 1.0, None, "peaks")
+
+
+def test_the_calibration_scores_against_exact_labels_where_the_pairs_carry_them():
+    from drgan.segmenters.calibrate import calibrate_split
+
+    labels = _two_touching_discs(r=7.0, gap=20.0)
+    plain = _pair(labels)
+    exact = Pair("p", plain.image, plain.mask, labels)
+    grid = {"cores": [None], "depths": [1.0], "seeds": ["hmaxima", "components"]}
+    with_labels = calibrate_split(ProbabilityImage(), [exact], grid, tile=48)
+    without = calibrate_split(ProbabilityImage(), [plain], grid, tile=48)
+    # the particle's whole extent (its contour rim included) against the particle class alone: 2 px wider
+    assert with_labels["particle_px"] == pytest.approx(without["particle_px"] + 2.0, abs=0.6)
+    assert [row["split_seeds"] for row in with_labels["table"]] == ["hmaxima", "components"]
+    assert with_labels["split_seeds"] == "hmaxima"  # a tie keeps the first rule

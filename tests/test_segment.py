@@ -759,7 +759,7 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     assert load_segmenter(last).input_normalization == "zscore"  # travels with the checkpoint to inference
     # the split chosen on the validation pairs is stored in the checkpoint and read back by evaluate's auto
     calibration = json.loads((out / "metrics.json").read_text())["split_calibration"]
-    assert calibration["n_pairs"] >= 1 and len(calibration["table"]) == 7 * 5  # cores x depths of the default grid
+    assert calibration["n_pairs"] >= 1 and len(calibration["table"]) == 2 * 7 * 5  # seeds x cores x depths
     assert load_segmenter(last).split_calibration == calibration
     epoch_file = next((out / "checkpoints").glob("epoch_*.ckpt"))
     assert load_segmenter(last).pixel_scale == load_segmenter(epoch_file).pixel_scale == 0.5

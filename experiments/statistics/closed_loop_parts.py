@@ -58,6 +58,12 @@ def main() -> None:
     parser.add_argument("ckpt")
     parser.add_argument("generated")
     parser.add_argument("--thresholds", type=float, nargs="*", default=[0.3, 0.5, 0.7])
+    parser.add_argument("--tile", type=int, default=384, help="sliding-window tile (px); 128 cuts a pair into tiles")
+    parser.add_argument(
+        "--through-scale", type=float, default=None,
+        help="also predict each pair enlarged by 1 / S (bilinear) at pixel_scale S, as a real image of S x finer "
+        "pixels would be, scored against its labels enlarged alike",
+    )  # fmt: skip
     args = parser.parse_args()
     model = load_segmenter(args.ckpt)
     ids = set((model.closed_loop or {}).get("ids") or [])
@@ -66,10 +72,26 @@ def main() -> None:
     pairs = [p for p in load_generated_pairs(args.generated) if p.id in ids]
     settings = check_inference(model.split_calibration)
     ways = {"default": [], **{f"oracle split, fg > {t:g}": [] for t in args.thresholds}}
+    if args.through_scale:
+        ways[f"through pixel scale {args.through_scale:g}"] = []
     offsets = []
     for pair in pairs:
         truth = np.asarray(pair.instances()).astype(np.int64)
-        probs = predict_probs(model, pair.image)
+        probs = predict_probs(model, pair.image, tile=args.tile)
+        if args.through_scale:
+            from drgan.data.images import resample
+            from drgan.segmenters.inference import predict
+            from drgan.segmenters.pairs import _nearest
+
+            big = resample(pair.image, 1.0 / args.through_scale)
+            big_truth = _nearest(truth, big.shape).astype(np.int64)
+            classes = predict(
+                model, big, pixel_scale=args.through_scale, noise_match=False, annotations=False, tile=args.tile,
+                **settings,
+            )  # fmt: skip
+            ways[f"through pixel scale {args.through_scale:g}"].append(
+                row(binarize_and_label(classes.astype(np.int64)), big_truth)
+            )
         if split_of(model) == "watershed":
             classes = split_touching(
                 probs[:3], settings["split_depth"], settings["split_smooth"], settings["split_core"]

@@ -33,8 +33,9 @@ log = logging.getLogger(__name__)
 CHECKPOINT_KEY = "drgan_split"
 # the defaults of evaluate/analyze for a checkpoint that has no calibration (chosen on TiO2 SEM train images)
 SEEDED = ("centres", "star")  # splits seeded at a level of a predicted map (seed_level), not at a split depth
-UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95, "seed_level": 0.5}
+UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95, "seed_level": 0.5, "split_seeds": "hmaxima"}
 GRID_DEFAULTS = {
+    "seeds": ["hmaxima", "components"],  # inference.split_seeds (drgan.segmenters.inference.SEED_RULES); ties: first
     "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
     "depths": [1.0, 2.0, 4.0, 8.0, 16.0],  # px; the larger ones for particles of 100 px and more (EMPS actbio)
     "levels": [0.3, 0.4, 0.5, 0.6, 0.7],  # the instance-aware segmenter's seed levels (drgan.segmenters.instances)
@@ -66,6 +67,11 @@ def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | 
     settings = {**GRID_DEFAULTS, **dict(grid)}
     cores, depths = list(settings["cores"] or []), list(settings["depths"] or [])
     levels = list(settings["levels"] or [])
+    seeds = list(settings["seeds"] or [])
+    from drgan.segmenters.inference import SEED_RULES
+
+    if not seeds or any(rule not in SEED_RULES for rule in seeds):
+        raise ConfigError(f"{name}.seeds: {seeds!r}: expected one or more of {list(SEED_RULES)}")
     if not cores or not depths or not levels:
         raise ConfigError(
             f"{name}: cores, depths and levels need at least one value each (got {cores}, {depths}, {levels})"
@@ -86,6 +92,7 @@ def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | 
         "cores": [None if c is None else float(c) for c in cores],
         "depths": [float(d) for d in depths],
         "levels": [float(v) for v in levels],
+        "seeds": [str(rule) for rule in seeds],
         "max_pairs": max_pairs,
     }
 
@@ -111,7 +118,7 @@ def calibrate_split(
     probs, truths = [], []
     for pair in iterator:
         probs.append(predict_probs(model, pair.image, **predict_kw))
-        truths.append(binarize_and_label(pair.mask))  # the particle class's 4-connected components
+        truths.append(np.asarray(pair.instances()).astype(np.int64))  # exact labels where known, as evaluate scores
     own = split_of(model)
     centres = own in SEEDED
     if centres:
@@ -122,9 +129,10 @@ def calibrate_split(
     else:
         candidates = [
             (
-                {"split_depth": depth, "split_core": core},
-                lambda p, d=depth, c=core: split_touching(p, d, split_smooth, c),
+                {"split_seeds": rule, "split_depth": depth, "split_core": core},
+                lambda p, d=depth, c=core, r=rule: split_touching(p, d, split_smooth, c, r),
             )
+            for rule in settings["seeds"]
             for depth in settings["depths"]
             for core in settings["cores"]
         ]
@@ -146,6 +154,7 @@ def calibrate_split(
         **chosen_setting,
         "split_depth": best.get("split_depth", UNCALIBRATED["split_depth"]),
         "split_core": best.get("split_core", UNCALIBRATED["split_core"]),
+        "split_seeds": best.get("split_seeds", UNCALIBRATED["split_seeds"]),
         "split_smooth": float(split_smooth),
         "ap50": best["ap50"],
         "n_pairs": len(chosen),
@@ -200,6 +209,8 @@ def stored_split(checkpoint: Mapping, source: str = "checkpoint") -> dict | None
     level = entry.get("seed_level") if isinstance(entry, Mapping) else None
     if level is not None and not (isinstance(level, float) and 0 < level < 1):
         ok = False
+    if ok and entry.get("split_seeds", "hmaxima") not in ("hmaxima", "components"):
+        ok = False
     if not ok:
         log.warning("%s: its %s entry is not a split calibration; ignored", source, CHECKPOINT_KEY)
         return None
@@ -246,15 +257,23 @@ def markdown_table(calibration: Mapping) -> str:
         )  # fmt: skip
     cores = list(dict.fromkeys(row["split_core"] for row in rows))
     depths = list(dict.fromkeys(row["split_depth"] for row in rows))
-    head = "| depth \\ core | " + " | ".join("argmax" if c is None else f"{c:g}" for c in cores) + " |"
+    rules = list(dict.fromkeys(row.get("split_seeds", "hmaxima") for row in rows))
+    chosen_rule = calibration.get("split_seeds", "hmaxima")
+    head = "| seeds, depth \\ core | " + " | ".join("argmax" if c is None else f"{c:g}" for c in cores) + " |"
     lines = [head, "|" + "---|" * (len(cores) + 1)]
-    for depth in depths:
-        cells = []
-        for core in cores:
-            row = next(r for r in rows if r["split_depth"] == depth and r["split_core"] == core)
-            chosen = depth == calibration["split_depth"] and core == calibration["split_core"]
-            cells.append(f"**{row['ap50']:.3f}**" if chosen else f"{row['ap50']:.3f}")
-        lines.append(f"| {depth:g} | " + " | ".join(cells) + " |")
+    for rule in rules:
+        for depth in depths:
+            cells = []
+            for core in cores:
+                row = next(
+                    r for r in rows
+                    if r["split_depth"] == depth and r["split_core"] == core and r.get("split_seeds", "hmaxima") == rule
+                )  # fmt: skip
+                chosen = (
+                    depth == calibration["split_depth"] and core == calibration["split_core"] and rule == chosen_rule
+                )
+                cells.append(f"**{row['ap50']:.3f}**" if chosen else f"{row['ap50']:.3f}")
+            lines.append(f"| {rule}, {depth:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -115,9 +115,16 @@ def split_of(model, split: str = "auto") -> str:
     return getattr(model, "instance_split", "watershed")
 
 
-def check_split(split: str, split_depth: float, split_smooth: float, split_core: float | None = None) -> None:
+SEED_RULES = ("hmaxima", "components")  # the watershed split's seeds: h-maxima only, or every core piece kept too
+
+
+def check_split(
+    split: str, split_depth: float, split_smooth: float, split_core: float | None = None, split_seeds: str = "hmaxima"
+) -> None:
     if split not in SPLITS:
         raise ConfigError(f"inference.split={split!r}: expected one of {SPLITS}")
+    if split_seeds not in SEED_RULES:
+        raise ConfigError(f"inference.split_seeds={split_seeds!r}: expected one of {SEED_RULES} (or auto)")
     if split_core is not None and not 0.0 < split_core < 1.0:
         raise ConfigError(
             f"inference.split_core={split_core}: expected a particle probability in (0, 1), or null (the argmax)"
@@ -149,15 +156,21 @@ def separate_regions(labels: np.ndarray) -> np.ndarray:
 
 
 def split_touching(
-    probs: np.ndarray, split_depth: float = 2.0, split_smooth: float = 1.0, split_core: float | None = None
+    probs: np.ndarray,
+    split_depth: float = 2.0,
+    split_smooth: float = 1.0,
+    split_core: float | None = None,
+    split_seeds: str = "hmaxima",
 ) -> np.ndarray:
     """(C, H, W) class probabilities -> (H, W) uint8 class map whose particle class separates touching
     particles (module docstring). ``split_core``: the particle core whose distance transform seeds the split is
     where the particle probability exceeds it (a stricter core opens the necks between touching particles);
-    None: where the particle class wins the argmax."""
-    from drgan.data.classical.watershed import distance_watershed
+    None: where the particle class wins the argmax. ``split_seeds``: "hmaxima", the h-maxima of the smoothed
+    distance transform; "components", those and at least one seed in every 4-connected piece of the core
+    (drgan.data.classical.watershed.component_seeds: a piece the contour class cut off is a particle of its own)."""
+    from drgan.data.classical.watershed import component_seeds, distance_watershed, flood
 
-    check_split("watershed", split_depth, split_smooth, split_core)
+    check_split("watershed", split_depth, split_smooth, split_core, split_seeds)
     probs = np.asarray(probs)
     if probs.ndim != 3 or probs.shape[0] < 3:
         raise DataError(f"split_touching: expected (3, H, W) class probabilities, got shape {probs.shape}")
@@ -167,7 +180,10 @@ def split_touching(
         return np.zeros(core.shape, np.uint8)
     # the classical segmentation's watershed, seeded at the h-maxima of the core's smoothed distance transform;
     # foreground pieces without a seed (no particle-class core) stay 0: they are stray contour pixels, not particles
-    labels = distance_watershed(core, foreground, smooth=split_smooth, depth=split_depth)
+    if split_seeds == "components":
+        labels = flood(*component_seeds(core, smooth=split_smooth, depth=split_depth), foreground)
+    else:
+        labels = distance_watershed(core, foreground, smooth=split_smooth, depth=split_depth)
     return separate_regions(labels)
 
 
@@ -211,6 +227,7 @@ def predict(
     split_smooth: float = 1.0,
     split_core: float | None = None,
     seed_level: float = 0.5,
+    split_seeds: str = "hmaxima",
     pixel_scale: float | str | None = None,
     noise_match: float | bool | None = None,
     annotations: bool = True,
@@ -236,7 +253,7 @@ def predict(
 
     ``annotations``: particles lying mostly on a figure's scale bar, its text or a panel letter
     (drgan.data.annotations.annotation_mask, as the classical segmentation leaves them out) are dropped."""
-    check_split(split, split_depth, split_smooth, split_core)
+    check_split(split, split_depth, split_smooth, split_core, split_seeds)
     split = split_of(model, split)
     own = getattr(model, "pixel_scale", 1.0)
     pixel_scale = resolve_pixel_scale(model, pixel_scale)
@@ -272,7 +289,7 @@ def predict(
             return split_by_centres(probs, seed_level), probs
         if split == "none":
             return probs[:3].argmax(axis=0).astype(np.uint8), probs
-        return split_touching(probs[:3], depth, smooth, split_core), probs
+        return split_touching(probs[:3], depth, smooth, split_core, split_seeds), probs
 
     classes, probs = classes_at(scale)
     better = image_scale(classes, probs, model.working_diameter, scale) if per_image else None
