@@ -108,6 +108,7 @@ def test_ties_between_depths_follow_the_particles_size():
         ({"max_pairs": 0}, "max_pairs: 0"),
         ({"core": [0.5]}, "unknown key"),
         ({"seeds": ["peaks"]}, "seeds"),
+        ({"objective": "dsc"}, "objective"),
     ],
 )
 def test_bad_grids_are_config_errors_naming_the_entry(grid, message):
@@ -192,3 +193,29 @@ def test_the_calibration_scores_against_exact_labels_where_the_pairs_carry_them(
     assert with_labels["particle_px"] == pytest.approx(without["particle_px"] + 2.0, abs=0.6)
     assert [row["split_seeds"] for row in with_labels["table"]] == ["hmaxima", "components"]
     assert with_labels["split_seeds"] == "hmaxima"  # a tie keeps the first rule
+
+
+def test_the_sizes_objective_takes_the_nearest_sizes_within_the_ap50_margin():
+    from drgan.segmenters.calibrate import SIZES_AP50_MARGIN, sizes_best
+
+    rows = [
+        {"split_depth": 1.0, "split_core": None, "ap50": 0.60, "median_error": 0.30, "count_error": -0.30},
+        {"split_depth": 2.0, "split_core": None, "ap50": 0.60 - SIZES_AP50_MARGIN / 2, "median_error": 0.05,
+         "count_error": -0.10},
+        {"split_depth": 4.0, "split_core": None, "ap50": 0.40, "median_error": 0.0, "count_error": 0.0},
+    ]  # fmt: skip
+    assert sizes_best(rows, 20.0) is rows[1]  # the exact third gives up too much detection
+    unknown = [{**row, "median_error": float("nan")} for row in rows]
+    assert sizes_best(unknown, 20.0) is unknown[0]  # no sizes to compare: by AP50 alone
+
+
+def test_calibrate_split_records_the_sizes_of_every_setting_and_chooses_by_the_objective():
+    from drgan.segmenters.calibrate import calibrate_split
+
+    pair = _pair(_two_touching_discs(r=10.0, gap=7.0), neck_probability=0.6)
+    exact = Pair("p", pair.image, pair.mask, _two_touching_discs(r=10.0, gap=7.0))
+    grid = {"cores": [None, 0.7], "depths": [2.0], "seeds": ["hmaxima"], "objective": "sizes"}
+    result = calibrate_split(ProbabilityImage(), [exact, exact], grid, tile=48)
+    merged, apart = result["table"]
+    assert merged["count_error"] == -0.5 and apart["count_error"] == 0.0  # one blob for two discs; both found
+    assert result["split_core"] == 0.7 and result["objective"] == "sizes" and result["count_error"] == 0.0

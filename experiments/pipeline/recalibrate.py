@@ -1,11 +1,14 @@
 """The touching-particle split a pipeline run's U-Net chooses on its own generated validation pairs, as
 `drgan.segment` chooses it after training (drgan.segmenters.calibrate), with another grid of h-maxima depths.
 
-    python experiments/pipeline/recalibrate.py runs/pipeline/NAME [--depths 1,2,4,8,16] [--store]
+    python experiments/pipeline/recalibrate.py runs/pipeline/NAME [--depths 1,2,4,8,16] [--store] [--check]
+    python experiments/pipeline/recalibrate.py SEGMENT_RUN --generated GENERATED ...     # any segment run folder
 
-Prints the AP50 table (depth x core) and the choice; ``--store`` writes the choice into RUN/segment/checkpoints/
-last.ckpt (the original kept as last.before_grid.ckpt), where evaluate and analyze read it (`split_core: auto`).
-The validation pairs are those `drgan.segment` held out (val_fraction 0.1, seed 0). Never a real test image."""
+Prints the AP50 table (seeds, depth x core) and the choice; ``--store`` writes the choice into the run's
+checkpoints/last.ckpt (the original kept as last.before_grid.ckpt), where evaluate and analyze read it (`split_core:
+auto`); ``--check`` then scores the closed-loop check again with it (drgan.segmenters.closed_loop) and stores it too.
+The validation pairs are those `drgan.segment` held out (its closed-loop pairs set aside first, then val_fraction 0.1,
+seed 0). Never a real test image."""
 
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ from drgan.segmenters.calibrate import (
     check_grid,
     markdown_table,
 )
+from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, hold_out, log_summary, trust_line
 from drgan.segmenters.pairs import load_generated_pairs, split_pairs
 from drgan.segmenters.registry import load_segmenter
 
@@ -31,13 +35,25 @@ def main() -> None:
     parser.add_argument("run", type=Path)
     parser.add_argument("--depths", default=",".join(str(d) for d in GRID_DEFAULTS["depths"]))
     parser.add_argument("--store", action="store_true")
+    parser.add_argument("--check", action="store_true")
+    parser.add_argument("--objective", default=GRID_DEFAULTS["objective"], choices=("ap50", "sizes"))
+    parser.add_argument("--generated", type=Path, default=None, help="the pairs of a segment run folder given as run")
+    parser.add_argument("--check-fraction", type=float, default=0.05)
     args = parser.parse_args()
-    last = args.run / "segment" / "checkpoints" / "last.ckpt"
+    folder = args.run if args.generated else args.run / "segment"
+    last = folder / "checkpoints" / "last.ckpt"
     before = last.with_name("last.before_grid.ckpt")
     model = load_segmenter(str(before if before.is_file() else last), "model")
-    pairs = load_generated_pairs(str(args.run / "generate"), setting="data")
-    validation = split_pairs(pairs, 0.1, 0)[1]
-    grid = check_grid({**GRID_DEFAULTS, "depths": [float(d) for d in args.depths.split(",")]})
+    pairs = load_generated_pairs(str(args.generated or args.run / "generate"), setting="data")
+    ids = set((model.closed_loop or {}).get("ids") or [])
+    if ids:
+        rest, check = [p for p in pairs if p.id not in ids], [p for p in pairs if p.id in ids]
+    else:
+        rest, check = hold_out(pairs, args.check_fraction, 0)
+    validation = split_pairs(rest, 0.1, 0)[1]
+    grid = check_grid(
+        {**GRID_DEFAULTS, "depths": [float(d) for d in args.depths.split(",")], "objective": args.objective}
+    )
     calibration = as_array_free(calibrate_split(model.eval(), validation, grid, progress=False))
     print(markdown_table(calibration))
     print({k: v for k, v in calibration.items() if k != "table"})
@@ -46,6 +62,12 @@ def main() -> None:
             shutil.copy2(last, before)
         add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
         print(f"stored in {last}")
+    if args.check and check:
+        result = closed_loop(model.eval(), check, calibration)
+        log_summary(result)
+        print(trust_line(result))
+        if args.store:
+            add_entry(last, CLOSED_LOOP_KEY, result, "ckpt_path")
 
 
 if __name__ == "__main__":

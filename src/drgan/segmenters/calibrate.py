@@ -35,6 +35,7 @@ CHECKPOINT_KEY = "drgan_split"
 SEEDED = ("centres", "star")  # splits seeded at a level of a predicted map (seed_level), not at a split depth
 UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95, "seed_level": 0.5, "split_seeds": "hmaxima"}
 GRID_DEFAULTS = {
+    "objective": "ap50",  # ap50: the highest validation AP50; sizes: the nearest sizes and counts (sizes_best)
     "seeds": ["hmaxima", "components"],  # inference.split_seeds (drgan.segmenters.inference.SEED_RULES); ties: first
     "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
     "depths": [1.0, 2.0, 4.0, 8.0, 16.0],  # px; the larger ones for particles of 100 px and more (EMPS actbio)
@@ -42,6 +43,8 @@ GRID_DEFAULTS = {
     "max_pairs": 100,
 }
 TIE = 0.002  # AP50 differences below this are ties, broken by the particles' size (tied_best)
+SIZES_AP50_MARGIN = 0.05  # objective sizes: the split may give up this much validation AP50 for exact sizes
+MIN_AREA_PX = 8.0  # components under this are specks in the size statistics (drgan.evaluate's min_area_px)
 # Median diameter (px) of the validation pairs' particles from which a tie between split depths goes to the larger
 # depth. Placed by four ties scored both ways on annotated train ids (experiments/pipeline/README.md, "Tied split
 # depths"): the larger depth won for particles of 58 and 221 px (EMPS cej, saa890: fewer fragments of rough or
@@ -68,6 +71,9 @@ def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | 
     cores, depths = list(settings["cores"] or []), list(settings["depths"] or [])
     levels = list(settings["levels"] or [])
     seeds = list(settings["seeds"] or [])
+    objective = settings["objective"]
+    if objective not in ("ap50", "sizes"):
+        raise ConfigError(f"{name}.objective: {objective!r}: expected ap50 or sizes")
     from drgan.segmenters.inference import SEED_RULES
 
     if not seeds or any(rule not in SEED_RULES for rule in seeds):
@@ -93,6 +99,7 @@ def check_grid(grid: Mapping | None, name: str = "split_calibration") -> dict | 
         "depths": [float(d) for d in depths],
         "levels": [float(v) for v in levels],
         "seeds": [str(rule) for rule in seeds],
+        "objective": objective,
         "max_pairs": max_pairs,
     }
 
@@ -136,19 +143,34 @@ def calibrate_split(
             for depth in settings["depths"]
             for core in settings["cores"]
         ]
+    from drgan.metrics.statistics import particles
+
+    true_particles = [particles(truth).at_least(MIN_AREA_PX) for truth in truths]
+    true_d = np.concatenate([t.whole().diameter for t in true_particles] or [np.zeros(0)])
+    true_n = sum(t.count for t in true_particles)
     table = []
     for setting, split in candidates:
-        tp = fp = fn = 0
+        tp = fp = fn = n = 0
+        found = []
         for p, truth in zip(probs, truths):
-            match = match_instances(binarize_and_label(split(p)), truth)
+            labels = binarize_and_label(split(p))
+            match = match_instances(labels, truth)
             tp, fp, fn = tp + match.tp, fp + match.fp, fn + match.fn
+            mine = particles(labels).at_least(MIN_AREA_PX)
+            found.append(mine.whole().diameter)
+            n += mine.count
         ap50 = tp / (tp + fp + fn) if tp + fp + fn else math.nan
-        table.append({**setting, "ap50": ap50, "tp": tp, "fp": fp, "fn": fn})
+        d = np.concatenate(found or [np.zeros(0)])
+        median = float(np.median(d) / np.median(true_d) - 1) if d.size and true_d.size else math.nan
+        count = n / true_n - 1 if true_n else math.nan
+        table.append(
+            {**setting, "ap50": ap50, "tp": tp, "fp": fp, "fn": fn, "median_error": median, "count_error": count}
+        )
     scored = [row for row in table if not math.isnan(row["ap50"])]
     if not scored:
         raise ValueError("calibrate_split: the validation pairs hold no particles and no prediction found any")
     particle_px = median_diameter(truths)
-    best = tied_best(scored, particle_px)
+    best = sizes_best(scored, particle_px) if settings["objective"] == "sizes" else tied_best(scored, particle_px)
     chosen_setting = {"split": own, "seed_level": best["seed_level"]} if centres else {"split": "watershed"}
     return {
         **chosen_setting,
@@ -157,10 +179,30 @@ def calibrate_split(
         "split_seeds": best.get("split_seeds", UNCALIBRATED["split_seeds"]),
         "split_smooth": float(split_smooth),
         "ap50": best["ap50"],
+        "median_error": best.get("median_error"),
+        "count_error": best.get("count_error"),
+        "objective": settings["objective"],
         "n_pairs": len(chosen),
         "particle_px": particle_px,
         "table": table,
     }
+
+
+def size_error(row: Mapping) -> float:
+    """|median diameter error| + |count error| of a calibration row (inf where either is unknown)."""
+    total = abs(row.get("median_error", math.nan)) + abs(row.get("count_error", math.nan))
+    return total if math.isfinite(total) else math.inf
+
+
+def sizes_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:
+    """The calibration row of ``objective: sizes``: among the rows within ``SIZES_AP50_MARGIN`` of the best AP50 (the
+    detection kept), the one whose sizes and counts are nearest the truth (`size_error`; ties: `tied_best`'s order)."""
+    top = max(row["ap50"] for row in rows)
+    near = [row for row in rows if row["ap50"] >= top - SIZES_AP50_MARGIN]
+    least = min(size_error(row) for row in near)
+    if not math.isfinite(least):
+        return tied_best(rows, particle_px)
+    return tied_best([row for row in near if size_error(row) <= least + 1e-9], particle_px)
 
 
 def tied_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:
