@@ -92,7 +92,7 @@ def test_the_trust_line_quotes_the_errors_with_their_intervals():
     check = run([pair_of(squares(n=k + 1), f"p{k}") for k in range(3)], lambda lab: ndimage.binary_dilation(lab > 0))
     line = trust_line(check)
     assert "3 generated images" in line and "6 particles" in line
-    assert "median diameters +18.3 % [+18.3 %, +18.3 %]" in line and "counts +0.0 %" in line
+    assert "median diameter is off by +18.3 % [+18.3 %, +18.3 %]" in line and "count by +0.0 %" in line
     assert f"{check['edge_offset_px']:+.2f} px" in line
 
 

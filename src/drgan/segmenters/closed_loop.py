@@ -168,8 +168,8 @@ def trust_line(check: Mapping) -> str:
     merged = check.get("merged")
     return (
         f"On {check.get('n_pairs')} generated images like yours that it never trained on ({check.get('n_true')} "
-        f"particles, exact outlines), this segmenter measures median diameters {_interval(check['median_error'])} "
-        f"and counts {_interval(check['count_error'])}"
+        f"particles, exact outlines), this segmenter's median diameter is off by {_interval(check['median_error'])} "
+        f"and its count by {_interval(check['count_error'])}"
         + (f"; its outlines lie {offset:+.2f} px from the true edge" if offset is not None else "")
         + (f", {100 * merged:.1f} % of the particles merged with a neighbour" if merged is not None else "")
         + " (95 % intervals over images)."
