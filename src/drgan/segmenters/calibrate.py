@@ -35,7 +35,7 @@ CHECKPOINT_KEY = "drgan_split"
 SEEDED = ("centres", "star")  # splits seeded at a level of a predicted map (seed_level), not at a split depth
 UNCALIBRATED = {"split_depth": 1.0, "split_core": 0.95, "seed_level": 0.5, "split_seeds": "hmaxima"}
 GRID_DEFAULTS = {
-    "objective": "ap50",  # ap50: the highest validation AP50; sizes: the nearest sizes and counts (sizes_best)
+    "objective": "sizes",  # sizes: the nearest sizes and counts within 0.05 AP50 (sizes_best); ap50: the highest AP50
     "seeds": ["hmaxima", "components"],  # inference.split_seeds (drgan.segmenters.inference.SEED_RULES); ties: first
     "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
     "depths": [1.0, 2.0, 4.0, 8.0, 16.0],  # px; the larger ones for particles of 100 px and more (EMPS actbio)
