@@ -205,7 +205,7 @@ def test_the_sizes_objective_takes_the_nearest_sizes_within_the_ap50_margin():
         {"split_depth": 4.0, "split_core": None, "ap50": 0.40, "median_error": 0.0, "count_error": 0.0},
     ]  # fmt: skip
     assert sizes_best(rows, 20.0) is rows[1]  # the exact third gives up too much detection
-    unknown = [{**row, "median_error": float("nan")} for row in rows]
+    unknown = [{**row, "median_error": None} for row in rows]
     assert sizes_best(unknown, 20.0) is unknown[0]  # no sizes to compare: by AP50 alone
 
 

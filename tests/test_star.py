@@ -9,7 +9,8 @@ import pytest
 
 from drgan.metrics.instance_scores import binarize_and_label, match_instances
 from drgan.scene.labels import centre_distance, class_mask
-from drgan.segmenters.star import ray_distances, split_by_stars
+from drgan.segmenters.inference import split_by_stars
+from drgan.segmenters.polygons import ray_distances
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -129,7 +129,7 @@ def calibrate_split(
     own = split_of(model)
     centres = own in SEEDED
     if centres:
-        from drgan.segmenters.star import split_by_stars
+        from drgan.segmenters.inference import split_by_stars
 
         seeded = split_by_stars if own == "star" else split_by_centres
         candidates = [({"seed_level": level}, lambda p, v=level: seeded(p, v)) for level in settings["levels"]]
@@ -161,8 +161,8 @@ def calibrate_split(
             n += mine.count
         ap50 = tp / (tp + fp + fn) if tp + fp + fn else math.nan
         d = np.concatenate(found or [np.zeros(0)])
-        median = float(np.median(d) / np.median(true_d) - 1) if d.size and true_d.size else math.nan
-        count = n / true_n - 1 if true_n else math.nan
+        median = float(np.median(d) / np.median(true_d) - 1) if d.size and true_d.size else None
+        count = n / true_n - 1 if true_n else None  # None, not nan: the table goes to JSON and checkpoints
         table.append(
             {**setting, "ap50": ap50, "tp": tp, "fp": fp, "fn": fn, "median_error": median, "count_error": count}
         )
@@ -190,8 +190,8 @@ def calibrate_split(
 
 def size_error(row: Mapping) -> float:
     """|median diameter error| + |count error| of a calibration row (inf where either is unknown)."""
-    total = abs(row.get("median_error", math.nan)) + abs(row.get("count_error", math.nan))
-    return total if math.isfinite(total) else math.inf
+    median, count = row.get("median_error"), row.get("count_error")
+    return math.inf if median is None or count is None else abs(median) + abs(count)
 
 
 def sizes_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:

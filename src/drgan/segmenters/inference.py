@@ -213,6 +213,19 @@ def split_by_centres(probs: np.ndarray, seed_level: float = 0.5, min_seed_px: in
     return separate_regions(labels)
 
 
+def split_by_stars(probs: np.ndarray, seed_level: float = 0.5) -> np.ndarray:
+    """(3 + 1 + n_rays, H, W) outputs of the star-convex segmenter (class probabilities, object probability, ray
+    distances in px; drgan.segmenters.star) -> (H, W) uint8 class map with one 4-connected particle region per polygon
+    kept (drgan.segmenters.polygons.star_labels)."""
+    from drgan.segmenters.polygons import star_labels
+
+    probs = np.asarray(probs)
+    if probs.ndim != 3 or probs.shape[0] < 6:
+        raise DataError(f"split_by_stars: expected (3 + 1 + rays, H, W) outputs, got shape {probs.shape}")
+    check_seed_level(seed_level)
+    return separate_regions(star_labels(probs, seed_level))
+
+
 def check_seed_level(seed_level) -> float:
     if isinstance(seed_level, bool) or not isinstance(seed_level, (int, float)) or not 0.0 < seed_level < 1.0:
         raise ConfigError(f"inference.seed_level={seed_level!r}: expected a centre-map level in (0, 1)")
@@ -275,8 +288,6 @@ def predict(
                     "inference.split=star: this segmenter has no ray distances (only drgan.segmenters.star."
                     "StarSegmenterModule has); use split=watershed or auto"
                 )
-            from drgan.segmenters.star import split_by_stars
-
             if scale != 1.0:
                 probs[4:] /= scale  # ray lengths in px of the network's scale -> of the image's
             return split_by_stars(probs, seed_level), probs

@@ -523,6 +523,6 @@ class CropDataset(Dataset):
         sample = (*sample, torch.from_numpy(np.ascontiguousarray(maps[2], dtype=np.float32)))
         if not self.rays:
             return sample
-        from drgan.segmenters.star import ray_distances
+        from drgan.segmenters.polygons import ray_distances
 
         return (*sample, torch.from_numpy(ray_distances(np.ascontiguousarray(maps[-1]), self.rays, self.ray_px)))

@@ -2,7 +2,7 @@
 construction (the representation of StarDist, Schmidt et al., MICCAI 2018, for round objects that touch; here in
 torch, on drgan's U-Net, with the U-Net's own outline kept).
 
-**Targets**, from exact instance labels (a generated set's ``labels/``; a real set's components or instance map):
+**Targets** (drgan.segmenters.polygons), from exact instance labels (a generated set's ``labels/``; a real set's components or instance map):
 - the object probability: the centre map of drgan.segmenters.instances (per particle its distance transform over its
   own maximum: 1 on the core, 0 where it touches a neighbour), as StarDist's normalised distance;
 - per particle pixel and ray k (``n_rays`` directions, evenly spaced), the distance along the ray to the first pixel
@@ -14,7 +14,7 @@ logit (binary cross-entropy against the centre map) and ``n_rays`` distance chan
 distances over ``ray_px``, each pixel weighted by its centre-map target: the core's rays count most, as in
 StarDist), weighted by ``distance_weight``.
 
-**Inference** (`split_by_stars`): candidate centres are the local maxima of the object probability above
+**Inference** (drgan.segmenters.inference.split_by_stars, on drgan.segmenters.polygons): candidate centres are the local maxima of the object probability above
 ``seed_level`` inside the foreground (particle + contour > 0.5); from the most probable down, each candidate's
 polygon (its predicted distances along the rays) is kept unless more than ``STAR_NMS`` of it lies in polygons kept
 before (non-maximum suppression by overlap), and claims its free pixels. The kept polygons seed a watershed of the
@@ -25,9 +25,6 @@ per checkpoint on the validation pairs (drgan.segmenters.calibrate), as the othe
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -37,102 +34,9 @@ from drgan.segmenters.instances import CentreSegmenterModule
 from drgan.segmenters.registry import register_segmenter
 from drgan.segmenters.unet import UNet
 
-__all__ = ["StarSegmenterModule", "ray_distances", "split_by_stars"]
+__all__ = ["StarSegmenterModule"]
 
 SPLIT = "star"  # the module's own split (inference.split: auto picks it)
-STAR_NMS = 0.4  # a candidate polygon with more than this share of its pixels already claimed is suppressed
-PEAK_PX = 2  # candidate centres are local maxima within this radius (px)
-
-
-def ray_angles(n_rays: int) -> np.ndarray:
-    return 2.0 * np.pi * np.arange(n_rays) / n_rays
-
-
-def ray_distances(labels: np.ndarray, n_rays: int, ray_px: int) -> np.ndarray:
-    """(n_rays, H, W) float32: for every pixel of a particle (label > 0), the distance (px) along each ray to the first
-    pixel of another label or outside the image, half-way between the last pixel inside and the first outside (at most
-    ``ray_px`` - 0.5); 0 off the particles."""
-    labels = np.asarray(labels)
-    h, w = labels.shape
-    out = np.zeros((n_rays, h, w), np.float32)
-    ys, xs = np.nonzero(labels > 0)
-    if not len(ys):
-        return out
-    own = labels[ys, xs]
-    for k, angle in enumerate(ray_angles(n_rays)):
-        dy, dx = math.sin(angle), math.cos(angle)
-        distance = np.full(len(ys), float(ray_px) - 0.5, np.float32)
-        alive = np.ones(len(ys), bool)
-        for step in range(1, int(ray_px) + 1):
-            index = np.nonzero(alive)[0]
-            if not len(index):
-                break
-            py = np.rint(ys[index] + step * dy).astype(np.int64)
-            px = np.rint(xs[index] + step * dx).astype(np.int64)
-            inside = (py >= 0) & (py < h) & (px >= 0) & (px < w)
-            same = np.zeros(len(index), bool)
-            same[inside] = labels[py[inside], px[inside]] == own[index[inside]]
-            left = index[~same]
-            distance[left] = step - 0.5
-            alive[left] = False
-        out[k, ys, xs] = distance
-    return out
-
-
-def polygon_pixels(y: float, x: float, distances: np.ndarray, shape: tuple[int, int]):
-    """(rows, cols) of the pixels inside the polygon whose vertices lie ``distances`` px from (y, x) along the rays."""
-    from skimage.draw import polygon
-
-    angles = ray_angles(len(distances))
-    return polygon(y + distances * np.sin(angles), x + distances * np.cos(angles), shape)
-
-
-def split_by_stars(probs: np.ndarray, seed_level: float = 0.5, nms: float = STAR_NMS) -> np.ndarray:
-    """(3 + 1 + n_rays, H, W) probabilities (classes, object probability, ray distances in px) -> (H, W) uint8 class map
-    with one 4-connected particle region per kept polygon (module docstring)."""
-    from scipy import ndimage as ndi
-    from skimage.feature import peak_local_max
-    from skimage.segmentation import watershed
-
-    from drgan.segmenters.inference import check_seed_level, separate_regions
-
-    probs = np.asarray(probs)
-    if probs.ndim != 3 or probs.shape[0] < 6:
-        raise ConfigError(f"split_by_stars: expected (3 + 1 + rays, H, W) outputs, got shape {probs.shape}")
-    check_seed_level(seed_level)
-    foreground = probs[1] + probs[2] > 0.5
-    centre, distances = probs[3], probs[4:]
-    shape = foreground.shape
-    if not foreground.any():
-        return np.zeros(shape, np.uint8)
-    peaks = peak_local_max(
-        np.where(foreground, centre, 0.0), min_distance=PEAK_PX, threshold_abs=seed_level, exclude_border=False
-    )
-    order = np.argsort(-centre[peaks[:, 0], peaks[:, 1]], kind="stable") if len(peaks) else []
-    claimed = np.zeros(shape, np.int32)
-    kept = 0
-    for y, x in peaks[order]:
-        rows, cols = polygon_pixels(float(y), float(x), distances[:, y, x], shape)
-        if not len(rows):
-            continue
-        taken = claimed[rows, cols] > 0
-        if taken.mean() > nms:
-            continue
-        kept += 1
-        claimed[rows[~taken], cols[~taken]] = kept
-    if not kept:
-        return np.zeros(shape, np.uint8)
-    markers = np.where(foreground, claimed, 0)
-    present = np.unique(markers)
-    # a polygon that lies off the foreground still seeds its centre pixel
-    for index in np.setdiff1d(np.arange(1, kept + 1), present):
-        ys, xs = np.nonzero(claimed == index)
-        centre_pixel = ndi.center_of_mass(claimed == index)
-        y, x = (int(round(v)) for v in centre_pixel)
-        if 0 <= y < shape[0] and 0 <= x < shape[1] and foreground[y, x] and markers[y, x] == 0:
-            markers[y, x] = index
-    labels = watershed(-centre, markers, mask=foreground)
-    return separate_regions(labels)
 
 
 @register_segmenter
