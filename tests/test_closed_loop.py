@@ -176,3 +176,21 @@ def test_the_rendered_pairs_contour_is_redrawn_from_their_labels_and_ignored_pix
     np.testing.assert_array_equal(wide.mask, expected)
     assert (wide.mask == 2).sum() > (class_mask(labels, 1) == 2).sum()  # a wider line between the touching two
     assert kept is handmade and redrawn_contours([rendered], None) == [rendered]
+
+
+def test_the_pipeline_report_quotes_the_check_and_compares_with_the_profile(tmp_path):
+    from drgan.pipeline.report import analyze_details, analyze_summary
+
+    check = {**check_of(0.01, -0.01, 0.03), "count_error": {"value": -0.02, "low": -0.04, "high": 0.0}}
+    check.update(n_pairs=50, n_true=300, edge_offset_px=0.1, merged=0.02)
+    (tmp_path / "analyze").mkdir()
+    (tmp_path / "profile").mkdir()
+    summary = {"images": 3, "unit": "px", "statistics": {}, "median_diameter_px": 58.0, "closed_loop": check}
+    (tmp_path / "analyze" / "summary.json").write_text(json.dumps(summary))
+    (tmp_path / "profile" / "profile.json").write_text(json.dumps({"sizes": {"median_diameter_px": 50.0}}))
+    lines = analyze_details(analyze_summary(tmp_path / "analyze"), None)
+    assert lines[0] == f"- how far these sizes can be trusted: {trust_line(check)}"
+    assert "+16.0 %" in lines[1] and "beyond the closed-loop interval" in lines[1]
+    summary.pop("closed_loop")
+    (tmp_path / "analyze" / "summary.json").write_text(json.dumps(summary))
+    assert "no closed-loop check" in analyze_details(analyze_summary(tmp_path / "analyze"), None)[0]
