@@ -30,7 +30,7 @@ import torch
 
 from drgan.errors import ConfigError
 from drgan.scene.labels import IGNORE, centre_distance
-from drgan.segmenters.module import SegmenterModule, contact_pixels, cross_entropy
+from drgan.segmenters.module import SegmenterModule
 from drgan.segmenters.registry import register_segmenter
 from drgan.segmenters.unet import UNet
 
@@ -64,11 +64,7 @@ class CentreSegmenterModule(SegmenterModule):
         image, mask, centre = batch
         output = self(image)
         logits = output[:, :-1]
-        weight = None
-        if self.hparams.contact_weight > 0:
-            weight = 1.0 + self.hparams.contact_weight * contact_pixels(mask, self.hparams.contact_reach).float()
-        ce = cross_entropy(logits, mask, weight=weight)
-        dl = self.dice_loss(logits, mask)
+        ce, dl = self.class_losses(logits, mask)
         valid = (mask != IGNORE).to(output.dtype)
         squared = (output[:, -1].sigmoid() - centre) ** 2
         distance = (squared * valid).sum() / valid.sum().clamp(min=1.0)

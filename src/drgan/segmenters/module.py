@@ -168,12 +168,16 @@ class SegmenterModule(L.LightningModule):
     def _losses(self, batch):
         image, mask = batch
         logits = self(image)
+        ce, dl = self.class_losses(logits, mask)
+        return logits, ce, dl, self.hparams.ce_weight * ce + self.hparams.dice_weight * dl
+
+    def class_losses(self, logits: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(cross-entropy, soft Dice loss) of the class logits: the contact pixels weighted 1 + ``contact_weight``
+        times in the cross-entropy, the Dice of ``model.dice``. Every segmenter built on this one shares them."""
         weight = None
         if self.hparams.contact_weight > 0:
             weight = 1.0 + self.hparams.contact_weight * contact_pixels(mask, self.hparams.contact_reach).float()
-        ce = cross_entropy(logits, mask, weight=weight)
-        dl = self.dice_loss(logits, mask)
-        return logits, ce, dl, self.hparams.ce_weight * ce + self.hparams.dice_weight * dl
+        return cross_entropy(logits, mask, weight=weight), self.dice_loss(logits, mask)
 
     def dice_loss(self, logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """The soft Dice of ``model.dice``: over the three classes, or over background and the particles' extent."""

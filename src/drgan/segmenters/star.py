@@ -67,17 +67,11 @@ class StarSegmenterModule(CentreSegmenterModule):
         return torch.cat([output[:, :n].softmax(dim=1), output[:, n : n + 1].sigmoid(), distances], dim=1)
 
     def _losses(self, batch):
-        from drgan.segmenters.module import contact_pixels, cross_entropy
-
         image, mask, centre, rays = batch
         output = self(image)
         n = self.hparams.n_classes
         logits = output[:, :n]
-        weight = None
-        if self.hparams.contact_weight > 0:
-            weight = 1.0 + self.hparams.contact_weight * contact_pixels(mask, self.hparams.contact_reach).float()
-        ce = cross_entropy(logits, mask, weight=weight)
-        dl = self.dice_loss(logits, mask)
+        ce, dl = self.class_losses(logits, mask)
         valid = (mask != IGNORE).to(output.dtype)
         probability = F.binary_cross_entropy_with_logits(output[:, n], centre, reduction="none")
         probability = (probability * valid).sum() / valid.sum().clamp(min=1.0)

@@ -121,37 +121,23 @@ def summary_line(result: dict) -> str:
 def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: int) -> dict | None:
     """The edge check of a complete generated set against the real train patches of ``backgrounds`` (a PatchSet or
     its folder; None, or a set without train patches: None), both at the render's ``resolution`` and segmented with
-    the patch set's settings resolved on the real patches (as drgan.synthetic.noise_check does)."""
-    from pathlib import Path
+    the patch set's settings resolved on the real patches (drgan.synthetic.noise_check.sample_sides)."""
+    from drgan.synthetic.noise_check import sample_sides
 
-    from skimage import io
-
-    from drgan.data.classical import resolve_params
-    from drgan.data.patches import PatchSet, resample_patches
-
-    if backgrounds is None:
+    sides = sample_sides(root, manifest, backgrounds, polarity, resolution)
+    if sides is None:
         return None
-    patches = backgrounds if isinstance(backgrounds, PatchSet) else PatchSet.load(backgrounds)
-    if not len(patches.train):
-        return None
-    size = int(np.shape(patches.train)[-1])
-    own = list(np.asarray(patches.train, dtype=np.float32)[:SAMPLE])
-    params, _ = resolve_params(own, patches.params.get("segment") or {}, polarity)
-    seen = resample_patches(patches, resolution).train if size != resolution else np.asarray(own)
-    scaled = params.scaled(resolution / size)
-    real = classical_edges(list(np.asarray(seen, np.float64)[:SAMPLE]), scaled, polarity)
-    root = Path(root)
-    items = [e for e in manifest["entries"] if e["kind"] == "synthetic"][:SAMPLE]
-    images = [io.imread(root / e["files"]["image"]).astype(np.float64) / 255.0 for e in items]
-    labels = [np.asarray(io.imread(root / e["files"]["label"])).astype(np.int32) for e in items]
-    generated = classical_edges(images, scaled, polarity)
+    seen, params, images, labels = sides
+    labels = [label.astype(np.int32) for label in labels]
+    real = classical_edges(list(np.asarray(seen, np.float64)), params, polarity)
+    generated = classical_edges(images, params, polarity)
     exact = edge_of(images, lambda k: labels[k], lambda k: labels[k] > 0)
     return {
         "real": real,
         "generated": generated,
         "generated_mask": exact,
         **compare(real, generated),
-        "images": {"generated": len(items), "real": len(seen[:SAMPLE])},
+        "images": {"generated": len(images), "real": len(seen)},
     }
 
 

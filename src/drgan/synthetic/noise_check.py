@@ -108,11 +108,12 @@ def off_by(result: dict) -> list[str]:
     return found
 
 
-def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: int) -> dict | None:
-    """The noise check of a complete generated set (``manifest``, in folder ``root``) against the real train patches
-    of ``backgrounds``, a PatchSet or its folder (None, or a set without train patches: None returned): `compare`'s
-    result with the sample sizes. The patches are area-averaged to the render's ``resolution`` as training saw them, and
-    segmented with the patch set's settings resolved on them at their own px and scaled (as `GreySpread` does)."""
+def sample_sides(root, manifest: dict, backgrounds, polarity: str, resolution: int):
+    """What a check of a complete generated set compares, or None without real train patches (``backgrounds``: a
+    PatchSet or its folder): (the first SAMPLE real train patches area-averaged to the render's ``resolution`` as
+    training saw them, the patch set's segmentation settings resolved on them at their own px and scaled to the render
+    (as `GreySpread` does), the first SAMPLE synthetic images of ``manifest`` in folder ``root`` as float grey, and
+    their exact labels)."""
     from pathlib import Path
 
     from skimage import io
@@ -129,10 +130,21 @@ def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: 
     own = list(np.asarray(patches.train, dtype=np.float32)[:SAMPLE])
     params, _ = resolve_params(own, patches.params.get("segment") or {}, polarity)
     seen = resample_patches(patches, resolution).train if size != resolution else np.asarray(own)
-    real = real_noise(np.asarray(seen)[:SAMPLE], params.scaled(resolution / size), polarity)
     root = Path(root)
     items = [e for e in manifest["entries"] if e["kind"] == "synthetic"][:SAMPLE]
     images = [io.imread(root / e["files"]["image"]).astype(np.float64) / 255.0 for e in items]
-    labels = [io.imread(root / e["files"]["label"]) for e in items]
+    labels = [np.asarray(io.imread(root / e["files"]["label"])) for e in items]
+    return np.asarray(seen)[:SAMPLE], params.scaled(resolution / size), images, labels
+
+
+def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: int) -> dict | None:
+    """The noise check of a complete generated set (``manifest``, in folder ``root``) against the real train patches
+    of ``backgrounds`` (`sample_sides`; None, or a set without train patches: None returned): `compare`'s result with
+    the sample sizes."""
+    sides = sample_sides(root, manifest, backgrounds, polarity, resolution)
+    if sides is None:
+        return None
+    seen, params, images, labels = sides
+    real = real_noise(seen, params, polarity)
     result = compare(generated_noise(images, labels), real)
-    return {**result, "images": {"generated": len(items), "real": len(real)}, "highpass_px": HIGHPASS_PX}
+    return {**result, "images": {"generated": len(images), "real": len(real)}, "highpass_px": HIGHPASS_PX}
