@@ -44,3 +44,34 @@ def test_a_wider_rendered_blur_is_reported_as_a_wider_ramp():
     real = edge_of(sharp[0], lambda k: sharp[1][k], lambda k: sharp[1][k] > 0)
     generated = edge_of(wide[0], lambda k: wide[1][k], lambda k: wide[1][k] > 0)
     assert compare(real, generated)["width_ratio"] == pytest.approx(2.0, rel=0.2)
+
+
+def rendered_spheres(filter_stddev: float, n: int = 12):
+    """n renders (96 px, spp 4) of one lit sphere (18 px across) on a black stage, blurred by the render's Gaussian
+    reconstruction filter of ``filter_stddev`` px, with their exact labels."""
+    import torch
+    from conftest import make_scene
+
+    from drgan.scene.scene import TopLight
+
+    particle = {"base_color": {"value": 1.0}, "roughness": {"value": 1.0}}
+    scene = make_scene(
+        resolution=96, spp=4, n=1, particle=particle, stage=None, filter_stddev=filter_stddev, torus_light=None,
+        top_light=TopLight(radiance=1.0, size=2.0), view_width=96.0,
+    )  # fmt: skip
+    images, labels = [], []
+    for k in range(n):
+        scene.set_layout(np.array([[0.3 * k - 1.5, 0.2 * k - 1.0, 10, 18]], dtype=np.float32))
+        images.append(np.clip(scene.render(torch.zeros(0), seed=k).numpy().astype(np.float64), 0, None))
+        labels.append(scene.instance_labels().astype(np.int32))
+    return images, labels
+
+
+def test_the_edge_check_recovers_the_blur_of_rendered_edges():
+    sharp, soft = rendered_spheres(0.5), rendered_spheres(2.0)
+    ramps = [edge_of(imgs, lambda k, lab=lab: lab[k], lambda k, lab=lab: lab[k] > 0) for imgs, lab in (sharp, soft)]
+    assert all(r is not None and r["particles"] == 12 for r in ramps)
+    # the shaded sphere darkens towards its rim (its own ramp, ~3.5 px at a 0.5 px filter); a 2 px filter widens it to
+    # at least the filter's own 10-90 % width (2 x 1.2816 x 2 = 5.1 px) and never to more than the two in quadrature
+    assert ramps[1]["width_px"] > ramps[0]["width_px"] + 1.0
+    assert 0.9 * 2.5631 * 2.0 <= ramps[1]["width_px"] <= 1.05 * np.hypot(2.5631 * 2.0, ramps[0]["width_px"])
