@@ -194,3 +194,18 @@ def test_the_pipeline_report_quotes_the_check_and_compares_with_the_profile(tmp_
     summary.pop("closed_loop")
     (tmp_path / "analyze" / "summary.json").write_text(json.dumps(summary))
     assert "no closed-loop check" in analyze_details(analyze_summary(tmp_path / "analyze"), None)[0]
+
+
+def test_a_bad_check_fraction_is_refused_before_any_pair_is_read(tmp_path):
+    from conftest import compose
+    from test_segment import tiny_segment_overrides
+
+    from drgan.errors import ConfigError
+    from drgan.segment import segment
+
+    cfg = compose(
+        tiny_segment_overrides(tmp_path / "missing", tmp_path, tmp_path / "o", "check_fraction=0.6"), "segment"
+    )
+    with pytest.raises(ConfigError, match="check_fraction=0.6"):
+        segment(cfg)
+    assert not (tmp_path / "o").exists()

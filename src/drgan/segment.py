@@ -134,9 +134,7 @@ class LoaderSettings:
     texture: float = 0.1  # std of the surface texture added to each crop (pairs.surface_texture); 0: none
     contact_shade: float = 0.0  # largest depth of the dip drawn at the contacts of touching particles; 0: none
     working_px: float | str | None = "auto"  # the median particle's diameter in the crops (pairs.working_scale)
-    contour_px: int | None = (
-        None  # generated pairs' contour class redrawn from their exact labels this wide; None: theirs
-    )
+    contour_px: int | None = None  # rendered pairs' contour class redrawn from their labels this wide; None: theirs
     seed: int = 0
     val_fraction: float = 0.1
 
@@ -238,6 +236,7 @@ def checked_source(cfg: DictConfig) -> TrainingPairs:
     any image is read."""
     source = TrainingPairs.from_config(cfg)
     LoaderSettings.from_config(cfg)
+    check_fraction(cfg)
     return source
 
 
@@ -481,7 +480,7 @@ def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) 
     """Choose the touching-particle split on the validation pairs (drgan.segmenters.calibrate) and store it in
     ``last`` for evaluate/analyze's ``split_core: auto``; None when calibration is off or impossible."""
     from drgan.checkpoint_io import add_entry
-    from drgan.segmenters.calibrate import CHECKPOINT_KEY, as_array_free, calibrate_split, markdown_table
+    from drgan.segmenters.calibrate import CHECKPOINT_KEY, SEEDED, as_array_free, calibrate_split, markdown_table
 
     if grid is None:
         return None
@@ -496,8 +495,9 @@ def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) 
     add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
     chosen = (
         f"seed_level {calibration['seed_level']}"
-        if calibration.get("split") in ("centres", "star")
-        else f"split_depth {calibration['split_depth']}, split_core {calibration['split_core']}"
+        if calibration.get("split") in SEEDED
+        else f"split_seeds {calibration.get('split_seeds')}, split_depth {calibration['split_depth']}, split_core "
+        f"{calibration['split_core']}"
     )
     log.info(
         "split chosen on %d validation pairs (particles %.0f px across, median): %s (AP50 %.3f); stored in %s\n%s",
@@ -517,7 +517,7 @@ def held_out_check(cfg: DictConfig, source: TrainingPairs, pairs) -> tuple[list,
     annotator's, which drgan.evaluate scores on the test ids)."""
     from drgan.segmenters.closed_loop import hold_out
 
-    fraction = setting_float("check_fraction", cfg.get("check_fraction", 0.0), 0.0)
+    fraction = check_fraction(cfg)
     if not source.data:
         return pairs, []
     rest, check = hold_out(pairs, fraction, int(cfg.seed))
@@ -529,6 +529,14 @@ def held_out_check(cfg: DictConfig, source: TrainingPairs, pairs) -> tuple[list,
     elif check:
         log.info("closed-loop check: %d rendered pairs held out (never trained on, never used to choose)", len(check))
     return rest, check
+
+
+def check_fraction(cfg: DictConfig) -> float:
+    """``check_fraction`` as a number in [0, 0.5), or a ConfigError naming it."""
+    fraction = setting_float("check_fraction", cfg.get("check_fraction", 0.0), 0.0)
+    if not fraction < 0.5:
+        raise ConfigError(f"check_fraction={fraction}: expected a share of the generated pairs in [0, 0.5)")
+    return fraction
 
 
 def closed_loop_check(model, pairs, calibration: dict | None, last: Path, progress: bool) -> dict | None:
