@@ -130,6 +130,10 @@ def test_segment_scores_itself_on_held_out_pairs_and_stores_the_check(tmp_path):
     ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert stored_closed_loop(ckpt) == check
     assert load_segmenter(out / "checkpoints" / "last.ckpt").closed_loop == check
+    # resuming a finished run checks again on the same held-out pairs and keeps its last validation score
+    segment(compose([*overrides, "ckpt_path=last"], config_name="segment"))
+    again = json.loads((out / "metrics.json").read_text())
+    assert again["closed_loop"]["ids"] == check["ids"] and again["val/dsc"] == written["val/dsc"]
     # analyze's statistics.md quotes the check; the pipeline's report compares its sizes with the classical ones
     from drgan.analyze import analyze
 

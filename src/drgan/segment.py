@@ -429,6 +429,8 @@ def segment(cfg: DictConfig) -> dict:
     )
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
+    if "val/dsc" not in metrics and scores.history:  # a resumed run whose training had finished validates nothing
+        metrics["val/dsc"] = scores.history[-1]
     metrics["time/wall_s"] = time.perf_counter() - wall_start
     stop = stop_reason(trainer, stopper)
     log.info("stopped after epoch %d: %s", trainer.current_epoch - 1, stop)
