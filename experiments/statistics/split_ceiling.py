@@ -1,0 +1,58 @@
+"""The splits' own ceiling: each instance split fed the outputs a perfect network would give for the held-out pairs of
+a segment run (exact classes, centre map and ray distances from the exact labels), scored as the closed-loop check
+scores (drgan.segmenters.closed_loop). What remains is the representation's error, not the network's.
+
+    python experiments/statistics/split_ceiling.py SEGMENT_RUN/checkpoints/last.ckpt GENERATED
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from drgan.scene.labels import centre_distance, class_mask
+from drgan.segmenters.closed_loop import closed_loop
+from drgan.segmenters.inference import split_by_centres, split_by_stars, split_touching
+from drgan.segmenters.pairs import load_generated_pairs
+from drgan.segmenters.polygons import ray_distances
+from drgan.segmenters.registry import load_segmenter
+
+
+def exact_outputs(labels: np.ndarray, n_rays: int = 16) -> np.ndarray:
+    """Classes (one-hot), the centre map and the ray distances of ``labels``: a perfect star-convex segmenter's outputs."""
+    classes = class_mask(labels, 1)
+    onehot = np.stack([(classes == c).astype(np.float32) for c in range(3)])
+    return np.concatenate([onehot, centre_distance(labels)[None], ray_distances(labels, n_rays, 32)])
+
+
+SPLITS = {
+    "watershed, h-maxima, depth 1, core 0.95": lambda o: split_touching(o[:3], 1.0, 1.0, 0.95),
+    "watershed, h-maxima, depth 2, argmax": lambda o: split_touching(o[:3], 2.0, 1.0, None),
+    "watershed, components, depth 1, argmax": lambda o: split_touching(o[:3], 1.0, 1.0, None, "components"),
+    "watershed, components, depth 2, argmax": lambda o: split_touching(o[:3], 2.0, 1.0, None, "components"),
+    "centres, level 0.5": lambda o: split_by_centres(o[:4], 0.5),
+    "star, level 0.5": lambda o: split_by_stars(o, 0.5),
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("ckpt")
+    parser.add_argument("generated")
+    args = parser.parse_args()
+    ids = set((load_segmenter(args.ckpt).closed_loop or {}).get("ids") or [])
+    pairs = [p for p in load_generated_pairs(args.generated) if p.id in ids]
+    outputs = {id(p.image): exact_outputs(np.asarray(p.labels)) for p in pairs}
+    print("| split (exact inputs) | median error | count error | merged | split | missed | AP50 |")
+    print("|---|---|---|---|---|---|---|")
+    for name, split in SPLITS.items():
+        c = closed_loop(None, pairs, predictor=lambda image, f=split: f(outputs[id(image)]), n_boot=0)
+        print(
+            f"| {name} | {100 * c['median_error']['value']:+.1f} % | {100 * c['count_error']['value']:+.1f} % | "
+            f"{100 * c['merged']:.1f} % | {100 * c['split']:.1f} % | {100 * c['missed']:.1f} % | {c['ap50']:.3f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
