@@ -44,7 +44,7 @@ from drgan.configs import plain_node
 from drgan.errors import ConfigError, pixel_size
 from drgan.io import figure_png, write_bytes, write_json
 from drgan.metrics.instance_scores import binarize_and_label
-from drgan.metrics.statistics import Particles, bootstrap, particles
+from drgan.metrics.statistics import Particles, bootstrap, particles, pooled
 from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
@@ -269,7 +269,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     area_unit = "µm²" if in_nm else "Mpx"
     areas = [item.image.size * (f * f * 1e-6 if in_nm else 1e-6) for item, f in zip(items, factors)]
     stats = size_statistics(found, factors, areas, n_boot, s.seed)
-    whole = np.concatenate([p.whole().diameter for p in found] or [np.zeros(0)])
+    whole = pooled(found)
     summary = {
         "images": len(items),
         "median_diameter_px": float(np.median(whole)) if whole.size else None,

@@ -534,11 +534,10 @@ def held_out_check(cfg: DictConfig, source: TrainingPairs, pairs) -> tuple[list,
 
 
 def check_fraction(cfg: DictConfig) -> float:
-    """``check_fraction`` as a number in [0, 0.5), or a ConfigError naming it."""
-    fraction = setting_float("check_fraction", cfg.get("check_fraction", 0.0), 0.0)
-    if not fraction < 0.5:
-        raise ConfigError(f"check_fraction={fraction}: expected a share of the generated pairs in [0, 0.5)")
-    return fraction
+    """``check_fraction`` as a number in [0, 0.5), or a ConfigError naming it (closed_loop.checked_fraction)."""
+    from drgan.segmenters.closed_loop import checked_fraction
+
+    return checked_fraction(setting_float("check_fraction", cfg.get("check_fraction", 0.0), 0.0))
 
 
 def closed_loop_check(model, pairs, calibration: dict | None, last: Path, progress: bool) -> dict | None:

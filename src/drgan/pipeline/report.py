@@ -148,7 +148,7 @@ def analyze_summary(folder: Path) -> dict:
     interval = (
         f" [{_number(low, '{:.1f}')}, {_number(high, '{:.1f}')}]" if isinstance(low, float) and low == low else ""
     )
-    classical = (_json(folder.parent / "profile" / "profile.json").get("sizes") or {}).get("median_diameter_px")
+    classical = profile_summary(folder.parent / "profile").get("median_diameter_px")
     return {
         "closed_loop": summary.get("closed_loop"),
         "median_diameter_px": summary.get("median_diameter_px"),

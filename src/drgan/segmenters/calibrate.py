@@ -143,29 +143,24 @@ def calibrate_split(
             for depth in settings["depths"]
             for core in settings["cores"]
         ]
-    from drgan.metrics.statistics import particles
+    from drgan.metrics.statistics import compare_sizes, particles
 
     true_particles = [particles(truth).at_least(MIN_AREA_PX) for truth in truths]
-    true_d = np.concatenate([t.whole().diameter for t in true_particles] or [np.zeros(0)])
-    true_n = sum(t.count for t in true_particles)
     table = []
     for setting, split in candidates:
-        tp = fp = fn = n = 0
+        tp = fp = fn = 0
         found = []
         for p, truth in zip(probs, truths):
             labels = binarize_and_label(split(p))
             match = match_instances(labels, truth)
             tp, fp, fn = tp + match.tp, fp + match.fp, fn + match.fn
-            mine = particles(labels).at_least(MIN_AREA_PX)
-            found.append(mine.whole().diameter)
-            n += mine.count
+            found.append(particles(labels).at_least(MIN_AREA_PX))
         ap50 = tp / (tp + fp + fn) if tp + fp + fn else math.nan
-        d = np.concatenate(found or [np.zeros(0)])
-        median = float(np.median(d) / np.median(true_d) - 1) if d.size and true_d.size else None
-        count = n / true_n - 1 if true_n else None  # None, not nan: the table goes to JSON and checkpoints
-        table.append(
-            {**setting, "ap50": ap50, "tp": tp, "fp": fp, "fn": fn, "median_error": median, "count_error": count}
-        )
+        sizes = compare_sizes(found, true_particles, n_boot=0)  # as drgan.evaluate measures them
+        # None, not nan, where unknown: the table goes to JSON and checkpoints
+        errors = {key: sizes[key]["value"] for key in ("median_error", "count_error")}
+        errors = {key: float(value) if math.isfinite(value) else None for key, value in errors.items()}
+        table.append({**setting, "ap50": ap50, "tp": tp, "fp": fp, "fn": fn, **errors})
     scored = [row for row in table if not math.isnan(row["ap50"])]
     if not scored:
         raise ValueError("calibrate_split: the validation pairs hold no particles and no prediction found any")
@@ -237,6 +232,8 @@ def stored_working_diameter(checkpoint: Mapping) -> float | None:
 def stored_split(checkpoint: Mapping, source: str = "checkpoint") -> dict | None:
     """The calibration a checkpoint holds (``CHECKPOINT_KEY``), or None; a malformed entry is ignored with a
     warning (the checkpoint still loads)."""
+    from drgan.segmenters.inference import SEED_RULES
+
     entry = checkpoint.get(CHECKPOINT_KEY)
     if entry is None:
         return None
@@ -251,7 +248,7 @@ def stored_split(checkpoint: Mapping, source: str = "checkpoint") -> dict | None
     level = entry.get("seed_level") if isinstance(entry, Mapping) else None
     if level is not None and not (isinstance(level, float) and 0 < level < 1):
         ok = False
-    if ok and entry.get("split_seeds", "hmaxima") not in ("hmaxima", "components"):
+    if ok and entry.get("split_seeds", "hmaxima") not in SEED_RULES:
         ok = False
     if not ok:
         log.warning("%s: its %s entry is not a split calibration; ignored", source, CHECKPOINT_KEY)

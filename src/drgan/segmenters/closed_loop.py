@@ -41,12 +41,18 @@ def checkable(pair) -> bool:
     return pair.labels is not None and not bool((pair.mask == IGNORE).any())
 
 
+def checked_fraction(fraction) -> float:
+    """``check_fraction`` as a float in [0, 0.5), or a ConfigError naming it."""
+    if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0.0 <= fraction < 0.5:
+        raise ConfigError(f"check_fraction={fraction!r}: expected a share of the generated pairs in [0, 0.5)")
+    return float(fraction)
+
+
 def hold_out(pairs: Sequence, fraction: float, seed: int) -> tuple[list, list]:
     """(rest, check): a seeded ``fraction`` of the `checkable` pairs set aside, the rest in their order. At least
     ``MIN_CHECK_PAIRS`` when the fraction is > 0, but never more than a quarter of the checkable pairs (too few pairs:
     no check, the training keeps them all)."""
-    if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0.0 <= fraction < 0.5:
-        raise ConfigError(f"check_fraction={fraction!r}: expected a share of the generated pairs in [0, 0.5)")
+    fraction = checked_fraction(fraction)
     candidates = [k for k, p in enumerate(pairs) if checkable(p)]
     n = max(int(round(fraction * len(candidates))), MIN_CHECK_PAIRS) if fraction > 0 else 0
     if n == 0 or n > len(candidates) // 4:
