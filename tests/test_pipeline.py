@@ -4,6 +4,7 @@ and inside stages, and (slow) a tiny real pipeline whose stage outputs equal the
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 import signal
@@ -81,7 +82,7 @@ def test_bad_settings_are_refused_with_the_key_named(argv, match):
 @pytest.fixture
 def no_stage_runs(monkeypatch):
     calls = []
-    monkeypatch.setattr(runner, "run_stage", lambda stage, env=None: calls.append(stage.name) or 0)
+    monkeypatch.setattr(runner, "run_stage", lambda stage, *rest: calls.append(stage.name) or 0)
     return calls
 
 
@@ -135,10 +136,10 @@ class FakeStages:
         monkeypatch.setattr(runner, "run_stage", self)
         monkeypatch.setattr(runner, "check_stage_settings", lambda s: None)
 
-    def __call__(self, stage, env=None):
+    def __call__(self, stage, *rest):
         self.calls.append([stage.name, *stage.command()[3:]])
         if stage.name in self.real:
-            return self.run_stage(stage, env)
+            return self.run_stage(stage, *rest)
         if stage.name == self.die_in:
             (stage.folder / "checkpoints").mkdir(parents=True, exist_ok=True)
             (stage.folder / "checkpoints" / "last.ckpt").write_bytes(b"x")
@@ -165,8 +166,8 @@ def test_the_pixel_size_the_profile_read_reaches_analyze_and_the_report(tmp_path
     fake = FakeStages(monkeypatch)
     profiled = tmp_path / "out" / "profile" / "profile.json"
 
-    def stage_with_profile(stage, env=None):
-        code = FakeStages.__call__(fake, stage, env)
+    def stage_with_profile(stage, *rest):
+        code = FakeStages.__call__(fake, stage, *rest)
         if stage.name == "profile":
             profiled.parent.mkdir(parents=True, exist_ok=True)
             profiled.write_text(json.dumps({"pixel_size": {"nm_per_px": 2.5}}))
@@ -447,3 +448,70 @@ def test_the_report_shows_the_generated_sets_noise_against_the_real_and_its_spp(
     assert summary["line"].endswith("; fine noise background 5.8 x real")  # particles not measured: left out
     assert summary["metrics"]["generate/noise_background_x_real"] == 5.8
     assert "generate/noise_particles_x_real" not in summary["metrics"]
+
+
+# --- progress lines ----------------------------------------------------------------------------------------
+
+SLOW_STAGE = '''"""A toy stage that reports eight steps of work through drgan.progress, as the real stages do."""
+
+import sys
+import time
+from pathlib import Path
+
+from drgan.progress import Task
+
+args = dict(arg.split("=", 1) for arg in sys.argv[1:])
+with Task("counting", 8, "steps") as task:
+    for step in range(8):
+        time.sleep(0.4)
+        task.advance()
+out = Path(args["out"])
+out.mkdir(parents=True, exist_ok=True)
+(out / "done.txt").write_text("8")
+'''
+
+
+def test_the_pipeline_says_what_a_running_stage_does_its_time_left_and_the_runs_end(tmp_path, monkeypatch):
+    """While a stage runs, the pipeline prints a line every `progress` seconds: the stage's own task from its progress
+    file (count, share, time so far and left), and the whole run's estimated time left and end (the later stages'
+    typical times at this run's pace)."""
+    (tmp_path / "drgan_toy_slow_stage.py").write_text(SLOW_STAGE)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    slow = stage_table.StageSpec(
+        "slow", wire=lambda c: [f"out={c.folder('slow')}"], keys=("out",), done=lambda c: c.folder("slow") / "done.txt",
+        summary=lambda folder: {}, what="counts slowly", module="drgan_toy_slow_stage", typical_minutes=1.0,
+    )  # fmt: skip
+    after = stage_table.STAGES.index("analyze") + 1
+    monkeypatch.setattr(stage_table, "PIPELINE", [*stage_table.PIPELINE[:after], slow, *stage_table.PIPELINE[after:]])
+    images_folder(tmp_path / "images")
+    FakeStages(monkeypatch, real=("slow",))
+    lines: list[str] = []
+    pipeline.run(settings(tmp_path, "progress=0.25"), echo=lines.append)
+    ticks = [line for line in lines if line.startswith("[6/6] slow: ") and "the whole run" in line]
+    pattern = (r"\[6/6\] slow: counting [1-8]/8 steps \(\d+ %\), \d+ s so far, ~\d+ s left; the whole run: ~\d+ s "
+               r"left, ends ~\d\d:\d\d \(estimate\)")  # fmt: skip
+    reported = [line for line in ticks if re.fullmatch(pattern, line)]
+    assert reported, ticks
+    # the stage is the last: the whole run's time left is the stage's own estimate
+    for line in reported:
+        own, whole = re.findall(r"~(\d+) s left", line)
+        assert own == whole
+    assert json.loads((tmp_path / "out" / "slow" / "progress.json").read_text())["finished"] is True
+
+
+def test_the_whole_runs_estimate_scales_the_later_stages_by_the_runs_pace():
+    from drgan.pipeline import progress_line
+    from drgan.progress import Report
+
+    # done stages took twice their typical time: the rest is expected at that pace
+    factor = progress_line.pace([(60.0, 150.0), (600.0, 1170.0)])
+    assert factor == pytest.approx(1320 / 660)
+    assert progress_line.pace([]) == 1.0 and progress_line.pace([(60.0, 6000.0)]) == 8.0  # kept within range
+    report = Report("rendering pairs", 250, 1000, "pairs", 80.0, 300.0)
+    assert progress_line.stage_left(report, 300.0, 100.0, factor) == 300.0  # the stage's own estimate first
+    assert progress_line.stage_left(None, 300.0, 100.0, factor) == 500.0  # else its scaled typical time less run
+    assert progress_line.stage_left(None, 300.0, 900.0, factor) == 0.0
+    assert progress_line.whole_left(300.0, [60.0, 60.0], factor) == pytest.approx(300.0 + 240.0)
+    line = progress_line.line(3, 6, "generate", report, 80.0, 540.0, now=0.0)
+    assert line.startswith("[3/6] generate: rendering pairs 250/1000 pairs (25 %), 80 s so far, ~5.0 min left; the whole "
+                           "run: ~9.0 min left, ends ~")  # fmt: skip

@@ -45,6 +45,7 @@ from drgan.errors import ConfigError, pixel_size
 from drgan.io import figure_png, write_bytes, write_json
 from drgan.metrics.instance_scores import binarize_and_label
 from drgan.metrics.statistics import Particles, bootstrap, particles, pooled
+from drgan.progress import track
 from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
@@ -248,7 +249,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
 
     out = s.out
     rows, found, thickness_values = [], [], []
-    for item, scale in zip(items, scales):
+    for item, scale in track(list(zip(items, scales)), "segmenting images", unit="images"):
         class_map = np.asarray(predictor(item))
         labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
         mine = particles(labels).at_least(min_area)  # what drgan.evaluate counts and sizes

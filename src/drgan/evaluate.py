@@ -57,6 +57,7 @@ from drgan.metrics.instance_scores import (
     segmentation_scores,
 )
 from drgan.metrics.statistics import compare_sizes, count_errors, particles, pooled
+from drgan.progress import track
 from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
@@ -263,7 +264,7 @@ def evaluate(settings: EvaluateSettings | DictConfig, predictors: dict | None = 
     found: dict[str, list] = {run: [] for run in predictors}
     sources: dict[str, list] = {run: [] for run in predictors}
     for k, (run, predictor) in enumerate(predictors.items()):
-        for item, true_labels in samples:
+        for item, true_labels in track(samples, f"scoring {run}", unit="images"):
             image_id, image = item.id, item.image
             class_map = np.asarray(predictor(item))
             if class_map.shape != image.shape:

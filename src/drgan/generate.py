@@ -48,6 +48,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from drgan.data.polarity import check_polarity
 from drgan.errors import DataError
+from drgan.progress import Task
 from drgan.runtime import stage_main, start
 from drgan.scene.labels import class_mask
 from drgan.synthetic.backgrounds import write_backgrounds
@@ -263,6 +264,8 @@ def generate_dataset(given: GenerateSettings) -> dict:
         )
     outcomes = folder.outcomes()
     bar = _progress(settings.progress, total=math.ceil(n / shard.count))
+    already = sum(1 for i, kept in outcomes.items() if kept and i % shard.count == shard.index)
+    task = Task("rendering pairs", math.ceil(n / shard.count), "pairs", start=min(already, math.ceil(n / shard.count)))
     index = shard.index
     try:
         with torch.no_grad():
@@ -304,6 +307,7 @@ def generate_dataset(given: GenerateSettings) -> dict:
                     folder.write(item, rendered.image, rendered.mask, rendered.labels, rendered.meta)
                     stats.kept += 1
                     bar.update(1)
+                    task.advance()
                 else:
                     folder.write_dropped(item, {"reason": check.reason, **rendered.meta})
                     stats.dropped += 1
@@ -313,6 +317,7 @@ def generate_dataset(given: GenerateSettings) -> dict:
                 index += shard.count
     finally:
         bar.close()
+    task.close()
 
     summary = stats.as_dict()
     rate = summary["kept_per_minute"]

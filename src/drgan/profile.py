@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
-from tqdm import tqdm
 
 from drgan.data import measurements as est
 from drgan.data import particle_edge, profile_figures
@@ -51,6 +50,7 @@ from drgan.material_proposal import (
     material_yaml,
     parent_renders_fringe,
 )
+from drgan.progress import track
 from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
@@ -180,7 +180,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
         s.split,
     )
     paths = select_images(folder, split_path, s.max_images)
-    images = [read_grey(p, crop) for p in tqdm(paths, desc="reading", unit="image")]  # checks crop on every image
+    images = [read_grey(p, crop) for p in track(paths, "reading", unit="images")]  # checks crop on every image
     small = [p.name for p, im in zip(paths, images) if min(im.shape) < patch]
     if small:
         raise DataError(f"profile: image(s) {small[:3]} are smaller than patch_size={patch} px after cropping")
@@ -202,7 +202,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
 
     tables, foregrounds, labels_kept, shapes, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
     blurs, boxes = [], []
-    for image in tqdm(images, desc="segmenting", unit="image"):
+    for image in track(images, "segmenting", unit="images"):
         labels, foreground, separability, added = est.segment_image(image, params, polarity)
         table = est.particle_table(labels)
         tables.append(table)

@@ -38,6 +38,9 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 
 from drgan.errors import ConfigError, DrganError
+from drgan.progress import EVERY_ENV, STAGE_ENV
+from drgan.progress import FILE_ENV as PROGRESS_FILE_ENV
+from drgan.pipeline import progress_line
 from drgan.pipeline.report import write_report
 from drgan.pipeline.settings import CONFIG, REPORT_FILE, STATE_FILE, Settings, parse_settings
 from drgan.pipeline.stage_table import profiled_pixel_size
@@ -58,11 +61,17 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
-def run_stage(stage: Stage, env: Mapping[str, str] | None = None) -> int:
-    """Run one stage's command, its output on this console; the exit code."""
+def run_stage(stage: Stage, env: Mapping[str, str] | None = None, every: float = 0.0,
+              tick: Callable[[], None] | None = None) -> int:  # fmt: skip
+    """Run one stage's command, its output on this console; the exit code. ``tick()`` every ``every`` seconds while
+    it runs (the progress line; 0: never)."""
     process = subprocess.Popen(stage.command(), env=dict(env or os.environ), preexec_fn=_die_with_parent)
     try:
-        return process.wait()
+        while True:
+            try:
+                return process.wait(timeout=every if every > 0 and tick is not None else None)
+            except subprocess.TimeoutExpired:
+                tick()
     except KeyboardInterrupt:  # the stage got the same Ctrl-C (one process group): let it stop cleanly
         try:
             process.wait(timeout=60)
@@ -122,7 +131,8 @@ def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
                      f"(folder {stage.folder})")  # fmt: skip
                 state.update(stage.name, state="running", args=stage.recorded(), started=time.time())
                 begin = time.perf_counter()
-                code = run_stage(stage)
+                watch = _Watch(stages, state, number, begin, echo)
+                code = run_stage(stage, watch.environment(), s.progress, watch.tick)
                 seconds = time.perf_counter() - begin + float(record.get("seconds_before") or 0.0)
                 if code != 0:
                     state.update(stage.name, state="failed", exit_code=code, seconds_before=seconds)
@@ -151,6 +161,30 @@ def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
             tracker.finish(status, {"time/wall_s": time.perf_counter() - started})
         echo(f"pipeline {s.name}: done; the report: {s.out / REPORT_FILE}")
         return state.data
+
+
+class _Watch:
+    """The running stage's progress file (passed to it as DRGAN_PROGRESS) and the pipeline's line from it."""
+
+    def __init__(self, stages: list[Stage], state: State, number: int, begin: float, echo: Callable[[str], None]):
+        self.stages, self.state, self.number, self.begin, self.echo = stages, state, number, begin, echo
+        self.stage = stages[number - 1]
+        progress_line.progress_file(self.stage.folder).unlink(missing_ok=True)  # a killed attempt's last report
+
+    def environment(self) -> dict[str, str]:
+        return {**os.environ, PROGRESS_FILE_ENV: str(progress_line.progress_file(self.stage.folder)),
+                STAGE_ENV: self.stage.name, EVERY_ENV: "0"}  # fmt: skip  (the pipeline's line says it instead)
+
+    def tick(self) -> None:
+        done = [(60.0 * st.spec.typical_minutes, float(self.state.stage(st.name).get("seconds") or 0.0))
+                for st in self.stages[: self.number - 1] if self.state.stage(st.name).get("seconds")]  # fmt: skip
+        factor = progress_line.pace(done)
+        report = progress_line.read(self.stage.folder)
+        elapsed = time.perf_counter() - self.begin
+        left = progress_line.stage_left(report, 60.0 * self.stage.spec.typical_minutes, elapsed, factor)
+        later = [60.0 * st.spec.typical_minutes for st in self.stages[self.number :]]
+        run_left = progress_line.whole_left(left, later, factor)
+        self.echo(progress_line.line(self.number, len(self.stages), self.stage.name, report, elapsed, run_left))
 
 
 def _numbers(summary: dict) -> dict[str, float]:

@@ -3,6 +3,7 @@ keys the pipeline sets for them: stage_table.py)."""
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -14,7 +15,7 @@ from drgan.errors import ConfigError
 from drgan.pipeline import stage_table
 
 CONFIG = Path(__file__).parent.parent / "conf" / "pipeline" / "pipeline.yaml"
-OWN_KEYS = ("data.dir", "name", "annotated", "out", "redo", "mlflow")
+OWN_KEYS = ("data.dir", "name", "annotated", "out", "redo", "mlflow", "progress")
 STATE_FILE = "pipeline.json"
 REPORT_FILE = "report.md"
 LOCK_FILE = ".pipeline.lock"
@@ -32,6 +33,7 @@ class Settings:
     redo: str | None
     mlflow: bool
     stages: dict[str, dict[str, str]]  # stage -> {override key (with +/++/~ prefix): value}, in order
+    progress: float = 60.0  # seconds between the pipeline's progress lines while a stage runs; 0: none
 
 
 def _value_text(value) -> str:
@@ -112,6 +114,12 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     out = Path("runs/pipeline") / str(name) if out in (None, "null", "None", "") else Path(str(out)).expanduser()
     mlflow = own["mlflow"]
     mlflow = mlflow if isinstance(mlflow, bool) else str(mlflow).lower() in ("true", "1", "yes")
+    try:
+        progress = float(own["progress"])
+    except (TypeError, ValueError):
+        progress = -1.0
+    if not (progress >= 0 and math.isfinite(progress)):
+        raise ConfigError(f"pipeline: progress={own['progress']!r}: expected seconds between progress lines (>= 0; 0: none)")
     for stage, keys in stages.items():
         fixed = sorted(set(k.lstrip("+~") for k in keys) & set(pipeline_keys[stage]))
         if fixed:
@@ -127,4 +135,5 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         redo=redo,
         mlflow=mlflow,
         stages=stages,
+        progress=progress,
     )

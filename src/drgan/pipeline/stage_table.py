@@ -54,6 +54,8 @@ class StageSpec:
     mlflow_run: bool = False  # logs an MLflow run of its own (given the pipeline's experiment and parent run)
     module: str = ""  # its command's module; "" for drgan.NAME
     config: str = ""  # its config's name (the user's keys are composed with it before any stage runs); "" for NAME
+    typical_minutes: float = 1.0  # its wall time with the defaults on 2 CPU cores (benchmarks/pipeline.py): the prior
+    # of the whole run's estimated end, scaled by how the stages done so far compared with theirs (progress_line.py)
 
     @property
     def command_module(self) -> str:

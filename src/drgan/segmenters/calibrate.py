@@ -26,6 +26,7 @@ import numpy as np
 
 from drgan.checkpoint_io import positive_entry
 from drgan.errors import ConfigError
+from drgan.progress import track
 from drgan.metrics.statistics import median_diameter
 
 log = logging.getLogger(__name__)
@@ -117,11 +118,7 @@ def calibrate_split(
     if not pairs:
         raise ValueError("calibrate_split: no validation pairs")
     chosen = list(pairs)[: settings["max_pairs"]]
-    iterator = chosen
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(chosen, desc="split calibration", unit="pair")
+    iterator = track(chosen, "split calibration: predicting", unit="pairs") if progress else chosen
     probs, truths = [], []
     for pair in iterator:
         probs.append(predict_probs(model, pair.image, **predict_kw))
@@ -147,7 +144,7 @@ def calibrate_split(
 
     true_particles = [particles(truth).at_least(MIN_AREA_PX) for truth in truths]
     table = []
-    for setting, split in candidates:
+    for setting, split in track(candidates, "split calibration: scoring", unit="settings") if progress else candidates:
         tp = fp = fn = 0
         found = []
         for p, truth in zip(probs, truths):

@@ -27,6 +27,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from drgan.errors import ConfigError
+from drgan.progress import track
 from drgan.scene.labels import IGNORE
 
 log = logging.getLogger(__name__)
@@ -98,11 +99,7 @@ def closed_loop(
         def predictor(image):
             return predict(model, image, pixel_scale=1.0, noise_match=False, annotations=False, **settings)
 
-    iterator = pairs
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(pairs, desc="closed-loop check", unit="pair")
+    iterator = track(pairs, "closed-loop check", unit="pairs") if progress else pairs
     found, truth, sources, scores = [], [], [], []
     for pair in iterator:
         true_labels = np.asarray(pair.instances()).astype(np.int64)

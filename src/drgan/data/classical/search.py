@@ -21,11 +21,11 @@ from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
-from tqdm import tqdm
 
 from drgan.data.classical.calibration import CALIBRATION as CAL
 from drgan.data.classical.foreground import Prepared, cut_foreground, prepare, retry_separability
 from drgan.data.classical.params import NoParticles, SegmentParams
+from drgan.progress import track
 from drgan.data.classical.scale import Fixed, Point, ScaleEstimate, estimate_scale
 from drgan.data.classical.watershed import split_by_depth
 
@@ -119,7 +119,7 @@ def search_scale(
     given = params.scale is not None
     shape = min((p.bright.shape for p in prepared), key=min)
     scales = [float(params.scale)] if given else scale_grid(shape)
-    bar = tqdm(scales, desc="particle scale", unit="scale", disable=not progress)
+    bar = track(scales, "particle scale search", unit="scales") if progress else scales
     points = [_point(prepared, params, s, depth) for s in bar for depth in depths]
     if given:  # every depth at that scale; seeds at necks where they make the sizes more alike (`_more_alike`)
         fixed = [_as_fixed(p, p.median, 1) for p in points]
