@@ -4,8 +4,8 @@ and inside stages, and (slow) a tiny real pipeline whose stage outputs equal the
 from __future__ import annotations
 
 import json
-import re
 import os
+import re
 import shutil
 import signal
 import subprocess

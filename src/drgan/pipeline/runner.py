@@ -38,14 +38,14 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 
 from drgan.errors import ConfigError, DrganError
-from drgan.progress import EVERY_ENV, STAGE_ENV
-from drgan.progress import FILE_ENV as PROGRESS_FILE_ENV
 from drgan.pipeline import progress_line
 from drgan.pipeline.report import write_report
 from drgan.pipeline.settings import CONFIG, REPORT_FILE, STATE_FILE, Settings, parse_settings
 from drgan.pipeline.stage_table import profiled_pixel_size
 from drgan.pipeline.stages import Stage, build_stages, check_inputs, check_stage_settings
 from drgan.pipeline.tracking import State, Tracker, folder_lock
+from drgan.progress import EVERY_ENV, STAGE_ENV
+from drgan.progress import FILE_ENV as PROGRESS_FILE_ENV
 
 log = logging.getLogger("drgan.pipeline")
 
@@ -172,8 +172,12 @@ class _Watch:
         progress_line.progress_file(self.stage.folder).unlink(missing_ok=True)  # a killed attempt's last report
 
     def environment(self) -> dict[str, str]:
-        return {**os.environ, PROGRESS_FILE_ENV: str(progress_line.progress_file(self.stage.folder)),
-                STAGE_ENV: self.stage.name, EVERY_ENV: "0"}  # fmt: skip  (the pipeline's line says it instead)
+        return {
+            **os.environ,
+            PROGRESS_FILE_ENV: str(progress_line.progress_file(self.stage.folder)),
+            STAGE_ENV: self.stage.name,
+            EVERY_ENV: "0",
+        }  # fmt: skip  (the pipeline's line says it instead)
 
     def tick(self) -> None:
         done = [(60.0 * st.spec.typical_minutes, float(self.state.stage(st.name).get("seconds") or 0.0))

@@ -119,7 +119,9 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     except (TypeError, ValueError):
         progress = -1.0
     if not (progress >= 0 and math.isfinite(progress)):
-        raise ConfigError(f"pipeline: progress={own['progress']!r}: expected seconds between progress lines (>= 0; 0: none)")
+        raise ConfigError(
+            f"pipeline: progress={own['progress']!r}: expected seconds between progress lines (>= 0; 0: none)"
+        )
     for stage, keys in stages.items():
         fixed = sorted(set(k.lstrip("+~") for k in keys) & set(pipeline_keys[stage]))
         if fixed:

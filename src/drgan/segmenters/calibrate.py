@@ -26,8 +26,8 @@ import numpy as np
 
 from drgan.checkpoint_io import positive_entry
 from drgan.errors import ConfigError
-from drgan.progress import track
 from drgan.metrics.statistics import median_diameter
+from drgan.progress import track
 
 log = logging.getLogger(__name__)
 
