@@ -4,6 +4,7 @@ callback, and the stop reason in metrics.json and MLflow (tiny trainings, random
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import numpy as np
@@ -141,13 +142,18 @@ def test_a_run_without_early_stopping_goes_to_max_epochs(images, tmp_path, monke
     assert done["stop_reason"] == "max_epochs" and done["epoch"] == 4
 
 
-def test_the_budget_stops_before_an_epoch_that_would_not_fit(images, tmp_path):  # noqa: F811
+def test_the_budget_stops_before_an_epoch_that_would_not_fit_and_says_it_cut_the_run_short(
+    images, tmp_path, caplog  # noqa: F811
+):
     out = tmp_path / "run"
     # 0.003 min = 0.18 s: the first epoch (render, FID, plots) takes longer, so no second epoch fits
-    train_one_batch_epochs(images, out, ["trainer.max_epochs=5", "callbacks.early_stopping.max_minutes=0.003"])
+    with caplog.at_level(logging.WARNING, logger="drgan.callbacks.early_stop"):
+        train_one_batch_epochs(images, out, ["trainer.max_epochs=5", "callbacks.early_stopping.max_minutes=0.003"])
     done = json.loads((out / "metrics.json").read_text())
     assert done["stop_reason"] == "budget" and "max_minutes=0.003" in done["stop_message"]
     assert done["epoch"] == 1
+    warned = [r.getMessage() for r in caplog.records if "safety net cut this run short" in r.getMessage()]
+    assert len(warned) == 1 and "after epoch 0 of trainer.max_epochs=5" in warned[0]
 
 
 def kid_by_epoch(monkeypatch, values):

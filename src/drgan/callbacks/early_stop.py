@@ -8,10 +8,13 @@ evaluations, or for ``patience_steps`` training steps, whichever is set and come
 FID callback's KID screen turned away (FID NaN) counts as no improvement. The best-epoch rule still chooses among
 every evaluation seen.
 
-``max_minutes``: a wall-clock budget for the training (resumed runs count the time of their earlier parts). It
-stops at an epoch's end when the next epoch, FID pass included, would not fit (its estimate: the slowest epoch
-so far), so the run ends inside the budget with an evaluated last epoch. Lightning's ``trainer.max_time`` is a
-hard limit instead: it stops mid-epoch, and the FID of that epoch still runs after it.
+``max_minutes``: a wall-clock safety net for the training (resumed runs count the time of their earlier parts). A
+run's result should depend on its steps and evaluations only (``trainer.max_epochs`` x the steps of an epoch, and
+patience), not on how busy the machine is; the net is for a machine far slower than expected. It stops at an epoch's
+end when the next epoch, FID pass included, would not fit (its estimate: the slowest epoch so far), so the run ends
+inside it with an evaluated last epoch, and it says loudly that it cut the run short (the same command on a quieter
+machine would train on and may choose another epoch). Lightning's ``trainer.max_time`` is a hard limit instead: it
+stops mid-epoch, and the FID of that epoch still runs after it.
 
 ``wait_for_grey`` (default true): patience does not stop a run while no evaluated epoch has its particles and
 background within the real patches' grey (the best-epoch rule's brightness range, drgan.callbacks.best_epoch):
@@ -155,7 +158,14 @@ class FIDEarlyStopping(Callback):
         if reason is not None:
             self.kind, self.reason = kind, reason
             trainer.should_stop = True
-            if trainer.is_global_zero:
+            if trainer.is_global_zero and kind == "budget":
+                log.warning(
+                    "the wall-clock safety net cut this run short after epoch %d of trainer.max_epochs=%s: %s. Its "
+                    "result now depends on this machine's speed (a quieter machine would train on and may choose "
+                    "another epoch); raise callbacks.early_stopping.max_minutes to train the epochs it was set to",
+                    trainer.current_epoch, trainer.max_epochs, reason,
+                )  # fmt: skip
+            elif trainer.is_global_zero:
                 log.info("early stop after epoch %d: %s", trainer.current_epoch, reason)
 
     @staticmethod
