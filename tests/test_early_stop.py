@@ -143,7 +143,9 @@ def test_a_run_without_early_stopping_goes_to_max_epochs(images, tmp_path, monke
 
 
 def test_the_budget_stops_before_an_epoch_that_would_not_fit_and_says_it_cut_the_run_short(
-    images, tmp_path, caplog  # noqa: F811
+    images,
+    tmp_path,
+    caplog,  # noqa: F811
 ):
     out = tmp_path / "run"
     # 0.003 min = 0.18 s: the first epoch (render, FID, plots) takes longer, so no second epoch fits

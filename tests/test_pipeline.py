@@ -488,8 +488,8 @@ def test_the_pipeline_says_what_a_running_stage_does_its_time_left_and_the_runs_
     lines: list[str] = []
     pipeline.run(settings(tmp_path, "progress=0.25"), echo=lines.append)
     ticks = [line for line in lines if line.startswith("[6/6] slow: ") and "the whole run" in line]
-    pattern = (r"\[6/6\] slow: counting [1-8]/8 steps \(\d+ %\), \d+ s so far, ~\d+ s left; the whole run: ~\d+ s "
-               r"left, ends ~\d\d:\d\d \(estimate\)")  # fmt: skip
+    pattern = (r"\[6/6\] slow: counting [1-7]/8 steps \(\d+ %\), \d+ s in the stage, ~\d+ s left; the whole run: "
+               r"~\d+ s left, ends ~\d\d:\d\d \(estimate\)")  # fmt: skip
     reported = [line for line in ticks if re.fullmatch(pattern, line)]
     assert reported, ticks
     # the stage is the last: the whole run's time left is the stage's own estimate
@@ -511,7 +511,34 @@ def test_the_whole_runs_estimate_scales_the_later_stages_by_the_runs_pace():
     assert progress_line.stage_left(report, 300.0, 100.0, factor) == 300.0  # the stage's own estimate first
     assert progress_line.stage_left(None, 300.0, 100.0, factor) == 500.0  # else its scaled typical time less run
     assert progress_line.stage_left(None, 300.0, 900.0, factor) == 0.0
+    finished = Report("segmenting", 3, 3, "images", 20.0, 0.0, finished=True)  # between tasks: the typical time again
+    assert progress_line.stage_left(finished, 300.0, 100.0, factor) == 500.0
     assert progress_line.whole_left(300.0, [60.0, 60.0], factor) == pytest.approx(300.0 + 240.0)
-    line = progress_line.line(3, 6, "generate", report, 80.0, 540.0, now=0.0)
-    assert line.startswith("[3/6] generate: rendering pairs 250/1000 pairs (25 %), 80 s so far, ~5.0 min left; the whole "
-                           "run: ~9.0 min left, ends ~")  # fmt: skip
+    line = progress_line.line(3, 6, "generate", report, 80.0, 300.0, 540.0, now=0.0)
+    assert line.startswith("[3/6] generate: rendering pairs 250/1000 pairs (25 %), 80 s in the stage, ~5.0 min left; "
+                           "the whole run: ~9.0 min left, ends ~")  # fmt: skip
+    line = progress_line.line(1, 6, "profile", finished, 25.0, 35.0, 900.0, now=0.0)
+    assert line.startswith("[1/6] profile: segmenting 3/3 images done, 25 s in the stage, ~35 s left; the whole run: ")
+
+
+def test_the_whole_chain_benchmark_runs_a_tiny_set_and_prints_every_stage_with_progress_lines(tmp_path):
+    """benchmarks/pipeline.py --tiny: the real pipeline (every stage its own process) on a made-up set; its table
+    lists every stage with a wall time and share, then the end scores; the pipeline's progress lines (every 2 s here)
+    say what the running stage does and when the whole run should end. Numbers are not asserted."""
+    script = Path(__file__).parent.parent / "benchmarks" / "pipeline.py"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, str(script), "--tiny", "--out", str(tmp_path / "run"), "--progress", "2"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)  # fmt: skip
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
+    table = done.stdout.split("## drgan.pipeline on a tiny made-up set")[1]
+    for stage in ("profile", "train", "generate", "segment", "analyze", "evaluate"):
+        assert re.search(rf"^\| {stage} \| done \| \d+ \| [\d.]+ \| \d+% \| ", table, re.M), (stage, table)
+    assert re.search(r"^\| \*\*total\*\* \| \| \*\*\d+\*\* \|", table, re.M)
+    assert re.search(r"^\| test DSC \| \d\.\d{3} \|$", table, re.M), table
+    ticks = re.findall(r"^\[(\d)/6\] (\w+): (.*); the whole run: ~[\d.]+ (?:s|min) left, ends ~\d\d:\d\d \(estimate\)$",
+                       done.stdout, re.M)  # fmt: skip
+    assert {stage for _, stage, _ in ticks} >= {"train", "segment"}, done.stdout[-3000:]
+    # the stages' own reports reach the line: the training steps of the GAN and of the segmenter
+    assert any(
+        stage == "train" and re.match(r"training the GAN .* [0-9]+/[0-9]+ steps", doing) for _, stage, doing in ticks
+    )

@@ -52,7 +52,7 @@ class Report:
 
     def line(self) -> str:
         """``generate: rendering pairs 420/1000 pairs (42 %), 3.1 min so far, ~4.3 min left``."""
-        count = f"{_count(self.done)}/{_count(self.total)}" if self.total else _count(self.done)
+        count = f"{count_text(self.done)}/{count_text(self.total)}" if self.total else count_text(self.done)
         share = f" ({100 * self.done / self.total:.0f} %)" if self.total else ""
         unit = f" {self.unit}" if self.unit else ""
         left = "done" if self.finished else ("~" + duration(self.left_s) + " left" if self.left_s is not None else "")
@@ -60,7 +60,7 @@ class Report:
         return (f"{self.stage}: " if self.stage else "") + ", ".join(p for p in parts if p)
 
 
-def _count(value: float | None) -> str:
+def count_text(value: float | None) -> str:
     if value is None:
         return "?"
     return f"{value:.0f}" if float(value).is_integer() or value >= 10 else f"{value:.1f}"

@@ -13,7 +13,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from drgan.progress import Report, duration, read_report
+from drgan.progress import Report, count_text, duration, read_report
 
 PROGRESS_FILE = "progress.json"
 PACE_RANGE = (0.25, 8.0)
@@ -35,9 +35,9 @@ def pace(done: Sequence[tuple[float, float]]) -> float:
 
 
 def stage_left(report: Report | None, typical_s: float, elapsed_s: float, factor: float) -> float:
-    """The running stage's seconds left: its own estimate where it has one, else its scaled typical time less what it
-    has run (not below 0)."""
-    if report is not None and report.left_s is not None:
+    """The running stage's seconds left: its task's own estimate while a task runs, else (before its first report,
+    or between tasks) its scaled typical time less what it has run (not below 0)."""
+    if report is not None and not report.finished and report.left_s is not None:
         return float(report.left_s)
     return max(0.0, typical_s * factor - elapsed_s)
 
@@ -46,18 +46,21 @@ def whole_left(current_left_s: float, later_typical_s: Sequence[float], factor: 
     return current_left_s + factor * sum(later_typical_s)
 
 
-def line(number: int, total: int, stage: str, report: Report | None, elapsed_s: float, run_left_s: float,
-         now: float | None = None) -> str:  # fmt: skip
-    """``[4/6] segment: training the segmenter 330/1308 steps (25 %), ..., ~6.3 min left; the whole run: ~12 min
-    left, ends ~01:12 (estimate)``."""
+def line(number: int, total: int, stage: str, report: Report | None, elapsed_s: float, left_s: float,
+         run_left_s: float, now: float | None = None) -> str:  # fmt: skip
+    """``[4/6] segment: training the segmenter 330/1308 steps (25 %), 2.1 min in the stage, ~6.3 min left; the whole
+    run: ~12 min left, ends ~01:12 (estimate)``."""
     now = time.time() if now is None else now
-    if report is not None:
-        report = Report(**{**report.__dict__, "stage": None})  # the line names the stage itself
-        doing = report.line()
+    if report is None:
+        doing = "running"
     else:
-        doing = f"running, {duration(elapsed_s)} so far"
+        count = f"{count_text(report.done)}/{count_text(report.total)}" if report.total else count_text(report.done)
+        unit = f" {report.unit}" if report.unit else ""
+        share = f" ({100 * report.done / report.total:.0f} %)" if report.total and not report.finished else ""
+        doing = f"{report.task} {count}{unit}" + (" done" if report.finished else share)
     end = time.strftime("%H:%M", time.localtime(now + run_left_s))
-    return f"[{number}/{total}] {stage}: {doing}; the whole run: ~{duration(run_left_s)} left, ends ~{end} (estimate)"
+    return (f"[{number}/{total}] {stage}: {doing}, {duration(elapsed_s)} in the stage, ~{duration(left_s)} left; "
+            f"the whole run: ~{duration(run_left_s)} left, ends ~{end} (estimate)")  # fmt: skip
 
 
 def read(folder: Path) -> Report | None:

@@ -188,7 +188,7 @@ class _Watch:
         left = progress_line.stage_left(report, 60.0 * self.stage.spec.typical_minutes, elapsed, factor)
         later = [60.0 * st.spec.typical_minutes for st in self.stages[self.number :]]
         run_left = progress_line.whole_left(left, later, factor)
-        self.echo(progress_line.line(self.number, len(self.stages), self.stage.name, report, elapsed, run_left))
+        self.echo(progress_line.line(self.number, len(self.stages), self.stage.name, report, elapsed, left, run_left))
 
 
 def _numbers(summary: dict) -> dict[str, float]:

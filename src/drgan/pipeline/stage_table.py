@@ -80,6 +80,7 @@ def _segmenter(c: Context) -> Path:
 PIPELINE: list[StageSpec] = [
     StageSpec(
         "profile",
+        typical_minutes=2.0,
         wire=lambda c: [f"data.dir={c.data_dir}", f"name={c.name}", f"out={c.folder('profile')}",
                         f"conf_dir={c.conf}", "overwrite=true"],
         keys=("data.dir", "name", "out", "conf_dir", "overwrite"),
@@ -94,6 +95,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "train",
+        typical_minutes=15.0,
         wire=lambda c: [f"material={c.name}", f"run_name={c.name}", f"hydra.run.dir={c.folder('train')}",
                         f"hydra.searchpath=[file://{c.conf}]"],
         keys=("material", "run_name", "hydra.run.dir", "hydra.searchpath"),
@@ -109,6 +111,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "generate",
+        typical_minutes=5.0,
         wire=lambda c: [f"ckpt={c.folder('train')}", f"out={c.folder('generate')}"],
         keys=("ckpt", "out"),
         done=lambda c: c.folder("generate") / "manifest.json",
@@ -120,6 +123,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "segment",
+        typical_minutes=12.0,
         wire=lambda c: [f"data={c.folder('generate')}", f"out={c.folder('segment')}", f"name={c.name}",
                         f"run_name={c.name}"],
         keys=("data", "real", "out", "name", "run_name"),
@@ -132,6 +136,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "analyze",
+        typical_minutes=1.0,
         wire=lambda c: [f"model={_segmenter(c)}", f"images={c.data_dir}", f"out={c.folder('analyze')}",
                         *([f"nm_per_px={c.nm_per_px}"] if c.nm_per_px and "nm_per_px" not in c.settings["analyze"]
                           else [])],
@@ -146,6 +151,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "evaluate",  # only with annotated=DATASET: its test ids (every image without a split.json) are scored
+        typical_minutes=1.0,
         wire=lambda c: None if c.annotated is None else
         [f"model={_segmenter(c)}", f"data={c.annotated}", f"out={c.folder('evaluate')}",
          *([] if (c.annotated / "split.json").is_file() else ["subset=all"])],
