@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage as ndi
-from tqdm import tqdm
 
 from drgan.data.classical import (
     SegmentParams,
@@ -39,6 +38,7 @@ from drgan.data.classical import (
 from drgan.data.polarity import check_polarity
 from drgan.errors import ConfigError, DataError
 from drgan.io import write_with
+from drgan.progress import track
 
 log = logging.getLogger(__name__)
 
@@ -387,7 +387,7 @@ def mine_patches(
 
     train_candidates: list[_Candidate] = []
     background_candidates: list[_Candidate] = []
-    for index, image in enumerate(tqdm(images, desc="segmenting images", unit="image", disable=not progress)):
+    for index, image in enumerate(track(images, "mining patches", unit="images") if progress else images):
         labels, foreground = segment_particles(image, segment, polarity)
         # Background windows hold neither particle nor annotation (scale bar, text) pixels.
         occupied = foreground | prepare(image, polarity, segment.annotations).annotations
