@@ -52,7 +52,7 @@ SCORES = (  # (stage, metric, label, format)
 )
 
 
-def tiny_set(folder: Path, seed: int = 0, n_train: int = 3, n_test: int = 2, size: int = 320) -> Path:
+def tiny_set(folder: Path, seed: int = 0, n_train: int = 2, n_test: int = 1, size: int = 320) -> Path:
     """A made-up annotated set: 30 bright discs (diameters lognormal around 20 px, apart) on a dark, grainy film, with
     instance masks and a split."""
     from PIL import Image
