@@ -64,7 +64,7 @@ def test_every_material_composes_with_the_train_config_and_resolves(material):
 @pytest.mark.parametrize("experiment", group_options("experiment"))
 def test_every_experiment_builds_its_callbacks_and_trainer(experiment, tmp_path):
     cfg = compose([f"experiment={experiment}", f"paths.output_dir={tmp_path}", "logger=none"], config_name="train")
-    callbacks = [instantiate(entry) for entry in cfg.callbacks.values() if "_target_" in entry]
+    callbacks = [instantiate(entry) for entry in cfg.callbacks.values() if entry is not None and "_target_" in entry]
     assert {type(c).__name__ for c in callbacks} >= {"FIDCallback", "BestEpochCallback", "FIDEarlyStopping"}
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=False)
     assert Path(trainer.default_root_dir) == tmp_path

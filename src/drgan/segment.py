@@ -330,7 +330,7 @@ def segment(cfg: DictConfig) -> dict:
     from hydra.utils import instantiate
     from lightning.pytorch.callbacks import ModelCheckpoint
 
-    from drgan.callbacks.progress import StepProgress
+    from drgan.callbacks.progress_bar import StepProgress
     from drgan.callbacks.resume import ResumeCheckpoint
     from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
     from drgan.segmenters.calibrate import PIXEL_SCALE_KEY, WORKING_DIAMETER_KEY, check_grid

@@ -4,7 +4,7 @@ from drgan.callbacks.best_epoch import BestEpochCallback, parameter_spread, sele
 from drgan.callbacks.early_stop import FIDEarlyStopping, should_stop, stop_reason
 from drgan.callbacks.fid import FIDCallback, RandomProjectionFeatures
 from drgan.callbacks.grey_start import GreyStart
-from drgan.callbacks.progress import StepProgress, TrainingProgressBar
+from drgan.callbacks.progress_bar import StepProgress, TrainingProgressBar
 from drgan.callbacks.resume import ResumeCheckpoint
 from drgan.callbacks.visuals import ParameterHistogramCallback, SampleGridCallback
 
