@@ -2,7 +2,7 @@
 
     python benchmarks/pipeline.py                          # tio2_tsem: its train ids in, its test ids scored (~30 min)
     python benchmarks/pipeline.py --set tio2_sem --seed 1  # another shared set, another seed
-    python benchmarks/pipeline.py --tiny                   # a made-up set of 320-px images of discs, tiny renders (~1 min): that
+    python benchmarks/pipeline.py --tiny                   # a made-up set of 256-px images of discs, tiny renders (~1 min): that
                                                            # the chain runs and prints every stage (the fast tests)
 
 It runs ``python -m drgan.pipeline data.dir=SET/images annotated=SET`` into ``--out`` (default
@@ -29,6 +29,7 @@ import numpy as np
 # Tiny renders and one short epoch per stage: the chain's plumbing, not its numbers (as tests/test_pipeline.py's
 # slow tiny pipeline). Every stage still runs in its own process with the pipeline's wiring.
 TINY = [
+    "profile.data.segment.scale=20",  # the discs' size: no scale search
     "train.renderer.resolution=24", "train.renderer.spp=1", "train.data.view_width=null",
     "train.material.n_particles=3", "train.material.n_particles_min=1", "train.material.meshes.count=3",
     "train.data.stride=16", "train.data.min_particles=1", "train.data.n_background=2",
@@ -52,20 +53,22 @@ SCORES = (  # (stage, metric, label, format)
 )
 
 
-def tiny_set(folder: Path, seed: int = 0, n_train: int = 2, n_test: int = 1, size: int = 320) -> Path:
-    """A made-up annotated set: 30 bright discs (diameters lognormal around 20 px, apart) on a dark, grainy film, with
+def tiny_set(folder: Path, seed: int = 0, n_train: int = 2, n_test: int = 1, size: int = 256) -> Path:
+    """A made-up annotated set: 20 bright discs (diameters lognormal around 20 px, apart) on a dark, grainy film, with
     instance masks and a split."""
     from PIL import Image
     from scipy import ndimage as ndi
 
     from drgan.io import write_json, write_png, write_with
 
+    if folder.exists():
+        shutil.rmtree(folder)  # made anew each time: the same set for the same seed
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[:size, :size]
     ids = [f"t{i}" for i in range(n_train + n_test)]
     for name in ids:
         image, labels, centres = np.full((size, size), 0.2), np.zeros((size, size), np.uint16), []
-        for diameter in np.exp(rng.normal(np.log(20.0), 0.25, 30)):
+        for diameter in np.exp(rng.normal(np.log(20.0), 0.25, 20)):
             r = diameter / 2
             for _ in range(200):
                 c = rng.uniform(r + 2, size - r - 2, 2)
@@ -113,7 +116,7 @@ def main() -> int:
     ap.add_argument("--set", default="tio2_tsem", help="a set under --data (images/, masks/, split.json)")
     ap.add_argument("--data", default=os.environ.get("DRGAN_DATA", "../shared/datasets"))
     ap.add_argument("--seed", type=int, default=0, help="train.seed and segment.seed")
-    ap.add_argument("--tiny", action="store_true", help="made-up 320-px images of discs, tiny renders (~1 min)")
+    ap.add_argument("--tiny", action="store_true", help="made-up 256-px images of discs, tiny renders (~1 min)")
     ap.add_argument("--out", type=Path, help="default runs/benchmarks/pipeline/<set>_<seed>")
     ap.add_argument("--fresh", action="store_true", help="remove --out first (else a rerun resumes)")
     ap.add_argument("--progress", type=float, default=60.0, help="seconds between the pipeline's progress lines")
