@@ -15,7 +15,7 @@ from pathlib import Path
 
 
 def scores(folder: Path) -> dict[str, float]:
-    rows = list(csv.DictReader((folder / "results.csv").open()))
+    rows = [r for r in csv.DictReader((folder / "results.csv").open()) if r["image"] != "mean"]
     out = {k: statistics.mean(float(r[k]) for r in rows) for k in ("dsc", "ap50", "sq")}
     stats = {r["statistic"]: float(r["value"]) for r in csv.DictReader((folder / "statistics.csv").open())}
     for key in ("median_error", "count_error"):
@@ -28,7 +28,7 @@ def spread(values: list[float], form: str) -> str:
     if not values:
         return "n/a"
     mean = statistics.mean(values)
-    return form.format(mean) + (f" +- {form.format(statistics.stdev(values))}" if len(values) > 1 else "")
+    return form.format(mean) + (f" +- {form.replace('+', '').format(statistics.stdev(values))}" if len(values) > 1 else "")
 
 
 def main() -> None:

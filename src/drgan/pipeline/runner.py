@@ -5,7 +5,7 @@ its own folder under ``out`` (default runs/pipeline/NAME):
 
     profile/    drgan.profile   the images' polarity, sizes, noise ...; the material in drgan_conf/material/NAME.yaml
     train/      drgan.train     the GAN with that material (material=NAME, found on the pipeline's search path)
-    generate/   drgan.generate  1,000 annotated pairs and real background patches from the best epoch
+    generate/   drgan.generate  500 annotated pairs and real background patches from the best epoch
     segment/    drgan.segment   the segmenter trained on them
     analyze/    drgan.analyze   particles.csv, histograms, overlays of every image of DIR
     evaluate/   drgan.evaluate  (annotated=DATASET only) scores and statistics against its masks
