@@ -54,8 +54,9 @@ class StageSpec:
     mlflow_run: bool = False  # logs an MLflow run of its own (given the pipeline's experiment and parent run)
     module: str = ""  # its command's module; "" for drgan.NAME
     config: str = ""  # its config's name (the user's keys are composed with it before any stage runs); "" for NAME
-    typical_minutes: float = 1.0  # its wall time with the defaults on 2 CPU cores (benchmarks/pipeline.py): the prior
-    # of the whole run's estimated end, scaled by how the stages done so far compared with theirs (progress_line.py)
+    typical_minutes: float = 1.0  # its wall time with the defaults on 2 quiet CPU cores for 32 + 8 TSEM images of
+    # 1024 x 768 px (benchmarks/pipeline.py, experiments/benchmarks/pipeline.md): the prior of the whole run's estimated
+    # end, scaled by how the stages done so far compared with theirs (progress_line.py)
 
     @property
     def command_module(self) -> str:
@@ -80,7 +81,7 @@ def _segmenter(c: Context) -> Path:
 PIPELINE: list[StageSpec] = [
     StageSpec(
         "profile",
-        typical_minutes=2.0,
+        typical_minutes=3.5,
         wire=lambda c: [f"data.dir={c.data_dir}", f"name={c.name}", f"out={c.folder('profile')}",
                         f"conf_dir={c.conf}", "overwrite=true"],
         keys=("data.dir", "name", "out", "conf_dir", "overwrite"),
@@ -95,7 +96,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "train",
-        typical_minutes=15.0,
+        typical_minutes=8.0,
         wire=lambda c: [f"material={c.name}", f"run_name={c.name}", f"hydra.run.dir={c.folder('train')}",
                         f"hydra.searchpath=[file://{c.conf}]"],
         keys=("material", "run_name", "hydra.run.dir", "hydra.searchpath"),
@@ -111,7 +112,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "generate",
-        typical_minutes=5.0,
+        typical_minutes=3.0,
         wire=lambda c: [f"ckpt={c.folder('train')}", f"out={c.folder('generate')}"],
         keys=("ckpt", "out"),
         done=lambda c: c.folder("generate") / "manifest.json",
@@ -123,7 +124,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "segment",
-        typical_minutes=12.0,
+        typical_minutes=7.0,
         wire=lambda c: [f"data={c.folder('generate')}", f"out={c.folder('segment')}", f"name={c.name}",
                         f"run_name={c.name}"],
         keys=("data", "real", "out", "name", "run_name"),
@@ -136,7 +137,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "analyze",
-        typical_minutes=1.0,
+        typical_minutes=1.5,
         wire=lambda c: [f"model={_segmenter(c)}", f"images={c.data_dir}", f"out={c.folder('analyze')}",
                         *([f"nm_per_px={c.nm_per_px}"] if c.nm_per_px and "nm_per_px" not in c.settings["analyze"]
                           else [])],
@@ -151,7 +152,7 @@ PIPELINE: list[StageSpec] = [
     ),
     StageSpec(
         "evaluate",  # only with annotated=DATASET: its test ids (every image without a split.json) are scored
-        typical_minutes=1.0,
+        typical_minutes=0.5,
         wire=lambda c: None if c.annotated is None else
         [f"model={_segmenter(c)}", f"data={c.annotated}", f"out={c.folder('evaluate')}",
          *([] if (c.annotated / "split.json").is_file() else ["subset=all"])],
