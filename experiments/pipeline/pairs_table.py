@@ -28,7 +28,9 @@ def spread(values: list[float], form: str) -> str:
     if not values:
         return "n/a"
     mean = statistics.mean(values)
-    return form.format(mean) + (f" +- {form.replace('+', '').format(statistics.stdev(values))}" if len(values) > 1 else "")
+    return form.format(mean) + (
+        f" +- {form.replace('+', '').format(statistics.stdev(values))}" if len(values) > 1 else ""
+    )
 
 
 def main() -> None:
@@ -47,7 +49,10 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for setting, runs in groups.items():
         minutes = " / ".join(f"{times[t] / 60:.1f}" for t, _ in runs if t in times) or "n/a"
-        col = lambda k, f: spread([s[k] for _, s in runs if k in s], f)  # noqa: E731
+
+        def col(key: str, form: str, runs=runs) -> str:
+            return spread([s[key] for _, s in runs if key in s], form)
+
         print(f"| {setting} | {len(runs)} | {minutes} | {col('dsc', '{:.3f}')} | {col('ap50', '{:.3f}')} | "
               f"{col('sq', '{:.3f}')} | {col('median_error', '{:+.3f}')} | {col('count_error', '{:+.3f}')} |")  # fmt: skip
 
