@@ -544,3 +544,26 @@ def test_the_whole_chain_benchmark_runs_a_tiny_set_and_prints_every_stage_with_p
     assert any(
         stage == "train" and re.match(r"training the GAN .* [0-9]+/[0-9]+ steps", doing) for _, stage, doing in ticks
     )
+
+
+def test_a_quick_profile_of_a_small_folder_does_not_shorten_the_gans_estimate(tmp_path):
+    """The profile reads every image (its time is the folder's size), the GAN's is its settings': a 10-s profile of 4
+    small images sets no pace, so the estimate of the run left when the GAN starts is the typical times as they are;
+    a GAN that took twice its typical time doubles the estimate of the paced stages after it, not of analyze."""
+    images_folder(tmp_path / "images")
+    s = settings(tmp_path, "progress=1")
+    built = stages.build_stages(s, None)
+    state = tracking.State(tmp_path / "state.json")
+    lines: list[str] = []
+    typical = {st.name: 60.0 * st.spec.typical_minutes for st in built}
+    state.update("profile", state="done", seconds=10.0)
+    runner._Watch(built, state, 2, time.perf_counter(), lines.append).tick()
+    expected = sum(typical[n] for n in ("train", "generate", "segment", "analyze"))
+    whole = re.search(r"the whole run: ~([\d.]+) (s|min) left", lines[-1])
+    assert float(whole.group(1)) * (60 if whole.group(2) == "min" else 1) == pytest.approx(expected, abs=6)
+
+    state.update("train", state="done", seconds=2 * typical["train"])
+    runner._Watch(built, state, 3, time.perf_counter(), lines.append).tick()
+    expected = 2 * (typical["generate"] + typical["segment"]) + typical["analyze"]
+    whole = re.search(r"the whole run: ~([\d.]+) (s|min) left", lines[-1])
+    assert float(whole.group(1)) * (60 if whole.group(2) == "min" else 1) == pytest.approx(expected, abs=6)

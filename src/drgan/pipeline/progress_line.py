@@ -3,8 +3,10 @@ left, and the estimated end of the whole run.
 
 The whole run's estimate adds the running stage's time left (its own estimate; before it has one, its typical time
 less what it has run) and the later stages' typical times (``StageSpec.typical_minutes``: the defaults on 2 CPU cores,
-benchmarks/pipeline.py). Each typical time is scaled by this run's own pace: the wall time of the stages done so far
-over their typical times (kept within 1/4-8 x), so that a slower machine, or larger images, lengthen the rest alike.
+benchmarks/pipeline.py). The typical times of the stages whose cost is set by their settings (the GAN, generation,
+the segmenter) are scaled by this run's own pace: the wall time of those done so far over their typical times (kept
+within 1/4-8 x), so that a slower machine lengthens the rest alike; the stages that read every image (profile,
+analyze, evaluate: ``StageSpec.paced`` false) neither set the pace nor take it.
 """
 
 from __future__ import annotations

@@ -181,13 +181,16 @@ class _Watch:
 
     def tick(self) -> None:
         done = [(60.0 * st.spec.typical_minutes, float(self.state.stage(st.name).get("seconds") or 0.0))
-                for st in self.stages[: self.number - 1] if self.state.stage(st.name).get("seconds")]  # fmt: skip
+                for st in self.stages[: self.number - 1] if st.spec.paced and self.state.stage(st.name).get("seconds")]  # fmt: skip
         factor = progress_line.pace(done)
         report = progress_line.read(self.stage.folder)
         elapsed = time.perf_counter() - self.begin
-        left = progress_line.stage_left(report, 60.0 * self.stage.spec.typical_minutes, elapsed, factor)
-        later = [60.0 * st.spec.typical_minutes for st in self.stages[self.number :]]
-        run_left = progress_line.whole_left(left, later, factor)
+        own = factor if self.stage.spec.paced else 1.0
+        left = progress_line.stage_left(report, 60.0 * self.stage.spec.typical_minutes, elapsed, own)
+        later = [
+            60.0 * st.spec.typical_minutes * (factor if st.spec.paced else 1.0) for st in self.stages[self.number :]
+        ]
+        run_left = progress_line.whole_left(left, later, 1.0)
         self.echo(progress_line.line(self.number, len(self.stages), self.stage.name, report, elapsed, left, run_left))
 
 

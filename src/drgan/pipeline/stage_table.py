@@ -57,6 +57,8 @@ class StageSpec:
     typical_minutes: float = 1.0  # its wall time with the defaults on 2 quiet CPU cores for 32 + 8 TSEM images of
     # 1024 x 768 px (benchmarks/pipeline.py, experiments/benchmarks/pipeline.md): the prior of the whole run's estimated
     # end, scaled by how the stages done so far compared with theirs (progress_line.py)
+    paced: bool = True  # its time follows the machine's pace, not the folder's size (profile, analyze and evaluate read
+    # every image: a folder of 4 small images would make the GAN look 3 x quicker); those neither set nor take the pace
 
     @property
     def command_module(self) -> str:
@@ -82,6 +84,7 @@ PIPELINE: list[StageSpec] = [
     StageSpec(
         "profile",
         typical_minutes=3.5,
+        paced=False,
         wire=lambda c: [f"data.dir={c.data_dir}", f"name={c.name}", f"out={c.folder('profile')}",
                         f"conf_dir={c.conf}", "overwrite=true"],
         keys=("data.dir", "name", "out", "conf_dir", "overwrite"),
@@ -138,6 +141,7 @@ PIPELINE: list[StageSpec] = [
     StageSpec(
         "analyze",
         typical_minutes=1.5,
+        paced=False,
         wire=lambda c: [f"model={_segmenter(c)}", f"images={c.data_dir}", f"out={c.folder('analyze')}",
                         *([f"nm_per_px={c.nm_per_px}"] if c.nm_per_px and "nm_per_px" not in c.settings["analyze"]
                           else [])],
@@ -153,6 +157,7 @@ PIPELINE: list[StageSpec] = [
     StageSpec(
         "evaluate",  # only with annotated=DATASET: its test ids (every image without a split.json) are scored
         typical_minutes=0.5,
+        paced=False,
         wire=lambda c: None if c.annotated is None else
         [f"model={_segmenter(c)}", f"data={c.annotated}", f"out={c.folder('evaluate')}",
          *([] if (c.annotated / "split.json").is_file() else ["subset=all"])],
