@@ -71,6 +71,8 @@ def test_stage_keys_are_routed_to_their_stage_and_replace_the_configs_defaults(t
         (["data.dir=/d", "name=m", "redo=trian"], "redo='trian'"),
         (["data.dir=/d", "name=m", "train.hydra.run.dir=/elsewhere"], "train.hydra.run.dir is set by the pipeline"),
         (["data.dir=/d", "name=m", "segment"], "expected KEY=VALUE"),
+        (["data.dir=/d", "name=m", "progress=often"], "progress='often': expected seconds between progress lines"),
+        (["data.dir=/d", "name=m", "progress=-5"], "progress='-5'"),
     ],
 )
 def test_bad_settings_are_refused_with_the_key_named(argv, match):
