@@ -525,29 +525,6 @@ def test_the_whole_runs_estimate_scales_the_later_stages_by_the_runs_pace():
     assert line.startswith("[1/6] profile: segmenting 3/3 images done, 25 s in the stage, ~35 s left; the whole run: ")
 
 
-def test_the_whole_chain_benchmark_runs_a_tiny_set_and_prints_every_stage_with_progress_lines(tmp_path):
-    """benchmarks/pipeline.py --tiny: the real pipeline (every stage its own process) on a made-up set; its table
-    lists every stage with a wall time and share, then the end scores; the pipeline's progress lines (every 2 s here)
-    say what the running stage does and when the whole run should end. Numbers are not asserted."""
-    script = Path(__file__).parent.parent / "benchmarks" / "pipeline.py"
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, str(script), "--tiny", "--out", str(tmp_path / "run"), "--progress", "2"],
-                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)  # fmt: skip
-    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
-    table = done.stdout.split("## drgan.pipeline on a tiny made-up set")[1]
-    for stage in ("profile", "train", "generate", "segment", "analyze", "evaluate"):
-        assert re.search(rf"^\| {stage} \| done \| \d+ \| [\d.]+ \| \d+% \| ", table, re.M), (stage, table)
-    assert re.search(r"^\| \*\*total\*\* \| \| \*\*\d+\*\* \|", table, re.M)
-    assert re.search(r"^\| test DSC \| \d\.\d{3} \|$", table, re.M), table
-    ticks = re.findall(r"^\[(\d)/6\] (\w+): (.*); the whole run: ~[\d.]+ (?:s|min) left, ends ~\d\d:\d\d \(estimate\)$",
-                       done.stdout, re.M)  # fmt: skip
-    assert {stage for _, stage, _ in ticks} >= {"train", "segment"}, done.stdout[-3000:]
-    # the stages' own reports reach the line: the training steps of the GAN and of the segmenter
-    assert any(
-        stage == "train" and re.match(r"training the GAN .* [0-9]+/[0-9]+ steps", doing) for _, stage, doing in ticks
-    )
-
-
 def test_a_quick_profile_of_a_small_folder_does_not_shorten_the_gans_estimate(tmp_path):
     """The profile reads every image (its time is the folder's size), the GAN's is its settings': a 10-s profile of 4
     small images sets no pace, so the estimate of the run left when the GAN starts is the typical times as they are;
