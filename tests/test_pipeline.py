@@ -517,7 +517,7 @@ def test_the_whole_runs_estimate_scales_the_later_stages_by_the_runs_pace():
     assert progress_line.stage_left(None, 300.0, 900.0, factor) == 0.0
     finished = Report("segmenting", 3, 3, "images", 20.0, 0.0, finished=True)  # between tasks: the typical time again
     assert progress_line.stage_left(finished, 300.0, 100.0, factor) == 500.0
-    assert progress_line.whole_left(300.0, [60.0, 60.0], factor) == pytest.approx(300.0 + 240.0)
+    assert progress_line.whole_left(300.0, [60.0 * factor, 60.0 * factor]) == pytest.approx(300.0 + 240.0)
     line = progress_line.line(3, 6, "generate", report, 80.0, 300.0, 540.0, now=0.0)
     assert line.startswith("[3/6] generate: rendering pairs 250/1000 pairs (25 %), 80 s in the stage, ~5.0 min left; "
                            "the whole run: ~9.0 min left, ends ~")  # fmt: skip

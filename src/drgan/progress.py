@@ -50,17 +50,23 @@ class Report:
     stage: str | None = None
     finished: bool = False
 
+    def counted(self) -> str:
+        """``rendering pairs 420/1000 pairs``."""
+        count = f"{_count_text(self.done)}/{_count_text(self.total)}" if self.total else _count_text(self.done)
+        return f"{self.task} {count}" + (f" {self.unit}" if self.unit else "")
+
+    def share(self) -> str:
+        """`` (42 %)``, or "" without a total."""
+        return f" ({100 * self.done / self.total:.0f} %)" if self.total else ""
+
     def line(self) -> str:
         """``generate: rendering pairs 420/1000 pairs (42 %), 3.1 min so far, ~4.3 min left``."""
-        count = f"{count_text(self.done)}/{count_text(self.total)}" if self.total else count_text(self.done)
-        share = f" ({100 * self.done / self.total:.0f} %)" if self.total else ""
-        unit = f" {self.unit}" if self.unit else ""
         left = "done" if self.finished else ("~" + duration(self.left_s) + " left" if self.left_s is not None else "")
-        parts = [f"{self.task} {count}{unit}{share}", f"{duration(self.seconds)} so far", left]
+        parts = [f"{self.counted()}{self.share()}", f"{duration(self.seconds)} so far", left]
         return (f"{self.stage}: " if self.stage else "") + ", ".join(p for p in parts if p)
 
 
-def count_text(value: float | None) -> str:
+def _count_text(value: float | None) -> str:
     if value is None:
         return "?"
     return f"{value:.0f}" if float(value).is_integer() or value >= 10 else f"{value:.1f}"

@@ -15,7 +15,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from drgan.progress import Report, count_text, duration, read_report
+from drgan.progress import Report, duration, read_report
 
 PROGRESS_FILE = "progress.json"
 PACE_RANGE = (0.25, 8.0)
@@ -44,8 +44,9 @@ def stage_left(report: Report | None, typical_s: float, elapsed_s: float, factor
     return max(0.0, typical_s * factor - elapsed_s)
 
 
-def whole_left(current_left_s: float, later_typical_s: Sequence[float], factor: float) -> float:
-    return current_left_s + factor * sum(later_typical_s)
+def whole_left(current_left_s: float, later_s: Sequence[float]) -> float:
+    """The whole run's seconds left: the running stage's and the later stages' expected times (already at pace)."""
+    return current_left_s + sum(later_s)
 
 
 def line(number: int, total: int, stage: str, report: Report | None, elapsed_s: float, left_s: float,
@@ -56,10 +57,7 @@ def line(number: int, total: int, stage: str, report: Report | None, elapsed_s: 
     if report is None:
         doing = "running"
     else:
-        count = f"{count_text(report.done)}/{count_text(report.total)}" if report.total else count_text(report.done)
-        unit = f" {report.unit}" if report.unit else ""
-        share = f" ({100 * report.done / report.total:.0f} %)" if report.total and not report.finished else ""
-        doing = f"{report.task} {count}{unit}" + (" done" if report.finished else share)
+        doing = report.counted() + (" done" if report.finished else report.share())
     end = time.strftime("%H:%M", time.localtime(now + run_left_s))
     return (f"[{number}/{total}] {stage}: {doing}, {duration(elapsed_s)} in the stage, ~{duration(left_s)} left; "
             f"the whole run: ~{duration(run_left_s)} left, ends ~{end} (estimate)")  # fmt: skip

@@ -190,7 +190,7 @@ class _Watch:
         later = [
             60.0 * st.spec.typical_minutes * (factor if st.spec.paced else 1.0) for st in self.stages[self.number :]
         ]
-        run_left = progress_line.whole_left(left, later, 1.0)
+        run_left = progress_line.whole_left(left, later)
         self.echo(progress_line.line(self.number, len(self.stages), self.stage.name, report, elapsed, left, run_left))
 
 
