@@ -351,18 +351,19 @@ def test_a_new_pipeline_stage_is_one_entry_in_the_table(tmp_path, monkeypatch):
 
 # --- the real thing, tiny (slow) ---------------------------------------------------------------------------
 
-TINY = [
-    "train.renderer.resolution=24", "train.renderer.spp=1", "train.data.view_width=null",
-    "train.material.n_particles=3", "train.material.n_particles_min=1", "train.material.meshes.count=3",
-    "train.data.stride=16", "train.data.min_particles=1", "train.data.n_background=2",
-    "train.callbacks.fid.extractor={_target_:drgan.callbacks.RandomProjectionFeatures,dim:16}",
-    "train.callbacks.fid.n_images=4", "+train.callbacks.fid.kid_subsets=5", "train.callbacks.best_epoch.n_phi=20",
-    "train.callbacks.histograms.n_phi=20", "train.callbacks.sample_grid.n=2", "train.trainer.max_epochs=1",
-    "train.data.steps_per_epoch=2", "train.callbacks.grey_start.steps=2", "train.trainer.accelerator=cpu",
-    "generate.n=60", "generate.n_background=1", "generate.renderer.spp=1", "generate.min_contrast=1.0",
-    "segment.trainer.max_epochs=1", "segment.loader.crop=16", "segment.split_calibration=null",
-    "segment.trainer.enable_progress_bar=false", "analyze.inference.tile=64",
-]  # fmt: skip
+
+def _benchmark_tiny() -> list[str]:
+    """The tiny chain's settings, as benchmarks/pipeline.py --tiny runs them (one list for both)."""
+    import importlib.util
+
+    path = Path(__file__).parent.parent / "benchmarks" / "pipeline.py"
+    spec = importlib.util.spec_from_file_location("drgan_benchmark_pipeline", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return list(module.TINY)
+
+
+TINY = _benchmark_tiny()
 
 
 def _run_pipeline(cwd: Path, argv: list[str], wait: bool = True):
