@@ -12,11 +12,11 @@ from pathlib import Path
 
 def test_the_whole_chain_benchmark_runs_a_tiny_set_and_prints_every_stage_with_progress_lines(tmp_path):
     """benchmarks/pipeline.py --tiny: the real pipeline (every stage its own process) on a made-up set; its table
-    lists every stage with a wall time and share, then the end scores; the pipeline's progress lines (every 2 s here)
+    lists every stage with a wall time and share, then the end scores; the pipeline's progress lines (every 0.5 s here)
     say what the running stage does and when the whole run should end. Numbers are not asserted."""
     script = Path(__file__).parent.parent / "benchmarks" / "pipeline.py"
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, str(script), "--tiny", "--out", str(tmp_path / "run"), "--progress", "2"],
+    done = subprocess.run([sys.executable, str(script), "--tiny", "--out", str(tmp_path / "run"), "--progress", "0.5"],
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)  # fmt: skip
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
     table = done.stdout.split("## drgan.pipeline on a tiny made-up set")[1]
