@@ -4,7 +4,7 @@ PIP := $(PYTHON) -m pip
 STAMP := .setup.stamp
 TORCH_VERSION = $(PYTHON) -c 'import torch; print(torch.__version__.split("+")[0])'
 
-.PHONY: setup lint test test-slow train render meshes benchmark mlflow-ui clean
+.PHONY: setup lint test test-slow test-slurm train render meshes benchmark mlflow-ui clean
 
 setup: $(STAMP)
 
@@ -42,6 +42,12 @@ test: setup
 
 test-slow: setup
 	$(TEST_ENV) $(PYTHON) -m pytest -q -m slow $(PYTEST_WORKERS)
+
+# Tiny pipelines through a real scheduler: a one-node SLURM started here first (as root: scripts/slurm_local.sh
+# installs Debian's slurm-wlm and munge). One worker: the tests share the node's two CPUs and its queue.
+test-slurm: setup
+	bash scripts/slurm_local.sh
+	$(TEST_ENV) $(PYTHON) -m pytest -q -m slurm tests/test_slurm.py $(PYTEST_DURATIONS)
 
 train: setup
 	$(PYTHON) -m drgan.train experiment=tio2_sem $(ARGS)

@@ -30,7 +30,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -42,7 +41,15 @@ from drgan.pipeline import progress_line
 from drgan.pipeline.report import write_report
 from drgan.pipeline.settings import CONFIG, REPORT_FILE, STATE_FILE, Settings, parse_settings
 from drgan.pipeline.stage_table import profiled_pixel_size
-from drgan.pipeline.stages import Stage, build_stages, check_inputs, check_stage_settings
+from drgan.pipeline.stages import (
+    Stage,
+    build_stages,
+    check_inputs,
+    check_stage_settings,
+    prepare_redo,
+    stale_check,
+)
+from drgan.pipeline.submit import read_state, status_lines, submit_run
 from drgan.pipeline.tracking import State, Tracker, folder_lock
 from drgan.progress import EVERY_ENV, STAGE_ENV
 from drgan.progress import FILE_ENV as PROGRESS_FILE_ENV
@@ -50,6 +57,14 @@ from drgan.progress import FILE_ENV as PROGRESS_FILE_ENV
 log = logging.getLogger("drgan.pipeline")
 
 # --- running ---------------------------------------------------------------------------------------------
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (scancel, a job's time limit, kill): stopped as a Ctrl-C is, the stage's child stopped too."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
 
 
 def _die_with_parent() -> None:
@@ -72,7 +87,9 @@ def run_stage(stage: Stage, env: Mapping[str, str] | None = None, every: float =
                 return process.wait(timeout=every if every > 0 and tick is not None else None)
             except subprocess.TimeoutExpired:
                 tick()
-    except KeyboardInterrupt:  # the stage got the same Ctrl-C (one process group): let it stop cleanly
+    except KeyboardInterrupt as stop:  # the stage got the same Ctrl-C (one process group): let it stop cleanly
+        if isinstance(stop, Terminated):  # a SIGTERM may have been this process's alone: pass it on
+            process.terminate()
         try:
             process.wait(timeout=60)
         except subprocess.TimeoutExpired:
@@ -80,87 +97,122 @@ def run_stage(stage: Stage, env: Mapping[str, str] | None = None, every: float =
         raise
 
 
-def stale_difference(recorded: Sequence[str], current: Sequence[str]) -> str:
-    old, new = set(recorded), set(current)
-    parts = [f"now {a}" for a in current if a not in old] + [f"was {a}" for a in recorded if a not in new]
-    return "; ".join(parts)
-
-
 def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
-    """Run (or resume) the pipeline of ``s``; returns pipeline.json's content."""
-
+    """Run (or resume) the pipeline of ``s``; returns pipeline.json's content. ``launcher=slurm`` submits its stages
+    as jobs instead (drgan.pipeline.submit) and returns at once; ``only=STAGE`` runs that one stage (what each job
+    does), ``only=generate shard=i/N`` one shard of its pairs (a job array's task)."""
+    if s.launcher == "slurm":
+        submit_run(s, echo)
+        return read_state(s.out)
+    if s.shard is not None:
+        return _run_shard(s, echo)
     inputs = check_inputs(s)
     check_stage_settings(s)
-    with folder_lock(s.out):
-        state = State(s.out / STATE_FILE)
-        state.data.update({"data_dir": str(s.data_dir), "name": s.name, "inputs": inputs,
-                           "annotated": str(s.annotated) if s.annotated else None})  # fmt: skip
-        tracker = Tracker(s)
-        stages = build_stages(s, tracker.parent)
-        if s.redo is not None:
-            names = [st.name for st in stages]
-            if s.redo not in names:
-                raise ConfigError(
-                    f"pipeline: redo={s.redo}: this run has no such stage (its stages: {', '.join(names)}; evaluate "
-                    "runs only with annotated=DIR)"
-                )
-            for stage in stages[names.index(s.redo) :]:
-                if stage.folder.exists():
-                    shutil.rmtree(stage.folder)
-                stage.done_file.unlink(missing_ok=True)  # the profile's (the material) lies outside its folder
-                state.forget(stage.name)
-        total, started = len(stages), time.perf_counter()
-        status = "FAILED"
-        try:
-            for number, stage in enumerate(stages, 1):
-                # its arguments again, now with what the stages before it found (the profile's pixel size)
-                # (kept in `stages`, so that report.md shows the command as it ran)
-                stage = stages[number - 1] = build_stages(s, tracker.parent, profiled_pixel_size(s.out))[number - 1]
-                record = state.stage(stage.name)
-                if record.get("state") == "done" and stage.done_file.is_file():
-                    if record.get("args") != stage.recorded():
-                        raise ConfigError(
-                            f"pipeline: stage {stage.name} is done with other settings "
-                            f"({stale_difference(record.get('args') or [], stage.recorded())}); run it and the "
-                            f"stages after it again with redo={stage.name}, or keep it and drop the new settings"
-                        )
+    previous_handler = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        with folder_lock(s.out, wait=LOCK_WAIT_S if s.only else 0.0):
+            return _run_locked(s, inputs, echo)
+    finally:
+        signal.signal(signal.SIGTERM, previous_handler)
+
+
+LOCK_WAIT_S = 300.0  # only=STAGE (a SLURM job) waits this long for the folder's lock: its submission may still hold it
+
+
+def _run_locked(s: Settings, inputs: dict, echo: Callable[[str], None]) -> dict:
+    state = State(s.out / STATE_FILE)
+    state.data.update({"data_dir": str(s.data_dir), "name": s.name, "inputs": inputs,
+                       "annotated": str(s.annotated) if s.annotated else None})  # fmt: skip
+    tracker = Tracker(s)
+    stages = build_stages(s, tracker.parent)
+    prepare_redo(s, state, stages)
+    names = [st.name for st in stages]
+    if s.only is not None and s.only not in names:
+        raise ConfigError(f"pipeline: only={s.only}: this run has no such stage (its stages: {', '.join(names)})")
+    last = names.index(s.only) if s.only else len(stages) - 1
+    total, started = len(stages), time.perf_counter()
+    status = "FAILED"
+    try:
+        for number, stage in enumerate(stages[: last + 1], 1):
+            # its arguments again, now with what the stages before it found (the profile's pixel size)
+            # (kept in `stages`, so that report.md shows the command as it ran)
+            stage = stages[number - 1] = build_stages(s, tracker.parent, profiled_pixel_size(s.out))[number - 1]
+            record = state.stage(stage.name)
+            if record.get("state") == "done" and stage.done_file.is_file():
+                stale_check(stage, record)
+                if s.only is None or stage.name == s.only:
                     echo(f"[{number}/{total}] {stage.name}: done ({_minutes(record.get('seconds'))}), skipped")
-                    continue
-                resumed = bool(record) or bool(stage.resume())
-                echo(f"[{number}/{total}] {stage.name}: {'resuming' if resumed else 'starting'} "
-                     f"(folder {stage.folder})")  # fmt: skip
-                state.update(stage.name, state="running", args=stage.recorded(), started=time.time())
-                begin = time.perf_counter()
-                watch = _Watch(stages, state, number, begin, echo)
-                code = run_stage(stage, watch.environment(), s.progress, watch.tick)
-                seconds = time.perf_counter() - begin + float(record.get("seconds_before") or 0.0)
-                if code != 0:
-                    state.update(stage.name, state="failed", exit_code=code, seconds_before=seconds)
-                    raise DrganError(
-                        f"pipeline: stage {stage.name} failed (exit code {code}; its message is above, its log in "
-                        f"{stage.folder}); fix what it says and run the same command again to resume"
-                    )
-                if not stage.done_file.is_file():
-                    state.update(stage.name, state="failed", exit_code=code, seconds_before=seconds)
-                    raise DrganError(f"pipeline: stage {stage.name} exited 0 but wrote no {stage.done_file}")
-                summary = stage.spec.summary(stage.folder)
-                state.update(stage.name, state="done", seconds=seconds, seconds_before=None, finished=time.time(),
-                             summary=summary)  # fmt: skip
-                if not stage.spec.mlflow_run:  # a stage with an MLflow run of its own (train, segment) logs itself
-                    tracker.child(stage, seconds, _numbers(summary), [stage.folder / n for n in stage.spec.artifacts])
-                echo(f"[{number}/{total}] {stage.name}: done in {_minutes(seconds)}"
-                     + (f": {summary['line']}" if summary.get("line") else ""))  # fmt: skip
-                write_report(s, state.data, stages)
-            status = "FINISHED"
-        except KeyboardInterrupt:
-            status = "KILLED"
-            echo("pipeline: interrupted; run the same command again to resume")
-            raise
-        finally:
+                continue
+            if s.only is not None and stage.name != s.only:
+                raise DrganError(
+                    f"pipeline: only={s.only}: the stage before it, {stage.name}, is not done (run it first: "
+                    f"only={stage.name}, or the whole pipeline without only=)"
+                )
+            _run_one(s, stage, number, stages, state, tracker, echo)
             write_report(s, state.data, stages)
-            tracker.finish(status, {"time/wall_s": time.perf_counter() - started})
-        echo(f"pipeline {s.name}: done; the report: {s.out / REPORT_FILE}")
-        return state.data
+        status = "FINISHED" if last == len(stages) - 1 else "RUNNING"
+    except KeyboardInterrupt:
+        status = "KILLED"
+        echo("pipeline: interrupted; run the same command again to resume")
+        raise
+    finally:
+        write_report(s, state.data, stages)
+        tracker.finish(status, {"time/wall_s": time.perf_counter() - started} if s.only is None else {})
+    echo(f"pipeline {s.name}: {'done' if status == 'FINISHED' else f'{s.only} done'}; the report: "
+         f"{s.out / REPORT_FILE}")  # fmt: skip
+    return state.data
+
+
+def _run_one(s: Settings, stage: Stage, number: int, stages: list[Stage], state: State, tracker: Tracker,
+             echo: Callable[[str], None]) -> None:  # fmt: skip
+    record = state.stage(stage.name)
+    total = len(stages)
+    resumed = record.get("state") not in (None, "submitted") or bool(stage.resume())
+    echo(f"[{number}/{total}] {stage.name}: {'resuming' if resumed else 'starting'} (folder {stage.folder})")
+    state.update(stage.name, state="running", args=stage.recorded(), started=time.time(),
+                 job=os.environ.get("SLURM_JOB_ID") if s.only else None)  # fmt: skip
+    begin = time.perf_counter()
+    watch = _Watch(stages, state, number, begin, echo)
+    code = run_stage(stage, watch.environment(), s.progress, watch.tick)
+    seconds = time.perf_counter() - begin + float(record.get("seconds_before") or 0.0)
+    if code != 0:
+        state.update(stage.name, state="failed", exit_code=code, seconds_before=seconds)
+        raise DrganError(
+            f"pipeline: stage {stage.name} failed (exit code {code}; its message is above, its log in "
+            f"{stage.folder}); fix what it says and run the same command again to resume"
+        )
+    if not stage.done_file.is_file():
+        state.update(stage.name, state="failed", exit_code=code, seconds_before=seconds)
+        raise DrganError(f"pipeline: stage {stage.name} exited 0 but wrote no {stage.done_file}")
+    summary = stage.spec.summary(stage.folder)
+    state.update(stage.name, state="done", seconds=seconds, seconds_before=None, finished=time.time(),
+                 summary=summary)  # fmt: skip
+    if not stage.spec.mlflow_run:  # a stage with an MLflow run of its own (train, segment) logs itself
+        tracker.child(stage, seconds, _numbers(summary), [stage.folder / n for n in stage.spec.artifacts])
+    echo(f"[{number}/{total}] {stage.name}: done in {_minutes(seconds)}"
+         + (f": {summary['line']}" if summary.get("line") else ""))  # fmt: skip
+
+
+def _run_shard(s: Settings, echo: Callable[[str], None]) -> dict:
+    """``only=generate shard=i/N``: this shard's pairs into the generate folder (drgan.generate shares the folder
+    between shards); no lock, no state: the job after the array completes the set as the stage."""
+    state = State(s.out / STATE_FILE)
+    stages = build_stages(s, None, profiled_pixel_size(s.out))
+    train = next(st for st in stages if st.name == "train")
+    if not (state.stage("train").get("state") == "done" and train.done_file.is_file()):
+        raise DrganError(f"pipeline: shard={s.shard}: the GAN (stage train) is not done in {s.out}")
+    stage = next(st for st in stages if st.name == "generate")
+    shard_stage = Stage(stage.spec, stage.folder, stage.wired, [*stage.settings, f"shard={s.shard}"],
+                        stage.done_file)  # fmt: skip
+    echo(f"generate: shard {s.shard} (folder {stage.folder})")
+    previous_handler = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        code = run_stage(shard_stage, {**os.environ, EVERY_ENV: str(s.progress)})
+    finally:
+        signal.signal(signal.SIGTERM, previous_handler)
+    if code != 0:
+        raise DrganError(f"pipeline: generate shard {s.shard} failed (exit code {code}; its message is above)")
+    return state.data
 
 
 class _Watch:
@@ -221,8 +273,21 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(help_text(), flush=True)
         return 0
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
+    status = "status" in argv  # `... status`: each stage's state (and SLURM job), nothing run
+    argv = [a for a in argv if a != "status"]
     try:
-        run(parse_settings(argv))
+        from drgan.pipeline import batch
+
+        if batch.is_batch(argv):
+            if status:
+                for sample in batch.parse_batch(argv).samples:
+                    print("\n".join(status_lines(batch.sample_settings(batch.parse_batch(argv), sample, None))))
+                return 0
+            batch.run_batch(argv, run)
+        elif status:
+            print("\n".join(status_lines(parse_settings(argv))))
+        else:
+            run(parse_settings(argv))
     except DrganError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1

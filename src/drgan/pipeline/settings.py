@@ -13,9 +13,24 @@ import yaml
 
 from drgan.errors import ConfigError
 from drgan.pipeline import stage_table
+from drgan.pipeline.slurm import SlurmSettings, parse_slurm
 
 CONFIG = Path(__file__).parent.parent / "conf" / "pipeline" / "pipeline.yaml"
-OWN_KEYS = ("data.dir", "name", "annotated", "out", "redo", "mlflow", "progress")
+OWN_KEYS = (
+    "data.dir",
+    "name",
+    "annotated",
+    "out",
+    "redo",
+    "mlflow",
+    "progress",
+    "launcher",
+    "only",
+    "shard",
+    "experiment",
+    "parent_run",
+)
+LAUNCHERS = ("local", "slurm")
 STATE_FILE = "pipeline.json"
 REPORT_FILE = "report.md"
 LOCK_FILE = ".pipeline.lock"
@@ -34,6 +49,17 @@ class Settings:
     mlflow: bool
     stages: dict[str, dict[str, str]]  # stage -> {override key (with +/++/~ prefix): value}, in order
     progress: float = 60.0  # seconds between the pipeline's progress lines while a stage runs; 0: none
+    launcher: str = "local"  # local: each stage a process here; slurm: each stage a SLURM job (slurm.py)
+    slurm: SlurmSettings | None = None  # launcher=slurm's requests (parsed whatever the launcher: a typo fails)
+    only: str | None = None  # run this one stage (the stages before it must be done); what a SLURM job runs
+    shard: str | None = None  # with only=generate: render this shard i/N of the pairs and nothing else (a job array)
+    experiment: str | None = None  # the MLflow experiment; None: pipeline_<name> (a batch: study_<study>)
+    parent_run: str | None = None  # an MLflow run above this run's own parent run (a batch's study run)
+    argv: tuple[str, ...] = ()  # the command line's words, as given (a SLURM job repeats them)
+
+    @property
+    def experiment_name(self) -> str:
+        return self.experiment or f"pipeline_{self.name}"
 
 
 def _value_text(value) -> str:
@@ -77,10 +103,13 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     stages: dict[str, dict[str, str]] = {
         s: {str(k): _value_text(v) for k, v in (base["stages"].get(s) or {}).items()} for s in names
     }
+    slurm_words: dict[str, str] = {}
     for word in argv:
         key, value = _split_override(word)
         routed = _stage_key(key)
-        if routed is not None:
+        if key.startswith("slurm.") and value is not None:
+            slurm_words[key.removeprefix("slurm.")] = value
+        elif routed is not None:
             stage, inner = routed
             stages[stage].pop(inner.lstrip("+~"), None)  # one value per key: the command line's replaces the YAML's
             stages[stage][inner] = value
@@ -122,6 +151,24 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         raise ConfigError(
             f"pipeline: progress={own['progress']!r}: expected seconds between progress lines (>= 0; 0: none)"
         )
+    launcher = str(own["launcher"])
+    if launcher not in LAUNCHERS:
+        raise ConfigError(f"pipeline: launcher={launcher!r}: expected one of {', '.join(LAUNCHERS)}")
+    only = None if own["only"] in (None, "null", "None", "") else str(own["only"])
+    if only is not None and only not in names:
+        raise ConfigError(f"pipeline: only={only!r}: expected a stage, one of {', '.join(names)}")
+    shard = None if own["shard"] in (None, "null", "None", "") else str(own["shard"])
+    if shard is not None:
+        parts = shard.split("/")
+        if only != "generate" or not re.fullmatch(r"\d+/\d+", shard) or int(parts[0]) >= int(parts[1]):
+            raise ConfigError(
+                f"pipeline: shard={shard!r}: expected only=generate with shard=i/N (0 <= i < N): one shard of the "
+                "pairs, as a SLURM job array's task runs it (slurm.shards=N does this for you)"
+            )
+    if launcher == "slurm" and only is not None:
+        raise ConfigError("pipeline: only= runs one stage here (launcher=local); launcher=slurm submits them all")
+    slurm = parse_slurm(base.get("slurm") or {}, slurm_words, names)
+    blank = (None, "null", "None", "")
     for stage, keys in stages.items():
         fixed = sorted(set(k.lstrip("+~") for k in keys) & set(pipeline_keys[stage]))
         if fixed:
@@ -138,4 +185,11 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         mlflow=mlflow,
         stages=stages,
         progress=progress,
+        launcher=launcher,
+        slurm=slurm,
+        only=only,
+        shard=shard,
+        experiment=None if own["experiment"] in blank else str(own["experiment"]),
+        parent_run=None if own["parent_run"] in blank else str(own["parent_run"]),
+        argv=tuple(argv),
     )

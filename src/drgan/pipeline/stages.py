@@ -4,8 +4,9 @@ stage's settings that run before any stage."""
 from __future__ import annotations
 
 import hashlib
+import shutil
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,7 +55,7 @@ def build_stages(s: Settings, parent_run: str | None, nm_per_px: float | None = 
     without ``annotated``); ``nm_per_px``: the pixel size the profile found."""
     context = Context(s.out, s.name, s.data_dir, s.annotated, s.stages, nm_per_px)
     links = [f"parent_run={parent_run}"] if parent_run else []
-    logged = [f"logger.mlflow.experiment_name=pipeline_{s.name}", *links] if s.mlflow else ["logger=none"]
+    logged = [f"logger.mlflow.experiment_name={s.experiment_name}", *links] if s.mlflow else ["logger=none"]
     stages = []
     for spec in stage_table.PIPELINE:
         wired = spec.wire(context)
@@ -72,6 +73,39 @@ def build_stages(s: Settings, parent_run: str | None, nm_per_px: float | None = 
             )
         )
     return stages
+
+
+def stale_difference(recorded: Sequence[str], current: Sequence[str]) -> str:
+    old, new = set(recorded), set(current)
+    parts = [f"now {a}" for a in current if a not in old] + [f"was {a}" for a in recorded if a not in new]
+    return "; ".join(parts)
+
+
+def stale_check(stage: Stage, record: dict) -> None:
+    """A done stage whose settings changed since is not rerun silently: the difference, and what to do."""
+    if record.get("args") != stage.recorded():
+        raise ConfigError(
+            f"pipeline: stage {stage.name} is done with other settings "
+            f"({stale_difference(record.get('args') or [], stage.recorded())}); run it and the "
+            f"stages after it again with redo={stage.name}, or keep it and drop the new settings"
+        )
+
+
+def prepare_redo(s: Settings, state, stages: Sequence[Stage]) -> None:
+    """``redo=STAGE``: that stage's folder and every later one's removed, their records in ``state`` forgotten."""
+    if s.redo is None:
+        return
+    names = [st.name for st in stages]
+    if s.redo not in names:
+        raise ConfigError(
+            f"pipeline: redo={s.redo}: this run has no such stage (its stages: {', '.join(names)}; evaluate "
+            "runs only with annotated=DIR)"
+        )
+    for stage in stages[names.index(s.redo) :]:
+        if stage.folder.exists():
+            shutil.rmtree(stage.folder)
+        stage.done_file.unlink(missing_ok=True)  # the profile's (the material) lies outside its folder
+        state.forget(stage.name)
 
 
 def check_stage_settings(s: Settings) -> None:

@@ -7,6 +7,7 @@ import contextlib
 import fcntl
 import json
 import logging
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -40,16 +41,23 @@ class State:
 
 
 @contextlib.contextmanager
-def folder_lock(out: Path):
+def folder_lock(out: Path, wait: float = 0.0):
+    """The run folder's lock, held while a pipeline (or a submission) works in it; ``wait``: seconds to wait for it
+    (a SLURM job whose submission is still writing) before refusing."""
     out.mkdir(parents=True, exist_ok=True)
     with open(out / LOCK_FILE, "w") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ConfigError(
-                f"pipeline: another drgan.pipeline is running on {out} (its lock {out / LOCK_FILE} is held); "
-                "wait for it, or give this one another name="
-            ) from None
+        deadline = time.monotonic() + wait
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise ConfigError(
+                        f"pipeline: another drgan.pipeline is running on {out} (its lock {out / LOCK_FILE} is held); "
+                        "wait for it, or give this one another name="
+                    ) from None
+                time.sleep(1.0)
         yield
 
 
@@ -66,24 +74,21 @@ class Tracker:
         try:
             import mlflow
 
-            from drgan.loggers import store_lock, tracking_store
+            from drgan.loggers import tracking_store
 
             uri, _ = tracking_store([f"hydra.searchpath=[file://{s.out / 'drgan_conf'}]"])
             self.client = mlflow.MlflowClient(tracking_uri=uri)
-            with store_lock(uri):
-                experiment = self.client.get_experiment_by_name(f"pipeline_{s.name}")
-                experiment_id = (
-                    experiment.experiment_id if experiment else self.client.create_experiment(f"pipeline_{s.name}")
-                )
+            experiment_id = experiment_id_of(self.client, uri, s.experiment_name)
             id_file = s.out / self.ID_FILE
             previous = id_file.read_text().strip() if id_file.is_file() else None
             if previous:
                 self.client.update_run(previous, status="RUNNING")
                 self.parent = previous
             else:
-                run = self.client.create_run(
-                    experiment_id, run_name=s.name, tags={"data_dir": str(s.data_dir), "output_dir": str(s.out)}
-                )
+                tags = {"data_dir": str(s.data_dir), "output_dir": str(s.out)}
+                if s.parent_run:
+                    tags["mlflow.parentRunId"] = s.parent_run
+                run = self.client.create_run(experiment_id, run_name=s.name, tags=tags)
                 self.parent = run.info.run_id
                 write_bytes(id_file, self.parent.encode())
             self.experiment_id = experiment_id
@@ -114,11 +119,24 @@ class Tracker:
             log.warning("MLflow: stage %s not logged (%s)", stage.name, str(error).splitlines()[0])
 
     def finish(self, status: str, metrics: Mapping[str, float] = {}) -> None:
+        """Log ``metrics`` and close the parent run with ``status``; RUNNING (a SLURM job's stage, later ones to
+        come) leaves it open."""
         if self.client is None:
             return
         try:
             for key, value in metrics.items():
                 self.client.log_metric(self.parent, key, float(value))
-            self.client.set_terminated(self.parent, status)
+            if status != "RUNNING":
+                self.client.set_terminated(self.parent, status)
         except Exception as error:  # noqa: BLE001
             log.warning("MLflow: parent run not closed (%s)", str(error).splitlines()[0])
+
+
+def experiment_id_of(client, uri: str, name: str) -> str:
+    """The id of MLflow experiment ``name`` in the store at ``uri``, created if new (under the store's lock: jobs on
+    many nodes may create it at once)."""
+    from drgan.loggers import store_lock
+
+    with store_lock(uri):
+        experiment = client.get_experiment_by_name(name)
+        return experiment.experiment_id if experiment else client.create_experiment(name)
