@@ -4,8 +4,10 @@
 # slurm.conf (this machine's CPUs and memory, no GPUs), starts munged, slurmctld and slurmd, and waits until the
 # node takes jobs. Idempotent: a running SLURM is left as it is. Not for a real cluster (docs/operations.md).
 #
-#   sudo bash scripts/slurm_local.sh          # then: sinfo; sbatch --wrap hostname
-#   bash scripts/slurm_local.sh --stop        # stops the three daemons again
+#   sudo bash scripts/slurm_local.sh              # then: sinfo; sbatch --wrap hostname
+#   sudo bash scripts/slurm_local.sh --accounting # also slurmdbd on a local MariaDB, so that sacct works (~1 min
+#                                                 # more; experiments/cluster/README.md's sacct tables)
+#   bash scripts/slurm_local.sh --stop            # stops the daemons again
 set -euo pipefail
 
 CONF_DIR=/etc/slurm
@@ -16,11 +18,14 @@ LOGS=/var/log/slurm
 if [[ "${1:-}" == "--stop" ]]; then
     pkill -x slurmd || true
     pkill -x slurmctld || true
+    pkill -x slurmdbd || true
     pkill -x munged || true
     exit 0
 fi
+ACCOUNTING=0
+[[ "${1:-}" == "--accounting" ]] && ACCOUNTING=1
 
-if sinfo -h -o %T 2>/dev/null | grep -qE '^(idle|mix|alloc)'; then
+if [[ $ACCOUNTING == 0 ]] && sinfo -h -o %T 2>/dev/null | grep -qE '^(idle|mix|alloc)'; then
     echo "slurm_local: a SLURM is running here already: $(sinfo -h -o '%P %D %T' | head -1)"
     exit 0
 fi
@@ -56,7 +61,7 @@ ProctrackType=proctrack/linuxproc
 TaskPlugin=task/none
 JobAcctGatherType=jobacct_gather/none
 JobCompType=jobcomp/none
-AccountingStorageType=accounting_storage/none
+$(if [[ $ACCOUNTING == 1 ]]; then printf 'AccountingStorageType=accounting_storage/slurmdbd\nAccountingStorageHost=%s' "$host"; else echo "AccountingStorageType=accounting_storage/none"; fi)
 ReturnToService=2
 SchedulerType=sched/backfill
 MinJobAge=3600
@@ -74,6 +79,24 @@ chmod 400 /etc/munge/munge.key
 mkdir -p /run/munge /var/lib/munge /var/log/munge
 chown munge:munge /run/munge /var/lib/munge /var/log/munge 2>/dev/null || true
 pgrep -x munged >/dev/null || su -s /bin/sh munge -c munged 2>/dev/null || munged --force
+
+if [[ $ACCOUNTING == 1 ]]; then
+    if ! command -v slurmdbd >/dev/null || ! command -v mariadbd >/dev/null; then
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -q slurmdbd mariadb-server >/dev/null
+    fi
+    mkdir -p /run/mysqld && chown mysql:mysql /run/mysqld
+    pgrep -x mariadbd >/dev/null || (mysqld_safe >/dev/null 2>&1 &)
+    for _ in $(seq 30); do mysqladmin ping >/dev/null 2>&1 && break; sleep 1; done
+    mysql -e "CREATE DATABASE IF NOT EXISTS slurm_acct_db; CREATE USER IF NOT EXISTS 'slurm'@'localhost' IDENTIFIED BY 'drgan-local'; GRANT ALL ON slurm_acct_db.* TO 'slurm'@'localhost'; FLUSH PRIVILEGES;"
+    printf '%s\n' "AuthType=auth/munge" "DbdHost=localhost" "SlurmUser=root" "LogFile=$LOGS/slurmdbd.log" \
+        "PidFile=/run/slurmdbd.pid" "StorageType=accounting_storage/mysql" "StorageHost=localhost" \
+        "StorageUser=slurm" "StoragePass=drgan-local" "StorageLoc=slurm_acct_db" > "$CONF_DIR/slurmdbd.conf"
+    chmod 600 "$CONF_DIR/slurmdbd.conf"
+    pgrep -x slurmdbd >/dev/null || slurmdbd
+    for _ in $(seq 30); do sacctmgr -i list cluster >/dev/null 2>&1 && break; sleep 1; done
+    sacctmgr -i add cluster drgan-local >/dev/null 2>&1 || true
+    if pgrep -x slurmctld >/dev/null; then pkill -x slurmctld; sleep 2; fi  # a running one restarts with accounting
+fi
 pgrep -x slurmctld >/dev/null || slurmctld
 pgrep -x slurmd >/dev/null || slurmd
 

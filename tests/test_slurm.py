@@ -375,3 +375,22 @@ def test_an_unknown_partition_or_a_request_the_cluster_cannot_run_is_refused_bef
     assert "slurm.train.gpus=0" in too_big.stderr
     after = subprocess.run(["squeue", "-h", "-o", "%i"], capture_output=True, text=True).stdout
     assert before == after and not (tmp_path / "run" / "slurm").exists()
+
+
+@pytest.mark.slow  # two tiny pipelines side by side (~2 min on 2 cores)
+def test_a_local_batch_runs_two_samples_side_by_side_and_resumes_to_the_same_summary(tiny_set, tmp_path):
+    table = _csv(tmp_path / "samples.csv", [{"name": "one", "dir": str(tiny_set / "images"), "annotated": str(tiny_set)},
+                                            {"name": "two", "dir": str(tiny_set / "images")}])  # fmt: skip
+    study = tmp_path / "study"
+    words = [f"batch={table}", f"out={study}", "parallel=2", "mlflow=false", *BENCH.TINY]
+    done = _pipeline(tmp_path, words)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "sample one started" in done.stdout and "sample two started" in done.stdout
+    assert done.stdout.index("sample two started") < done.stdout.index("sample one done")  # side by side
+    assert "[6/6] evaluate: done" in (study / "one" / "pipeline.log").read_text()
+    assert "[5/5] analyze: done" in (study / "two" / "pipeline.log").read_text()
+    summary = (study / "summary.md").read_text()
+    assert "| one | done | 3 |" in summary and "| two | done | 3 |" in summary
+    again = _pipeline(tmp_path, words)  # everything done: skipped, the same summary
+    assert again.returncode == 0 and (study / "summary.md").read_text() == summary
+    assert "done (" in (study / "one" / "pipeline.log").read_text().split("[1/6] profile:")[-1]
