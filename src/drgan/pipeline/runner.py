@@ -20,6 +20,11 @@ main output exists; done stages are skipped, the first that is not resumes (drga
 progress. A done stage whose settings have changed since is not rerun silently: the pipeline stops and names the
 difference; ``redo=STAGE`` runs that stage and every later one again. Two pipelines on one folder are refused.
 
+Elsewhere than here: ``launcher=slurm`` submits each stage as a SLURM job with its own resources (``slurm.*``),
+chained, and returns (drgan.pipeline.submit); ``batch=samples.csv`` runs one pipeline per sample and a study summary
+(drgan.pipeline.batch); ``only=STAGE`` runs one stage (what each job does); the word ``status`` shows each stage's
+state (and job) without running anything. docs/operations.md, "On a SLURM cluster".
+
 Before any stage runs, the inputs are checked: the folder holds images, the name is usable, every STAGE key names a
 stage and composes with that stage's config (a typo fails in seconds, not after the GAN), and the annotated images
 are none of the images training reads (compared by content).
