@@ -21,6 +21,9 @@ Writes, in ``out``:
   histograms.png: area and diameter histograms;
 - overlays/ID.png: every image with each particle's outline (cut particles in another colour) and its id, to check
   the outlines against the image;
+- labels/ID.tif and rois/ID.zip: the particles of particles.csv for Fiji and napari, a 16-bit label image (pixel
+  value = the particle's id; the pixel size in its tags, so Fiji measures in nm) and an ImageJ ROI set (one traced
+  outline per particle, named by its id: File > Open, or drag onto Fiji, fills the ROI Manager) (drgan.data.imagej);
 - wires=true: thickness/ID.png (local-thickness map) and thickness_histogram.png. Local thickness of a pixel =
   diameter of the largest disk inside the particle (particle + contour class) that contains the pixel (the
   `localthickness` package; its radius doubled).
@@ -97,6 +100,15 @@ def particle_rows(
             row["equivalent_diameter_nm"] = row["equivalent_diameter_px"] * nm_per_px
         rows.append(row)
     return rows
+
+
+def write_outlines(out: Path, image_id: str, labels: np.ndarray, ids: Sequence[int], nm_per_px: float | None) -> None:
+    """labels/ID.tif and rois/ID.zip of the particles ``ids`` of ``labels`` (drgan.data.imagej)."""
+    from drgan.data.imagej import kept_labels, write_label_tiff, write_roi_set
+
+    kept = kept_labels(labels, ids)
+    write_label_tiff(out / "labels" / f"{image_id}.tif", kept, nm_per_px)
+    write_roi_set(out / "rois" / f"{image_id}.zip", kept, ids)
 
 
 def pixel_sizes(paths: Sequence[Path], given: float | None) -> tuple[list[float | None], str]:
@@ -257,6 +269,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         image_rows = particle_rows(item.id, labels, scale, min_area, s.exclude_border)
         rows += image_rows
         write_bytes(out / "overlays" / f"{item.id}.png", _overlay_png(item.image, labels, image_rows))
+        write_outlines(out, item.id, labels, [r["id"] for r in image_rows], scale)
         if s.wires:
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (scale or 1.0))

@@ -21,7 +21,8 @@ count). Over several runs (one checkpoint each): mean +- sample std (ddof = 1) o
 
 Writes results.csv (one row per run and image, plus per-run "mean" rows), results.md (per-image table as
 mean +- std over runs, and the per-run and overall summary) and overlays/ID.png (first model's prediction:
-true positive instances green, false positives red, missed true instances yellow, over the grey image).
+true positive instances green, false positives red, missed true instances yellow, over the grey image), with that
+prediction's particles as labels/ID.tif and rois/ID.zip for Fiji and napari (drgan.data.imagej).
 
 Particle statistics (``statistics: true``; drgan.metrics.statistics): per run, the predicted particles' median and
 mean equivalent diameter against the masks' (relative errors), the total count's error and the per-image count
@@ -47,6 +48,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.configs import plain_node
+from drgan.data.imagej import write_label_tiff, write_roi_set
 from drgan.errors import ConfigError, pixel_size
 from drgan.io import write_bytes, write_with
 from drgan.metrics.instance_scores import (
@@ -283,6 +285,8 @@ def evaluate(settings: EvaluateSettings | DictConfig, predictors: dict | None = 
                 write_with(
                     out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG")
                 )
+                write_label_tiff(out / "labels" / f"{image_id}.tif", pred_labels)  # for Fiji and napari
+                write_roi_set(out / "rois" / f"{image_id}.zip", pred_labels)
     runs = list(predictors)
     csv_text, md_text = tables(rows, runs, ids, _inference_line(predictors))
     write_bytes(out / "results.csv", csv_text.encode())
