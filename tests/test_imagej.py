@@ -127,3 +127,77 @@ def test_analyze_writes_a_label_tiff_and_roi_set_per_image_matching_its_particle
         assert {int(k) for k in rois} == set(mine)
         for name, mask in rois.items():
             assert abs(int(mask.sum()) - mine[int(name)]) <= 0.01 * mine[int(name)]
+
+
+def _chromium() -> str | None:
+    import shutil
+
+    return shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+
+
+def _analyzed(tmp_path):
+    """An analyze folder of two images with real particles (a stub predictor: the bright pixels)."""
+    from PIL import Image
+
+    from drgan.analyze import analyze
+    from drgan.configs import compose
+
+    images = tmp_path / "images"
+    images.mkdir()
+    yy, xx = np.mgrid[:96, :128]
+    rng = np.random.default_rng(1)
+    for k in range(2):
+        img = np.full((96, 128), 0.2)
+        for _ in range(6):
+            r, c, rad = rng.integers(12, 84), rng.integers(12, 116), rng.integers(4, 10)
+            img[(yy - r) ** 2 + (xx - c) ** 2 <= rad * rad] = 0.8
+        Image.fromarray((img * 255).astype(np.uint8)).save(images / f"field{k}.png")
+    cfg = compose([f"images={images}", f"out={tmp_path / 'out'}", "nm_per_px=2.0", "bootstrap=50"],
+                  config_name="analyze")  # fmt: skip
+    rows = analyze(cfg, predictor=lambda image: (np.asarray(image) > 0.5).astype(np.int64))
+    return tmp_path / "out", rows
+
+
+def test_the_statistics_page_is_one_file_with_its_figures_overlays_and_table_inside(tmp_path):
+    out, rows = _analyzed(tmp_path)
+    text = (out / "statistics.html").read_text()
+    assert text.count('src="data:image/png;base64,') >= 2 and text.count('src="data:image/jpeg;base64,') == 2
+    assert "<table>" in text and "median diameter" in text  # statistics.md rendered, its table a table
+    assert 'src="http' not in text and "<link" not in text  # nothing to fetch
+    assert f"{len(rows)} rows" in text and "drganTable" in text
+
+
+@pytest.mark.skipif(_chromium() is None, reason="no Chromium here (.ci/run installs Debian's chromium)")
+def test_the_statistics_page_renders_in_a_headless_browser_with_its_figures_and_sortable_table(tmp_path):
+    import subprocess
+
+    from PIL import Image
+
+    out, rows = _analyzed(tmp_path)
+    page = (out / "statistics.html").resolve().as_uri()
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--hide-scrollbars"]
+    dom = subprocess.run([_chromium(), *flags, "--dump-dom", page], capture_output=True, text=True, timeout=120)
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    body = dom.stdout.split('id="particles"', 1)[1]
+    assert body.count("<tr>") == len(rows) + 1  # the table the script built: a header and one row per particle
+    assert 'style="display: block;"' in dom.stdout.split('id="overlays"', 1)[1]  # the gallery shows its first image
+    shot = tmp_path / "page.png"
+    done = subprocess.run([_chromium(), *flags, f"--screenshot={shot}", "--window-size=1200,2400", page],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0 and shot.is_file(), done.stderr[-2000:]
+    pixels = np.asarray(Image.open(shot).convert("RGB"), dtype=np.int16)
+    colourful = (pixels.max(axis=2) - pixels.min(axis=2)) > 60  # the figures' coloured lines and bars
+    assert colourful.mean() > 0.002, "the screenshot shows no figure"
+
+
+def test_the_pipeline_report_page_embeds_the_figures_its_markdown_links_to(tmp_path):
+    from drgan.pipeline.report import report_html
+
+    out, rows = _analyzed(tmp_path)
+    run = out.parent  # a pipeline folder: analyze/ inside it
+    out.rename(run / "analyze")
+    text = "# drgan pipeline `x`\n\n| stage | state |\n|---|---|\n| analyze | done |\n\nLook at: [sizes](analyze/sizes.png).\n"
+    page = report_html(text, run, "drgan pipeline x")
+    assert "<table>" in page and page.index("analyze/sizes.png</figcaption>") > page.index("Look at:")
+    assert page.count("data:image/png;base64,") == 1 and page.count("data:image/jpeg;base64,") == 2
+    assert f"{len(rows)} rows" in page

@@ -21,6 +21,8 @@ Writes, in ``out``:
   histograms.png: area and diameter histograms;
 - overlays/ID.png: every image with each particle's outline (cut particles in another colour) and its id, to check
   the outlines against the image;
+- statistics.html: all of it in one page that opens in any browser, offline (figures embedded, the overlays image by
+  image, the particle table sortable);
 - labels/ID.tif and rois/ID.zip: the particles of particles.csv for Fiji and napari, a 16-bit label image (pixel
   value = the particle's id; the pixel size in its tags, so Fiji measures in nm) and an ImageJ ROI set (one traced
   outline per particle, named by its id: File > Open, or drag onto Fiji, fills the ROI Manager) (drgan.data.imagej);
@@ -100,6 +102,17 @@ def particle_rows(
             row["equivalent_diameter_nm"] = row["equivalent_diameter_px"] * nm_per_px
         rows.append(row)
     return rows
+
+
+def statistics_html(out: Path) -> str:
+    """statistics.html: statistics.md, the figures, the overlays image by image and the sortable particle table."""
+    from drgan.html import data_uri, markdown_html, page, particles_and_overlays
+
+    body = markdown_html((out / "statistics.md").read_text(), out)
+    for name, caption in (("sizes.png", "Size distribution"), ("histograms.png", "Areas and diameters")):
+        if (out / name).is_file():
+            body += f'<h2>{caption}</h2><img class="figure" src="{data_uri(out / name)}" alt="{name}">'
+    return page("drgan analyze: particle statistics", body + particles_and_overlays(out))
 
 
 def write_outlines(out: Path, image_id: str, labels: np.ndarray, ids: Sequence[int], nm_per_px: float | None) -> None:
@@ -306,6 +319,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     write_bytes(out / "statistics.md", statistics_markdown(summary).encode())
     write_bytes(out / "sizes.png", figure_png(lambda plt: _size_figure(plt, _sizes(found, factors), stats, unit, bins)))
     write_bytes(out / "histograms.png", figure_png(lambda plt: _histograms(plt, rows, in_nm, bins)))
+    write_bytes(out / "statistics.html", statistics_html(out).encode())
     if s.wires:
         values = np.concatenate(thickness_values) if thickness_values else np.zeros(0)
         write_bytes(

@@ -284,4 +284,16 @@ def write_report(settings, state: dict, stages) -> None:
         if links:
             lines += ["", "Look at: " + ", ".join(links) + "."]
         lines += ["", "```", f"python -m {stage.module} " + " ".join(stage.recorded()), "```"]
-    write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode())
+    text = "\n".join(lines) + "\n"
+    write_bytes(out / "report.md", text.encode())
+    write_bytes(out / "report.html", report_html(text, out, f"drgan pipeline {settings.name}").encode())
+
+
+def report_html(text: str, out: Path, title: str) -> str:
+    """report.html: report.md with its figures embedded, then analyze's overlays and particle table (drgan.html)."""
+    from drgan.html import markdown_html, page, particles_and_overlays
+
+    body = markdown_html(text, out)
+    if (out / "analyze" / "particles.csv").is_file():
+        body += particles_and_overlays(out / "analyze")
+    return page(title, body)
