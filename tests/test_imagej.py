@@ -201,3 +201,55 @@ def test_the_pipeline_report_page_embeds_the_figures_its_markdown_links_to(tmp_p
     assert "<table>" in page and page.index("analyze/sizes.png</figcaption>") > page.index("Look at:")
     assert page.count("data:image/png;base64,") == 1 and page.count("data:image/jpeg;base64,") == 2
     assert f"{len(rows)} rows" in page
+
+
+def test_the_napari_reader_opens_an_analyze_folder_as_images_and_labels_with_the_particle_table(tmp_path):
+    from drgan.data.napari_reader import get_reader
+
+    out, rows = _analyzed(tmp_path)
+    assert get_reader(str(tmp_path / "images")) is None  # not a run: napari asks another plugin
+    reader = get_reader(str(out))
+    layers = reader(str(out))
+    kinds = [(meta["name"], kind) for _, meta, kind in layers]
+    assert kinds == [("field0", "image"), ("field0 particles", "labels"), ("field1", "image"),
+                     ("field1 particles", "labels")]  # fmt: skip
+    for data, meta, kind in layers:
+        assert meta["scale"] == (2.0, 2.0)  # nm per px, from the label TIFF
+        if kind == "labels":
+            image = meta["name"].split()[0]
+            mine = [r for r in rows if r["image"] == image]
+            assert meta["features"]["index"] == [r["id"] for r in mine]
+            assert meta["features"]["area_px"] == [int((data == r["id"]).sum()) for r in mine]
+            assert set(np.unique(data[data > 0])) == {r["id"] for r in mine}
+    run = tmp_path / "run"  # a pipeline run folder: its analyze/ inside
+    run.mkdir()
+    out.rename(run / "analyze")
+    assert len(get_reader(str(run))(str(run))) == 4
+
+
+def test_the_napari_manifest_is_valid_and_points_at_the_reader():
+    npe2 = pytest.importorskip("npe2", reason="npe2 (the dev extra) validates napari manifests")
+    from pathlib import Path
+
+    import drgan.data.napari_reader as module
+
+    manifest = npe2.PluginManifest.from_file(Path(module.__file__).parent.parent / "napari.yaml")
+    (reader,) = manifest.contributions.readers
+    (command,) = manifest.contributions.commands
+    assert reader.command == command.id and reader.accepts_directories
+    assert command.python_name == "drgan.data.napari_reader:get_reader"
+    import importlib
+
+    name, attribute = command.python_name.split(":")
+    assert getattr(importlib.import_module(name), attribute) is module.get_reader
+
+
+def test_drgan_view_says_what_is_missing(tmp_path, capsys):
+    from drgan.view import main
+
+    assert main([str(tmp_path)]) == 1 and "not a drgan run or analyze folder" in capsys.readouterr().err
+    out, _ = _analyzed(tmp_path)
+    try:
+        import napari  # noqa: F401
+    except ImportError:  # napari is an optional extra: without it, the message says how to get it
+        assert main([str(out)]) == 1 and 'pip install "drgan[napari]"' in capsys.readouterr().err

@@ -299,6 +299,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     whole = pooled(found)
     summary = {
         "images": len(items),
+        "images_dir": str(Path(s.images).resolve()),  # where the images lie (the napari reader opens them beside)
         "median_diameter_px": float(np.median(whole)) if whole.size else None,
         # the segmenter's own error on held-out generated pairs (drgan.segmenters.closed_loop), when it has one
         "closed_loop": getattr(getattr(predictor, "model", None), "closed_loop", None),

@@ -47,6 +47,7 @@ COMMANDS = {
         "a generated set in nnU-Net's layout",
     ),
     "mlflow-ui": ("drgan.loggers", None, "serve the MLflow store of your runs"),
+    "view": ("drgan.view", None, "a run's images and particle outlines in napari (the napari extra)"),
 }
 
 
