@@ -194,10 +194,13 @@ def check_requests(settings: SlurmSettings, stages: Sequence[str], workdir: Path
 
 
 def job_script(path: Path, workdir: Path, command: Sequence[str], tail: str = "") -> Path:
-    """A readable job script: cd to the submission's folder, then the command (exec'd: the job is that process);
+    """A readable job script: the threads set to the job's CPUs, cd to the submission's folder, then the command
+    (exec'd: the job is that process);
     ``tail``: shell words appended as they are (an array task's ``"shard=${SLURM_ARRAY_TASK_ID}/N"``)."""
     text = (
         "#!/bin/bash\n# written by drgan.pipeline (launcher=slurm); resubmit by hand with sbatch if you like\n"
+        "# the job's CPUs for torch's and NumPy's threads (where the submitting shell set none)\n"
+        'export OMP_NUM_THREADS="${OMP_NUM_THREADS:-${SLURM_CPUS_PER_TASK:-1}}"\n'
         f"cd {shlex.quote(str(workdir))}\nexec {shlex.join(command)}{' ' + tail if tail else ''}\n"
     )
     write_bytes(path, text.encode())
