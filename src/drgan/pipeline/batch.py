@@ -147,8 +147,11 @@ def run_batch(
     """Every sample's pipeline (``run``: drgan.pipeline.runner.run; or their submission), then the study summary;
     the summary's content."""
     b = parse_batch(argv)
-    if b.only_summary:
-        return write_summary(b)
+    if b.only_summary:  # the last SLURM job of a batch: the summary, and the study run closed
+        summary = write_summary(b)
+        done = all(row.get("state") == "done" for row in summary["samples"])
+        StudyRun(b).finish(summary, "FINISHED" if done else "FAILED")
+        return summary
     settings = [sample_settings(b, sample, None) for sample in b.samples]  # names and keys, before anything runs
     for s in settings:
         check_inputs(s)
