@@ -354,7 +354,6 @@ def test_a_two_sample_batch_on_slurm_with_a_sharded_generate_and_its_study_summa
     by_id = {r.info.run_id: r for r in runs}
     top = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
     assert [r.info.run_name for r in top] == ["samples"] and top[0].info.status == "FINISHED"  # closed by the summary
-    assert top[0].data.metrics == {} or all(k.startswith("median_diameter/") for k in top[0].data.metrics)
     samples = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == top[0].info.run_id]
     assert sorted(r.info.run_name for r in samples) == ["first", "second"]
     for sample in samples:
