@@ -401,9 +401,13 @@ def write_noise_check(out: Path, manifest: dict, settings, resolution: int, patc
 
 
 def _progress(shown: bool, total: int):
+    """The tqdm bar on a terminal; off one (a log file, the pipeline's child, a SLURM job) drgan.progress's lines say
+    the same, once a minute, and a bar would only repeat itself into the log."""
+    import sys
+
     from tqdm import tqdm
 
-    return tqdm(total=total, desc="kept", unit="img", disable=not shown, dynamic_ncols=True)
+    return tqdm(total=total, desc="kept", unit="img", disable=not shown or not sys.stderr.isatty(), dynamic_ncols=True)
 
 
 @stage_main("conf/gan", "generate")
