@@ -54,9 +54,9 @@ def _is_done(stage: Stage, state: State) -> bool:
     return state.stage(stage.name).get("state") == "done" and stage.done_file.is_file()
 
 
-def submit_run(s: Settings, echo: Callable[[str], None] = print, after: Sequence[str] = ()) -> list[str]:
+def submit_run(s: Settings, echo: Callable[[str], None] = print) -> list[str]:
     """Check everything, then submit one job per stage that is not done, chained; the job ids (the last is the
-    run's final job). ``after``: jobs the first one waits for (none for a single run)."""
+    run's final job)."""
     slurm.require_tools()
     check_inputs(s)
     check_stage_settings(s)
@@ -80,8 +80,8 @@ def submit_run(s: Settings, echo: Callable[[str], None] = print, after: Sequence
         folder = s.out / JOBS_DIR
         folder.mkdir(parents=True, exist_ok=True)
         ids: list[str] = []
-        previous = list(after)
-        condition = "afterany" if after else "afterok"
+        previous: list[str] = []
+        condition = "afterok"
         for stage in todo:
             tag = f"drgan-{s.name}-{stage.name}"
             array = None
@@ -106,7 +106,7 @@ def submit_run(s: Settings, echo: Callable[[str], None] = print, after: Sequence
             echo(f"  {stage.name}: job {job}" + (f" (after the {requests.shards} shards of job array {array})"
                                                if array else "") + f"  {' '.join(options)}")  # fmt: skip
         state.data["launcher"] = "slurm"
-        state.update(todo[0].name)  # writes pipeline.json with the launcher
+        state.save()
     echo(f"pipeline {s.name}: {len(ids)} job(s) submitted to SLURM; watch: the same command with `status` "
          f"(or squeue -u $USER); logs in {folder}")  # fmt: skip
     return ids

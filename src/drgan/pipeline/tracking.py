@@ -35,6 +35,9 @@ class State:
         self.data["stages"].setdefault(name, {}).update(values)
         write_json(self.path, self.data)
 
+    def save(self) -> None:
+        write_json(self.path, self.data)
+
     def forget(self, name: str) -> None:
         self.data["stages"].pop(name, None)
         write_json(self.path, self.data)
