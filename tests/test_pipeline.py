@@ -395,6 +395,8 @@ def test_a_tiny_pipeline_killed_inside_a_stage_resumes_to_the_single_commands_re
     state = json.loads((run / "pipeline.json").read_text())
     assert [state["stages"][s]["state"] for s in pipeline.STAGES[:5]] == ["done"] * 5
     assert "[5/5] analyze: done" in done.stdout and (run / "analyze" / "particles.csv").is_file()
+    page = (run / "report.html").read_text()  # the report for any browser: the stages' figures inside it
+    assert "<table>" in page and page.count("data:image/png;base64,") >= 3 and 'src="http' not in page
     reference = _images(run / "generate")
 
     # Killed while generating (a SIGKILL of the pipeline takes its stage along), then rerun: the same pairs.
