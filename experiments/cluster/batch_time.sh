@@ -28,11 +28,11 @@ start=$(date +%s.%N)
 since=$(date +%Y-%m-%dT%H:%M:%S)
 python -m drgan.pipeline batch="$OUT/samples.csv" out="$OUT/slurm" launcher=slurm $SMALL $TINY
 while [[ ! -f "$OUT/slurm/summary.md" ]]; do sleep 1; done
-slurm_s=$(echo "$(date +%s.%N) - $start" | bc)
+slurm_s=$(python -c "print(round($(date +%s.%N) - $start))")
 
 start=$(date +%s.%N)
 python -m drgan.pipeline batch="$OUT/samples.csv" out="$OUT/local" progress=0 $TINY > "$OUT/local.log" 2>&1
-local_s=$(echo "$(date +%s.%N) - $start" | bc)
+local_s=$(python -c "print(round($(date +%s.%N) - $start))")
 
 echo
 echo "| run | wall s |"
