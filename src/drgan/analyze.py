@@ -46,6 +46,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.configs import plain_node
+from drgan.data.imagej import write_outlines
 from drgan.errors import ConfigError, pixel_size
 from drgan.io import figure_png, write_bytes, write_json
 from drgan.metrics.instance_scores import binarize_and_label
@@ -113,15 +114,6 @@ def statistics_html(out: Path) -> str:
         if (out / name).is_file():
             body += f'<h2>{caption}</h2><img class="figure" src="{data_uri(out / name)}" alt="{name}">'
     return page("drgan analyze: particle statistics", body + particles_and_overlays(out))
-
-
-def write_outlines(out: Path, image_id: str, labels: np.ndarray, ids: Sequence[int], nm_per_px: float | None) -> None:
-    """labels/ID.tif and rois/ID.zip of the particles ``ids`` of ``labels`` (drgan.data.imagej)."""
-    from drgan.data.imagej import kept_labels, write_label_tiff, write_roi_set
-
-    kept = kept_labels(labels, ids)
-    write_label_tiff(out / "labels" / f"{image_id}.tif", kept, nm_per_px)
-    write_roi_set(out / "rois" / f"{image_id}.zip", kept, ids)
 
 
 def pixel_sizes(paths: Sequence[Path], given: float | None) -> tuple[list[float | None], str]:
@@ -282,7 +274,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         image_rows = particle_rows(item.id, labels, scale, min_area, s.exclude_border)
         rows += image_rows
         write_bytes(out / "overlays" / f"{item.id}.png", _overlay_png(item.image, labels, image_rows))
-        write_outlines(out, item.id, labels, [r["id"] for r in image_rows], scale)
+        write_outlines(out, item.id, labels, [r["id"] for r in image_rows], scale)  # for Fiji and napari
         if s.wires:
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (scale or 1.0))

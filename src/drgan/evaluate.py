@@ -48,7 +48,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.configs import plain_node
-from drgan.data.imagej import write_label_tiff, write_roi_set
+from drgan.data.imagej import write_outlines
 from drgan.errors import ConfigError, pixel_size
 from drgan.io import write_bytes, write_with
 from drgan.metrics.instance_scores import (
@@ -285,8 +285,7 @@ def evaluate(settings: EvaluateSettings | DictConfig, predictors: dict | None = 
                 write_with(
                     out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG")
                 )
-                write_label_tiff(out / "labels" / f"{image_id}.tif", pred_labels)  # for Fiji and napari
-                write_roi_set(out / "rois" / f"{image_id}.zip", pred_labels)
+                write_outlines(out, image_id, pred_labels)  # for Fiji and napari
     runs = list(predictors)
     csv_text, md_text = tables(rows, runs, ids, _inference_line(predictors))
     write_bytes(out / "results.csv", csv_text.encode())

@@ -82,19 +82,10 @@ def markdown_html(text: str, base: Path) -> str:
         return f'{match.group(1)}"{data_uri(path)}" class="figure"'
 
     body = re.sub(r'(<img src=)"([^"]+)"', embed_img, body)
-    figures = []
-
-    def note_link(match: re.Match) -> str:
-        href = html.unescape(match.group(1))
-        path = base / href
-        if href.lower().endswith(".png") and path.is_file() and href not in figures:
-            figures.append(href)
-        return match.group(0)
-
     paragraphs = []
     for block in re.split(r"(?<=</p>)\n", body):
-        figures.clear()
-        re.sub(r'<a href="([^"]+)"', note_link, block)
+        linked = [html.unescape(h) for h in re.findall(r'<a href="([^"]+)"', block)]
+        figures = [h for h in dict.fromkeys(linked) if h.lower().endswith(".png") and (base / h).is_file()]
         extra = "".join(
             f'<figure><img class="figure" src="{data_uri(base / f)}" alt="{html.escape(f)}">'
             f"<figcaption>{html.escape(f)}</figcaption></figure>"

@@ -143,12 +143,11 @@ def write_roi_set(path: Path, labels: np.ndarray, ids: Iterable[int] | None = No
     """An ImageJ ROI set (.zip): one traced polygon ROI per particle of ``labels`` (every id, or ``ids``), named by
     its id; the number of ROIs written."""
     import roifile
+    from scipy import ndimage as ndi
 
     labels = np.asarray(labels)
     wanted = sorted(int(i) for i in (np.unique(labels[labels > 0]) if ids is None else ids))
     rois = []
-    from scipy import ndimage as ndi
-
     boxes = ndi.find_objects(labels.astype(np.int64)) if wanted else []
     for i in wanted:
         box = boxes[i - 1] if i - 1 < len(boxes) else None
@@ -159,8 +158,7 @@ def write_roi_set(path: Path, labels: np.ndarray, ids: Iterable[int] | None = No
         roi = roifile.ImagejRoi.frompoints(points.astype(np.float64), name=str(i))
         roi.roitype = roifile.ROI_TYPE.TRACED
         rois.append(roi)
-    with atomic_path(path) as tmp:
-        tmp.unlink(missing_ok=True)  # roifile appends to an existing zip
+    with atomic_path(path) as tmp:  # (mode "w": the empty temporary file is replaced, not appended to)
         if rois:
             roifile.roiwrite(tmp, rois, mode="w")
         else:
@@ -177,3 +175,14 @@ def read_roi_set(path: Path, shape: tuple[int, int]) -> Mapping[str, np.ndarray]
     rois = roifile.roiread(path)
     rois = rois if isinstance(rois, list) else [rois]
     return {roi.name: fill_polygon(roi.coordinates(), shape) for roi in rois}
+
+
+def write_outlines(
+    out: Path, image_id: str, labels: np.ndarray, ids: Iterable[int] | None = None, nm_per_px: float | None = None
+) -> None:
+    """OUT/labels/ID.tif and OUT/rois/ID.zip of the particles ``ids`` of ``labels`` (every particle when None)."""
+    if ids is not None:
+        ids = list(ids)
+        labels = kept_labels(labels, ids)
+    write_label_tiff(out / "labels" / f"{image_id}.tif", labels, nm_per_px)
+    write_roi_set(out / "rois" / f"{image_id}.zip", labels, ids)

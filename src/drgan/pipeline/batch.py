@@ -89,19 +89,20 @@ def read_samples(path: Path) -> list[Sample]:
         if name in seen:
             raise DataError(f"pipeline: batch={path}, line {number}: the name {name!r} is taken by an earlier row")
         seen.add(name)
-        directory = (base / folder).expanduser().resolve() if not Path(folder).is_absolute() else Path(folder)
+        directory = _from_csv(base, folder)
         if not directory.is_dir():
             raise DataError(
                 f"pipeline: batch={path}, line {number} ({name}): dir={folder}: no such folder (expected a folder "
                 "of images; a relative path is read from the CSV's folder)"
             )
-        annotated = row.get("annotated") or None
-        if annotated is not None:
-            annotated = (
-                (base / annotated).expanduser().resolve() if not Path(annotated).is_absolute() else Path(annotated)
-            )
+        annotated = _from_csv(base, row["annotated"]) if row.get("annotated") else None
         samples.append(Sample(name, directory, annotated, number))
     return samples
+
+
+def _from_csv(base: Path, text: str) -> Path:
+    """A path of the CSV: absolute as it is, relative from the CSV's folder."""
+    return Path(text) if Path(text).is_absolute() else (base / text).expanduser().resolve()
 
 
 def parse_batch(argv: Sequence[str]) -> Batch:
@@ -182,14 +183,14 @@ def _run_local(b: Batch, settings: list[Settings], run: Callable, echo: Callable
                 failures[s.name] = str(error)
                 echo(f"study {b.study}: sample {s.name} failed: {error}")
         return failures
-    waiting, running = list(settings), {}
+    waiting, running = list(zip(b.samples, settings)), {}
     while waiting or running:
         while waiting and len(running) < b.parallel:
-            s = waiting.pop(0)
+            sample, s = waiting.pop(0)
             log = s.out / "pipeline.log"
             log.parent.mkdir(parents=True, exist_ok=True)
             handle = open(log, "ab")
-            words = sample_words(b, next(x for x in b.samples if x.name == s.name), s.parent_run)
+            words = sample_words(b, sample, s.parent_run)
             process = subprocess.Popen([*slurm.python_command(), *words], stdout=handle, stderr=subprocess.STDOUT)
             running[s.name] = (process, handle)
             echo(f"study {b.study}: sample {s.name} started (its console: {log})")

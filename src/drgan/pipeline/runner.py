@@ -51,10 +51,11 @@ from drgan.pipeline.stages import (
     build_stages,
     check_inputs,
     check_stage_settings,
+    is_done,
     prepare_redo,
     stale_check,
 )
-from drgan.pipeline.submit import read_state, status_lines, submit_run
+from drgan.pipeline.submit import status_lines, submit_run
 from drgan.pipeline.tracking import State, Tracker, folder_lock
 from drgan.progress import EVERY_ENV, STAGE_ENV
 from drgan.progress import FILE_ENV as PROGRESS_FILE_ENV
@@ -70,6 +71,16 @@ class Terminated(KeyboardInterrupt):
 
 def _terminate(signum, frame):
     raise Terminated()
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """While inside: a SIGTERM raises Terminated (the stage stopped cleanly, the state and report written)."""
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _die_with_parent() -> None:
@@ -108,17 +119,13 @@ def run(s: Settings, echo: Callable[[str], None] = print) -> dict:
     does), ``only=generate shard=i/N`` one shard of its pairs (a job array's task)."""
     if s.launcher == "slurm":
         submit_run(s, echo)
-        return read_state(s.out)
+        return State(s.out / STATE_FILE).data
     if s.shard is not None:
         return _run_shard(s, echo)
     inputs = check_inputs(s)
     check_stage_settings(s)
-    previous_handler = signal.signal(signal.SIGTERM, _terminate)
-    try:
-        with folder_lock(s.out, wait=LOCK_WAIT_S if s.only else 0.0):
-            return _run_locked(s, inputs, echo)
-    finally:
-        signal.signal(signal.SIGTERM, previous_handler)
+    with _sigterm_as_interrupt(), folder_lock(s.out, wait=LOCK_WAIT_S if s.only else 0.0):
+        return _run_locked(s, inputs, echo)
 
 
 LOCK_WAIT_S = 300.0  # only=STAGE (a SLURM job) waits this long for the folder's lock: its submission may still hold it
@@ -143,7 +150,7 @@ def _run_locked(s: Settings, inputs: dict, echo: Callable[[str], None]) -> dict:
             # (kept in `stages`, so that report.md shows the command as it ran)
             stage = stages[number - 1] = build_stages(s, tracker.parent, profiled_pixel_size(s.out))[number - 1]
             record = state.stage(stage.name)
-            if record.get("state") == "done" and stage.done_file.is_file():
+            if is_done(stage, record):
                 stale_check(stage, record)
                 if s.only is None or stage.name == s.only:
                     echo(f"[{number}/{total}] {stage.name}: done ({_minutes(record.get('seconds'))}), skipped")
@@ -204,17 +211,14 @@ def _run_shard(s: Settings, echo: Callable[[str], None]) -> dict:
     state = State(s.out / STATE_FILE)
     stages = build_stages(s, None, profiled_pixel_size(s.out))
     train = next(st for st in stages if st.name == "train")
-    if not (state.stage("train").get("state") == "done" and train.done_file.is_file()):
+    if not is_done(train, state.stage("train")):
         raise DrganError(f"pipeline: shard={s.shard}: the GAN (stage train) is not done in {s.out}")
     stage = next(st for st in stages if st.name == "generate")
     shard_stage = Stage(stage.spec, stage.folder, stage.wired, [*stage.settings, f"shard={s.shard}"],
                         stage.done_file)  # fmt: skip
     echo(f"generate: shard {s.shard} (folder {stage.folder})")
-    previous_handler = signal.signal(signal.SIGTERM, _terminate)
-    try:
+    with _sigterm_as_interrupt():
         code = run_stage(shard_stage, {**os.environ, EVERY_ENV: str(s.progress)})
-    finally:
-        signal.signal(signal.SIGTERM, previous_handler)
     if code != 0:
         raise DrganError(f"pipeline: generate shard {s.shard} failed (exit code {code}; its message is above)")
     return state.data
@@ -285,8 +289,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         if batch.is_batch(argv):
             if status:
-                for sample in batch.parse_batch(argv).samples:
-                    print("\n".join(status_lines(batch.sample_settings(batch.parse_batch(argv), sample, None))))
+                study = batch.parse_batch(argv)
+                for sample in study.samples:
+                    print("\n".join(status_lines(batch.sample_settings(study, sample, None))))
                 return 0
             batch.run_batch(argv, run)
         elif status:

@@ -73,6 +73,11 @@ def _value_text(value) -> str:
     return str(value)
 
 
+def _optional(value) -> str | None:
+    """A setting that may be unset: None for null (YAML's or the command line's ``null``, ``None``, empty)."""
+    return None if value in (None, "null", "None", "") else str(value)
+
+
 def _split_override(text: str) -> tuple[str, str | None]:
     """``key=value`` -> (key, value); ``~key`` (a deletion) -> (``~key``, None)."""
     if text.startswith("~") and "=" not in text:
@@ -154,10 +159,10 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     launcher = str(own["launcher"])
     if launcher not in LAUNCHERS:
         raise ConfigError(f"pipeline: launcher={launcher!r}: expected one of {', '.join(LAUNCHERS)}")
-    only = None if own["only"] in (None, "null", "None", "") else str(own["only"])
+    only = _optional(own["only"])
     if only is not None and only not in names:
         raise ConfigError(f"pipeline: only={only!r}: expected a stage, one of {', '.join(names)}")
-    shard = None if own["shard"] in (None, "null", "None", "") else str(own["shard"])
+    shard = _optional(own["shard"])
     if shard is not None:
         parts = shard.split("/")
         if only != "generate" or not re.fullmatch(r"\d+/\d+", shard) or int(parts[0]) >= int(parts[1]):
@@ -168,7 +173,6 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     if launcher == "slurm" and only is not None:
         raise ConfigError("pipeline: only= runs one stage here (launcher=local); launcher=slurm submits them all")
     slurm = parse_slurm(base.get("slurm") or {}, slurm_words, names)
-    blank = (None, "null", "None", "")
     for stage, keys in stages.items():
         fixed = sorted(set(k.lstrip("+~") for k in keys) & set(pipeline_keys[stage]))
         if fixed:
@@ -189,7 +193,7 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         slurm=slurm,
         only=only,
         shard=shard,
-        experiment=None if own["experiment"] in blank else str(own["experiment"]),
-        parent_run=None if own["parent_run"] in blank else str(own["parent_run"]),
+        experiment=_optional(own["experiment"]),
+        parent_run=_optional(own["parent_run"]),
         argv=tuple(argv),
     )

@@ -80,7 +80,7 @@ def _resources(stage: str, values: Mapping, partition) -> Resources:
         raise ConfigError(
             f"pipeline: slurm.{stage}.{unknown[0]}: not a resource key (the keys of a stage: {', '.join(RESOURCE_KEYS)})"
         )
-    merged = {"partition": partition, **{k: v for k, v in values.items()}}
+    merged = {"partition": partition, **values}
     try:
         cpus, gpus = int(str(merged.get("cpus", 1))), int(str(merged.get("gpus", 0)))
     except ValueError:
@@ -265,11 +265,6 @@ def _sacct(job: str) -> JobState | None:
         return None
     state, elapsed, code = max(rows, key=lambda r: _rank(r[0].split()[0]))
     return JobState(state.split()[0], elapsed, code)
-
-
-def cancel(ids: Sequence[str]) -> None:
-    if ids:
-        subprocess.run(["scancel", *ids], capture_output=True)
 
 
 def python_command() -> list[str]:

@@ -75,6 +75,11 @@ def build_stages(s: Settings, parent_run: str | None, nm_per_px: float | None = 
     return stages
 
 
+def is_done(stage: Stage, record: dict) -> bool:
+    """A stage is done when its record says so and its done file exists (a deleted output is not done)."""
+    return record.get("state") == "done" and stage.done_file.is_file()
+
+
 def stale_difference(recorded: Sequence[str], current: Sequence[str]) -> str:
     old, new = set(recorded), set(current)
     parts = [f"now {a}" for a in current if a not in old] + [f"was {a}" for a in recorded if a not in new]

@@ -3,7 +3,6 @@ scheduler's side), and ``status``: each stage's state, job and progress, for a l
 
 from __future__ import annotations
 
-import json
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -11,9 +10,17 @@ from pathlib import Path
 
 from drgan.errors import ConfigError
 from drgan.pipeline import progress_line, slurm
-from drgan.pipeline.settings import OWN_KEYS, STATE_FILE, Settings
+from drgan.pipeline.settings import STATE_FILE, Settings
 from drgan.pipeline.stage_table import profiled_pixel_size
-from drgan.pipeline.stages import Stage, build_stages, check_inputs, check_stage_settings, prepare_redo, stale_check
+from drgan.pipeline.stages import (
+    Stage,
+    build_stages,
+    check_inputs,
+    check_stage_settings,
+    is_done,
+    prepare_redo,
+    stale_check,
+)
 from drgan.pipeline.tracking import State, folder_lock
 
 JOBS_DIR = "slurm"  # OUT/slurm/: the job scripts and their logs (STAGE-JOBID.log)
@@ -24,7 +31,6 @@ def job_words(s: Settings, only: str) -> list[str]:
     slurm.*), the inputs as absolute paths, then ``launcher=local only=STAGE``."""
     dropped = {"launcher", "redo", "only", "shard", "data.dir", "name", "annotated", "out"}
     kept = [w for w in s.argv if w.split("=", 1)[0] not in dropped and not w.startswith("slurm.")]
-    kept = [w for w in kept if w.split("=", 1)[0] in OWN_KEYS or "." in w.split("=", 1)[0].lstrip("+~")]
     inputs = [f"data.dir={s.data_dir}", f"name={s.name}", f"out={s.out}",
               *([f"annotated={s.annotated}"] if s.annotated else [])]  # fmt: skip
     return [*slurm.python_command(), *inputs, *kept, "launcher=local", f"only={only}"]
@@ -50,10 +56,6 @@ def refuse_if_submitted(s: Settings) -> None:
         )
 
 
-def _is_done(stage: Stage, state: State) -> bool:
-    return state.stage(stage.name).get("state") == "done" and stage.done_file.is_file()
-
-
 def submit_run(s: Settings, echo: Callable[[str], None] = print) -> list[str]:
     """Check everything, then submit one job per stage that is not done, chained; the job ids (the last is the
     run's final job)."""
@@ -68,7 +70,7 @@ def submit_run(s: Settings, echo: Callable[[str], None] = print) -> list[str]:
         prepare_redo(s, state, stages)
         todo = []
         for stage in stages:
-            if _is_done(stage, state):
+            if is_done(stage, state.stage(stage.name)):
                 stale_check(stage, state.stage(stage.name))
                 continue
             todo.append(stage)
@@ -81,7 +83,6 @@ def submit_run(s: Settings, echo: Callable[[str], None] = print) -> list[str]:
         folder.mkdir(parents=True, exist_ok=True)
         ids: list[str] = []
         previous: list[str] = []
-        condition = "afterok"
         for stage in todo:
             tag = f"drgan-{s.name}-{stage.name}"
             array = None
@@ -90,19 +91,18 @@ def submit_run(s: Settings, echo: Callable[[str], None] = print) -> list[str]:
                 script = slurm.job_script(folder / "generate-shard.sh", workdir, job_words(s, "generate"),
                                           tail=f'"shard=${{SLURM_ARRAY_TASK_ID}}/{n}"')  # fmt: skip
                 array = slurm.submit(script, f"{tag}-shards", requests.job_options("generate"),
-                                     str(folder / "generate-shard-%A_%a.log"), workdir, previous, condition,
+                                     str(folder / "generate-shard-%A_%a.log"), workdir, previous,
                                      array=f"0-{n - 1}")  # fmt: skip
-                previous, condition = [array], "afterok"
+                previous = [array]
             script = slurm.job_script(folder / f"{stage.name}.sh", workdir, job_words(s, stage.name))
             options = requests.job_options(stage.name)
             if array is not None:  # the set is rendered: completing it needs one CPU, minutes
                 options = [o for o in options if not o.startswith("--gpus")]
-            job = slurm.submit(script, tag, options, str(folder / f"{stage.name}-%j.log"), workdir, previous,
-                               condition)  # fmt: skip
+            job = slurm.submit(script, tag, options, str(folder / f"{stage.name}-%j.log"), workdir, previous)
             state.update(stage.name, state="submitted", job=job, array=array, submitted=time.time(),
                          log=str(folder / f"{stage.name}-{job}.log"))  # fmt: skip
             ids.append(job)
-            previous, condition = [job], "afterok"
+            previous = [job]
             echo(f"  {stage.name}: job {job}" + (f" (after the {requests.shards} shards of job array {array})"
                                                if array else "") + f"  {' '.join(options)}")  # fmt: skip
         state.data["launcher"] = "slurm"
@@ -138,20 +138,15 @@ def status_lines(s: Settings) -> list[str]:
     ]
     for stage in stages:
         record = state.stage(stage.name)
-        own = "done" if _is_done(stage, state) else (record.get("state") or "not started")
+        own = "done" if is_done(stage, state.stage(stage.name)) else (record.get("state") or "not started")
         job = record.get("job") or ""
         js = known.get(job)
         array = record.get("array")
         if array and array in known:
             job = f"{job} (shards {array}: {known[array].state})"
-        slurm_state = (js.state + (f" ({js.reason})" if js and js.reason not in ("", "None") else "")) if js else ""
+        slurm_state = (js.state + (f" ({js.reason})" if js.reason not in ("", "None") else "")) if js else ""
         elapsed = js.elapsed if js else (f"{record['seconds'] / 60:.1f} min" if record.get("seconds") else "")
         report = progress_line.read(stage.folder) if own in ("running", "submitted") else None
         progress = report.line() if report is not None else ""
         lines.append(f"| {stage.name} | {own} | {job} | {slurm_state} | {elapsed} | {progress} |")
     return lines
-
-
-def read_state(out: Path) -> dict:
-    path = out / STATE_FILE
-    return json.loads(path.read_text()) if path.is_file() else {"stages": {}}
