@@ -260,10 +260,34 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
         "train": ("material", "run_name", "hydra.run.dir", "hydra.searchpath", "parent_run", "ckpt_path"),
         "generate": ("ckpt", "out"),
         "segment": ("data", "real", "out", "name", "run_name", "parent_run", "ckpt_path"),
+        "finetune": (
+            "finetune",
+            "data",
+            "real",
+            "corrected",
+            "correction.images",
+            "out",
+            "name",
+            "run_name",
+            "parent_run",
+            "ckpt_path",
+        ),
         "analyze": ("model", "images", "out"),
         "evaluate": ("model", "models", "data", "out"),
     }
-    assert pipeline.STAGES == stage_table.STAGES == tuple(built)
+    assert pipeline.STAGES == stage_table.STAGES == ("profile", "train", "generate", "segment", "finetune",
+                                                      "analyze", "evaluate")  # fmt: skip
+    assert "finetune" not in built  # without corrected=: no such stage, analyze uses segment's segmenter
+    # corrected=DIR: the finetune stage fine-tunes segment's segmenter, and analyze and evaluate use the fine-tuned one
+    fixed = pipeline.parse_settings([*s.argv, f"corrected={tmp_path / 'fixes'}"])
+    with_fixes = {st.name: (st.module, st.recorded()) for st in stages.build_stages(fixed, "P")}
+    assert with_fixes["finetune"] == (
+        "drgan.segment", [f"finetune={o / 'segment'}", f"data={o / 'generate'}", f"corrected={tmp_path / 'fixes'}",
+                          f"correction.images={data}", f"out={o / 'finetune'}", "name=t", "run_name=t_finetune",
+                          *logged])  # fmt: skip
+    tuned = f"model={o / 'finetune' / 'checkpoints' / 'last.ckpt'}"
+    assert with_fixes["analyze"][1][0] == tuned and with_fixes["evaluate"][1][0] == tuned
+    assert list(with_fixes) == ["profile", "train", "generate", "segment", "finetune", "analyze", "evaluate"]
     (o / "train" / "checkpoints").mkdir(parents=True)
     (o / "train" / "checkpoints" / "last.ckpt").write_bytes(b"x")
     resumed = {st.name: st.resume() for st in stages.build_stages(s, None) if st.spec.resumes}
@@ -317,7 +341,7 @@ def test_a_new_pipeline_stage_is_one_entry_in_the_table(tmp_path, monkeypatch):
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
     after = stage_table.STAGES.index("analyze") + 1
     monkeypatch.setattr(stage_table, "PIPELINE", [*stage_table.PIPELINE[:after], TOY, *stage_table.PIPELINE[after:]])
-    assert pipeline.STAGES == ("profile", "train", "generate", "segment", "analyze", "toy", "evaluate")
+    assert pipeline.STAGES == ("profile", "train", "generate", "segment", "finetune", "analyze", "toy", "evaluate")
     with pytest.raises(ConfigError, match="toy.out is set by the pipeline.*python -m drgan_toy_pipeline_stage"):
         settings(tmp_path, "toy.out=/elsewhere")
 

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from drgan.errors import ConfigError, check_keys, setting_float, setting_int
+from drgan.errors import ConfigError, DataError, check_keys, setting_float, setting_int
 from drgan.io import write_json
 from drgan.runtime import stage_main, start
 from drgan.segmenters.contacts import resolve_contact_weight
@@ -246,24 +246,40 @@ def load_training_pairs(cfg: DictConfig):
 
 
 def dataloaders(
-    cfg: DictConfig, pairs, normalize: str = "none", centres: bool = False, scale: float = 1.0, rays=(0, 64)
+    cfg: DictConfig,
+    pairs,
+    normalize: str = "none",
+    centres: bool = False,
+    scale: float = 1.0,
+    rays=(0, 64),
+    corrected=(),
+    split_seed: int | None = None,
 ):
     """Train and validation loaders of the pairs; ``normalize``: the segmenter's input normalisation, which its
     training crops get as its inference will (``input_normalization``); ``centres``: the crops carry centre-map
     targets too (an instance-aware segmenter, ``needs_centres``); ``scale``: the working scale the pairs were shrunk
     by (`at_working_scale`), so that real images keep the crops per epoch of their original area; ``rays``: (number,
-    longest px) of the ray distances the crops carry (the star-convex segmenter, drgan.segmenters.star; 0: none)."""
+    longest px) of the ray distances the crops carry (the star-convex segmenter, drgan.segmenters.star; 0: none);
+    ``corrected``: a user's corrected images (drgan.segmenters.corrections), all trained on, ``correction.share`` of
+    each epoch's crops; ``split_seed``: the validation split's seed (None: ``seed``; a fine-tuning run keeps its
+    base run's, so that the base's validation pairs stay unseen)."""
     from torch.utils.data import DataLoader
 
+    from drgan.segmenters.corrections import crops_for_share
     from drgan.segmenters.pairs import CropDataset, crops_by_area, split_pairs
 
     ld = LoaderSettings.from_config(cfg)
-    train_pairs, val_pairs = split_pairs(pairs, ld.val_fraction, ld.seed)
+    train_pairs, val_pairs = split_pairs(pairs, ld.val_fraction, ld.seed if split_seed is None else split_seed)
     per_pair = ld.samples_per_pair
     if per_pair == "auto":
         # Real images are sampled by their area (an epoch of 20 large tiles is not 20 crops); generated pairs are
         # windows the GAN rendered, sampled once each, as their number (1,000 and more) already sets the epoch.
         per_pair = crops_by_area(train_pairs, ld.crop * scale) if cfg.get("real") else 1
+    if corrected:
+        counts = [per_pair] * len(train_pairs) if isinstance(per_pair, int) else list(per_pair)
+        share = setting_float("correction.share", cfg.correction.share, 0.0)
+        per_pair = counts + crops_for_share(list(corrected), sum(counts), share)
+        train_pairs = [*train_pairs, *corrected]
     kw = dict(
         crop=ld.crop,
         brightness=ld.brightness,
@@ -324,30 +340,57 @@ def stop_reason(trainer, stopper) -> str:
     return "max_epochs"
 
 
-def segment(cfg: DictConfig) -> dict:
-    """Train one segmenter; return final metrics. Writes everything under cfg.out."""
-    import lightning.pytorch as L
-    from hydra.utils import instantiate
-    from lightning.pytorch.callbacks import ModelCheckpoint
+@dataclass
+class Prepared:
+    """What a segment run trains, its data read and checked: the model, its training pairs (validation pairs among
+    them) and the closed-loop check's held-out pairs, a user's corrected pairs (fine-tuning), the values its
+    checkpoints carry for inference (pixel scale, noise level, working diameter), the working scale, the seed of
+    its validation split and why its contact weight is what it is."""
 
-    from drgan.callbacks.progress_bar import StepProgress
-    from drgan.callbacks.resume import ResumeCheckpoint
-    from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
-    from drgan.segmenters.calibrate import PIXEL_SCALE_KEY, WORKING_DIAMETER_KEY, check_grid
-    from drgan.segmenters.module import CheckpointEntries, ScoreHistory, settled
-    from drgan.segmenters.noise_match import NOISE_KEY
-    from drgan.segmenters.registry import build_segmenter
+    model: Any
+    pairs: list
+    check_pairs: list
+    pixel_scale: float = 1.0
+    noise: float | None = None
+    diameter: float | None = None
+    working: float = 1.0
+    corrected: list = field(default_factory=list)
+    split_seed: int | None = None
+    contact_why: str | None = None
+    finetuned: dict | None = None  # fine-tuning: the base checkpoint and the corrected images (metrics.json)
+
+    def entries(self) -> dict:
+        """The checkpoint entries inference reads back (drgan.segmenters.registry.load_segmenter)."""
+        from drgan.segmenters.calibrate import PIXEL_SCALE_KEY, WORKING_DIAMETER_KEY
+        from drgan.segmenters.noise_match import NOISE_KEY
+
+        return {PIXEL_SCALE_KEY: self.pixel_scale, NOISE_KEY: self.noise, WORKING_DIAMETER_KEY: self.diameter}
+
+
+def segment(cfg: DictConfig) -> dict:
+    """Train one segmenter (or fine-tune one on a user's corrected images: ``finetune=`` with ``corrected=``);
+    return final metrics. Writes everything under cfg.out."""
+    import lightning.pytorch as L
+
+    from drgan.segmenters.calibrate import check_grid
 
     wall_start = time.perf_counter()
     with open_dict(cfg):
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
-    out = Path(cfg.out)
     L.seed_everything(int(cfg.seed), workers=True)
 
     # Settings first (early stopping; the model: an allow-listed class, or a ConfigError naming model._target_),
     # then data: bad folders, sizes or mask values fail here, before the run folder gets anything.
     stopper = early_stopping(cfg.get("early_stopping"))
     calibration_grid = check_grid(cfg.get("split_calibration"))
+    prepared = prepare_finetune(cfg) if cfg.get("finetune") or cfg.get("corrected") else prepare(cfg)
+    return fit_and_record(cfg, prepared, stopper, calibration_grid, wall_start)
+
+
+def prepare(cfg: DictConfig) -> Prepared:
+    """A fresh segmenter and its pairs (generated or real), checked; see `Prepared`."""
+    from drgan.segmenters.registry import build_segmenter
+
     source = checked_source(cfg)
     manifest = source.manifest()
     contact_why = None
@@ -375,13 +418,117 @@ def segment(cfg: DictConfig) -> dict:
             "(inference.noise_match; stored in the checkpoints)", noise,
         )  # fmt: skip
     pairs, check_pairs = held_out_check(cfg, source, pairs)
+    return Prepared(model, pairs, check_pairs, pixel_scale, noise, diameter, working, contact_why=contact_why)
+
+
+FINETUNE_KEPT = ("val_fraction", "check_fraction", "loader.working_px", "loader.contour_px")  # the base run's
+
+
+def finetune_base(cfg: DictConfig) -> tuple[Path, DictConfig | None, str]:
+    """(segmenter checkpoint, the base run's config or None, its generated pairs' folder) of ``finetune=RUN``: a
+    pipeline run folder (its segment/), a segment run folder or a checkpoint file; ``data=`` names the pairs where
+    the base run does not record them. A ConfigError or DataError names what is missing."""
+    if not cfg.get("finetune") or not cfg.get("corrected"):
+        raise ConfigError(
+            "segment: fine-tuning needs both finetune=RUN (a pipeline run, a segment run folder or a segmenter "
+            "checkpoint) and corrected=DIR (the corrected outlines: drgan.segmenters.corrections)"
+        )
+    if cfg.get("real"):
+        raise ConfigError("segment: finetune= fine-tunes on generated pairs and corrected images; real= is not used")
+    run = Path(cfg.finetune).expanduser()
+    folder = run / "segment" if (run / "segment" / "checkpoints").is_dir() else run
+    ckpt = run if run.is_file() else folder / "checkpoints" / "last.ckpt"
+    if not ckpt.is_file():
+        raise DataError(
+            f"finetune={run}: no segmenter checkpoint there (expected a pipeline run with segment/checkpoints/"
+            "last.ckpt, a segment run folder with checkpoints/last.ckpt, or a .ckpt file)"
+        )
+    config_file = (ckpt.parent.parent if run.is_file() else folder) / ".hydra" / "config.yaml"
+    base = OmegaConf.load(config_file) if config_file.is_file() else None  # YAML: nothing in it runs
+    data = cfg.get("data") or (base.get("data") if base is not None else None)
+    if not data:
+        raise ConfigError(
+            f"finetune={run}: its run does not record the generated pairs it was trained on; give data=DIR too"
+        )
+    return ckpt, base, str(data)
+
+
+def prepare_finetune(cfg: DictConfig) -> Prepared:
+    """The segmenter of ``finetune=RUN`` with its generated pairs (split and held out as its own run did: the base's
+    seed, val_fraction, check_fraction and loader scale settings) and the corrected images of ``corrected=DIR``
+    resampled to its scale (drgan.segmenters.corrections); trained ``correction.epochs`` epochs at
+    ``correction.lr``. The checkpoints keep the base's pixel scale, noise level and working diameter."""
+    from drgan.segmenters.corrections import correction_pairs, load_corrections
+    from drgan.segmenters.registry import load_segmenter
+
+    ckpt, base, data = finetune_base(cfg)
+    setting = cfg.correction
+    lr = setting_float("correction.lr", setting.lr, 0.0)
+    epochs = setting_int("correction.epochs", setting.epochs, 1)
+    setting_float("correction.share", setting.share, 0.0)
+    model = load_segmenter(ckpt, "finetune").train()  # (loaded for inference, in eval mode)
+    model.hparams.lr = lr
+    split_seed = int(base.seed) if base is not None and base.get("seed") is not None else int(cfg.seed)
+    with open_dict(cfg):
+        cfg.data = data
+        if base is not None:
+            for key in FINETUNE_KEPT:
+                OmegaConf.update(cfg, key, OmegaConf.select(base, key), merge=False)
+        cfg.trainer.max_epochs = epochs
+        # the model is the base's (its class and keywords, as its checkpoint records them; lr the fine-tuning's)
+        cfg.model = OmegaConf.create(dict(model.hparams))
+    source = checked_source(cfg)
+    items = load_corrections(cfg.corrected, setting.get("images"), cfg.get("crop_rows", "auto"))
+    manifest = source.manifest()
+    redraw = LoaderSettings.from_config(cfg).contour_px
+    pairs = redrawn_contours(source.load(), redraw)
+    contour_width = source.contour_width(manifest) if redraw is None else redraw
+    pairs, pixel_scale, working, _ = at_working_scale(cfg, model, pairs, source.pixel_scale(manifest), contour_width)
+    corrected = correction_pairs(items, model.pixel_scale, contour_width, model.train_noise)
+    pairs, check_pairs = held_out_check(cfg, source, pairs, split_seed)
+    n = sum(int(lab.max()) for _, lab in items)
+    log.info(
+        "fine-tuning %s on %d corrected image(s) (%d particles, resampled by %.3g) beside %s's pairs: %d epochs at "
+        "lr %g%s", ckpt, len(items), n, model.pixel_scale, data, epochs, lr,
+        "" if base is not None else " (no config of the base run found: this run's seed and loader settings)",
+    )  # fmt: skip
+    return Prepared(
+        model,
+        pairs,
+        check_pairs,
+        model.pixel_scale,
+        model.train_noise,
+        model.working_diameter,
+        working,
+        corrected,
+        split_seed=split_seed,
+        contact_why="the base segmenter's",
+        finetuned={"base": str(ckpt), "corrected": str(cfg.corrected), "images": [item.id for item, _ in items],
+                   "particles": n, "pixel_scale": pixel_scale},
+    )  # fmt: skip
+
+
+def fit_and_record(cfg: DictConfig, prepared: Prepared, stopper, calibration_grid, wall_start: float) -> dict:
+    """Train ``prepared.model`` into cfg.out, then calibrate its split, run its closed-loop check, log and write
+    metrics.json; the final metrics."""
+    from hydra.utils import instantiate
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from drgan.callbacks.progress_bar import StepProgress
+    from drgan.callbacks.resume import ResumeCheckpoint
+    from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
+    from drgan.segmenters.module import CheckpointEntries, ScoreHistory, settled
+
+    model, out = prepared.model, Path(cfg.out)
     train_loader, val_loader, n_train, n_val = dataloaders(
         cfg,
-        pairs,
+        prepared.pairs,
         str(getattr(model, "input_normalization", "none")),
         bool(getattr(model, "needs_centres", False)),
-        working,
+        prepared.working,
         (int(getattr(model, "rays", 0)), int(getattr(model, "hparams", {}).get("ray_px", 64))),
+        prepared.corrected,
+        prepared.split_seed,
     )
     out.mkdir(parents=True, exist_ok=True)
 
@@ -401,12 +548,12 @@ def segment(cfg: DictConfig) -> dict:
     )
     scores = ScoreHistory()
     callbacks = [
-        CheckpointEntries({PIXEL_SCALE_KEY: pixel_scale, NOISE_KEY: noise, WORKING_DIAMETER_KEY: diameter}),
+        CheckpointEntries(prepared.entries()),
         ResumeCheckpoint(),
         checkpoint,
         scores,
         *([stopper] if stopper is not None else []),
-        StepProgress("training the segmenter"),
+        StepProgress("fine-tuning the segmenter" if prepared.corrected else "training the segmenter"),
     ]
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     start_loggers(loggers)
@@ -416,6 +563,7 @@ def segment(cfg: DictConfig) -> dict:
         {
             "data/n_train_pairs": n_train,
             "data/n_val_pairs": n_val,
+            "data/n_corrected": len(prepared.corrected),
             "model/n_parameters": sum(p.numel() for p in model.parameters()),
         }
     )
@@ -425,7 +573,10 @@ def segment(cfg: DictConfig) -> dict:
         except Exception as error:  # noqa: BLE001  (a logger refusing a param must not stop training)
             log.warning("%s: params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
-    log.info("segmenter %s: %d train / %d val pairs, run folder %s", cfg.name, n_train, n_val, out)
+    log.info(
+        "segmenter %s: %d train / %d val pairs%s, run folder %s", cfg.name, n_train, n_val,
+        f" and {len(prepared.corrected)} corrected images" if prepared.corrected else "", out,
+    )  # fmt: skip
     trainer.fit(
         model, train_dataloaders=train_loader, val_dataloaders=val_loader, ckpt_path=ckpt_path, weights_only=True
     )
@@ -437,19 +588,20 @@ def segment(cfg: DictConfig) -> dict:
     stop = stop_reason(trainer, stopper)
     log.info("stopped after epoch %d: %s", trainer.current_epoch - 1, stop)
     is_settled, why = settled(scores.history) if val_loader is not None else (True, "no validation pairs")
-    if not is_settled:
+    if not is_settled and not prepared.corrected:
         log.warning(
             "the segmenter stopped before its validation score settled (%s): it is likely undertrained; raise "
             "early_stopping.patience or trainer.max_epochs (or set loader.samples_per_pair for longer epochs)",
             why,
         )
     last = out / "checkpoints" / "last.ckpt"
-    calibration = calibrate(
-        model, val_loader, calibration_grid, last, bool(cfg.trainer.get("enable_progress_bar", True))
-    )
+    progress = bool(cfg.trainer.get("enable_progress_bar", True))
+    # the split is chosen on the validation pairs and, when fine-tuning, on the user's corrected images first
+    calibration_pairs = [*prepared.corrected, *(val_loader.dataset.pairs if val_loader is not None else [])]
+    calibration = calibrate(model, calibration_pairs, calibration_grid, last, progress)
     if calibration is not None:
         metrics["split/ap50"] = calibration["ap50"]
-    check = closed_loop_check(model, check_pairs, calibration, last, bool(cfg.trainer.get("enable_progress_bar", True)))
+    check = closed_loop_check(model, prepared.check_pairs, calibration, last, progress)
     if check is not None:
         metrics.update(check_metrics(check))
     for logger in loggers:
@@ -469,10 +621,11 @@ def segment(cfg: DictConfig) -> dict:
             "val_dsc_history": scores.history,
             "split_calibration": calibration,
             "closed_loop": check,
-            "pixel_scale": pixel_scale,
-            "working_diameter": diameter,
-            "noise_level": noise,
-            "contact_weight": {"value": cfg.model.get("contact_weight"), "why": contact_why},
+            "pixel_scale": prepared.pixel_scale,
+            "working_diameter": prepared.diameter,
+            "noise_level": prepared.noise,
+            "contact_weight": {"value": cfg.model.get("contact_weight"), "why": prepared.contact_why},
+            **({"finetuned": prepared.finetuned} if prepared.finetuned else {}),
             **metrics,
         },
     )
@@ -480,19 +633,19 @@ def segment(cfg: DictConfig) -> dict:
     return metrics
 
 
-def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) -> dict | None:
-    """Choose the touching-particle split on the validation pairs (drgan.segmenters.calibrate) and store it in
-    ``last`` for evaluate/analyze's ``split_core: auto``; None when calibration is off or impossible."""
+def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool) -> dict | None:
+    """Choose the touching-particle split on ``pairs`` (the validation pairs; drgan.segmenters.calibrate) and store it
+    in ``last`` for evaluate/analyze's ``split_core: auto``; None when calibration is off or impossible."""
     from drgan.checkpoint_io import add_entry
     from drgan.segmenters.calibrate import CHECKPOINT_KEY, SEEDED, as_array_free, calibrate_split, markdown_table
 
     if grid is None:
         return None
-    if val_loader is None or not last.is_file():
-        log.warning("split calibration skipped: %s", "no validation pairs" if val_loader is None else f"no {last}")
+    if not pairs or not last.is_file():
+        log.warning("split calibration skipped: %s", "no validation pairs" if not pairs else f"no {last}")
         return None
     try:
-        calibration = as_array_free(calibrate_split(model.eval(), val_loader.dataset.pairs, grid, progress=progress))
+        calibration = as_array_free(calibrate_split(model.eval(), pairs, grid, progress=progress))
     except ValueError as error:
         log.warning("split calibration skipped: %s", error)
         return None
@@ -515,16 +668,16 @@ def calibrate(model, val_loader, grid: dict | None, last: Path, progress: bool) 
     return calibration
 
 
-def held_out_check(cfg: DictConfig, source: TrainingPairs, pairs) -> tuple[list, list]:
+def held_out_check(cfg: DictConfig, source: TrainingPairs, pairs, seed: int | None = None) -> tuple[list, list]:
     """(pairs to train and validate on, pairs of the closed-loop check): ``check_fraction`` of a generated set's
-    rendered pairs set aside (drgan.segmenters.closed_loop.hold_out); real images keep every pair (their truth is an
-    annotator's, which drgan.evaluate scores on the test ids)."""
+    rendered pairs set aside (drgan.segmenters.closed_loop.hold_out; ``seed``: its seed, None: cfg.seed); real images
+    keep every pair (their truth is an annotator's, which drgan.evaluate scores on the test ids)."""
     from drgan.segmenters.closed_loop import hold_out
 
     fraction = check_fraction(cfg)
     if not source.data:
         return pairs, []
-    rest, check = hold_out(pairs, fraction, int(cfg.seed))
+    rest, check = hold_out(pairs, fraction, int(cfg.seed) if seed is None else seed)
     if fraction > 0 and not check:
         log.warning(
             "check_fraction=%g: too few rendered pairs with exact labels (%d) to hold out a closed-loop check; "

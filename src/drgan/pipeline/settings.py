@@ -20,6 +20,7 @@ OWN_KEYS = (
     "data.dir",
     "name",
     "annotated",
+    "corrected",
     "out",
     "redo",
     "mlflow",
@@ -56,6 +57,9 @@ class Settings:
     experiment: str | None = None  # the MLflow experiment; None: pipeline_<name> (a batch: study_<study>)
     parent_run: str | None = None  # an MLflow run above this run's own parent run (a batch's study run)
     argv: tuple[str, ...] = ()  # the command line's words, as given (a SLURM job repeats them)
+    corrected: Path | None = (
+        None  # a folder of corrected outlines: the finetune stage runs (drgan.segmenters.corrections)
+    )
 
     @property
     def experiment_name(self) -> str:
@@ -142,8 +146,10 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         redo = None
     if redo is not None and redo not in names:
         raise ConfigError(f"pipeline: redo={redo!r}: expected a stage, one of {', '.join(names)}")
-    annotated = own["annotated"]
-    annotated = None if annotated in (None, "null", "None", "") else Path(str(annotated)).expanduser()
+    annotated = _optional(own["annotated"])
+    annotated = None if annotated is None else Path(annotated).expanduser()
+    corrected = _optional(own["corrected"])
+    corrected = None if corrected is None else Path(corrected).expanduser().resolve()
     out = own["out"]
     out = Path("runs/pipeline") / str(name) if out in (None, "null", "None", "") else Path(str(out)).expanduser()
     mlflow = own["mlflow"]
@@ -196,4 +202,5 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
         experiment=_optional(own["experiment"]),
         parent_run=_optional(own["parent_run"]),
         argv=tuple(argv),
+        corrected=corrected,
     )

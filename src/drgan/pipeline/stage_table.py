@@ -26,6 +26,7 @@ class Context:
     annotated: Path | None
     settings: Mapping[str, Mapping[str, str | None]]  # stage -> its STAGE.KEY=VALUE (config defaults, command line)
     nm_per_px: float | None = None  # the pixel size the profile read from the images' metadata (None before it ran)
+    corrected: Path | None = None  # the user's corrected outlines: the finetune stage runs, analyze uses its segmenter
 
     def folder(self, stage: str) -> Path:
         return self.out / stage
@@ -75,7 +76,8 @@ class StageSpec:
 
 
 def _segmenter(c: Context) -> Path:
-    return c.folder("segment") / "checkpoints" / "last.ckpt"
+    """The segmenter analyze and evaluate use: the fine-tuned one when the user corrected outlines, else segment's."""
+    return c.folder("finetune" if c.corrected else "segment") / "checkpoints" / "last.ckpt"
 
 
 # --- the table: one entry per stage, in the order they run ------------------------------------------------------
@@ -134,6 +136,24 @@ PIPELINE: list[StageSpec] = [
         done=lambda c: c.folder("segment") / "metrics.json",
         summary=report.segment_summary,
         what="trains the segmenter on the pairs and chooses its touching-particle split on held-out pairs",
+        links=(("metrics and split calibration", "metrics.json"), ("log", "segment.log")),
+        resumes=True,
+        mlflow_run=True,
+    ),
+    StageSpec(
+        "finetune",  # only with corrected=DIR: the correction loop (drgan.segmenters.corrections)
+        typical_minutes=4.0,
+        module="drgan.segment",
+        config="segment",
+        wire=lambda c: None if c.corrected is None else
+        [f"finetune={c.folder('segment')}", f"data={c.folder('generate')}", f"corrected={c.corrected}",
+         f"correction.images={c.data_dir}", f"out={c.folder('finetune')}", f"name={c.name}",
+         f"run_name={c.name}_finetune"],
+        keys=("finetune", "data", "real", "corrected", "correction.images", "out", "name", "run_name"),
+        done=lambda c: c.folder("finetune") / "metrics.json",
+        summary=report.segment_summary,
+        what="fine-tunes the segmenter on your corrected outlines beside its generated pairs, and chooses its split "
+        "on them",
         links=(("metrics and split calibration", "metrics.json"), ("log", "segment.log")),
         resumes=True,
         mlflow_run=True,

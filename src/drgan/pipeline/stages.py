@@ -53,7 +53,7 @@ def _last_checkpoint(folder: Path) -> Callable[[], list[str]]:
 def build_stages(s: Settings, parent_run: str | None, nm_per_px: float | None = None) -> list[Stage]:
     """The stages of a pipeline run, in stage_table.PIPELINE's order (those whose ``wire`` gives None left out: evaluate
     without ``annotated``); ``nm_per_px``: the pixel size the profile found."""
-    context = Context(s.out, s.name, s.data_dir, s.annotated, s.stages, nm_per_px)
+    context = Context(s.out, s.name, s.data_dir, s.annotated, s.stages, nm_per_px, s.corrected)
     links = [f"parent_run={parent_run}"] if parent_run else []
     logged = [f"logger.mlflow.experiment_name={s.experiment_name}", *links] if s.mlflow else ["logger=none"]
     stages = []
@@ -104,7 +104,7 @@ def prepare_redo(s: Settings, state, stages: Sequence[Stage]) -> None:
     if s.redo not in names:
         raise ConfigError(
             f"pipeline: redo={s.redo}: this run has no such stage (its stages: {', '.join(names)}; evaluate "
-            "runs only with annotated=DIR)"
+            "runs only with annotated=DIR, finetune only with corrected=DIR)"
         )
     for stage in stages[names.index(s.redo) :]:
         if stage.folder.exists():
@@ -173,4 +173,26 @@ def check_inputs(s: Settings) -> dict:
                 "data.dir a split.json whose test ids they are, or other images"
             )
         summary["annotated_images"] = len(scored)
+    if s.corrected is not None:
+        summary["corrected_images"] = check_corrected(s, scored if s.annotated is not None else [])
     return summary
+
+
+def check_corrected(s: Settings, scored: Sequence[Path]) -> int:
+    """``corrected=DIR``: outlines of images of data.dir (drgan.segmenters.corrections), none of them an image the
+    run scores at the end; the number of corrected images."""
+    from drgan.data.images import list_images
+    from drgan.segmenters.corrections import find_corrections
+
+    outlines = find_corrections(s.corrected, "pipeline: corrected")
+    own = s.corrected / "images"
+    images = list_images(own if own.is_dir() else s.data_dir, list(outlines))
+    scored_digests = {_digest(p): p for p in scored}
+    shared = [(p, scored_digests[d]) for p in images if (d := _digest(p)) in scored_digests]
+    if shared:
+        raise DataError(
+            f"pipeline: corrected={s.corrected}: {len(shared)} corrected image(s) are scored at the end too (e.g. "
+            f"{shared[0][0]} = {shared[0][1]}); a corrected image trains the segmenter, so it must not be scored: "
+            "correct other images, or score others"
+        )
+    return len(images)

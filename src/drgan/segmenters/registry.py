@@ -192,6 +192,7 @@ def load_segmenter(path: str | Path, setting: str = "model"):
             f"{setting}={path}: its {target} cannot be rebuilt from the saved keywords and weights "
             f"({type(error).__name__}: {str(error).splitlines()[0] if str(error) else 'no detail'})"
         ) from None
+    model.hparams["_target_"] = target_path(cls)  # as build_segmenter records it: a loaded model saves loadable
     # the touching-particle split drgan.segment chose on the validation pairs (inference split_* = auto reads it)
     model.split_calibration = stored_split(checkpoint, f"{setting}={path}")
     # image px per real px of its training pairs: inference resamples the images it is given by it
