@@ -7,6 +7,10 @@ class_mask(4-connected components of the binary mask, contour_px). A seeded `val
 held out for validation. Run folder `out`: checkpoints/last.ckpt (and the latest epoch), segment.log,
 metrics.json; MLflow experiment `segment_<name>` gets the params, metrics and the final checkpoint.
 Resume: same `out` and `ckpt_path=last` (no checkpoint yet: a fresh start).
+`finetune=RUN corrected=DIR`: the correction loop, RUN's segmenter (a pipeline run, a segment run folder or a
+checkpoint) fine-tuned on a user's corrected outlines (drgan.segmenters.corrections) beside RUN's generated pairs,
+split and held out as RUN did (`prepare_finetune`); the split is then chosen on the corrected images and the
+validation pairs.
 """
 
 from __future__ import annotations

@@ -7,6 +7,7 @@ its own folder under ``out`` (default runs/pipeline/NAME):
     train/      drgan.train     the GAN with that material (material=NAME, found on the pipeline's search path)
     generate/   drgan.generate  500 annotated pairs and real background patches from the best epoch
     segment/    drgan.segment   the segmenter trained on them
+    finetune/   drgan.segment   (corrected=DIR only) that segmenter fine-tuned on the user's corrected outlines
     analyze/    drgan.analyze   particles.csv, histograms, overlays of every image of DIR
     evaluate/   drgan.evaluate  (annotated=DATASET only) scores and statistics against its masks
 
