@@ -480,6 +480,34 @@ def test_separate_regions_gives_one_4_connected_instance_per_region():
     assert binarize_and_label((labels > 0).astype(np.int64)).max() == 1
 
 
+def test_a_particles_holes_are_its_own_but_gaps_between_particles_and_particles_inside_a_ring_stay():
+    from drgan.segmenters.inference import filled_holes
+
+    classes = np.zeros((20, 30), np.uint8)
+    classes[2:9, 2:9] = 1
+    classes[4:7, 4:6] = 0  # a hole in a particle
+    classes[5, 6] = 2  # and a contour pixel beside it: part of the hole all the same
+    classes[2:12, 12:22] = 1
+    classes[4:10, 14:20] = 2  # a ring's inside drawn as contour ...
+    classes[6:8, 16:18] = 1  # ... around a small particle: both stay
+    for rows, cols in (((13, 18), slice(2, 8)), ((13, 18), slice(9, 15))):  # two brackets, [ and ], facing: the
+        classes[rows[0], cols] = classes[rows[1], cols] = 1  # background between them is enclosed by both together,
+    classes[13:19, 2] = classes[13:19, 14] = 1  # by neither alone
+    classes[13, 8] = classes[18, 8] = 2  # (their joints: the contour class)
+    filled = filled_holes(classes)
+    assert (filled[2:9, 2:9] == 1).all()  # the hole filled
+    np.testing.assert_array_equal(filled[2:12, 12:22], classes[2:12, 12:22])  # the ring with a particle inside kept
+    changed = filled != classes
+    assert changed.sum() == 3 * 2 + 1 == changed[2:9, 2:9].sum()  # only the first particle's hole
+    # what the particle table measures is then what ImageJ's traced ROI of the particle covers
+    from drgan.data.imagej import fill_polygon, traced_outline
+    from drgan.metrics.instance_scores import binarize_and_label
+
+    labels = binarize_and_label(filled.astype(np.int64))
+    first = labels == labels[3, 3]
+    assert fill_polygon(traced_outline(first), first.shape).sum() == first.sum()
+
+
 def test_split_touching_separates_a_merged_pair_and_keeps_single_particles():
     from drgan.metrics.instance_scores import binarize_and_label, match_instances
     from drgan.segmenters.inference import split_touching

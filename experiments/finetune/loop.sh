@@ -11,8 +11,8 @@ mkdir -p "$out"
 quiet="logger=none trainer.enable_progress_bar=false"
 [ -f "$out/ev_base/results.md" ] || python -m drgan.evaluate model="$run/segment/checkpoints/last.ckpt" \
   data="$dataset" out="$out/ev_base" >"$out/ev_base.log" 2>&1
-for n in $sizes; do
-  for seed in $seeds; do
+for seed in $seeds; do
+  for n in $sizes; do
     fixes="$out/fixes_n${n}_s${seed}"
     [ -f "$fixes/split.json" ] || python experiments/finetune/make_fixes.py "$dataset" "$n" "$seed" "$fixes" \
       >"$fixes.ids"

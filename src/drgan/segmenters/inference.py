@@ -244,6 +244,7 @@ def predict(
     pixel_scale: float | str | None = None,
     noise_match: float | bool | None = None,
     annotations: bool = True,
+    fill_holes: bool = True,
     **kw,
 ) -> np.ndarray:
     """(H, W) image -> (H, W) uint8 class map (0 background, 1 particle, 2 contour).
@@ -265,7 +266,11 @@ def predict(
     its generated pairs; none for real-trained models: off); false or 0: off.
 
     ``annotations``: particles lying mostly on a figure's scale bar, its text or a panel letter
-    (drgan.data.annotations.annotation_mask, as the classical segmentation leaves them out) are dropped."""
+    (drgan.data.annotations.annotation_mask, as the classical segmentation leaves them out) are dropped.
+
+    ``fill_holes``: a particle's holes (pixels of no particle that it alone encloses, `filled_holes`) are its own: a
+    particle is a solid, its area-equivalent diameter that of its outline (as ImageJ's traced ROIs and ISO 13322-1's
+    projected area take it), and a ring the network draws around a bright centre is one particle."""
     check_split(split, split_depth, split_smooth, split_core, split_seeds)
     split = split_of(model, split)
     own = getattr(model, "pixel_scale", 1.0)
@@ -307,7 +312,37 @@ def predict(
     if better is not None:
         log.info("pixel_scale=%s: image resampled by %.3g (the segmenter's own: %.3g)", PER_IMAGE, better, scale)
         classes, _ = classes_at(better)
+    if fill_holes:
+        classes = filled_holes(classes)
     return without_annotations(classes, image) if annotations else classes
+
+
+def filled_holes(classes: np.ndarray) -> np.ndarray:
+    """``classes`` (uint8 class map) with every hole of a particle set to the particle class: a connected piece of
+    non-particle pixels (background or contour) that one particle (4-connected component of the particle class)
+    encloses and that holds no pixel of another particle. Touching particles' shared gaps, which no single particle
+    encloses, stay as they are."""
+    from scipy import ndimage
+
+    classes = np.asarray(classes)
+    labels, n = ndimage.label(classes == 1)
+    if n == 0:
+        return classes
+    out = classes.copy()
+    for i, box in enumerate(ndimage.find_objects(labels), start=1):
+        if box is None:
+            continue
+        own = labels[box] == i
+        holes = ndimage.binary_fill_holes(own) & ~own
+        if not holes.any():
+            continue
+        pieces, k = ndimage.label(holes)
+        others = np.bincount(pieces[labels[box] > 0].ravel(), minlength=k + 1)  # particle pixels in each piece
+        keep = others == 0
+        keep[0] = False
+        region = out[box]
+        region[keep[pieces]] = 1
+    return out
 
 
 PER_IMAGE = "per_image"  # inference.pixel_scale: each image's own scale (`image_scale`)
