@@ -27,6 +27,23 @@ def test_a_stage_help_says_what_it_does_and_lists_its_keys_with_comments(capsys)
     assert "redo:" in capsys.readouterr().out
 
 
+def test_python_m_a_stage_help_is_drgans_help_with_its_usage_first_and_python_m_drgan_is_the_command():
+    """`python -m drgan.generate --help` prints what `drgan generate --help` does (not Hydra's generic help), each
+    opening with its usage line; `python -m drgan` is the console command."""
+    by_module = subprocess.run([sys.executable, "-m", "drgan.generate", "--help"], capture_output=True, text=True)
+    by_command = subprocess.run([sys.executable, "-m", "drgan", "generate", "--help"], capture_output=True, text=True)
+    assert by_module.returncode == by_command.returncode == 0
+    assert by_module.stdout.startswith("usage: python -m drgan.generate [KEY=VALUE ...]")
+    assert by_command.stdout.startswith("usage: drgan generate [KEY=VALUE ...]")
+    body = by_module.stdout.split("\n", 1)[1].split("Settings (")[0]
+    assert body == by_command.stdout.split("\n", 1)[1].split("Settings (")[0] and "synthetic segmentation" in body
+    assert "grey_spread: auto" in by_module.stdout and "Powered by Hydra" not in by_module.stdout
+    pipeline = subprocess.run([sys.executable, "-m", "drgan", "pipeline", "--help"], capture_output=True, text=True)
+    first = pipeline.stdout.split("\n\n")[1]  # what the command does, for a user: no module names of the code
+    assert pipeline.stdout.startswith("usage: drgan pipeline") and "from a folder of images" in first
+    assert "stage_table" not in first
+
+
 def test_an_unknown_stage_is_named_with_the_stages(capsys):
     assert cli.main(["trian"]) == 2
     assert "no stage 'trian'" in capsys.readouterr().err

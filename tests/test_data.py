@@ -446,3 +446,25 @@ def test_n_particles_not_a_number_is_named_before_mining(tmp_path):
     with pytest.raises(ConfigCompositionException, match=r"material\.n_particles=abc"):  # the typed material
         run_train(tiny_overrides(folder, tmp_path / "run", extra=["material.n_particles=abc"]))
     assert not (tmp_path / "run" / "patches").exists()
+
+
+def test_atomic_writes_give_the_mode_a_plain_write_would_under_any_umask(tmp_path):
+    """A result written whole and renamed into place is as readable as one written directly (0666 less the umask),
+    not left at the temporary file's 0600: a colleague, or a tracking server running as another user, reads it."""
+    import os
+
+    from drgan.io import write_bytes, write_json
+
+    old = os.umask(0o022)
+    try:
+        for umask in (0o022, 0o002, 0o077):
+            os.umask(umask)
+            write_bytes(tmp_path / f"a{umask}.bin", b"x")
+            write_json(tmp_path / f"b{umask}.json", {"k": 1})
+            (tmp_path / f"plain{umask}").write_bytes(b"x")
+            plain = (tmp_path / f"plain{umask}").stat().st_mode & 0o777
+            assert plain == 0o666 & ~umask
+            for name in (f"a{umask}.bin", f"b{umask}.json"):
+                assert (tmp_path / name).stat().st_mode & 0o777 == plain, (name, oct(umask))
+    finally:
+        os.umask(old)

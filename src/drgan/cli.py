@@ -77,12 +77,11 @@ def help_text() -> str:
 
 
 def stage_help(name: str) -> str:
+    from drgan.runtime import stage_help as text
+
     module, config, _ = COMMANDS[name]
-    text = _docstring(module)
-    if config is not None:
-        where = config if Path(config).is_absolute() else f"src/drgan/{config}"
-        text += f"\n\nSettings (KEY=VALUE on the command line; {where}):\n\n" + (PACKAGE / config).read_text()
-    return text
+    where = None if config is None else (config if Path(config).is_absolute() else f"src/drgan/{config}")
+    return text(f"drgan {name}", _docstring(module), None if config is None else PACKAGE / config, where or "")
 
 
 def _print(text: str) -> None:

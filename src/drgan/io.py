@@ -12,15 +12,25 @@ from pathlib import Path
 import numpy as np
 
 
+def _umask() -> int:
+    """The process's umask (read by setting it and setting it back: the only way the OS gives it)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path beside ``path``; on success it replaces ``path`` in one rename."""
+    """Yield a temporary path beside ``path``; on success it replaces ``path`` in one rename, with the mode a file
+    created there directly would have (0666 less the umask: readable by a colleague or a tracking server on a shared
+    file system; mkstemp's own temporary files are 0600)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

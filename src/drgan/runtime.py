@@ -5,10 +5,12 @@ group (the runtime layer: above models, data and callbacks, below the command-li
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import logging
 import os
+import sys
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -20,11 +22,21 @@ log = logging.getLogger(__name__)
 MLFLOW_RUN_ID_FILE = "mlflow_run_id.txt"
 
 
+def stage_help(command: str, docstring: str, settings: Path | None, where: str = "") -> str:
+    """A stage's ``--help``: its usage line first, what it does (its module's docstring), then its settings file with
+    their comments (``where``: how the text names the file). The same text for ``drgan STAGE --help`` and
+    ``python -m drgan.STAGE --help``."""
+    text = f"usage: {command} [KEY=VALUE ...]      (drgan --help: every stage)\n\n{docstring.strip()}"
+    if settings is not None:
+        text += f"\n\nSettings (KEY=VALUE on the command line; {where or settings.name}):\n\n{settings.read_text()}"
+    return text
+
+
 def stage_main(config_path: str, config_name: str):
     """Decorator: ``task(cfg)`` becomes the Hydra app of a stage (``config_path`` relative to the task's module,
     as hydra.main takes it). A user's mistake (a DrganError: a bad setting, path or image) prints its message alone
     on stderr (and into the stage's log file), and the process exits with 1: no "Error executing job" and no
-    traceback, which are for drgan's own bugs."""
+    traceback, which are for drgan's own bugs. ``--help`` (see `start`) prints the stage's own help, `stage_help`."""
     import hydra
 
     def decorate(task):
@@ -36,7 +48,11 @@ def stage_main(config_path: str, config_name: str):
                 report_user_error(error, f"drgan.{config_name}")
                 raise SystemExit(1) from None
 
-        return hydra.main(version_base="1.3", config_path=config_path, config_name=config_name)(job)
+        app = hydra.main(version_base="1.3", config_path=config_path, config_name=config_name)(job)
+        module = sys.modules.get(task.__module__)
+        folder = Path(getattr(module, "__file__", "") or ".").parent
+        app.settings_file = (folder / config_path / f"{config_name}.yaml").resolve()
+        return app
 
     return decorate
 
@@ -54,9 +70,20 @@ def report_user_error(error: Exception, logger: str) -> None:
 
 def start(main) -> None:
     """Run a stage's Hydra app from its ``__main__``: Hydra's own errors short (HYDRA_FULL_ERROR=0 unless set),
-    drgan's config resolvers and schemas registered first."""
+    drgan's config resolvers and schemas registered first. ``-h``/``--help`` prints the stage's own help
+    (`stage_help`) instead of Hydra's generic one."""
     from drgan.configs import setup
 
+    if any(a in ("-h", "--help") for a in sys.argv[1:]) and getattr(main, "settings_file", None) is not None:
+        spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+        command = f"python -m {spec.name}" if spec is not None else Path(sys.argv[0]).name
+        docstring = getattr(sys.modules.get("__main__"), "__doc__", None) or ""
+        package = Path(__file__).resolve().parent
+        where = main.settings_file.relative_to(package.parent.parent) if main.settings_file.is_relative_to(
+            package.parent.parent) else main.settings_file  # fmt: skip
+        with contextlib.suppress(BrokenPipeError):  # `... --help | head`: the reader left
+            print(stage_help(command, docstring, main.settings_file, str(where)), flush=True)
+        return
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
     setup()
     main()

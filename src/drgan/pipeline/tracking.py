@@ -79,7 +79,10 @@ class Tracker:
 
             from drgan.loggers import tracking_store
 
-            uri, _ = tracking_store([f"hydra.searchpath=[file://{s.out / 'drgan_conf'}]"])
+            conf = (
+                s.out / "drgan_conf"
+            )  # the run's own configs, once the profile wrote them (Hydra warns of a missing one)
+            uri, _ = tracking_store([f"hydra.searchpath=[file://{conf}]"] if conf.is_dir() else [])
             self.client = mlflow.MlflowClient(tracking_uri=uri)
             experiment_id = experiment_id_of(self.client, uri, s.experiment_name)
             id_file = s.out / self.ID_FILE
