@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Issue 66: the correction loop measured. A pipeline run's segmenter fine-tuned on N annotated train images taken as a
 # user's corrections (make_fixes.py; each seed corrects other images), against a real-only U-Net trained on the same N
-# images (segment real= with their split) and the pipeline's own synthetic-only one; all scored on the test ids.
+# images (segment real= with their split) and the pipeline's own synthetic-only one (RUN: a pipeline run or a segment
+# run folder); all scored on the test ids.
 #
 #   bash experiments/finetune/loop.sh RUN DATASET OUT "1 2 4" "0 1 2" [FINETUNE KEY=VALUE ...]
 #   python experiments/pipeline/pairs_table.py OUT          # the table (ev_base: the pipeline's segmenter)
@@ -9,7 +10,9 @@ set -euo pipefail
 run=$1; dataset=$2; out=$3; sizes=$4; seeds=$5; shift 5
 mkdir -p "$out"
 quiet="logger=none trainer.enable_progress_bar=false"
-[ -f "$out/ev_base/results.md" ] || python -m drgan.evaluate model="$run/segment/checkpoints/last.ckpt" \
+base="$run/checkpoints/last.ckpt"; [ -d "$run/segment" ] && base="$run/segment/checkpoints/last.ckpt"  # RUN: a
+# pipeline run or a segment run folder
+[ -f "$out/ev_base/results.md" ] || python -m drgan.evaluate model="$base" \
   data="$dataset" out="$out/ev_base" >"$out/ev_base.log" 2>&1
 for seed in $seeds; do
   for n in $sizes; do

@@ -57,7 +57,7 @@ from drgan.synthetic.generation_settings import GenerateSettings
 from drgan.synthetic.grey_spread import GreySpread
 from drgan.synthetic.manifest import material_facts, write_manifest, write_shard_manifest
 from drgan.synthetic.shards import Shard, kept_below, owned_by
-from drgan.synthetic.source import checkpoint_config, load_module, use_parameters  # noqa: F401  (checkpoint_config: imported from here)
+from drgan.synthetic.source import load_module, use_parameters
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 the stages before it, the keys it leaves to the pipeline, its done file, and how the report reads back and shows what
 it wrote. Everything else that names stages is derived from this table: ``STAGES`` and ``PIPELINE_KEYS`` (read here,
 computed at each read, so a stage added to ``PIPELINE`` is in them at once), the routing of ``STAGE.KEY=VALUE``
-(settings.py), the commands (stages.py ``build_stages``), the summaries (``stage_summary``) and report.md."""
+(settings.py), the commands (stages.py ``build_stages``), the summaries (each entry's ``summary``) and report.md."""
 
 from __future__ import annotations
 
@@ -210,11 +210,6 @@ def stage_spec(stage: str) -> StageSpec:
         if entry.name == stage:
             return entry
     raise KeyError(stage)
-
-
-def stage_summary(stage: str, folder: Path, settings=None) -> dict:
-    """What one finished stage wrote, read back: {"line": ..., "metrics": {...}, ...} ({} when nothing is there)."""
-    return stage_spec(stage).summary(Path(folder))
 
 
 def profiled_pixel_size(out: Path) -> float | None:

@@ -34,10 +34,6 @@ class Parameter:
     def key(self) -> str:
         return f"{self.surface}.{self.name}"
 
-    def rescale(self, unit):
-        """Map ``unit`` in [0, 1] (numbers, numpy or torch) into [low, high]."""
-        return self.low + (self.high - self.low) * unit
-
 
 def parse_parameter(surface: str, name: str, spec, where: str, minimum: float | None = 0.0) -> Parameter:
     """A Parameter from ``spec``: a number (fixed), or a mapping or object with ``min``, ``max``, ``value``
