@@ -219,6 +219,31 @@ def test_changed_settings_of_a_done_stage_stop_the_rerun_and_redo_runs_it_again(
     assert fake.names() == ["segment", "analyze"] and "model.normalize=none" in fake.calls[0]
 
 
+def test_corrected_outlines_added_to_a_finished_run_fine_tune_and_analyze_again(tmp_path, monkeypatch):
+    """corrected=DIR on a finished run: the finetune stage runs, and analyze, done before it with segment's segmenter,
+    runs again after it with the fine-tuned one (a done stage after one that runs is run again); nothing else reruns.
+    A corrected image that is not in the folder is refused before anything runs."""
+    from drgan.data.imagej import write_label_tiff
+
+    images_folder(tmp_path / "images")
+    fake = FakeStages(monkeypatch)
+    pipeline.run(settings(tmp_path), echo=lambda line: None)
+    labels = np.zeros((64, 64), np.int32)
+    labels[20:30, 20:30] = 1
+    write_label_tiff(tmp_path / "fixes" / "nope.tif", labels)
+    with pytest.raises(DataError, match="no image for 1 requested id"):
+        pipeline.run(settings(tmp_path, f"corrected={tmp_path / 'fixes'}"), echo=lambda line: None)
+    (tmp_path / "fixes" / "nope.tif").rename(tmp_path / "fixes" / "im1.tif")
+    fake.calls, lines = [], []
+    pipeline.run(settings(tmp_path, f"corrected={tmp_path / 'fixes'}"), echo=lines.append)
+    assert fake.names() == ["finetune", "analyze"]
+    assert any("analyze is done, but a stage before it will run" in line for line in lines)
+    assert f"model={tmp_path / 'out' / 'finetune' / 'checkpoints' / 'last.ckpt'}" in fake.calls[1]
+    fake.calls = []
+    pipeline.run(settings(tmp_path, f"corrected={tmp_path / 'fixes'}"), echo=lambda line: None)
+    assert fake.calls == []
+
+
 def test_two_pipelines_on_one_folder_are_refused(tmp_path):
     with tracking.folder_lock(tmp_path / "out"):
         with pytest.raises(ConfigError, match="another drgan.pipeline is running"):

@@ -22,6 +22,8 @@ from drgan.pipeline.stages import (
     build_stages,
     check_inputs,
     check_stage_settings,
+    done_after_pending,
+    forget,
     is_done,
     prepare_redo,
     stale_check,
@@ -109,6 +111,10 @@ def _run_locked(s: Settings, inputs: dict, echo: Callable[[str], None]) -> dict:
     tracker = Tracker(s)
     stages = build_stages(s, tracker.parent)
     prepare_redo(s, state, stages)
+    if s.only is None:
+        for stage in done_after_pending(stages, state):
+            echo(f"pipeline: {stage.name} is done, but a stage before it will run: {stage.name} runs again after it")
+            forget(stage, state)
     names = [st.name for st in stages]
     if s.only is not None and s.only not in names:
         raise ConfigError(f"pipeline: only={s.only}: this run has no such stage (its stages: {', '.join(names)})")

@@ -107,10 +107,24 @@ def prepare_redo(s: Settings, state, stages: Sequence[Stage]) -> None:
             "runs only with annotated=DIR, finetune only with corrected=DIR)"
         )
     for stage in stages[names.index(s.redo) :]:
-        if stage.folder.exists():
-            shutil.rmtree(stage.folder)
-        stage.done_file.unlink(missing_ok=True)  # the profile's (the material) lies outside its folder
-        state.forget(stage.name)
+        forget(stage, state)
+
+
+def forget(stage: Stage, state) -> None:
+    """A stage's folder removed and its record in ``state`` forgotten: it runs again from scratch."""
+    if stage.folder.exists():
+        shutil.rmtree(stage.folder)
+    stage.done_file.unlink(missing_ok=True)  # the profile's (the material) lies outside its folder
+    state.forget(stage.name)
+
+
+def done_after_pending(stages: Sequence[Stage], state) -> list[Stage]:
+    """The done stages after the first stage that is not: their inputs will change when it runs (a stage added to a
+    finished run, e.g. finetune with corrected=DIR; an output deleted), so they run again after it."""
+    pending = next((k for k, st in enumerate(stages) if not is_done(st, state.stage(st.name))), None)
+    if pending is None:
+        return []
+    return [st for st in stages[pending + 1 :] if is_done(st, state.stage(st.name))]
 
 
 def check_stage_settings(s: Settings) -> None:

@@ -17,6 +17,8 @@ from drgan.pipeline.stages import (
     build_stages,
     check_inputs,
     check_stage_settings,
+    done_after_pending,
+    forget,
     is_done,
     prepare_redo,
     stale_check,
@@ -68,6 +70,9 @@ def submit_run(s: Settings, echo: Callable[[str], None] = print) -> list[str]:
         state = State(s.out / STATE_FILE)
         stages = build_stages(s, None, profiled_pixel_size(s.out))
         prepare_redo(s, state, stages)
+        for stage in done_after_pending(stages, state):  # (as the local runner: their inputs will change)
+            echo(f"pipeline: {stage.name} is done, but a stage before it will run: {stage.name} runs again after it")
+            forget(stage, state)
         todo = []
         for stage in stages:
             if is_done(stage, state.stage(stage.name)):
