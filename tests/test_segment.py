@@ -1154,3 +1154,27 @@ def test_segment_yaml_and_the_settings_dataclasses_hold_the_same_defaults(tmp_pa
     assert pairs == dataclasses.replace(TrainingPairs(), real="R")
     generated = TrainingPairs.from_config(compose(["data=D", "contour_px=1.5"], config_name="segment"))
     assert generated == TrainingPairs(data="D")  # real-only keys are not read for generated pairs
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("depth", [0.5, 1.0, 2.0])
+def test_h_maxima_cluster_by_cluster_are_those_of_the_whole_image(seed, depth):
+    """The split's seeds, computed per cluster of the distance map (drgan.data.classical.watershed.cluster_h_maxima),
+    equal skimage's h_maxima of the whole image: masked and smoothed distance maps of random touching discs, clusters
+    at the image border included."""
+    from scipy import ndimage as ndi
+    from skimage.morphology import h_maxima
+
+    from drgan.data.classical.watershed import cluster_h_maxima
+
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:96, :128]
+    core = np.zeros((96, 128), bool)
+    for _ in range(14):
+        cy, cx, r = rng.uniform(-4, 100), rng.uniform(-4, 132), rng.uniform(3, 11)
+        core |= (yy - cy) ** 2 + (xx - cx) ** 2 < r**2
+    distance = ndi.gaussian_filter(ndi.distance_transform_edt(core), 1.0)
+    for field in (distance, np.where(core, distance, 0.0)):
+        expected = h_maxima(field, depth).astype(bool)
+        assert expected.any()
+        np.testing.assert_array_equal(cluster_h_maxima(field, depth), expected)
