@@ -524,3 +524,21 @@ def test_binarize_and_label_class_map_and_probabilities():
     assert labels.max() == 2 and labels[5, 5] == 0
     with pytest.raises(DataError, match="probabilities"):
         binarize_and_label(prob * 3)
+
+
+def test_overlaps_counted_by_id_equal_those_counted_through_sorted_ids(monkeypatch):
+    """_overlaps' direct count by id (labels of small non-negative ids) gives what the sort of unique ids gives:
+    intersections, areas and the ids present, in order (sparse ids, ids absent, empty labels)."""
+    from drgan.metrics import instance_scores
+
+    rng = np.random.default_rng(0)
+    cases = [(rng.integers(0, 40, (30, 50)) * 7, rng.integers(0, 90, (30, 50))), (np.zeros((4, 4), int),) * 2,
+             (rng.integers(0, 3, (9, 9)), np.zeros((9, 9), int))]  # fmt: skip
+    for pred, true in cases:
+        dense = instance_scores._overlaps(pred, true)
+        monkeypatch.setattr(instance_scores, "DENSE_PAIRS", 0)
+        sorted_ = instance_scores._overlaps(pred, true)
+        monkeypatch.undo()
+        for a, b in zip(dense, sorted_):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)

@@ -661,7 +661,7 @@ def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool) -> di
         f"{calibration['split_core']}"
     )
     log.info(
-        "split chosen on %d validation pairs (particles %.0f px across, median): %s (AP50 %.3f); stored in %s\n%s",
+        "split chosen on %d pairs (particles %.0f px across, median): %s (AP50 %.3f); stored in %s\n%s",
         calibration["n_pairs"],
         calibration.get("particle_px", float("nan")),
         chosen,

@@ -128,14 +128,27 @@ class InstanceMatch:
         return len(self.unmatched_true)
 
 
+DENSE_PAIRS = 1 << 24  # (largest pred id + 1) x (largest true id + 1) up to which `_overlaps` counts by id directly
+
+
 def _overlaps(pred: np.ndarray, true: np.ndarray):
     """Pixel counts of every (pred instance, true instance) intersection, each instance's area, and the ids of
-    rows and columns (background left out)."""
-    pred_ids, pred_idx = np.unique(pred, return_inverse=True)  # index 0 is background if present
-    true_ids, true_idx = np.unique(true, return_inverse=True)
-    counts = np.bincount(
-        pred_idx.ravel() * len(true_ids) + true_idx.ravel(), minlength=len(pred_ids) * len(true_ids)
-    ).reshape(len(pred_ids), len(true_ids))
+    rows and columns (background left out). Labels of non-negative ids up to a few thousand (those of ndimage.label)
+    are counted by id at once; others through their sorted unique ids (a sort of every pixel: the costly way)."""
+    pred, true = np.asarray(pred), np.asarray(true)
+    top_p, top_t = (int(a.max(initial=0)) for a in (pred, true))
+    if min(pred.min(initial=0), true.min(initial=0)) >= 0 and (top_p + 1) * (top_t + 1) <= DENSE_PAIRS:
+        counts = np.bincount(
+            pred.ravel().astype(np.int64) * (top_t + 1) + true.ravel(), minlength=(top_p + 1) * (top_t + 1)
+        ).reshape(top_p + 1, top_t + 1)
+        rows, cols = counts.sum(axis=1) > 0, counts.sum(axis=0) > 0  # the ids present (as np.unique finds them)
+        counts, pred_ids, true_ids = counts[np.ix_(rows, cols)], np.flatnonzero(rows), np.flatnonzero(cols)
+    else:
+        pred_ids, pred_idx = np.unique(pred, return_inverse=True)  # index 0 is background if present
+        true_ids, true_idx = np.unique(true, return_inverse=True)
+        counts = np.bincount(
+            pred_idx.ravel() * len(true_ids) + true_idx.ravel(), minlength=len(pred_ids) * len(true_ids)
+        ).reshape(len(pred_ids), len(true_ids))
     keep_p, keep_t = pred_ids != 0, true_ids != 0
     inter = counts[np.ix_(keep_p, keep_t)].astype(np.float64)
     area_pred = counts.sum(axis=1)[keep_p].astype(np.float64)
