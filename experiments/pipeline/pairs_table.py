@@ -25,8 +25,14 @@ def scores(folder: Path) -> dict[str, float]:
 
 
 def spread(values: list[float], form: str) -> str:
+    import math
+
+    missing = sum(1 for v in values if not math.isfinite(v))  # e.g. a median of a run that found no particle
+    values = [v for v in values if math.isfinite(v)]
     if not values:
         return "n/a"
+    if missing:
+        return spread(values, form) + f" ({missing} n/a)"
     mean = statistics.mean(values)
     return form.format(mean) + (
         f" +- {form.replace('+', '').format(statistics.stdev(values))}" if len(values) > 1 else ""
