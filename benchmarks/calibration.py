@@ -58,9 +58,13 @@ def main() -> None:
     if args.real:
         ids = real_ids(args.real, None, "train")[: args.ids]
         pairs = [Pair(i.id, i.image, class_mask(lab, 1), lab) for i, lab in load_real_items(args.real, ids)] + pairs
-    grid = {"cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98], "depths": [1.0, 2.0, 4.0, 8.0, 16.0],
-            "seeds": ["hmaxima", "components"], "objective": "sizes"}  # fmt: skip  (segment.yaml's)
-    print(f"| way | pairs | px | seconds | chosen | AP50 |\n|---|---|---|---|---|---|")
+    grid = {
+        "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
+        "depths": [1.0, 2.0, 4.0, 8.0, 16.0],
+        "seeds": ["hmaxima", "components"],
+        "objective": "sizes",
+    }  # fmt: skip  (segment.yaml's)
+    print("| way | pairs | px | seconds | chosen | AP50 |\n|---|---|---|---|---|---|")
     for name, context in (("before (whole-image h-maxima, np.unique)", as_before), ("now", None)):
         start = time.perf_counter()
         if context is None:
