@@ -391,6 +391,17 @@ def segment(cfg: DictConfig) -> dict:
     return fit_and_record(cfg, prepared, stopper, calibration_grid, wall_start)
 
 
+def scaled_pairs(cfg: DictConfig, source: TrainingPairs, manifest: dict | None, model):
+    """(pairs, pixel_scale, working scale, working diameter, contour width): the source's pairs read, their contour
+    class redrawn where ``loader.contour_px`` asks (`redrawn_contours`) and brought to the model's working scale
+    (`at_working_scale`)."""
+    redraw = LoaderSettings.from_config(cfg).contour_px
+    pairs = redrawn_contours(source.load(), redraw)
+    contour_width = source.contour_width(manifest) if redraw is None else redraw
+    scaled = at_working_scale(cfg, model, pairs, source.pixel_scale(manifest), contour_width)
+    return (*scaled, contour_width)
+
+
 def prepare(cfg: DictConfig) -> Prepared:
     """A fresh segmenter and its pairs (generated or real), checked; see `Prepared`."""
     from drgan.segmenters.registry import build_segmenter
@@ -405,11 +416,7 @@ def prepare(cfg: DictConfig) -> Prepared:
             )
         log.info("model.contact_weight=%s (%s)", cfg.model.contact_weight, contact_why)
     model = build_segmenter(cfg.model, "model")
-    redraw = LoaderSettings.from_config(cfg).contour_px
-    pairs = redrawn_contours(source.load(), redraw)
-    pixel_scale = source.pixel_scale(manifest)
-    contour_width = source.contour_width(manifest) if redraw is None else redraw
-    pairs, pixel_scale, working, diameter = at_working_scale(cfg, model, pairs, pixel_scale, contour_width)
+    pairs, pixel_scale, working, diameter, _ = scaled_pairs(cfg, source, manifest, model)
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
@@ -483,11 +490,7 @@ def prepare_finetune(cfg: DictConfig) -> Prepared:
         cfg.model = OmegaConf.create(dict(model.hparams))
     source = checked_source(cfg)
     items = load_corrections(cfg.corrected, setting.get("images"), cfg.get("crop_rows", "auto"))
-    manifest = source.manifest()
-    redraw = LoaderSettings.from_config(cfg).contour_px
-    pairs = redrawn_contours(source.load(), redraw)
-    contour_width = source.contour_width(manifest) if redraw is None else redraw
-    pairs, pixel_scale, working, _ = at_working_scale(cfg, model, pairs, source.pixel_scale(manifest), contour_width)
+    pairs, pixel_scale, working, _, contour_width = scaled_pairs(cfg, source, source.manifest(), model)
     corrected = correction_pairs(items, model.pixel_scale, contour_width, model.train_noise)
     pairs, check_pairs = held_out_check(cfg, source, pairs, split_seed)
     n = sum(int(lab.max()) for _, lab in items)

@@ -178,8 +178,7 @@ def check_inputs(s: Settings) -> dict:
         scored = list_images(s.annotated / "images", ids)
         if not scored:
             raise DataError(f"pipeline: annotated={s.annotated}: no image to score (its split's test list is empty)")
-        seen = {_digest(p): p for p in train}
-        shared = [(p, seen[d]) for p in scored if (d := _digest(p)) in seen]
+        shared = same_images(scored, train)
         if shared:
             raise DataError(
                 f"pipeline: annotated={s.annotated}: {len(shared)} of its scored image(s) are training images too "
@@ -192,6 +191,12 @@ def check_inputs(s: Settings) -> dict:
     return summary
 
 
+def same_images(these: Sequence[Path], those: Sequence[Path]) -> list[tuple[Path, Path]]:
+    """(a, b) for every image of ``these`` whose content is that of an image ``b`` of ``those`` (compared by digest)."""
+    seen = {_digest(p): p for p in those}
+    return [(p, seen[d]) for p in these if (d := _digest(p)) in seen]
+
+
 def check_corrected(s: Settings, scored: Sequence[Path]) -> int:
     """``corrected=DIR``: outlines of images of data.dir (drgan.segmenters.corrections), none of them an image the
     run scores at the end; the number of corrected images."""
@@ -201,8 +206,7 @@ def check_corrected(s: Settings, scored: Sequence[Path]) -> int:
     outlines = find_corrections(s.corrected, "pipeline: corrected")
     own = s.corrected / "images"
     images = list_images(own if own.is_dir() else s.data_dir, list(outlines))
-    scored_digests = {_digest(p): p for p in scored}
-    shared = [(p, scored_digests[d]) for p in images if (d := _digest(p)) in scored_digests]
+    shared = same_images(images, scored)
     if shared:
         raise DataError(
             f"pipeline: corrected={s.corrected}: {len(shared)} corrected image(s) are scored at the end too (e.g. "
