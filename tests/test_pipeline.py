@@ -442,7 +442,9 @@ def test_a_tiny_pipeline_killed_inside_a_stage_resumes_to_the_single_commands_re
     assert done.returncode == 0, done.stderr[-3000:]
     run = tmp_path / "run"
     state = json.loads((run / "pipeline.json").read_text())
-    assert [state["stages"][s]["state"] for s in pipeline.STAGES[:5]] == ["done"] * 5
+    ran = ["profile", "train", "generate", "segment", "analyze"]  # no corrected outlines: no finetune stage
+    assert [s for s in pipeline.STAGES if s in state["stages"]] == ran
+    assert [state["stages"][s]["state"] for s in ran] == ["done"] * 5
     assert "[5/5] analyze: done" in done.stdout and (run / "analyze" / "particles.csv").is_file()
     page = (run / "report.html").read_text()  # the report for any browser: the stages' figures inside it
     assert "<table>" in page and page.count("data:image/png;base64,") >= 3 and 'src="http' not in page
