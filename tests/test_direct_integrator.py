@@ -16,17 +16,17 @@ COLOURS = (0, 2, 3, 5)  # parameters that do not steer sampling: smooth estimato
 STEPS = [0.01, 0.1, 0.01, 0.01, 0.01, 0.01]
 
 
-def scene_with(integrator, resolution=16, spp=4, grad_seed="independent", stage=PAPER_STAGE):
+def scene_with(integrator, resolution=16, spp=4, grad_seed="independent", stage=PAPER_STAGE, recapture=0.0, phi=None):
     from drgan.scene import particle_meshes
     from drgan.scene.config import SecondaryImaging
     from drgan.scene.scene import ParticleScene, RenderSettings, SceneSpec
 
     params = SecondaryImaging(particle_bsdf=PAPER_PARTICLE, stage_bsdf=stage).material_parameters(PAPER_SIGMA)
     render = RenderSettings(resolution=resolution, spp=spp, integrator=integrator, grad_seed=grad_seed)
-    scene = ParticleScene(
-        [particle_meshes.sphere(2)], 4, SceneSpec(params, render, view_width=64.0), variant=TEST_VARIANT
-    )
-    scene.set_layout(TINY_PHI)
+    phi = TINY_PHI if phi is None else phi
+    spec = SceneSpec(params, render, view_width=64.0, recapture=recapture)
+    scene = ParticleScene([particle_meshes.sphere(2)], len(phi), spec, variant=TEST_VARIANT)
+    scene.set_layout(phi)
     return scene
 
 
@@ -96,12 +96,15 @@ def ad_and_fd(scene, loss, seeds, steps=STEPS):
     return x.grad.numpy(), np.array(fd)
 
 
-@pytest.mark.parametrize("integrator", ["direct_light", "direct_light_mis"])
-def test_gradient_of_a_linear_loss_matches_finite_differences(integrator):
+@pytest.mark.parametrize(
+    ("integrator", "recapture"), [("direct_light", 0.0), ("direct_light_mis", 0.0), ("direct_light_mis", 0.7)]
+)
+def test_gradient_of_a_linear_loss_matches_finite_differences(integrator, recapture):
     """Weighted sum of the image, the adjoint on its own samples (grad_seed independent, the default), summed
     over 16 seeds: unbiased for the derivative of the expected image. |AD - FD| <= 8 % of |FD| + 2 % of the
-    largest (colours); roughness, which steers BSDF sampling, within 25 % + 5 % (step 0.1)."""
-    scene = scene_with(integrator, spp=16)
+    largest (colours); roughness, which steers BSDF sampling, within 25 % + 5 % (step 0.1). With secondary
+    electrons recaptured the escape factor multiplies the samples: the same bounds."""
+    scene = scene_with(integrator, spp=16, recapture=recapture)
     weight = torch.rand(16, 16, generator=torch.Generator().manual_seed(4))
     ad, fd = ad_and_fd(scene, lambda image: (image * weight).sum(), range(16))
     scale = np.abs(fd).max()
@@ -270,3 +273,33 @@ def test_culling_in_a_plain_mitsuba_scene():
     culled, traced = render(True), render(False)
     np.testing.assert_allclose(culled, traced, rtol=1e-6, atol=1e-7)
     assert culled.mean() > 0.01
+
+
+TOUCHING = np.array([[-9.5, 0, 10, 20], [9.5, 0, 10, 20]], dtype=np.float32)  # two spheres of 20 px, side by side
+
+
+@pytest.mark.parametrize("integrator", ["direct_light", "direct_light_mis"])
+def test_recaptured_electrons_darken_the_neck_between_touching_particles_not_their_tops(integrator):
+    """material.imaging.recapture: a point whose hemisphere the neighbour covers loses that share of its signal.
+    The neck between two touching spheres (its hemisphere half covered) darkens by about recapture x 0.3-0.6; a
+    sphere's top (nothing above it) keeps its grey; recapture 0 draws no extra random number (the image of before,
+    per seed, to the bit)."""
+    plain = scene_with(integrator, resolution=32, spp=16, phi=TOUCHING)
+    none = scene_with(integrator, resolution=32, spp=16, phi=TOUCHING, recapture=0.0)
+    full = scene_with(integrator, resolution=32, spp=16, phi=TOUCHING, recapture=1.0)
+    torch.testing.assert_close(images(none, MID, [0]), images(plain, MID, [0]), rtol=0, atol=0)
+    a, b = images(plain, MID, range(8)).mean(0), images(full, MID, range(8)).mean(0)
+    labels = plain.instance_labels()
+    assert labels[16, 10] == labels[16, 15] != 0 and 0 != labels[16, 16] != labels[16, 15]  # the neck: 15 | 16
+    top, neck = (16, 10), (16, slice(15, 17))  # the left sphere's centre; the two pixels either side of the contact
+    assert abs(float(b[top] / a[top]) - 1) < 0.03, (float(a[top]), float(b[top]))
+    assert 0.3 < float(b[neck].mean() / a[neck].mean()) < 0.85, (a[neck], b[neck])
+
+
+def test_recapture_is_checked_before_any_render():
+    from drgan.scene.config import SecondaryImaging
+
+    with pytest.raises(ConfigError, match=r"material.imaging.recapture=1.5: expected a share in \[0, 1\]"):
+        SecondaryImaging(particle_bsdf=PAPER_PARTICLE, stage_bsdf=PAPER_STAGE, recapture=1.5)
+    with pytest.raises(ConfigError, match=r"recapture=0.5 needs renderer.integrator=direct_light or direct_light_mis"):
+        scene_with("prb", recapture=0.5)

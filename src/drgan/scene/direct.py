@@ -156,6 +156,11 @@ def _integrator_class():
             if cuda and self.emitter_culling:
                 raise ValueError(f"{NAME}: emitter_culling needs a CPU (llvm) variant; {mi.variant()} is set")
             self._emitters = (None, None)  # (_geometry_key, emitter_geometry) of the last scene rendered
+            # Secondary electrons recaptured (`escape`): the share of the electrons a surface emits towards another
+            # surface that are lost to the detector; 0 = none (no ray, no random number: the images of before).
+            self.recapture = float(props.get("recapture", 0.0))
+            if not 0.0 <= self.recapture <= 1.0:
+                raise ValueError(f"{NAME}: recapture={self.recapture}; expected a share in [0, 1]")
 
         def _emitter_geometry(self, scene):
             """`emitter_geometry` of ``scene``, rebuilt only when its emitters changed."""
@@ -176,6 +181,18 @@ def _integrator_class():
             for shape in chosen:
                 mask |= si.shape == mi.ShapePtr(shape)
             return active & mask
+
+        def escape(self, scene, sampler, ray, si, valid):
+            """Per sample, 1 - ``recapture`` where one cosine-distributed direction from the visible point (a
+            secondary electron leaving the surface on the camera's side) meets another surface before it escapes,
+            else 1: in expectation 1 - recapture x the share of the point's hemisphere that other surfaces cover.
+            A crevice between touching particles, half covered by the neighbour, images darker than a free top, as
+            SEM contacts do (its own random numbers, drawn after the others'; no gradient: geometry is fixed)."""
+            n = dr.select(dr.dot(si.n, ray.d) < 0, si.n, -si.n)
+            d = mi.Frame3f(n).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(valid)))
+            hit = scene.ray_intersect(si.spawn_ray(d), ray_flags=mi.RayFlags.Minimal, coherent=False, active=valid)
+            blocked = valid & hit.is_valid() & (hit.emitter(scene, valid) == None)  # noqa: E711  (an emitter: escaped)
+            return dr.select(blocked, 1.0 - self.recapture, 1.0)
 
         def to_string(self):
             return f"DirectLightIntegrator[{NAME}, max_depth = 2]"
@@ -261,6 +278,7 @@ def _integrator_class():
                 pdf_light_b = scene.pdf_emitter_direction(si, ds_b, hit_light & ~delta)
                 Le_b = emitter_b.eval(si_b, hit_light)
                 mis_b = dr.select(delta, 1.0, power_heuristic(bs.pdf, pdf_light_b))
+                escape = self.escape(scene, sampler, ray, si, valid) if self.recapture > 0 else None
 
             with dr.resume_grad(when=differentiate):
                 f_light, pdf_bsdf_light = bsdf.eval_pdf(ctx, si, wo_light, light_ok)
@@ -275,6 +293,8 @@ def _integrator_class():
                 else:
                     weight_b = bsdf_weight
                 L += dr.select(hit_light, Le_b * mis_b * weight_b, 0.0)
+                if escape is not None:
+                    L *= escape
                 if mode == dr.ADMode.Backward and δL is not None:
                     dr.backward_from(δL * L)
             return dr.detach(L) if mode == dr.ADMode.Backward and δL is not None else L, valid, [], None

@@ -47,6 +47,10 @@ class OfficialSpec:
     view_width: float = 256.0  # px of the image; the network's input is divided by it (drgan.models.generator)
     stage: bool = True
 
+    @property
+    def recapture(self) -> float:
+        return float(self.imaging.recapture)
+
 
 def _transform(*steps):
     """A Mitsuba transform from the steps of an official XML ``<transform>`` in their order (each applies after

@@ -51,6 +51,7 @@ class SceneSpec:
     stage: bool = True
     torus_light: TorusLight | None = field(default_factory=TorusLight)
     top_light: TopLight | None = field(default_factory=TopLight)
+    recapture: float = 0.0  # material.imaging.recapture (drgan.scene.config.SecondaryImaging)
 
     def __post_init__(self):
         if not self.view_width > 0:
@@ -337,6 +338,7 @@ class ParticleScene(MeshParticles):
             stage=imaging.stage,
             torus_light=imaging.torus_light,
             top_light=imaging.top_light,
+            recapture=float(imaging.recapture),
         )
 
     def __init__(self, meshes: Sequence[trimesh.Trimesh], n_particles: int, spec: SceneSpec, variant: str = "auto"):
@@ -353,12 +355,19 @@ class ParticleScene(MeshParticles):
 
     def _integrator_dict(self) -> dict:
         r = self.spec.render
+        recapture = float(getattr(self.spec, "recapture", 0.0))
+        if recapture > 0 and r.integrator not in DIRECT_INTEGRATORS:
+            raise ConfigError(
+                f"material.imaging.recapture={recapture:g} needs renderer.integrator=direct_light or direct_light_mis "
+                f"(drgan.scene.direct); renderer.integrator={r.integrator}"
+            )
         if r.integrator == "direct_projective":
             # Only BSDF parameters are differentiated: no silhouette (projective) samples are needed.
             return {"type": "direct_projective", "sppp": 0, "sppi": 0}
         if r.integrator in DIRECT_INTEGRATORS:
             shapes = "*" if r.integrator == "direct_light_mis" else self._bsdf_sampled_shapes()
-            return {"type": direct.register(), "max_depth": r.max_depth, "bsdf_sampling": shapes}
+            out = {"type": direct.register(), "max_depth": r.max_depth, "bsdf_sampling": shapes}
+            return {**out, "recapture": recapture} if recapture > 0 else out
         return {"type": r.integrator, "max_depth": r.max_depth}
 
     def _bsdf_sampled_shapes(self) -> str:
