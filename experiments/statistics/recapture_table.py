@@ -26,7 +26,9 @@ def _run0(path: Path, header: str) -> list[str]:
 
 
 def main() -> None:
-    print("| run | closed loop median / count / merged / AP50 | real DSC / AP50 | real median / count | real merged / missed |")
+    print(
+        "| run | closed loop median / count / merged / AP50 | real DSC / AP50 | real median / count | real merged / missed |"
+    )
     print("|---|---|---|---|---|")
     for arg in sys.argv[1:]:
         name, rest = arg.split("=", 1)
@@ -38,7 +40,9 @@ def main() -> None:
         sizes = _run0(evaluated / "statistics.md", "| run | median diameter")
         sources = _run0(evaluated / "statistics.md", "| run | true particles")
         first = [re.sub(r" \[.*", "", c) for c in sizes]
-        print(f"| {name} | {loop} | {scores[1]} / {scores[2]} | {first[2]} / {first[4]} | {sources[3]} / {sources[5]} |")
+        print(
+            f"| {name} | {loop} | {scores[1]} / {scores[2]} | {first[2]} / {first[4]} | {sources[3]} / {sources[5]} |"
+        )
 
 
 if __name__ == "__main__":
