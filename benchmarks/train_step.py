@@ -233,8 +233,6 @@ def main():
                 ]
                 if integrator is not None:
                     overrides.append(f"renderer.integrator={integrator}")
-                    if not integrator.startswith("direct_light"):  # recaptured electrons: direct_light only
-                        overrides.append("material.imaging.recapture=0")
                 cfg = compose(overrides, config_name="train")
                 # GANModule.from_config since the module takes built parts; older checkouts: GANModule(cfg, ...)
                 build_module = getattr(GANModule, "from_config", GANModule)

@@ -355,7 +355,7 @@ class ParticleScene(MeshParticles):
 
     def _integrator_dict(self) -> dict:
         r = self.spec.render
-        recapture = float(getattr(self.spec, "recapture", 0.0))
+        recapture = float(self.spec.recapture)  # SceneSpec and OfficialSpec carry it
         if recapture > 0 and r.integrator not in DIRECT_INTEGRATORS:
             raise ConfigError(
                 f"material.imaging.recapture={recapture:g} needs renderer.integrator=direct_light or direct_light_mis "
