@@ -212,14 +212,20 @@ def _pipeline(cwd: Path, argv: list[str], env: dict | None = None) -> subprocess
 
 
 def _wait(out: Path, stages: list[str], timeout: float = 600.0) -> dict:
-    """pipeline.json once each of ``stages`` is done or its job has ended (SLURM forgets nothing for an hour)."""
+    """pipeline.json once each of ``stages`` is done and every job of the run has ended, or a stage's job has ended
+    without it (SLURM forgets nothing for an hour). A job marks its stage done a moment before it exits, so done alone
+    would race its COMPLETED."""
     deadline = time.time() + timeout
     while time.time() < deadline:
         state = json.loads((out / "pipeline.json").read_text()) if (out / "pipeline.json").is_file() else {}
         records = [(state.get("stages") or {}).get(s, {}) for s in stages]
         jobs = [r.get("job") for r in records if r.get("state") != "done"]
         if all(r.get("state") == "done" for r in records):
-            return state
+            every = [r["job"] for r in (state.get("stages") or {}).values() if r.get("job")]
+            if not any(st.active for st in slurm.job_states(every).values()):
+                return state
+            time.sleep(1.0)
+            continue
         if jobs and all(j and not st.active for j, st in slurm.job_states([j for j in jobs if j]).items()):
             return state
         time.sleep(1.0)

@@ -4,25 +4,26 @@
 
 For issue 67's recapture comparison (experiments/statistics/README.md): U-Nets trained on the same generator's pairs
 rendered with and without material.imaging.recapture, scored on their own held-out pairs and on tio2_sem's ids.
+evaluate's CSVs are read with experiments/pipeline/pairs_table.py's reader (one reader of them for both tables).
 """
 
 from __future__ import annotations
 
+import csv
 import json
-import re
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "pipeline"))
+from pairs_table import scores  # noqa: E402
 
-def _run0(path: Path, header: str) -> list[str]:
-    """The cells of the run0 row of the table whose header starts with ``header`` in a Markdown file."""
-    lines = path.read_text().splitlines()
-    for i, line in enumerate(lines):
-        if line.startswith(header):
-            for row in lines[i + 2 :]:
-                if row.startswith("| run0"):
-                    return [c.strip() for c in row.strip("|").split("|")]
-    raise SystemExit(f"{path}: no run0 row under {header!r}")
+
+def shares(folder: Path) -> dict[str, float]:
+    """run0's merged and missed shares of the true particles (statistics.csv's sources/ rows)."""
+    rows = {r["statistic"]: float(r["value"]) for r in csv.DictReader((folder / "statistics.csv").open())
+            if r["run"] == "run0" and r["statistic"].startswith("sources/")}  # fmt: skip
+    n_true = rows["sources/n_true"]
+    return {key: rows[f"sources/{key}"] / n_true for key in ("merged", "missed")}
 
 
 def main() -> None:
@@ -36,13 +37,9 @@ def main() -> None:
         check = json.loads((run / "metrics.json").read_text())["closed_loop"]
         loop = (f"{100 * check['median_error']['value']:+.1f} / {100 * check['count_error']['value']:+.1f} / "
                 f"{100 * check['merged']:.1f} % / {check['ap50']:.3f}")  # fmt: skip
-        scores = _run0(evaluated / "results.md", "| | DSC")
-        sizes = _run0(evaluated / "statistics.md", "| run | median diameter")
-        sources = _run0(evaluated / "statistics.md", "| run | true particles")
-        first = [re.sub(r" \[.*", "", c) for c in sizes]
-        print(
-            f"| {name} | {loop} | {scores[1]} / {scores[2]} | {first[2]} / {first[4]} | {sources[3]} / {sources[5]} |"
-        )
+        real, lost = scores(evaluated), shares(evaluated)
+        print(f"| {name} | {loop} | {real['dsc']:.3f} / {real['ap50']:.3f} | {100 * real['median_error']:+.1f} / "
+              f"{100 * real['count_error']:+.1f} % | {100 * lost['merged']:.1f} / {100 * lost['missed']:.1f} % |")  # fmt: skip
 
 
 if __name__ == "__main__":
