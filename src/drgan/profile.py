@@ -24,6 +24,7 @@ from drgan.data import measurements as est
 from drgan.data import particle_edge, profile_figures
 from drgan.data.annotations import annotation_mask, as_grey
 from drgan.data.classical import NoParticles, SegmentParams, resolve_params
+from drgan.data.imagej import write_label_tiff
 from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particle_edge import EDGE_BACKGROUND_PX, EDGE_INSIDE_PX, EDGE_INTERIOR_PX, EDGE_OUTSIDE_PX
 from drgan.data.patches import STRIDE, particle_boxes, scale_sample
@@ -202,8 +203,11 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
 
     tables, foregrounds, labels_kept, shapes, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
     blurs, boxes = [], []
-    for image in track(images, "segmenting", unit="images"):
+    for path, image in track(list(zip(paths, images)), "segmenting", unit="images"):
         labels, foreground, separability, added = est.segment_image(image, params, polarity)
+        # labels/ID.tif: the classical outlines for Fiji and napari, and the reference drgan.segment's agreement
+        # check compares a trained segmenter with (drgan.segmenters.agreement)
+        write_label_tiff(out / "labels" / f"{path.stem}.tif", labels, est.pixel_size_nm(path)[0])
         table = est.particle_table(labels)
         tables.append(table)
         foregrounds.append(foreground)

@@ -15,6 +15,7 @@ validation pairs.
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from drgan.errors import ConfigError, DataError, check_keys, setting_float, setting_int
 from drgan.io import write_json
 from drgan.runtime import stage_main, start
+from drgan.segmenters.agreement import agreement_settings
 from drgan.segmenters.contacts import resolve_contact_weight
 from drgan.segmenters.training import (  # segment's data (the names it exports as its own too: __all__)
     LoaderSettings,
@@ -124,8 +126,46 @@ def segment(cfg: DictConfig) -> dict:
     # then data: bad folders, sizes or mask values fail here, before the run folder gets anything.
     stopper = early_stopping(cfg.get("early_stopping"))
     calibration_grid = check_grid(cfg.get("split_calibration"))
-    prepared = prepare_finetune(cfg) if cfg.get("finetune") or cfg.get("corrected") else prepare(cfg)
+    finetuning = bool(cfg.get("finetune") or cfg.get("corrected"))
+    guard = None if finetuning else agreement_settings(cfg.get("agreement"))
+    if guard is not None:
+        return guarded(cfg, guard, stopper, calibration_grid)
+    prepared = prepare_finetune(cfg) if finetuning else prepare(cfg)
     return fit_and_record(cfg, prepared, stopper, calibration_grid, wall_start)
+
+
+def guarded(cfg: DictConfig, guard, stopper, calibration_grid) -> dict:
+    """Train, check the segmenter against the classical foreground of the user's images, and train the next seed
+    while it covers too little of it (drgan.segmenters.agreement); the best-agreeing attempt is kept in cfg.out."""
+    import lightning.pytorch as L
+
+    from drgan.segmenters.agreement import Attempts, check_agreement, read_reference
+
+    out = Path(cfg.out)
+    attempts = Attempts(out, guard)
+    if attempts.finished() and (out / "metrics.json").is_file():  # done before (an attempt's own is stashed)
+        return _floats(json.loads((out / "metrics.json").read_text()))
+    items = read_reference(guard)  # every reference file read and checked before any training
+    progress = bool(cfg.trainer.get("enable_progress_bar", True))
+    while not attempts.finished():
+        seed = int(cfg.seed) + len(attempts.records)  # the torch seed; the pairs' split stays cfg.seed's
+        L.seed_everything(seed, workers=True)
+        fit_and_record(cfg, prepare(cfg), stopper, calibration_grid, time.perf_counter())
+        check = check_agreement(out / "checkpoints" / "last.ckpt", items, progress)
+        log.info(
+            "seed %d: its foreground covers %.1f %% of the classical one on %d of the images (Dice %.3f; at least "
+            "%.0f %% expected)", seed, 100 * check["covered"], len(check["ids"]), check["dice"], 100 * guard.min_covered,
+        )  # fmt: skip
+        attempts.stash(seed, check)
+        with open_dict(cfg):
+            cfg.ckpt_path = None  # the next attempt starts fresh
+    metrics = attempts.keep_best()
+    log.info("agreement: %s", metrics["agreement"]["why"])
+    return _floats(metrics)
+
+
+def _floats(metrics: dict) -> dict:
+    return {k: v for k, v in metrics.items() if isinstance(v, float)}
 
 
 def prepare(cfg: DictConfig) -> Prepared:

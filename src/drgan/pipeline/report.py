@@ -117,12 +117,20 @@ def segment_summary(folder: Path) -> dict:
             f"{_number((check.get('count_error') or {}).get('value'), '{:+.1%}')}, edge "
             f"{_number(check.get('edge_offset_px'), '{:+.2f}')} px"
         )
+    agreement = metrics.get("agreement") or {}
+    agreed = f"; {agreement['why']}" if agreement.get("why") else ""
+    kept = [a for a in agreement.get("attempts", []) if a.get("attempt") == agreement.get("kept_attempt")]
     return {
         "line": f"{metrics.get('epoch')} epochs ({metrics.get('stop_reason')}), val DSC "
         f"{_number(metrics.get('val/dsc'))}, split depth {calibration.get('split_depth')} core "
-        f"{calibration.get('split_core')}{weight}{checked}",
+        f"{calibration.get('split_core')}{weight}{checked}{agreed}",
         "metrics": {"segment/val_dsc": metrics.get("val/dsc"), "segment/epochs": metrics.get("epoch")}
-        | {k: metrics[k] for k in ("check/median_error", "check/count_error", "check/edge_offset_px") if k in metrics},
+        | {k: metrics[k] for k in ("check/median_error", "check/count_error", "check/edge_offset_px") if k in metrics}
+        | (
+            {"segment/classical_covered": kept[0]["covered"], "segment/attempts": len(agreement["attempts"])}
+            if kept
+            else {}
+        ),
         "val_dsc": metrics.get("val/dsc"),
         "stop_reason": metrics.get("stop_reason"),
         "settled": metrics.get("settled"),
