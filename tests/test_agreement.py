@@ -183,3 +183,17 @@ def test_segment_refuses_a_bad_reference_before_training(tmp_path):
     with pytest.raises(DataError, match=r"agreement.reference=.*no: no such folder"):
         segment(compose(overrides, config_name="segment"))
     assert not (out / "checkpoints").exists()
+
+
+def test_the_reports_segment_line_says_which_seed_was_kept(tmp_path):
+    from drgan.pipeline.report import segment_summary
+
+    s = agreement_settings(OmegaConf.create({"images": "i", "reference": "r"}))
+    attempts = Attempts(tmp_path, s)
+    for seed, covered in ((0, 0.5), (1, 0.9)):
+        _attempt_files(tmp_path, f"seed{seed}")
+        attempts.stash(seed, {"covered": covered, "dice": covered, "ids": ["a"]})
+    attempts.keep_best()
+    summary = segment_summary(tmp_path)
+    assert summary["line"].endswith("tried seed 0 50% (Dice 0.50), seed 1 90% (Dice 0.90); kept seed 1")
+    assert summary["metrics"]["segment/classical_covered"] == 0.9 and summary["metrics"]["segment/attempts"] == 2
