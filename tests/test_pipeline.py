@@ -264,18 +264,19 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
     o, data, conf = tmp_path / "o", s.data_dir, tmp_path / "o" / "drgan_conf"
     model = f"model={o / 'segment' / 'checkpoints' / 'last.ckpt'}"
     logged = ["logger.mlflow.experiment_name=pipeline_t", "parent_run=P"]
+    named = {n: [logged[0], f"logger.mlflow.run_name={n}", logged[1]] for n in ("train", "segment", "finetune")}
     built = {st.name: (st.module, st.recorded(), st.done_file) for st in stages.build_stages(s, "P", nm_per_px=2.5)}
     assert built == {
         "profile": ("drgan.profile", [f"data.dir={data}", "name=t", f"out={o / 'profile'}", f"conf_dir={conf}",
                                       "overwrite=true"], conf / "material" / "t.yaml"),
         "train": ("drgan.train", ["material=t", "run_name=t", f"hydra.run.dir={o / 'train'}",
-                                  f"hydra.searchpath=[file://{conf}]", *logged,
+                                  f"hydra.searchpath=[file://{conf}]", *named["train"],
                                   "trainer.max_epochs=5", "callbacks.early_stopping.max_minutes=90", "seed=3"], o / "train" / "metrics.json"),
         "generate": ("drgan.generate", [f"ckpt={o / 'train'}", f"out={o / 'generate'}", "n=500", "renderer.spp=16"],
                      o / "generate" / "manifest.json"),
         "segment": ("drgan.segment", [f"data={o / 'generate'}", f"out={o / 'segment'}", "name=t", "run_name=t",
                                       f"agreement.images={data}", f"agreement.reference={o / 'profile' / 'labels'}",
-                                      *logged], o / "segment" / "metrics.json"),
+                                      *named["segment"]], o / "segment" / "metrics.json"),
         "analyze": ("drgan.analyze", [model, f"images={data}", f"out={o / 'analyze'}", "nm_per_px=2.5",
                                       "inference.tile=64"], o / "analyze" / "particles.csv"),
         "evaluate": ("drgan.evaluate", [model, f"data={tmp_path / 'a'}", f"out={o / 'evaluate'}", "subset=all"],
@@ -320,7 +321,7 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
     assert with_fixes["finetune"] == (
         "drgan.segment", [f"finetune={o / 'segment'}", f"data={o / 'generate'}", f"corrected={tmp_path / 'fixes'}",
                           f"correction.images={data}", f"out={o / 'finetune'}", "name=t", "run_name=t_finetune",
-                          *logged])  # fmt: skip
+                          *named["finetune"]])  # fmt: skip
     tuned = f"model={o / 'finetune' / 'checkpoints' / 'last.ckpt'}"
     assert with_fixes["analyze"][1][0] == tuned and with_fixes["evaluate"][1][0] == tuned
     assert list(with_fixes) == ["profile", "train", "generate", "segment", "finetune", "analyze", "evaluate"]

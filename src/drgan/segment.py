@@ -147,9 +147,14 @@ def guarded(cfg: DictConfig, guard, stopper, calibration_grid) -> dict:
         return _floats(json.loads((out / "metrics.json").read_text()))
     items = read_reference(guard)  # every reference file read and checked before any training
     progress = bool(cfg.trainer.get("enable_progress_bar", True))
+    mlflow = (cfg.get("logger") or {}).get("mlflow")
+    first_name = None if mlflow is None else mlflow.get("run_name")
     while not attempts.finished():
         seed = int(cfg.seed) + len(attempts.records)  # the torch seed; the pairs' split stays cfg.seed's
         L.seed_everything(seed, workers=True)
+        if attempts.records and mlflow is not None:  # a retry is its own MLflow run, named by its seed
+            with open_dict(cfg):
+                cfg.logger.mlflow.run_name = f"{first_name}/seed={seed}"
         fit_and_record(cfg, prepare(cfg), stopper, calibration_grid, time.perf_counter())
         check = check_agreement(out / "checkpoints" / "last.ckpt", items, progress)
         log.info(

@@ -55,13 +55,18 @@ def build_stages(s: Settings, parent_run: str | None, nm_per_px: float | None = 
     without ``annotated``); ``nm_per_px``: the pixel size the profile found."""
     context = Context(s.out, s.name, s.data_dir, s.annotated, s.stages, nm_per_px, s.corrected)
     links = [f"parent_run={parent_run}"] if parent_run else []
-    logged = [f"logger.mlflow.experiment_name={s.experiment_name}", *links] if s.mlflow else ["logger=none"]
     stages = []
     for spec in stage_table.PIPELINE:
         wired = spec.wire(context)
         if wired is None:
             continue
         folder = context.folder(spec.name)
+        # a stage that logs its own MLflow run names it after the stage (the sample's name is its parent run's)
+        logged = (
+            [f"logger.mlflow.experiment_name={s.experiment_name}", f"logger.mlflow.run_name={spec.name}", *links]
+            if s.mlflow
+            else ["logger=none"]
+        )
         stages.append(
             Stage(
                 spec,
