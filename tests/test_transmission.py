@@ -230,6 +230,34 @@ def test_labels_exact_for_particles_at_known_positions():
     np.testing.assert_array_equal(sem.instance_labels(), labels)
 
 
+def test_overlapping_particles_split_along_their_chord_whichever_lies_in_front():
+    """Transmission labels give an overlap to the particle the beam crosses longest: for two spheres the chord through
+    the outlines' crossings (radical axis), the same whichever is in front; the opaque scene's first hit gives the
+    front sphere the whole lens."""
+    from drgan.scene import particle_meshes
+
+    size, (r1, r2), (c1, c2) = 64, (12.0, 10.0), (-8.0, 8.0)
+    chord = (r1**2 - r2**2 - c1**2 + c2**2) / (2 * (c2 - c1))  # x where (x - c1)^2 - r1^2 = (x - c2)^2 - r2^2
+    x, y = pixel_centres(size)
+    in_1, in_2 = np.hypot(x - c1, y) < r1 - 1.0, np.hypot(x - c2, y) < r2 - 1.0
+    lens = in_1 & in_2
+    scene = make_scene([particle_meshes.sphere(3)], n=2, resolution=size, spp=1)
+    labels = []
+    for z1, z2 in ((10.0, -10.0), (-10.0, 10.0)):
+        scene.set_layout(np.array([[c1, 0, z1, 2 * r1], [c2, 0, z2, 2 * r2]], np.float32))
+        labels.append(scene.instance_labels())
+        first = super(type(scene), scene)._trace_labels()  # the opaque scene's rule, for contrast
+        front = 1 if z1 > z2 else 2
+        assert (first[lens] == front).all() or (first[lens] == 3 - front).all()  # one sphere takes the whole lens
+    d1, d2 = np.hypot(x - c1, y), np.hypot(x - c2, y)
+    clear = (np.abs(d1 - r1) > 1.0) & (np.abs(d2 - r2) > 1.0)  # away from the outlines (perspective moves them)
+    np.testing.assert_array_equal(labels[0][clear], labels[1][clear])
+    sure = np.abs(x - chord) > 1.0
+    assert (labels[0][lens & sure & (x < chord)] == 1).all() and (labels[0][lens & sure & (x > chord)] == 2).all()
+    assert (labels[0][in_1 & (d2 > r2 + 1)] == 1).all() and (labels[0][in_2 & (d1 > r1 + 1)] == 2).all()
+    assert (labels[0][(d1 > r1 + 1) & (d2 > r2 + 1)] == 0).all()
+
+
 # -- configuration --------------------------------------------------------------------------------
 def _material(imaging=None, **extra):
     material = {

@@ -214,6 +214,58 @@ class TransmissionScene(MeshParticles):
             size = self.spec.render.resolution
             return torch.from_numpy(np.array(total, dtype=np.float32).reshape(size * size, spp))
 
+    def _trace_labels(self) -> np.ndarray:
+        """Instance labels in transmission: a pixel crossed by several particles belongs to the one its ray crosses
+        the longest path in (the first hit where that path cannot be told).
+
+        A transmission image is the same whichever of two overlapping particles lies in front (path lengths add), so
+        the first-hit labels of an opaque scene would draw the overlap's outline along the front particle's arc: a
+        line the image does not show, which no segmenter can learn (on generated TSEM pairs the networks merged
+        overlapping particles instead). The longest path is symmetric and shown by the image: for two overlapping
+        spheres of radii r1, r2 at projected distances d1, d2 it splits where r1^2 - d1^2 = r2^2 - d2^2, the chord
+        through the points where their outlines cross (the radical axis). Pixels of one particle are as before.
+
+        Per camera ray (one through each pixel centre) every surface crossing adds -t (entry) or +t (exit) to its
+        particle's path; a particle whose entries and exits do not pair up (a hit lost at a grazing edge) gets no
+        path, so a ray left without one keeps its first hit's label."""
+        size, n = self.spec.render.resolution, self.n_particles
+        with dr.suspend_grad():
+            ray, _ = self.camera_rays([(0.5, 0.5)])
+            n_rays = dr.width(ray.o)
+            path = dr.zeros(mi.Float, n_rays * n)  # per (ray, particle): sum of exit t - entry t
+            balance = dr.zeros(mi.Int32, n_rays * n)  # entries minus exits: 0 when every entry found its exit
+            first = dr.zeros(mi.UInt32, n_rays)
+            index = dr.arange(mi.UInt32, n_rays)
+            origin, direction = mi.Point3f(ray.o), dr.normalize(mi.Vector3f(ray.d))
+            ray = mi.Ray3f(origin, direction)
+            for crossing in range(2 * n + 2):
+                si = self.scene.ray_intersect(ray, mi.RayFlags.Minimal, False)
+                hit = si.is_valid()
+                label = dr.gather(mi.UInt32, self._face_label, si.prim_index, hit)
+                t = dr.dot(si.p - origin, direction)
+                entering = dr.dot(si.n, direction) < 0
+                slot = index * n + (label - 1)
+                dr.scatter_add(path, dr.select(entering, -t, t), slot, hit)
+                dr.scatter_add(balance, dr.select(entering, mi.Int32(1), mi.Int32(-1)), slot, hit)
+                if crossing == 0:
+                    first = dr.select(hit, label, 0)
+                start = si.spawn_ray(direction).o
+                dr.eval(hit, start, path, balance, first)
+                keep = dr.compress(hit)
+                if dr.width(keep) == 0:
+                    break
+                index, origin, direction, start = (
+                    dr.gather(type(v), v, keep) for v in (index, origin, direction, start)
+                )
+                ray = mi.Ray3f(start, direction)
+            lengths = np.array(path, dtype=np.float32).reshape(size * size, n)
+            paired = np.array(balance, dtype=np.int32).reshape(size * size, n) == 0
+            hit_first = np.array(first, dtype=np.int32)
+        lengths = np.where(paired & (lengths > 0), lengths, 0.0)
+        longest = lengths.argmax(axis=1) + 1
+        labels = np.where((hit_first > 0) & (lengths.max(axis=1) > 0), longest, hit_first)
+        return labels.astype(np.int32).reshape(size, size)
+
     def _covered_thickness(self, spp: int | None) -> tuple[torch.Tensor, torch.Tensor]:
         """(indices of the pixels that some ray crosses a particle in, their (k, spp) path lengths): the bare film
         transmits 1 exactly, so only these pixels need exp() and its gradient."""
