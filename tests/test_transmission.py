@@ -230,32 +230,46 @@ def test_labels_exact_for_particles_at_known_positions():
     np.testing.assert_array_equal(sem.instance_labels(), labels)
 
 
-def test_overlapping_particles_split_along_their_chord_whichever_lies_in_front():
-    """Transmission labels give an overlap to the particle the beam crosses longest: for two spheres the chord through
-    the outlines' crossings (radical axis), the same whichever is in front; the opaque scene's first hit gives the
-    front sphere the whole lens."""
+def test_overlapping_particles_split_where_their_outlines_are_equally_far_whichever_lies_in_front():
+    """Transmission labels give an overlap to the particle whose own outline is farthest: for two spheres (discs of
+    radii r1, r2 in projection) the curve r1 - d1 = r2 - d2 between the outlines' crossings, the same whichever is in
+    front; the opaque scene's first hit gives the front sphere the whole lens."""
     from drgan.scene import particle_meshes
 
     size, (r1, r2), (c1, c2) = 64, (12.0, 10.0), (-8.0, 8.0)
-    chord = (r1**2 - r2**2 - c1**2 + c2**2) / (2 * (c2 - c1))  # x where (x - c1)^2 - r1^2 = (x - c2)^2 - r2^2
     x, y = pixel_centres(size)
-    in_1, in_2 = np.hypot(x - c1, y) < r1 - 1.0, np.hypot(x - c2, y) < r2 - 1.0
-    lens = in_1 & in_2
+    d1, d2 = np.hypot(x - c1, y), np.hypot(x - c2, y)
+    lens = (d1 < r1 - 1.0) & (d2 < r2 - 1.0)
     scene = make_scene([particle_meshes.sphere(3)], n=2, resolution=size, spp=1)
     labels = []
     for z1, z2 in ((10.0, -10.0), (-10.0, 10.0)):
         scene.set_layout(np.array([[c1, 0, z1, 2 * r1], [c2, 0, z2, 2 * r2]], np.float32))
         labels.append(scene.instance_labels())
         first = super(type(scene), scene)._trace_labels()  # the opaque scene's rule, for contrast
-        front = 1 if z1 > z2 else 2
-        assert (first[lens] == front).all() or (first[lens] == 3 - front).all()  # one sphere takes the whole lens
-    d1, d2 = np.hypot(x - c1, y), np.hypot(x - c2, y)
+        assert len(np.unique(first[lens])) == 1  # one sphere takes the whole lens
     clear = (np.abs(d1 - r1) > 1.0) & (np.abs(d2 - r2) > 1.0)  # away from the outlines (perspective moves them)
     np.testing.assert_array_equal(labels[0][clear], labels[1][clear])
-    sure = np.abs(x - chord) > 1.0
-    assert (labels[0][lens & sure & (x < chord)] == 1).all() and (labels[0][lens & sure & (x > chord)] == 2).all()
-    assert (labels[0][in_1 & (d2 > r2 + 1)] == 1).all() and (labels[0][in_2 & (d1 > r1 + 1)] == 2).all()
+    margin = (r1 - d1) - (r2 - d2)  # > 0: farther from the first outline
+    assert (labels[0][lens & (margin > 1.0)] == 1).all() and (labels[0][lens & (margin < -1.0)] == 2).all()
+    assert (labels[0][(d1 < r1 - 1) & (d2 > r2 + 1)] == 1).all() and (
+        labels[0][(d2 < r2 - 1) & (d1 > r1 + 1)] == 2
+    ).all()
     assert (labels[0][(d1 > r1 + 1) & (d2 > r2 + 1)] == 0).all()
+
+
+def test_farthest_outline_labels_continue_a_silhouette_cut_by_the_image_border():
+    """A pixel in two silhouettes goes to the one whose outline is farther; the image border is no outline."""
+    from drgan.scene.transmission import farthest_outline_labels
+
+    silhouettes = np.zeros((8, 12, 2), bool)
+    silhouettes[:, 0:7, 0] = True  # cut by the left, top and bottom borders: its only outline is at column 7
+    silhouettes[2:6, 4:10, 1] = True  # inside the image: outlines all round
+    labels = farthest_outline_labels(silhouettes, np.zeros((8, 12), np.int32))
+    np.testing.assert_array_equal(labels[:, :4], 1)  # the first alone
+    assert (labels[2:6, 4] == 1).all()  # 3 px from the first's outline, 1 px from the second's
+    assert (labels[3:5, 6] == 2).all()  # 1 px from the first's outline, 2 px from the second's
+    np.testing.assert_array_equal(labels[2:6, 7:10], 2)
+    assert (labels[:2, 7:] == 0).all() and (labels[6:, 7:] == 0).all()
 
 
 # -- configuration --------------------------------------------------------------------------------

@@ -23,6 +23,7 @@ GROUPS = {  # name: DOI of the paper (sources.csv); 5-12 images each
     "actbio": "10.1016.j.actbio.2020.04.055",  # 6 TEM images: dark rings on a grainy film (and two single vesicles)
     "apsusc": "10.1016.j.apsusc.2020.145360",  # 12 SEM images: large bright spheres, densely packed
     "saa890": "10.1016.j.saa.2019.117890",  # 8 TEM images: dark flakes and particles of many sizes
+    "saa177": "10.1016.j.saa.2019.117177",  # 5 TEM images: dark round particles, touching, on a grainy film
 }
 
 

@@ -122,6 +122,31 @@ def outward(mesh: trimesh.Trimesh, index: int) -> trimesh.Trimesh:
     return mesh
 
 
+def farthest_outline_labels(silhouettes: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """(H, W, n) bool silhouettes (particle k covers the pixel) -> (H, W) int32 labels 1..n, 0 off every silhouette:
+    each covered pixel to the particle whose own outline is farthest from it (Euclidean distance transform of its
+    silhouette; ties to the lower id), ``fallback``'s label where no silhouette covers a pixel it labels. The image
+    border is no outline: a silhouette cut by it is continued (edge padding)."""
+    from scipy import ndimage
+
+    height, width, n = silhouettes.shape
+    best = np.zeros((height, width), np.float32)
+    labels = np.zeros((height, width), np.int32)
+    for k in range(n):
+        rows, cols = np.nonzero(silhouettes[:, :, k].any(axis=1))[0], np.nonzero(silhouettes[:, :, k].any(axis=0))[0]
+        if len(rows) == 0:
+            continue
+        # its box and one pixel more (outside it: not the particle), padded by repetition at the image border
+        y0, y1 = max(rows[0] - 1, 0), min(rows[-1] + 2, height)
+        x0, x1 = max(cols[0] - 1, 0), min(cols[-1] + 2, width)
+        box = np.pad(silhouettes[y0:y1, x0:x1, k], 1, mode="edge")
+        inner = ndimage.distance_transform_edt(box)[1:-1, 1:-1]
+        region_best, region_labels = best[y0:y1, x0:x1], labels[y0:y1, x0:x1]
+        wins = inner > region_best
+        region_best[wins], region_labels[wins] = inner[wins], k + 1
+    return np.where(labels > 0, labels, fallback).astype(np.int32)
+
+
 @register_scene
 class TransmissionScene(MeshParticles):
     """n particle meshes seen in transmission (`drgan.scene.protocol.Scene`; ``learned``: the learned ones of
@@ -215,19 +240,22 @@ class TransmissionScene(MeshParticles):
             return torch.from_numpy(np.array(total, dtype=np.float32).reshape(size * size, spp))
 
     def _trace_labels(self) -> np.ndarray:
-        """Instance labels in transmission: a pixel crossed by several particles belongs to the one its ray crosses
-        the longest path in (the first hit where that path cannot be told).
+        """Instance labels in transmission: a pixel inside several particles' silhouettes belongs to the one whose own
+        outline lies farthest from it (the first hit where no silhouette can be told).
 
-        A transmission image is the same whichever of two overlapping particles lies in front (path lengths add), so
-        the first-hit labels of an opaque scene would draw the overlap's outline along the front particle's arc: a
-        line the image does not show, which no segmenter can learn (on generated TSEM pairs the networks merged
-        overlapping particles instead). The longest path is symmetric and shown by the image: for two overlapping
-        spheres of radii r1, r2 at projected distances d1, d2 it splits where r1^2 - d1^2 = r2^2 - d2^2, the chord
-        through the points where their outlines cross (the radical axis). Pixels of one particle are as before.
+        A transmission image is the same whichever of two overlapping particles lies in front (path lengths add; a
+        thick particle is black either way), so the first-hit labels of an opaque scene would draw the overlap's
+        outline along the front particle's arc: a line the image does not show, which no segmenter can learn (on
+        generated TSEM pairs the networks merged overlapping particles instead). What the image shows is the union of
+        the silhouettes and its necks; the farthest-outline rule cuts an overlap along the curve where the two
+        silhouettes' inner distances are equal, which runs from one crossing of the outlines to the other (for two
+        discs of radii r1, r2 at distances d1, d2: r1 - d1 = r2 - d2), as annotators cut touching particles at the
+        neck. Pixels of one particle keep their label.
 
-        Per camera ray (one through each pixel centre) every surface crossing adds -t (entry) or +t (exit) to its
-        particle's path; a particle whose entries and exits do not pair up (a hit lost at a grazing edge) gets no
-        path, so a ray left without one keeps its first hit's label."""
+        Silhouettes: per camera ray (one through each pixel centre) every surface crossing adds +1 (entry) or -1
+        (exit) to its particle's count and -t or +t to its path; the ray crossed particle k when its entries and exits
+        pair up and its path is positive (a hit lost at a grazing edge leaves the ray its first hit's label). The image
+        border is no outline (a particle cut by it continues beyond)."""
         size, n = self.spec.render.resolution, self.n_particles
         with dr.suspend_grad():
             ray, _ = self.camera_rays([(0.5, 0.5)])
@@ -258,13 +286,10 @@ class TransmissionScene(MeshParticles):
                     dr.gather(type(v), v, keep) for v in (index, origin, direction, start)
                 )
                 ray = mi.Ray3f(start, direction)
-            lengths = np.array(path, dtype=np.float32).reshape(size * size, n)
-            paired = np.array(balance, dtype=np.int32).reshape(size * size, n) == 0
-            hit_first = np.array(first, dtype=np.int32)
-        lengths = np.where(paired & (lengths > 0), lengths, 0.0)
-        longest = lengths.argmax(axis=1) + 1
-        labels = np.where((hit_first > 0) & (lengths.max(axis=1) > 0), longest, hit_first)
-        return labels.astype(np.int32).reshape(size, size)
+            lengths = np.array(path, dtype=np.float32).reshape(size, size, n)
+            paired = np.array(balance, dtype=np.int32).reshape(size, size, n) == 0
+            labels = np.array(first, dtype=np.int32).reshape(size, size)
+        return farthest_outline_labels(paired & (lengths > 0), labels)
 
     def _covered_thickness(self, spp: int | None) -> tuple[torch.Tensor, torch.Tensor]:
         """(indices of the pixels that some ray crosses a particle in, their (k, spp) path lengths): the bare film
