@@ -26,55 +26,8 @@ from pathlib import Path
 
 import numpy as np
 from edge_offset import generated_images, real_images  # beside this script
-from scipy import ndimage as ndi
 
-from drgan.segmenters.pairs import contact_pairs
-
-
-def contact_counts(labels: np.ndarray) -> tuple[int, int, int]:
-    """(particles, their contacts, those touching another) over the particles of one label image that do not touch
-    its border (a particle cut by the border may have lost its neighbours with it)."""
-    labels = labels.astype(np.int64)
-    big = labels.max() + 1
-    ridge, low, high = contact_pairs(labels)
-    pairs = np.unique(low[ridge] * big + high[ridge])
-    degree = np.bincount(np.concatenate([pairs // big, pairs % big]), minlength=big)
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    inner = np.setdiff1d(np.unique(labels[labels > 0]), border)
-    return int(inner.size), int(degree[inner].sum()), int((degree[inner] > 0).sum())
-
-
-def necks(image: np.ndarray, labels: np.ndarray, min_ridge: int = 3) -> list[tuple[float, float]]:
-    """(normalised ridge grey, relative neck width) of every touching pair of instances in one image (pairs with
-    >= ``min_ridge`` ridge pixels and a particle contrast of at least 0.05)."""
-    labels = labels.astype(np.int64)
-    big = labels.max() + 1
-    ridge, low, high = contact_pairs(labels)
-    core = (labels > 0) & (ndi.maximum_filter(labels, size=5) == labels)
-    core &= ndi.minimum_filter(np.where(labels > 0, labels, big), size=5) == labels
-    background = ndi.maximum_filter(labels, size=7) == 0
-    if background.sum() < 100 or not ridge.any():
-        return []
-    bg = float(np.median(image[background]))
-    ids = np.arange(1, big)
-    core_grey = dict(zip(ids.tolist(), ndi.median(image, np.where(core, labels, 0), ids)))
-    pair = low[ridge] * big + high[ridge]
-    diameter = 2.0 * np.sqrt(np.bincount(labels.ravel(), minlength=big) / np.pi)
-    coords = np.argwhere(ridge)
-    out = []
-    for key in np.unique(pair):
-        grey = image[ridge][pair == key]
-        a, b = int(key // big), int(key % big)
-        cores = [core_grey.get(a), core_grey.get(b)]
-        if grey.size < min_ridge or any(c is None or not np.isfinite(c) for c in cores):
-            continue
-        contrast = float(np.mean(cores)) - bg
-        if abs(contrast) < 0.05:
-            continue
-        xy = coords[pair == key].astype(float)
-        width = float(np.sqrt(12.0 * np.linalg.eigvalsh(np.cov(xy.T))[-1]))
-        out.append(((float(np.median(grey)) - bg) / contrast, width / min(diameter[a], diameter[b])))
-    return out
+from drgan.data.contacts import contact_counts, necks
 
 
 def main() -> None:
@@ -96,7 +49,7 @@ def main() -> None:
     ):
         if values is not None:
             values = list(values)
-            v, w = np.asarray([x for image, labels in values for x in necks(image, labels)]).T
+            v, w = np.asarray([(n.grey, n.width) for image, labels in values for n in necks(image, labels)]).T
             n, contacts, touching = np.sum([contact_counts(labels) for _, labels in values], axis=0)
             q, r = np.percentile(v, [25, 50, 75]), np.percentile(w, [25, 50, 75])
             print(f"| {name} | {len(v)} | {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} | {np.mean(v < 0.5):.0%} | "

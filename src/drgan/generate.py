@@ -339,6 +339,7 @@ def generate_dataset(given: GenerateSettings) -> dict:
               f"{counts['partial_background']} partial background items (n_background={settings.n_background})")  # fmt: skip
         write_noise_check(out, manifest, settings, resolution, patches)
         write_edge_check(out, manifest, settings, resolution, patches)
+        write_contact_check(out, manifest, settings, resolution, patches)
     return manifest
 
 
@@ -368,6 +369,26 @@ def write_edge_check(out: Path, manifest: dict, settings, resolution: int, patch
         )  # fmt: skip
     else:
         log.info("%s", edge_check.summary_line(result))
+    return result
+
+
+CONTACT_CHECK = "contact_check.json"
+
+
+def write_contact_check(out: Path, manifest: dict, settings, resolution: int, patches=None) -> dict | None:
+    """``out``/contact_check.json: how often the generated contacts hide their neck against the real train patches'
+    (drgan.synthetic.contact_check), logged, with a warning when the generated ones hide it WARN_HIDDEN more often;
+    nothing without real patches. Seconds: 64 images on each side."""
+    from drgan.io import write_json
+    from drgan.synthetic import contact_check
+
+    result = contact_check.check_dataset(
+        out, manifest, settings.backgrounds if patches is None else patches, settings.polarity, resolution
+    )
+    if result is None:
+        return None
+    write_json(out / CONTACT_CHECK, result)
+    contact_check.log_result(result)
     return result
 
 

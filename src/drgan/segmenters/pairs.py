@@ -391,19 +391,9 @@ CONTACT_SHADE_PX = 0.7  # Gaussian stddev (px) of the contact shading's profile 
 def contact_ridge(labels: np.ndarray) -> np.ndarray:
     """bool (H, W): the pixels with two different instances of ``labels`` within 1 px (3 x 3 window): where two
     particles touch (their boundary pixels on both sides; a real annotation's 1 px separating line)."""
+    from drgan.data.contacts import contact_pairs
+
     return contact_pairs(labels)[0]
-
-
-def contact_pairs(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ridge, low, high): `contact_ridge`'s pixels, and at every pixel the smallest and the largest instance id
-    within 1 px (int64; ``labels.max() + 1`` for none), which name the touching pair at a ridge pixel."""
-    from scipy.ndimage import maximum_filter, minimum_filter
-
-    labels = np.asarray(labels, dtype=np.int64)
-    none = int(labels.max()) + 1
-    high = maximum_filter(labels, size=3)
-    low = minimum_filter(np.where(labels > 0, labels, none), size=3)
-    return (low < none) & (high > low), low, high
 
 
 def shade_contacts(image: np.ndarray, labels: np.ndarray, mask: np.ndarray, depth: float) -> np.ndarray:
