@@ -111,6 +111,20 @@ def test_agglomeration_and_shape_suggestions():
     assert est.placement_kind(0.5, 1.0) == "poisson" and est.placement_kind(0.05, 1.1) == "random_2d"
 
 
+def test_clustered_particles_seen_in_transmission_get_flat_piles():
+    """A piled particle hides its contact in transmission (experiments/statistics/README.md): clustered particles of a
+    transmission material get the flat poisson group, in every composed config; other materials keep the measured."""
+    from drgan.material_proposal import placement_group
+
+    assert placement_group("tio2_tsem", "poisson") == "poisson_flat"
+    assert placement_group("tio2_tsem", "random_2d") == "random_2d"
+    assert placement_group("tio2_sem", "poisson") == "poisson"
+    flat = compose(["material=tio2_tsem"], config_name="train").placement
+    piles = compose(["material=tio2_sem"], config_name="train").placement
+    assert flat.max_clusters == 2 and flat.min_distance_factor == 0.85 and piles.max_clusters == 5
+    assert flat.max_height == pytest.approx(0.45 * 30) and piles.max_height > 2 * flat.max_height
+
+
 def test_pixel_size_from_tiff_resolution(tmp_path):
     import tifffile
 

@@ -333,6 +333,19 @@ def filter_for_blur(blur_px: float | None, render_per_image_px: float = 1.0) -> 
     return round(float(np.interp(blur_px * render_per_image_px, blurs, filters)), 2)
 
 
+FLAT_PILES = "poisson_flat"  # the placement group of clustered particles seen in transmission
+
+
+def placement_group(parent: str, measured: str) -> str:
+    """The placement group the material gets: the measured one, except that clustered particles seen in transmission
+    get flat piles (conf/gan/placement/poisson_flat.yaml): a particle piled over another hides their contact there."""
+    from drgan.scene.config import TransmissionImaging, typed_material
+
+    if measured == "poisson" and isinstance(typed_material(parent_material(parent)).imaging, TransmissionImaging):
+        return FLAT_PILES
+    return measured
+
+
 def parent_renders_without_sampling_noise(parent: str) -> bool:
     """Whether the parent material's scene renders without Monte Carlo grain (its imaging config says so)."""
     from drgan.scene.config import typed_material
@@ -351,8 +364,14 @@ def material_yaml(result: ProfileResult, fits: list, chosen) -> tuple[str, str]:
     )  # a value the schema refuses fails here, not in training
     agg, data = result.agglomeration, result.data
     notes["size group"] = f"{chosen.kind}: lowest BIC of normal / lognormal / bimodal"
+    placement = placement_group(parent, agg.placement)
     notes["placement group"] = (
-        f"{agg.placement}: touching fraction {agg.touching_fraction:.2f}, Clark-Evans {agg.clark_evans_median}"
+        f"{placement}: touching fraction {agg.touching_fraction:.2f}, Clark-Evans {agg.clark_evans_median}"
+        + (
+            " (clustered, flat piles: in transmission a piled particle hides its contact)"
+            if placement == FLAT_PILES
+            else ""
+        )
     )
     body = {"material": material}
     if size:
@@ -383,7 +402,7 @@ def material_yaml(result: ProfileResult, fits: list, chosen) -> tuple[str, str]:
         "defaults:",
         f"  - {parent}",
         f"  - override /size: {chosen.kind}",
-        f"  - override /placement: {agg.placement}",
+        f"  - override /placement: {placement}",
     ]
     return parent, "\n".join(header) + "\n" + OmegaConf.to_yaml(OmegaConf.create(body))
 
