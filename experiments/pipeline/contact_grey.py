@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from edge_offset import generated_images, real_images  # beside this script
 
-from drgan.data.contacts import contact_counts, necks
+from drgan.data.necks import contact_counts, necks
 
 
 def main() -> None:

@@ -1,7 +1,7 @@
 """Which touching particles does a segmenter merge: those whose contact the image shows, or those it does not?
 
 On a segment run's held-out generated pairs (its closed-loop ids), every contact between two true particles is put in
-a bin by its neck grey (the ridge's grey on the particles' own scale, drgan.data.contacts: 1 = as
+a bin by its neck grey (the ridge's grey on the particles' own scale, drgan.data.necks: 1 = as
 dark/bright as the particles, no cue; 0 = the background, a gap) and counted as merged when one predicted particle
 holds more than half of both (drgan.metrics.instance_scores.error_sources' rule, per contact). If merges gather where
 the neck grey is ~1, the image shows nothing to cut there: the check measures the scene's ambiguity, and real
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.data.contacts import necks
+from drgan.data.necks import necks
 from drgan.metrics.instance_scores import binarize_and_label
 from drgan.segmenters.closed_loop import check_inference
 from drgan.segmenters.inference import predict

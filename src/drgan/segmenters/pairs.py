@@ -391,7 +391,7 @@ CONTACT_SHADE_PX = 0.7  # Gaussian stddev (px) of the contact shading's profile 
 def contact_ridge(labels: np.ndarray) -> np.ndarray:
     """bool (H, W): the pixels with two different instances of ``labels`` within 1 px (3 x 3 window): where two
     particles touch (their boundary pixels on both sides; a real annotation's 1 px separating line)."""
-    from drgan.data.contacts import contact_pairs
+    from drgan.data.necks import contact_pairs
 
     return contact_pairs(labels)[0]
 

@@ -1,7 +1,7 @@
 """Whether the generated scenes' touching particles show their contact as the real images' do (`generate`'s
 contact_check.json).
 
-A segmenter cuts two touching particles apart only where the image shows a neck (drgan.data.contacts: the contact's
+A segmenter cuts two touching particles apart only where the image shows a neck (drgan.data.necks: the contact's
 grey on the particles' scale; a ``hidden`` contact looks like the particles themselves). It learns from the generated
 pairs and is checked on more of them (drgan.segmenters.closed_loop), so a generated set whose contacts hide their
 neck more often than the user's images do trains on cuts it cannot see and reports more merges than the real images
@@ -26,9 +26,9 @@ WARN_HIDDEN = 0.15  # generated contacts hidden this much more often than the re
 
 
 def classical_contacts(images, params, polarity: str) -> dict | None:
-    """drgan.data.contacts.contact_statistics of ``images`` segmented by drgan's classical method with ``params``."""
-    from drgan.data.contacts import contact_statistics
+    """drgan.data.necks.contact_statistics of ``images`` segmented by drgan's classical method with ``params``."""
     from drgan.data.measurements import segment_image
+    from drgan.data.necks import contact_statistics
 
     found = [segment_image(np.asarray(image, np.float32), params, polarity).labels for image in images]
     return contact_statistics([np.asarray(image, np.float64) for image in images], found)
@@ -37,7 +37,7 @@ def classical_contacts(images, params, polarity: str) -> dict | None:
 def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: int) -> dict | None:
     """The contact check of a complete generated set against the real train patches of ``backgrounds`` (as
     drgan.synthetic.noise_check.sample_sides gives them; None without real patches)."""
-    from drgan.data.contacts import contact_statistics
+    from drgan.data.necks import contact_statistics
     from drgan.synthetic.noise_check import sample_sides
 
     sides = sample_sides(root, manifest, backgrounds, polarity, resolution)

@@ -1,4 +1,4 @@
-"""Contacts between touching particles and whether the image shows them (drgan.data.contacts), and the generated
+"""Contacts between touching particles and whether the image shows them (drgan.data.necks), and the generated
 set's contact check against the real patches (drgan.synthetic.contact_check)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import logging
 import numpy as np
 import pytest
 
-from drgan.data.contacts import HIDDEN_NECK, contact_counts, contact_statistics, necks
+from drgan.data.necks import HIDDEN_NECK, contact_counts, contact_statistics, necks
 
 BACKGROUND, PARTICLE = 0.8, 0.1
 
@@ -27,7 +27,7 @@ def two_touching_discs(size: int = 96, radius: int = 14) -> np.ndarray:
 def image_with_neck(labels: np.ndarray, neck: float) -> np.ndarray:
     """Dark particles on a bright film; the contact ridge of discs 1 and 2 at ``neck`` of the way from the background
     grey to the particles'."""
-    from drgan.data.contacts import contact_pairs
+    from drgan.data.necks import contact_pairs
 
     image = np.where(labels > 0, PARTICLE, BACKGROUND)
     ridge = contact_pairs(labels)[0]
