@@ -73,6 +73,25 @@ def test_touching_particles_predicted_as_one_are_counted_as_merged():
     assert check["merged"] == pytest.approx(2 / 3) and check["matched"] == pytest.approx(1 / 3)
 
 
+def test_the_check_says_which_contacts_it_merged_those_the_image_hides_or_those_it_shows():
+    """Two touching pairs: one whose contact is as bright as the particles (hidden), one whose contact falls to the
+    background (shown); the predictor merges the first and cuts the second."""
+    from drgan.data.necks import contact_pairs
+
+    labels = np.zeros((64, 64), np.int32)
+    labels[8:18, 8:18], labels[8:18, 18:28] = 1, 2
+    labels[40:50, 8:18], labels[40:50, 18:28] = 3, 4
+    pair = pair_of(labels)
+    pair.image[contact_pairs(labels)[0] & (labels >= 3)] = 0.2  # the second contact shows as background
+    merged = np.where(labels == 2, 1, labels)  # 1 and 2 as one particle, 3 and 4 apart (a contour between them)
+    check = closed_loop(None, [pair], predictor=lambda image: class_mask(merged, 1), n_boot=20)
+    assert check["contacts"] == {"n": 2, "hidden": 0.5, "hidden_merged": 1.0, "shown_merged": 0.0}
+    assert "merged 100 % of the touching pairs whose contact the image hides (50 % of 2) and 0 % of those it shows" in (
+        trust_line(check)
+    )
+    assert "contact" not in trust_line({**check, "contacts": None})
+
+
 def test_the_check_pairs_are_rendered_ones_seeded_and_never_most_of_the_set():
     rendered = [pair_of(squares(), f"r{k}") for k in range(40)]
     partial = Pair("bg", rendered[0].image, np.full((64, 64), IGNORE, np.uint8), rendered[0].labels)

@@ -19,33 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.data.necks import necks
 from drgan.metrics.instance_scores import binarize_and_label
-from drgan.segmenters.closed_loop import check_inference
+from drgan.segmenters.closed_loop import check_inference, contact_merges
 from drgan.segmenters.inference import predict
 from drgan.segmenters.pairs import load_generated_pairs
 from drgan.segmenters.registry import load_segmenter
 
 BINS = (-np.inf, 0.5, 0.8, 0.9, 0.97, np.inf)
-
-
-def contacts_merged(pred: np.ndarray, truth: np.ndarray, image: np.ndarray) -> list[tuple[float, bool]]:
-    """(neck grey, merged) per touching pair of true particles: merged when one prediction holds more than half of
-    each of the two."""
-    truth = truth.astype(np.int64)
-    big = int(truth.max()) + 1
-    area = np.bincount(truth.ravel(), minlength=big)
-    # per true particle, the prediction holding more than half of it (0: none)
-    holder = np.zeros(big, np.int64)
-    for t in range(1, big):
-        ids, counts = np.unique(pred[truth == t], return_counts=True)
-        keep = ids > 0
-        if keep.any() and counts[keep].max() > area[t] / 2:
-            holder[t] = ids[keep][counts[keep].argmax()]
-    out = []
-    for neck in necks(image, truth, min_ridge=1):
-        out.append((neck.grey, bool(holder[neck.a] and holder[neck.a] == holder[neck.b])))
-    return out
 
 
 def main() -> None:
@@ -64,7 +44,7 @@ def main() -> None:
         items = load_real_items(args.real, real_ids(args.real, None, args.ids, setting="--real"))
         for item, truth in items:
             pred = binarize_and_label(np.asarray(predictor(item)).astype(np.int64))
-            rows += contacts_merged(pred, truth, np.asarray(item.image, np.float64))
+            rows += contact_merges(pred, truth, np.asarray(item.image, np.float64))
         source = f"{len(items)} {args.ids} images of {args.real}"
     else:
         model = load_segmenter(args.ckpt)
@@ -75,7 +55,7 @@ def main() -> None:
             truth = np.asarray(pair.instances()).astype(np.int64)
             classes = predict(model, pair.image, noise_match=False, annotations=False, **settings)
             pred = binarize_and_label(classes.astype(np.int64))
-            rows += contacts_merged(pred, truth, np.asarray(pair.image, np.float64))
+            rows += contact_merges(pred, truth, np.asarray(pair.image, np.float64))
         source = f"{len(pairs)} held-out pairs of {args.generated}"
     grey = np.array([g for g, _ in rows])
     merged = np.array([m for _, m in rows])

@@ -467,6 +467,8 @@ def check_metrics(check: dict) -> dict[str, float]:
     """The closed-loop check as flat metrics (MLflow, metrics.json's top level): check/median_error ..."""
     flat = {f"check/{k}": check[k]["value"] for k in ("median_error", "mean_error", "count_error")}
     flat.update({f"check/{k}": check[k] for k in ("edge_offset_px", "merged", "split", "missed", "ap50", "dsc")})
+    contacts = check.get("contacts") or {}
+    flat.update({f"check/contacts_{k}": contacts.get(k) for k in ("hidden", "hidden_merged", "shown_merged")})
     return {k: float(v) for k, v in flat.items() if v is not None}
 
 

@@ -100,7 +100,7 @@ def closed_loop(
             return predict(model, image, pixel_scale=1.0, noise_match=False, annotations=False, **settings)
 
     iterator = track(pairs, "closed-loop check", unit="pairs") if progress else pairs
-    found, truth, sources, scores = [], [], [], []
+    found, truth, sources, scores, contacts = [], [], [], [], []
     for pair in iterator:
         true_labels = np.asarray(pair.instances()).astype(np.int64)
         pred_labels = binarize_and_label(np.asarray(predictor(pair.image)).astype(np.int64))
@@ -108,11 +108,51 @@ def closed_loop(
         truth.append(particles(true_labels).at_least(min_area_px))
         sources.append(error_sources(pred_labels, true_labels))
         scores.append(segmentation_scores(pred_labels, true_labels))
-    return {**summarise(found, truth, sources, scores, n_boot, seed), "ids": [str(p.id) for p in pairs]}
+        contacts += contact_merges(pred_labels, true_labels, pair.image)
+    summary = summarise(found, truth, sources, scores, n_boot, seed, contacts)
+    return {**summary, "ids": [str(p.id) for p in pairs]}
 
 
-def summarise(found, truth, sources, scores, n_boot: int = 200, seed: int = 0) -> dict:
-    """The check's summary from per-pair particles, error sources and scores (`closed_loop`)."""
+def contact_merges(pred_labels: np.ndarray, true_labels: np.ndarray, image: np.ndarray) -> list[tuple[float, bool]]:
+    """(neck grey, merged) per contact of two true particles (drgan.data.necks): merged when one prediction holds more
+    than half of each (error_sources' rule, per contact)."""
+    from drgan.data.necks import necks
+
+    pred, truth = np.asarray(pred_labels, np.int64), np.asarray(true_labels, np.int64)
+    n = int(truth.max()) + 1
+    area = np.bincount(truth.ravel(), minlength=n)
+    inside = (truth > 0) & (pred > 0)
+    holder = np.zeros(n, np.int64)  # per true particle, the prediction holding more than half of it (0: none)
+    if inside.any():
+        base = int(pred.max()) + 1
+        keys, counts = np.unique(truth[inside] * base + pred[inside], return_counts=True)
+        t, p = keys // base, keys % base
+        most = counts > area[t] / 2  # at most one prediction holds more than half of a particle
+        holder[t[most]] = p[most]
+    return [
+        (neck.grey, bool(holder[neck.a] and holder[neck.a] == holder[neck.b]))
+        for neck in necks(np.asarray(image, np.float64), truth, min_ridge=1)
+    ]
+
+
+def contact_summary(contacts: Sequence[tuple[float, bool]]) -> dict | None:
+    """How many contacts the images hide (neck grey >= drgan.data.necks.HIDDEN_NECK) and show, and the share of each
+    merged; None without a contact."""
+    from drgan.data.necks import HIDDEN_NECK
+
+    if not contacts:
+        return None
+    grey = np.array([g for g, _ in contacts])
+    merged = np.array([m for _, m in contacts])
+    hidden = grey >= HIDDEN_NECK
+    share = lambda keep: _plain(merged[keep].mean()) if keep.any() else None  # noqa: E731
+    return {"n": len(contacts), "hidden": _plain(hidden.mean()), "hidden_merged": share(hidden),
+            "shown_merged": share(~hidden)}  # fmt: skip
+
+
+def summarise(found, truth, sources, scores, n_boot: int = 200, seed: int = 0, contacts=()) -> dict:
+    """The check's summary from per-pair particles, error sources and scores (`closed_loop`), and the contacts'
+    (neck grey, merged) (`contact_merges`)."""
     from drgan.metrics.statistics import compare_sizes
 
     sizes = compare_sizes(found, truth, n_boot=n_boot, seed=seed)
@@ -138,6 +178,7 @@ def summarise(found, truth, sources, scores, n_boot: int = 200, seed: int = 0) -
         "ap50": _plain(tp / (tp + fp + fn)) if tp + fp + fn else 1.0,
         "dsc": _plain(float(np.mean([s["dsc"] for s in scores]))),
         "sq": _plain(float(np.mean([s["sq"] for s in scores if s["tp"]])) if tp else math.nan),
+        "contacts": contact_summary(contacts),
     }
 
 
@@ -175,7 +216,20 @@ def trust_line(check: Mapping) -> str:
         f"and its count by {_interval(check['count_error'])}"
         + (f"; its outlines lie {offset:+.2f} px from the true edge" if offset is not None else "")
         + (f", {100 * merged:.1f} % of the particles merged with a neighbour" if merged is not None else "")
-        + " (95 % intervals over images)."
+        + " (95 % intervals over images)"
+        + _contacts_clause(check.get("contacts"))
+        + "."
+    )
+
+
+def _contacts_clause(contacts: Mapping | None) -> str:
+    """Where the merges are: the contacts the images hide and those they show (`contact_summary`)."""
+    if not contacts or contacts.get("hidden_merged") is None or contacts.get("shown_merged") is None:
+        return ""
+    return (
+        f"; it merged {100 * contacts['hidden_merged']:.0f} % of the touching pairs whose contact the image hides "
+        f"({100 * contacts['hidden']:.0f} % of {contacts['n']}) and {100 * contacts['shown_merged']:.0f} % of those "
+        "it shows"
     )
 
 
