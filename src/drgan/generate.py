@@ -337,88 +337,32 @@ def generate_dataset(given: GenerateSettings) -> dict:
         counts = manifest["counts"]
         print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "
               f"{counts['partial_background']} partial background items (n_background={settings.n_background})")  # fmt: skip
-        write_noise_check(out, manifest, settings, resolution, patches)
-        write_edge_check(out, manifest, settings, resolution, patches)
-        write_contact_check(out, manifest, settings, resolution, patches)
+        write_checks(out, manifest, settings, resolution, patches)
     return manifest
 
 
-EDGE_CHECK = "edge_check.json"
-
-
-def write_edge_check(out: Path, manifest: dict, settings, resolution: int, patches=None) -> dict | None:
-    """``out``/edge_check.json and edge_check.png: the generated particles' mean edge against the real train patches'
-    (drgan.synthetic.edge_check: the profile's edge measurement on both, and the generated masks' edge against half
-    contrast), logged, with a warning when the rendered ramp is WARN_WIDTH times as wide (or narrow) as the real one;
-    nothing without real patches. Seconds: 64 images on each side."""
+def write_checks(out: Path, manifest: dict, settings, resolution: int, patches=None) -> dict[str, dict]:
+    """The generated set against the real train patches (``patches``: the PatchSet already loaded, else
+    settings.backgrounds'), each check a module of drgan.synthetic with check_dataset and log_result: noise_check.json
+    (fine-scale noise), edge_check.json with edge_check.png (the mean particle edge), contact_check.json (contacts
+    whose neck the image hides); each logged, with a warning where the set is far from the images. Nothing without
+    real patches (an imported generator). Seconds: 64 images on each side per check."""
     from drgan.io import write_bytes, write_json
-    from drgan.synthetic import edge_check
+    from drgan.synthetic import contact_check, edge_check, noise_check
 
-    result = edge_check.check_dataset(
-        out, manifest, settings.backgrounds if patches is None else patches, settings.polarity, resolution
-    )
-    if result is None:
-        return None
-    write_json(out / EDGE_CHECK, result)
-    write_bytes(out / "edge_check.png", edge_check.figure(result))
-    ratio = result.get("width_ratio")
-    if ratio is not None and not 1 / edge_check.WARN_WIDTH < ratio < edge_check.WARN_WIDTH:
-        log.warning(
-            "%s: the rendered edge ramp is %.2g x the real one; a segmenter trained on it draws real outlines off the "
-            "edge (material.filter_stddev sets the render's blur)", edge_check.summary_line(result), ratio,
-        )  # fmt: skip
-    else:
-        log.info("%s", edge_check.summary_line(result))
-    return result
-
-
-CONTACT_CHECK = "contact_check.json"
-
-
-def write_contact_check(out: Path, manifest: dict, settings, resolution: int, patches=None) -> dict | None:
-    """``out``/contact_check.json: how often the generated contacts hide their neck against the real train patches'
-    (drgan.synthetic.contact_check), logged, with a warning when the generated ones hide it WARN_HIDDEN more often;
-    nothing without real patches. Seconds: 64 images on each side."""
-    from drgan.io import write_json
-    from drgan.synthetic import contact_check
-
-    result = contact_check.check_dataset(
-        out, manifest, settings.backgrounds if patches is None else patches, settings.polarity, resolution
-    )
-    if result is None:
-        return None
-    write_json(out / CONTACT_CHECK, result)
-    contact_check.log_result(result)
-    return result
-
-
-NOISE_CHECK = "noise_check.json"
-
-
-def write_noise_check(out: Path, manifest: dict, settings, resolution: int, patches=None) -> dict | None:
-    """``out``/noise_check.json: the set's fine-scale noise against the real train patches'
-    (drgan.synthetic.noise_check; ``patches``: the PatchSet already loaded, else settings.backgrounds'), logged,
-    with a warning naming a class WARN_RATIO or more off; nothing without real patches (an imported generator).
-    Seconds: 64 images on each side."""
-    from drgan.io import write_json
-    from drgan.synthetic import noise_check
-
-    result = noise_check.check_dataset(
-        out, manifest, settings.backgrounds if patches is None else patches, settings.polarity, resolution
-    )
-    if result is None:
-        return None
-    write_json(out / NOISE_CHECK, result)
-    off = noise_check.off_by(result)
-    if off:
-        log.warning(
-            "%s: %s. A segmenter learns from the generated speckle; the GAN's learned noise is bounded by "
-            "material.noise_sigma (the profile writes its maximum from the measured noise), and renderer.spp adds "
-            "sampling noise on the particles", noise_check.summary_line(result), "; ".join(off),
-        )  # fmt: skip
-    else:
-        log.info("%s", noise_check.summary_line(result))
-    return result
+    written = {}
+    for name, check in (("noise_check", noise_check), ("edge_check", edge_check), ("contact_check", contact_check)):
+        result = check.check_dataset(
+            out, manifest, settings.backgrounds if patches is None else patches, settings.polarity, resolution
+        )
+        if result is None:
+            continue
+        write_json(out / f"{name}.json", result)
+        if hasattr(check, "figure"):
+            write_bytes(out / f"{name}.png", check.figure(result))
+        check.log_result(result)
+        written[name] = result
+    return written
 
 
 def _progress(shown: bool, total: int):

@@ -118,6 +118,18 @@ def summary_line(result: dict) -> str:
     )
 
 
+def log_result(result: dict) -> None:
+    """The summary line, as a warning when the rendered ramp is WARN_WIDTH times as wide (or narrow) as the real one."""
+    ratio = result.get("width_ratio")
+    if ratio is not None and not 1 / WARN_WIDTH < ratio < WARN_WIDTH:
+        log.warning(
+            "%s: the rendered edge ramp is %.2g x the real one; a segmenter trained on it draws real outlines off the "
+            "edge (material.filter_stddev sets the render's blur)", summary_line(result), ratio,
+        )  # fmt: skip
+    else:
+        log.info("%s", summary_line(result))
+
+
 def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: int) -> dict | None:
     """The edge check of a complete generated set against the real train patches of ``backgrounds`` (a PatchSet or
     its folder; None, or a set without train patches: None), both at the render's ``resolution`` and segmented with

@@ -108,6 +108,19 @@ def off_by(result: dict) -> list[str]:
     return found
 
 
+def log_result(result: dict) -> None:
+    """The summary line, as a warning naming the classes WARN_RATIO or more off."""
+    off = off_by(result)
+    if off:
+        log.warning(
+            "%s: %s. A segmenter learns from the generated speckle; the GAN's learned noise is bounded by "
+            "material.noise_sigma (the profile writes its maximum from the measured noise), and renderer.spp adds "
+            "sampling noise on the particles", summary_line(result), "; ".join(off),
+        )  # fmt: skip
+    else:
+        log.info("%s", summary_line(result))
+
+
 def sample_sides(root, manifest: dict, backgrounds, polarity: str, resolution: int):
     """What a check of a complete generated set compares, or None without real train patches (``backgrounds``: a
     PatchSet or its folder): (the first SAMPLE real train patches area-averaged to the render's ``resolution`` as
