@@ -254,7 +254,7 @@ def test_dataset_layout_masks_and_manifest(dataset):
     assert edges["images"]["generated"] == N and (dataset / "edge_check.png").is_file()
     # The contact check (drgan.synthetic.contact_check): written whole; tiny renders may hold no contact to measure
     contacts = json.loads((dataset / "contact_check.json").read_text())
-    assert set(contacts) == {"real", "generated", "generated_exact", "hidden_difference", "images"}
+    assert set(contacts) == {"real", "generated", "generated_exact", "hidden_difference", "polarity", "images"}
     assert contacts["images"]["generated"] == N
     # Nothing half-written: no temporary files anywhere.
     assert not [p for p in dataset.rglob("*") if p.name.startswith(".") or ".tmp" in p.name]

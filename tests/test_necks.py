@@ -64,9 +64,11 @@ def test_the_contact_check_warns_when_the_generated_contacts_hide_their_neck_mor
     side = lambda hidden: {"hidden": hidden}  # noqa: E731
     with caplog.at_level(logging.INFO, logger="drgan.synthetic.contact_check"):
         log_result({"real": side(0.30), "generated": side(0.38), "generated_exact": side(0.60),
-                    "hidden_difference": 0.30})  # fmt: skip
+                    "hidden_difference": 0.30, "polarity": "dark"})  # fmt: skip
+        log_result({"real": side(0.12), "generated": side(0.19), "generated_exact": side(0.57),
+                    "hidden_difference": 0.45, "polarity": "bright"})  # fmt: skip
         log_result({"real": side(0.30), "generated": side(0.2), "generated_exact": side(0.32),
                     "hidden_difference": 0.02})  # fmt: skip
-    warned = [r for r in caplog.records if r.levelno == logging.WARNING]
-    assert len(warned) == 1 and "60%" in warned[0].getMessage() and "30%" in warned[0].getMessage()
-    assert "placement.max_height" in warned[0].getMessage() and 0.02 < WARN_HIDDEN < 0.30
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 2 and "60%" in warned[0] and "30%" in warned[0] and 0.02 < WARN_HIDDEN < 0.30
+    assert "placement.max_height" in warned[0] and "recapture" in warned[1]  # the cause by polarity

@@ -25,7 +25,7 @@ from drgan.segmenters.inference import predict
 from drgan.segmenters.pairs import load_generated_pairs
 from drgan.segmenters.registry import load_segmenter
 
-BINS = (-np.inf, 0.5, 0.8, 0.9, 0.97, np.inf)
+BINS = (-np.inf, 0.5, 0.8, 0.9, 0.97, 1.03, 1.1, np.inf)
 
 
 def main() -> None:
