@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from drgan.synthetic.edge_check import compare, crossing, edge_of
+from drgan.data.particle_edge import crossing
+from drgan.synthetic.edge_check import compare, edge_of
 
 
 def blurred_discs(sigma: float, n: int = 12, size: int = 96, radius: float = 11.0):
@@ -75,3 +76,14 @@ def test_the_edge_check_recovers_the_blur_of_rendered_edges():
     # at least the filter's own 10-90 % width (2 x 1.2816 x 2 = 5.1 px) and never to more than the two in quadrature
     assert ramps[1]["width_px"] > ramps[0]["width_px"] + 1.0
     assert 0.9 * 2.5631 * 2.0 <= ramps[1]["width_px"] <= 1.05 * np.hypot(2.5631 * 2.0, ramps[0]["width_px"])
+
+
+def test_the_outline_moves_to_half_contrast_only_when_the_crossing_is_a_ramp():
+    from types import SimpleNamespace
+
+    from drgan.data.particle_edge import MAX_OUTLINE_SHIFT_PX, outline_shift
+
+    assert outline_shift(None) == 0.0  # no mean edge: sizes stay at the segmented outline
+    assert outline_shift(SimpleNamespace(half_contrast_px=float("nan"))) == 0.0
+    assert outline_shift(SimpleNamespace(half_contrast_px=-0.93)) == -0.93
+    assert outline_shift(SimpleNamespace(half_contrast_px=MAX_OUTLINE_SHIFT_PX + 0.5)) == 0.0  # a halo, not a ramp

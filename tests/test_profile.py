@@ -147,6 +147,42 @@ def _folder(tmp_path, polarity, n=3):
     return folder
 
 
+@pytest.mark.parametrize("grow", [0, 2])
+def test_sizes_are_measured_at_half_contrast_whatever_the_segmented_outline(tmp_path, monkeypatch, grow):
+    """Outlines drawn ``grow`` px outside the particles (as grown outlines or a wide threshold do): the profile's
+    sizes, which the material's size distribution takes, stay those of the particles at half contrast."""
+    from skimage.segmentation import expand_labels
+
+    from drgan.profile import profile
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    rng, truth = np.random.default_rng(4), []
+    for i in range(3):
+        image, drawn = synthetic("bright", rng, median=24.0, sigma=0.15, noise=0.02)
+        truth += list(drawn)
+        image = ndi.gaussian_filter(image, 1.0)
+        Image.fromarray((image * 255).round().astype(np.uint8)).save(folder / f"im{i}.png")
+    segment = est.segment_image
+
+    def wide(image, params, polarity):
+        labels, foreground, *rest = segment(image, params, polarity)
+        labels = expand_labels(labels, grow)
+        return (labels, labels > 0, *rest)
+
+    monkeypatch.setattr(est, "segment_image", wide)
+    monkeypatch.chdir(tmp_path)
+    overrides = [f"data.dir={folder}", "data.crop_rows=null", "name=blurred", f"out={tmp_path / 'out'}"]
+    sizes = profile(compose(overrides, config_name="profile")).sizes
+    median = float(np.median(truth))
+    assert sizes.segmented_median_diameter_px > median + 2 * grow - 1  # the outlines measured are that wide
+    assert abs(sizes.outline_shift_px + grow) < 0.6  # half contrast found inside them by about what they grew
+    assert abs(sizes.median_diameter_px / median - 1) < 0.03
+    assert sizes.median_diameter_px == pytest.approx(
+        sizes.segmented_median_diameter_px + 2 * sizes.outline_shift_px, abs=0.01
+    )
+
+
 def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp_path, monkeypatch):
     from drgan.profile import profile
 

@@ -151,8 +151,9 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
     }
     notes = {
         "polarity": pol_note,
-        "particle_size_px": f"median equivalent diameter of the segmented particles x {EXTENT_PER_DIAMETER} (a "
-        "material's size is a particle's largest extent)",
+        "particle_size_px": f"median equivalent diameter of the segmented particles at half contrast (outlines "
+        f"moved {result.sizes.outline_shift_px:+.2f} px) x {EXTENT_PER_DIAMETER} (a material's size is a particle's "
+        "largest extent)",
         "size_spread": spread_note,
         "n_particles": f"p90 of particles per {counts.patch_size} px patch over the patches with >= {k} (those "
         f"training keeps, data.min_particles; mean over all patches {counts.mean:.1f})",

@@ -232,9 +232,13 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
     noise = est.background_noise(images, foregrounds)
     edge = particle_edge.edge_profile(edges)
 
-    inner = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
-    if inner.size == 0:  # every particle touches the border: their sizes are cut, but they are all there is
-        inner = np.concatenate([t["diameter_px"] for t in tables])
+    segmented = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
+    if segmented.size == 0:  # every particle touches the border: their sizes are cut, but they are all there is
+        segmented = np.concatenate([t["diameter_px"] for t in tables])
+    # Sizes at half contrast, where the rendered masks (and annotations) put a particle's boundary: the scenes a GAN
+    # draws from this distribution then hold particles of the real ones' size, not of the classical outlines'.
+    shift = particle_edge.outline_shift(edge)
+    inner = np.maximum(segmented + 2.0 * shift, 1.0)
     fits, chosen = est.fit_sizes(inner, seed=s.seed)
     # Training windows wide enough for the particles (large ones: wider than the render, area-averaged to it)
     window = est.view_window(EXTENT_PER_DIAMETER * float(np.median(inner)), patch, min(min(x) for x in shapes))
@@ -286,6 +290,8 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             fits=[f.as_dict() for f in fits],
             chosen=chosen.kind,
             criterion="lowest BIC = k ln(n) - 2 ln(L), likelihoods in diameter space",
+            outline_shift_px=round(shift, 3),
+            segmented_median_diameter_px=round(float(np.median(segmented)), 3),
         ),
         particles_per_patch=PatchCounts(
             definition=f"segments (any, border-touching included) whose centroid lies inside a "
@@ -470,7 +476,9 @@ Material config: `{r.material.config}` (parent `{r.material.parent}`).
 {"not measured" if r.edge_blur_px is None else f"{r.edge_blur_px:.2f}"} |
 | particles segmented / not touching the border | {r.segmentation.particles} / \
 {r.segmentation.particles_not_touching_border} |
-| median / mean equivalent diameter (px) | {r.sizes.median_diameter_px:.2f} / {r.sizes.mean_diameter_px:.2f} |
+| median / mean equivalent diameter (px), at half contrast | {r.sizes.median_diameter_px:.2f} / \
+{r.sizes.mean_diameter_px:.2f} |
+| half contrast from the segmented outlines (px, > 0 outwards) | {_shift_text(r.sizes)} |
 | particles per {c.patch_size} px patch: mean / median (p10-p90) | {c.mean:.2f} / {c.median:g} ({c.p10:g}-{c.p90:g}) |
 | touching fraction / Clark-Evans ratio | {a.touching_fraction:.3f} / {a.clark_evans_median} \
 -> placement {a.placement} |
@@ -480,6 +488,17 @@ Material config: `{r.material.config}` (parent `{r.material.parent}`).
 Particles per patch: {c.definition}.
 A segmenter trained on this material's pairs (`drgan.segment model.contact_weight=auto`) takes contact weight {contact}.
 """
+
+
+def _shift_text(sizes) -> str:
+    if sizes.segmented_median_diameter_px is None:
+        return "not measured (sizes at the segmented outlines)"
+    if sizes.outline_shift_px == 0:
+        return "0: no mean edge to place it (sizes at the segmented outlines)"
+    return (
+        f"{sizes.outline_shift_px:+.2f}: every diameter {2 * sizes.outline_shift_px:+.2f} px (median at the segmented "
+        f"outlines {sizes.segmented_median_diameter_px:.2f}); drgan's masks end at half contrast (ISO 13322-1)"
+    )
 
 
 def _segmentation_markdown(r: ProfileResult) -> str:

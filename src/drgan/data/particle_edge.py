@@ -192,6 +192,18 @@ class FringeFit:
         return {k: round(float(v), 5) for k, v in self.__dict__.items()}
 
 
+def crossing(distance: np.ndarray, profile: np.ndarray, level: float) -> float:
+    """The signed distance (px) where ``profile`` (1 inside, falling outwards) first falls below ``level``, linearly
+    interpolated between bins; nan when it never does."""
+    distance, profile = np.asarray(distance, float), np.asarray(profile, float)
+    ok = np.isfinite(distance) & np.isfinite(profile)
+    d, p = distance[ok], profile[ok]
+    for k in range(1, len(p)):
+        if p[k - 1] >= level > p[k]:
+            return float(d[k - 1] + (p[k - 1] - level) / (p[k - 1] - p[k]) * (d[k] - d[k - 1]))
+    return math.nan
+
+
 @dataclass(frozen=True)
 class EdgeProfile:
     """The mean particle edge: per distance bin its mean distance (px, < 0 inside), the profile (0 background, 1
@@ -213,6 +225,20 @@ class EdgeProfile:
     @property
     def fringe_detected(self) -> bool:
         return self.ring.kind != "none"
+
+    @property
+    def ramp_bins(self) -> tuple[np.ndarray, np.ndarray]:
+        """(distance, profile) of the bins seen on enough particles, saturated ones too: a clipped background or
+        rim still places the ramp, which the fringe fit cannot use."""
+        use = (self.particles_per_bin >= MIN_BIN_PARTICLES) & np.isfinite(self.profile)
+        return self.distance_px[use], self.profile[use]
+
+    @property
+    def half_contrast_px(self) -> float:
+        """Where the mean edge crosses half contrast, px from the segmented edge (> 0 outside; nan when it never
+        does): static image analysis puts a particle's boundary there (ISO 13322-1), and so do drgan's rendered
+        masks and the annotations measured (experiments/statistics)."""
+        return crossing(*self.ramp_bins, 0.5)
 
     @property
     def usable(self) -> np.ndarray:
@@ -273,6 +299,18 @@ def edge_profile(samples: list[EdgeSamples]) -> EdgeProfile | None:
     if ring.kind != "none":
         fit = fit_fringe(distance[use], mean[use], se[use], radius, 1.0 if ring.kind == "opposite" else -1.0)
     return dataclasses.replace(edge, ring=ring, fringe=fit)
+
+
+# A half-contrast crossing farther than this from the segmented edge is not taken for the outline (a profile that
+# wide is a fringe or a halo, not a ramp): sizes then stay at the segmented outline.
+MAX_OUTLINE_SHIFT_PX = 3.0
+
+
+def outline_shift(edge: EdgeProfile | None) -> float:
+    """px the segmented outlines move to reach half contrast (``edge.half_contrast_px``; < 0: inwards); 0 without
+    an edge profile, a crossing, or beyond MAX_OUTLINE_SHIFT_PX."""
+    half = edge.half_contrast_px if edge is not None else math.nan
+    return float(half) if math.isfinite(half) and abs(half) <= MAX_OUTLINE_SHIFT_PX else 0.0
 
 
 _PHI_1 = math.exp(-0.5) / math.sqrt(2 * math.pi)  # the standard normal density at 1

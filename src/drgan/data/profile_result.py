@@ -65,7 +65,8 @@ class SegmentationFound:
 
 @dataclass(frozen=True)
 class SizesFound:
-    """``sizes``: equivalent diameters of the particles not touching the border, and the fits."""
+    """``sizes``: equivalent diameters of the particles not touching the border, at half contrast (the segmented
+    outlines moved by ``outline_shift_px``), and the fits."""
 
     median_diameter_px: float
     mean_diameter_px: float
@@ -73,6 +74,10 @@ class SizesFound:
     fits: list[dict]  # SizeFit records: kind, params, log_likelihood, bic, ...
     chosen: str  # the kind of the fit chosen
     criterion: str
+    # px from the segmented outline to half contrast (> 0 outwards): every diameter above is the segmented one + 2 x
+    # this. Profiles written before it measured at the segmented outline: 0.
+    outline_shift_px: float = 0.0
+    segmented_median_diameter_px: float | None = None  # the median at the segmented outline
 
 
 @dataclass(frozen=True)

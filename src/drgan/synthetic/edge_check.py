@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from drgan.data.particle_edge import MIN_BIN_PARTICLES
+from drgan.data.particle_edge import crossing
 
 log = logging.getLogger(__name__)
 
@@ -33,27 +33,12 @@ SAMPLE = 64  # images measured on each side (the first ones)
 WARN_WIDTH = 1.5  # a generated ramp this many times as wide as the real one (or narrower by as much) is named
 
 
-def crossing(distance: np.ndarray, profile: np.ndarray, level: float) -> float:
-    """The signed distance (px) where ``profile`` (1 inside, falling outwards) first falls below ``level``, linearly
-    interpolated between bins; nan when it never does."""
-    distance, profile = np.asarray(distance, float), np.asarray(profile, float)
-    ok = np.isfinite(distance) & np.isfinite(profile)
-    d, p = distance[ok], profile[ok]
-    for k in range(1, len(p)):
-        if p[k - 1] >= level > p[k]:
-            return float(d[k - 1] + (p[k - 1] - level) / (p[k - 1] - p[k]) * (d[k] - d[k - 1]))
-    return math.nan
-
-
 def ramp(edge) -> dict | None:
     """The half-contrast position and the 10-90 % width of an EdgeProfile (drgan.data.particle_edge), with the profile
     itself (for figures); None without a profile."""
     if edge is None:
         return None
-    # bins seen on enough particles; saturated ones too (a clipped background or rim still places the ramp, which the
-    # profile's fringe fit, drgan.data.particle_edge, cannot use)
-    use = (edge.particles_per_bin >= MIN_BIN_PARTICLES) & np.isfinite(edge.profile)
-    d, p = edge.distance_px[use], edge.profile[use]
+    d, p = edge.ramp_bins
     half, inner, outer = (crossing(d, p, level) for level in (0.5, 0.9, 0.1))
     return {
         "particles": int(edge.particles),
