@@ -23,7 +23,7 @@ GROUPS = {  # name: DOI of the paper (sources.csv); 5-12 images each
     "actbio": "10.1016.j.actbio.2020.04.055",  # 6 TEM images: dark rings on a grainy film (and two single vesicles)
     "apsusc": "10.1016.j.apsusc.2020.145360",  # 12 SEM images: large bright spheres, densely packed
     "saa890": "10.1016.j.saa.2019.117890",  # 8 TEM images: dark flakes and particles of many sizes
-    # 5 images of two kinds: SEM of single spheres filling the frame (bright, 3) and TEM of dark round particles (2);
+    # 5 images of two kinds: SEM of single spheres filling the frame (bright) and TEM of dark round particles;
     # its train ids hold two of the SEM ones and one TEM: the profile takes them for bright particles, and no single
     # material fits them (a mixed folder, not a set to measure the pipeline on)
     "saa177": "10.1016.j.saa.2019.117177",
