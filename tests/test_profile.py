@@ -147,6 +147,24 @@ def _folder(tmp_path, polarity, n=3):
     return folder
 
 
+def test_a_folder_whose_images_disagree_on_polarity_names_the_odd_ones(tmp_path, monkeypatch, caplog):
+    from drgan.profile import profile
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    rng = np.random.default_rng(4)
+    for name, polarity in (("a", "bright"), ("b", "bright"), ("c", "dark")):
+        image, _ = synthetic(polarity, rng)
+        Image.fromarray((image * 255).round().astype(np.uint8)).save(folder / f"{name}.png")
+    monkeypatch.chdir(tmp_path)
+    overrides = [f"data.dir={folder}", "data.crop_rows=null", "name=mixed", f"out={tmp_path / 'out'}"]
+    with caplog.at_level("WARNING", logger="drgan.profile"):
+        result = profile(compose(overrides, config_name="profile"))
+    assert result.polarity.value == "bright"
+    warned = [r.getMessage() for r in caplog.records if "look like dark particles" in r.getMessage()]
+    assert len(warned) == 1 and "c.png" in warned[0] and "a.png" not in warned[0]
+
+
 @pytest.mark.parametrize("grow", [0, 2])
 def test_sizes_are_measured_at_half_contrast_whatever_the_segmented_outline(tmp_path, monkeypatch, grow):
     """Outlines drawn ``grow`` px outside the particles (as grown outlines or a wide threshold do): the profile's

@@ -188,6 +188,8 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
 
     polarity, estimate = resolve_polarity(polarity_setting, images)
     log.info("polarity: %s (%s)", polarity, "detected" if estimate else "set")
+    if estimate is not None:
+        _warn_mixed_polarity(estimate, paths)
 
     # The particle scale (and from it every segmentation length), on the images mining searches it on (scale_sample);
     # data.segment keys given are kept as given.
@@ -488,6 +490,20 @@ Material config: `{r.material.config}` (parent `{r.material.parent}`).
 Particles per patch: {c.definition}.
 A segmenter trained on this material's pairs (`drgan.segment model.contact_weight=auto`) takes contact weight {contact}.
 """
+
+
+def _warn_mixed_polarity(estimate, paths: list[Path]) -> None:
+    """One material is proposed for the whole folder: images that look like the other polarity are named (a folder
+    mixing SEM and TEM images, or two materials, wants a profile per kind; or one image misread: set the polarity)."""
+    other = [p.name for p, vote in zip(paths, estimate.votes) if vote.polarity not in (None, estimate.polarity)]
+    if other:
+        log.warning(
+            "polarity: %d of %d image(s) look like %s particles, not %s: %s. One material is proposed for the whole "
+            "folder: if it mixes imaging modes (SEM and TEM) or materials, profile each kind in its own folder; if "
+            "they are misread, set data.polarity=%s",
+            len(other), len(paths), "dark" if estimate.polarity == "bright" else "bright", estimate.polarity,
+            ", ".join(other[:5]) + (" ..." if len(other) > 5 else ""), estimate.polarity,
+        )  # fmt: skip
 
 
 def _shift_text(sizes) -> str:
