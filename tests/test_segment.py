@@ -834,6 +834,24 @@ def with_manifest(folder: Path, polarity: str, clark_evans: float | None = None)
     return folder
 
 
+def test_the_same_command_trains_the_same_segmenter_and_another_seed_another(tmp_path):
+    """Training crops and jitter follow the run's seed (torch's generator), so a run can be repeated exactly."""
+    from drgan.segment import segment
+
+    data = make_generated(tmp_path / "gen")
+
+    def weights(name, seed):
+        out = tmp_path / name
+        segment(compose([*tiny_segment_overrides(data, tmp_path, out, "logger=none"), "trainer.max_epochs=2",
+                         f"seed={seed}", "check_fraction=0"], config_name="segment"))  # fmt: skip
+        state = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)["state_dict"]
+        return torch.cat([v.flatten().float() for v in state.values()])
+
+    first = weights("a", 0)
+    assert torch.equal(first, weights("b", 0))
+    assert not torch.equal(first, weights("c", 1))
+
+
 def test_contact_weight_auto_follows_the_generated_particles_polarity_and_arrangement(tmp_path):
     from drgan.segment import TrainingPairs, segment
     from drgan.segmenters.contacts import CONTACT_WEIGHT_AUTO, resolve_contact_weight

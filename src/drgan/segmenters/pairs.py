@@ -472,7 +472,13 @@ class CropDataset(Dataset):
     def __getitem__(self, index: int):
         owner = int(self.owner[index])
         pair, (shift, scale) = self.pairs[owner], self.stats[owner]
-        rng = np.random.default_rng() if self.augment else np.random.default_rng((self.seed, index))
+        # Training crops and jitter draw from torch's generator (seeded by the run's seed, per worker by the
+        # DataLoader): the same command gives the same segmenter; validation crops are fixed by the index.
+        rng = (
+            np.random.default_rng(int(torch.randint(0, 2**62, ())))
+            if self.augment
+            else np.random.default_rng((self.seed, index))
+        )
         image, mask = pair.image, pair.mask
         maps = [image, mask] + ([self.centres[owner]] if self.centres is not None else [])
         with_instances = (self.augment and self.contact_shade > 0) or self.rays > 0
