@@ -212,3 +212,16 @@ def test_the_area_weighted_median_is_the_large_particles_size_among_specks():
     labels[2:4, 2:4], labels[2:4, 30:32], labels[10:30, 10:30] = 1, 2, 3  # two 2 x 2 specks, one 20 x 20 square
     assert median_diameter([labels]) == pytest.approx(2 * np.sqrt(4 / np.pi))
     assert area_median(diameters_of([labels])) == pytest.approx(2 * np.sqrt(400 / np.pi))
+
+
+def test_majority_holders_names_the_prediction_holding_more_than_half_of_each_true_particle():
+    from drgan.metrics.instance_scores import majority_holders
+
+    true = np.zeros((4, 8), np.int64)
+    true[:, :4], true[:, 4:] = 1, 2
+    pred = np.zeros_like(true)
+    pred[:, :5] = 7  # all of particle 1, a quarter of particle 2
+    pred[:, 5:7] = 9  # half of particle 2: not more than half
+    assert majority_holders(pred, true) == {1: 7}
+    pred[:, 5:] = 9  # three quarters of particle 2
+    assert majority_holders(pred, true) == {1: 7, 2: 9}

@@ -305,6 +305,14 @@ def segmentation_scores(pred_labels: np.ndarray, true_labels: np.ndarray) -> dic
 ERROR_SOURCES = ("matched", "merged", "split", "missed", "outline")
 
 
+def majority_holders(pred_labels: np.ndarray, true_labels: np.ndarray) -> dict[int, int]:
+    """Per true particle id, the prediction id that holds more than half of it (`error_sources`' rule; at most one
+    can); particles no prediction holds so are absent."""
+    inter, _, area_true, pred_ids, true_ids = _overlaps(pred_labels, true_labels)
+    rows, cols = np.nonzero(inter > area_true[None, :] / 2.0)
+    return dict(zip(true_ids[cols].tolist(), pred_ids[rows].tolist()))
+
+
 def error_sources(pred_labels: np.ndarray, true_labels: np.ndarray) -> dict[str, int | np.ndarray]:
     """Where an instance segmentation loses particles, per true particle and per prediction.
 

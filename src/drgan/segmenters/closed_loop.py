@@ -117,20 +117,12 @@ def contact_merges(pred_labels: np.ndarray, true_labels: np.ndarray, image: np.n
     """(neck grey, merged) per contact of two true particles (drgan.data.necks): merged when one prediction holds more
     than half of each (error_sources' rule, per contact)."""
     from drgan.data.necks import necks
+    from drgan.metrics.instance_scores import majority_holders
 
-    pred, truth = np.asarray(pred_labels, np.int64), np.asarray(true_labels, np.int64)
-    n = int(truth.max()) + 1
-    area = np.bincount(truth.ravel(), minlength=n)
-    inside = (truth > 0) & (pred > 0)
-    holder = np.zeros(n, np.int64)  # per true particle, the prediction holding more than half of it (0: none)
-    if inside.any():
-        base = int(pred.max()) + 1
-        keys, counts = np.unique(truth[inside] * base + pred[inside], return_counts=True)
-        t, p = keys // base, keys % base
-        most = counts > area[t] / 2  # at most one prediction holds more than half of a particle
-        holder[t[most]] = p[most]
+    truth = np.asarray(true_labels, np.int64)
+    held = majority_holders(np.asarray(pred_labels, np.int64), truth)
     return [
-        (neck.grey, bool(holder[neck.a] and holder[neck.a] == holder[neck.b]))
+        (neck.grey, neck.a in held and held[neck.a] == held.get(neck.b))
         for neck in necks(np.asarray(image, np.float64), truth, min_ridge=1)
     ]
 
