@@ -168,7 +168,7 @@ def check_of(value, low, high) -> dict:
 
 
 def test_the_report_says_when_the_segmenter_and_the_classical_sizes_disagree_and_which_it_trusts():
-    from drgan.segmenters.closed_loop import compare_with_classical
+    from drgan.segmenters.classical_check import compare_with_classical
 
     exact = check_of(0.01, -0.01, 0.03)
     agree = compare_with_classical(51.0, 50.0, exact)

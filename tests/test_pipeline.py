@@ -277,7 +277,7 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
         "segment": ("drgan.segment", [f"data={o / 'generate'}", f"out={o / 'segment'}", "name=t", "run_name=t",
                                       f"agreement.images={data}", f"agreement.reference={o / 'profile' / 'labels'}",
                                       *named["segment"]], o / "segment" / "metrics.json"),
-        "analyze": ("drgan.analyze", [model, f"images={data}", f"out={o / 'analyze'}", "nm_per_px=2.5",
+        "analyze": ("drgan.analyze", [model, f"images={data}", f"out={o / 'analyze'}", f"profile={o / 'profile'}", "nm_per_px=2.5",
                                       "inference.tile=64"], o / "analyze" / "particles.csv"),
         "evaluate": ("drgan.evaluate", [model, f"data={tmp_path / 'a'}", f"out={o / 'evaluate'}", "subset=all"],
                      o / "evaluate" / "results.md"),
@@ -309,7 +309,7 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
             "parent_run",
             "ckpt_path",
         ),
-        "analyze": ("model", "images", "out"),
+        "analyze": ("model", "images", "out", "profile"),
         "evaluate": ("model", "models", "data", "out"),
     }
     assert pipeline.STAGES == stage_table.STAGES == ("profile", "train", "generate", "segment", "finetune",

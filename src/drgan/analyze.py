@@ -208,6 +208,7 @@ class AnalyzeSettings:
     seed: int = 0
     wires: bool = False
     bins: int = 30
+    profile: Path | None = None  # a drgan.profile run of these images: its classical sizes to compare with
     inference: dict = field(default_factory=dict)  # checkpoints only
 
     @classmethod
@@ -236,6 +237,7 @@ class AnalyzeSettings:
             seed=int(cfg.get("seed", cls.seed)),
             wires=bool(cfg.get("wires", cls.wires)),
             bins=bins,
+            profile=Path(str(cfg.profile)) if cfg.get("profile") else None,
             inference=plain_node(cfg, "inference"),
         )
 
@@ -244,10 +246,12 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     """Analyse every image of the settings' images folder; returns the particle rows.
     predictor: a Predictor or a function image -> class map, instead of the settings' model (tests)."""
     from drgan.data.images import list_images
+    from drgan.segmenters import classical_check
     from drgan.segmenters.pairs import read_image_item
     from drgan.segmenters.predictors import as_predictor, load_predictor
 
     s = settings if isinstance(settings, AnalyzeSettings) else AnalyzeSettings.from_config(settings)
+    reference = classical_check.ClassicalReference.of_run(s.profile) if s.profile else None
     nm, min_area, n_boot, bins = s.nm_per_px, s.min_area_px, s.bootstrap, s.bins
     paths = list_images(s.images)
     if predictor is None:
@@ -265,7 +269,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     predictor.check(items)
 
     out = s.out
-    rows, found, thickness_values = [], [], []
+    rows, found, thickness_values, comparisons = [], [], [], []
     for item, scale in track(list(zip(items, scales)), "segmenting images", unit="images"):
         class_map = np.asarray(predictor(item))
         labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
@@ -275,6 +279,9 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         rows += image_rows
         write_bytes(out / "overlays" / f"{item.id}.png", _overlay_png(item.image, labels, image_rows))
         write_outlines(out, item.id, labels, [r["id"] for r in image_rows], scale)  # for Fiji and napari
+        classical = reference.read(item.id, labels.shape) if reference else None
+        if classical is not None:  # the profile's classical segmentation of the same image, particle by particle
+            comparisons.append(classical_check.outline_comparison(labels, classical))
         if s.wires:
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (scale or 1.0))
@@ -295,6 +302,8 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         "median_diameter_px": float(np.median(whole)) if whole.size else None,
         # the segmenter's own error on held-out generated pairs (drgan.segmenters.closed_loop), when it has one
         "closed_loop": getattr(getattr(predictor, "model", None), "closed_loop", None),
+        # the profile's classical sizes and segmentation of the same images (drgan.segmenters.classical_check)
+        "classical": classical_check.pool(comparisons, reference) if reference else None,
         "unit": unit,
         "area_unit": area_unit,
         "pixel_size": pixel_note,
@@ -393,6 +402,8 @@ def statistics_markdown(summary: dict) -> str:
         bics = ", ".join(f"{f['kind']} {f['bic']:.1f}" for f in model["fits"])
         lines += ["", f"The sizes fit a **{model['chosen']}** distribution best (lowest BIC: {bics})."]
     lines += ["", "## How far these sizes can be trusted", "", trust_paragraph(summary.get("closed_loop"))]
+    if summary.get("classical"):
+        lines += ["", classical_paragraph(summary)]
     lines += ["", "| image | particles | cut by the border |", "|---|---|---|"]
     lines += [f"| {r['image']} | {r['count']} | {r['cut_by_border']} |" for r in summary["per_image"]]
     return "\n".join(lines) + "\n"
@@ -410,6 +421,16 @@ def trust_paragraph(check: dict | None) -> str:
             "error is unknown; drgan.evaluate on annotated images measures it."
         )
     return trust_line(check)
+
+
+def classical_paragraph(summary: dict) -> str:
+    """statistics.md's comparison with the profile's classical sizes of the same images, and which drgan trusts."""
+    from drgan.segmenters.classical_check import compare_with_classical
+
+    classical = summary["classical"]
+    return compare_with_classical(
+        summary.get("median_diameter_px"), classical.get("median_diameter_px"), summary.get("closed_loop"), classical
+    )
 
 
 def _density(model: dict | None, x: np.ndarray) -> tuple[np.ndarray, str] | None:

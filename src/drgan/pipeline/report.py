@@ -156,11 +156,14 @@ def analyze_summary(folder: Path) -> dict:
     interval = (
         f" [{_number(low, '{:.1f}')}, {_number(high, '{:.1f}')}]" if isinstance(low, float) and low == low else ""
     )
-    classical = profile_summary(folder.parent / "profile").get("median_diameter_px")
+    # the profile's sizes and segmentation compared by analyze (profile=); runs before that: the profile's median
+    classical = summary.get("classical") or {
+        "median_diameter_px": profile_summary(folder.parent / "profile").get("median_diameter_px")
+    }
     return {
         "closed_loop": summary.get("closed_loop"),
         "median_diameter_px": summary.get("median_diameter_px"),
-        "classical_median_px": classical,
+        "classical": classical,
         "line": f"{_number(count, '{:.0f}')} particles in {summary.get('images')} images, median diameter "
         f"{_number(median, '{:.1f}')}{interval} {unit}" + (f", {model}" if model else ""),
         "metrics": {"analyze/particles": count, f"analyze/median_diameter_{unit}": median},
@@ -191,18 +194,21 @@ def evaluate_summary(folder: Path) -> dict:
 
 def analyze_details(summary: dict, settings) -> list[str]:
     """The analyze stage's report lines: how far its sizes can be trusted (the segmenter's closed-loop check) and how
-    they compare with the profile's classical ones (drgan.segmenters.closed_loop)."""
-    from drgan.segmenters.closed_loop import compare_with_classical, trust_line
+    they compare with the profile's classical ones (drgan.segmenters.classical_check)."""
+    from drgan.segmenters.classical_check import compare_with_classical
+    from drgan.segmenters.closed_loop import trust_line
 
     if not summary:
         return []
-    check = summary.get("closed_loop")
+    check, classical = summary.get("closed_loop"), summary.get("classical") or {}
     lines = [f"- how far these sizes can be trusted: {trust_line(check)}" if check else (
         "- how far these sizes can be trusted: the segmenter has no closed-loop check (no held-out generated pairs)"
     )]  # fmt: skip
     lines.append(
         "- against the profile: "
-        + compare_with_classical(summary.get("median_diameter_px"), summary.get("classical_median_px"), check)
+        + compare_with_classical(
+            summary.get("median_diameter_px"), classical.get("median_diameter_px"), check, classical
+        )
     )
     return lines
 

@@ -165,9 +165,10 @@ PIPELINE: list[StageSpec] = [
         typical_minutes=1.5,
         paced=False,
         wire=lambda c: [f"model={_segmenter(c)}", f"images={c.data_dir}", f"out={c.folder('analyze')}",
+                        f"profile={c.folder('profile')}",
                         *([f"nm_per_px={c.nm_per_px}"] if c.nm_per_px and "nm_per_px" not in c.settings["analyze"]
                           else [])],
-        keys=("model", "images", "out"),
+        keys=("model", "images", "out", "profile"),
         done=lambda c: c.folder("analyze") / "particles.csv",
         summary=report.analyze_summary,
         details=report.analyze_details,
