@@ -146,8 +146,10 @@ def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Map
         return (
             f". On your {n} images the segmenter holds {_share(by_segmenter)} of the classical particles in one region "
             f"with a neighbour (the classical segmentation {_share(by_classical)} of the segmenter's{on_generated}): it "
-            "merges touching particles that the classical segmentation separates, so its particles come out larger "
-            "and fewer. drgan trusts the classical sizes; the segmenter's count is low too."
+            "merges touching particles on your images that its check did not see merged, so its particles come out "
+            "larger and fewer. drgan trusts the classical sizes more; the segmenter's count is low too. The classical "
+            "segmentation merges touching particles as well: count a few by hand, or score a few annotated images "
+            "(annotated=), before publishing the count."
         )
     if gap < 0 and by_classical >= by_segmenter + MERGE_EXCESS:
         return (
