@@ -87,10 +87,29 @@ def test_wider_outlines_on_the_users_images_trust_the_classical_sizes_only_at_ha
     # no mean edge found: the classical outlines are a threshold's, no better than the segmenter's
     unmeasured = compare_with_classical(75.4, 65.0, exact_check(), outlines(difference=9.0, half_contrast=False))
     assert "trusts the segmenter's sizes" in unmeasured
+    # a wider outline the segmenter's own edge offset on generated images accounts for (+1.5 px a side) is no news
+    explained = compare_with_classical(60.0, 50.0, {**exact_check(), "edge_offset_px": 1.5}, outlines(difference=3.0))
+    assert "trusts the segmenter's sizes" in explained
     # a difference against the gap's direction explains nothing
     assert "trusts the segmenter's sizes" in compare_with_classical(
         75.4, 65.0, exact_check(), outlines(difference=-9.0)
     )
+
+
+def test_two_medians_within_5_percent_agree_whatever_the_merges_and_without_a_check():
+    said = compare_with_classical(30.1, 30.0, None, outlines(0.35, 0.10))
+    assert "agree within 5 %" in said and "no closed-loop check" in said and "trusts the classical" not in said
+    assert "agree within 5 %" in compare_with_classical(29.9, 30.0, None, outlines(0.0, 0.20))
+    # without a check the merge sentence does not speak of one
+    merges = compare_with_classical(36.0, 30.0, None, outlines(0.35, 0.10))
+    assert "check" not in merges and "separates" in merges and "trusts the classical sizes" in merges
+
+
+def test_a_pipeline_state_from_before_the_comparison_still_gets_the_medians_compared():
+    from drgan.pipeline.report import analyze_details
+
+    old = {"median_diameter_px": 58.0, "classical_median_px": 50.0, "closed_loop": None}
+    assert "+16.0 %" in analyze_details(old, None)[1]
 
 
 def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tmp_path):
@@ -124,5 +143,5 @@ def test_a_profile_folder_without_its_run_is_refused_before_any_image_is_read(tm
     from drgan.analyze import analyze
 
     cfg = compose([f"images={tmp_path}", f"out={tmp_path / 'an'}", f"profile={tmp_path / 'nothing'}"], "analyze")
-    with pytest.raises(ConfigError, match="profile=.*nothing.*profile.json and labels/"):
+    with pytest.raises(ConfigError, match="profile=.*nothing.*profile.json in it"):
         analyze(cfg, predictor=lambda item: item)

@@ -281,7 +281,8 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         write_outlines(out, item.id, labels, [r["id"] for r in image_rows], scale)  # for Fiji and napari
         classical = reference.read(item.id, labels.shape) if reference else None
         if classical is not None:  # the profile's classical segmentation of the same image, particle by particle
-            comparisons.append(classical_check.outline_comparison(labels, classical))
+            counted = np.where(np.bincount(labels.ravel())[labels] >= min_area, labels, 0)  # specks out, as above
+            comparisons.append(classical_check.outline_comparison(counted, classical))
         if s.wires:
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (scale or 1.0))

@@ -200,7 +200,9 @@ def analyze_details(summary: dict, settings) -> list[str]:
 
     if not summary:
         return []
-    check, classical = summary.get("closed_loop"), summary.get("classical") or {}
+    check = summary.get("closed_loop")
+    # a pipeline state written before analyze compared the segmentations holds the profile's median only
+    classical = summary.get("classical") or {"median_diameter_px": summary.get("classical_median_px")}
     lines = [f"- how far these sizes can be trusted: {trust_line(check)}" if check else (
         "- how far these sizes can be trusted: the segmenter has no closed-loop check (no held-out generated pairs)"
     )]  # fmt: skip

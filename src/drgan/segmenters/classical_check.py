@@ -54,8 +54,10 @@ class ClassicalReference:
     def of_run(cls, folder: Path) -> ClassicalReference:
         """The profile run in ``folder``, or a ConfigError naming what is missing (before any image is read)."""
         record, labels = folder / "profile.json", folder / "labels"
-        if not record.is_file() or not labels.is_dir():
-            raise ConfigError(f"profile={folder}: expected a drgan.profile run folder (profile.json and labels/ in it)")
+        if not record.is_file():
+            raise ConfigError(f"profile={folder}: expected a drgan.profile run folder (profile.json in it)")
+        if not labels.is_dir():
+            log.warning("profile=%s has no labels/ (a profile run older than its label images): medians only", folder)
         sizes = json.loads(record.read_text()).get("sizes") or {}
         return cls(labels, sizes.get("median_diameter_px"), float(sizes.get("outline_shift_px") or 0.0))
 
@@ -65,7 +67,7 @@ class ClassicalReference:
         from drgan.data.imagej import read_label_tiff
 
         path = self.labels / f"{image_id}.tif"
-        if not path.is_file():
+        if not path.is_file():  # (also when the run has no labels/ at all)
             return None
         labels = read_label_tiff(path)[0]
         if labels.shape != tuple(shape):
@@ -135,21 +137,25 @@ def _interval(cell: Mapping) -> tuple[float, float]:
 
 def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Mapping | None) -> str | None:
     """Why the two medians disagree, read from the two segmentations of the user's images, and which is trusted; None
-    when the comparison says nothing decisive."""
-    if not outlines or not outlines.get("images"):
+    when they agree within ``AGREE`` or the comparison says nothing decisive."""
+    if not outlines or not outlines.get("images") or abs(gap) <= AGREE:
         return None
     by_segmenter, by_classical = outlines["merged_by_segmenter"], outlines["merged_by_classical"]
     generated = (check or {}).get("merged")
     n = outlines["images"]
     if gap > 0 and by_segmenter >= by_classical + MERGE_EXCESS and by_segmenter >= (generated or 0.0) + MERGE_EXCESS:
-        on_generated = f"; on generated images it merged {_share(generated)}" if generated is not None else ""
+        unseen = (
+            f"; the segmenter merged {_share(generated)} of the generated particles of its check): it merges touching "
+            "particles on your images that its check did not see merged"
+            if generated is not None
+            else "): it merges touching particles that the classical segmentation separates"
+        )
         return (
             f". On your {n} images the segmenter holds {_share(by_segmenter)} of the classical particles in one region "
-            f"with a neighbour (the classical segmentation {_share(by_classical)} of the segmenter's{on_generated}): it "
-            "merges touching particles on your images that its check did not see merged, so its particles come out "
-            "larger and fewer. drgan trusts the classical sizes more; the segmenter's count is low too. The classical "
-            "segmentation merges touching particles as well: count a few by hand, or score a few annotated images "
-            "(annotated=), before publishing the count."
+            f"with a neighbour (the classical segmentation {_share(by_classical)} of the segmenter's{unseen}, so its "
+            "particles come out larger and fewer. drgan trusts the classical sizes more; the segmenter's count is low "
+            "too. The classical segmentation merges touching particles as well: count a few by hand, or score a few "
+            "annotated images (annotated=), before publishing the count."
         )
     if gap < 0 and by_classical >= by_segmenter + MERGE_EXCESS:
         return (
@@ -158,16 +164,22 @@ def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Map
             "classical sizes are merges. drgan trusts the segmenter's sizes."
         )
     difference = outlines.get("matched_difference_px")
-    if difference is not None and outlines.get("half_contrast") and difference * gap > 0:
-        if abs(difference) / classical_px >= AGREE:
-            edge = (check or {}).get("edge_offset_px")
-            on_generated = f" (on generated images its outlines lie {edge:+.2f} px from the true edge)" if edge else ""
-            return (
-                f". The {outlines['matched']} particles both find are {difference:+.1f} px in diameter from the "
-                f"classical outlines at half contrast of your images' mean edge{on_generated}: the segmenter draws "
-                "the edge elsewhere on your images than on generated ones. drgan trusts the classical sizes (half "
-                "contrast: the boundary of ISO 13322-1 and of drgan's masks)."
-            )
+    if difference is None or not outlines.get("half_contrast"):
+        return None
+    edge = (check or {}).get("edge_offset_px")
+    unexplained = difference - 2.0 * (edge or 0.0)  # what the segmenter's own edge offset does not account for
+    if unexplained * gap > 0 and abs(unexplained) / classical_px >= AGREE:
+        where = (
+            f" (on generated images its outlines lie {edge:+.2f} px from the true edge: it draws the edge elsewhere on "
+            "your images)"
+            if edge is not None
+            else ""
+        )
+        return (
+            f". The {outlines['matched']} particles both find are {difference:+.1f} px in diameter from the classical "
+            f"outlines at half contrast of your images' mean edge{where}. drgan trusts the classical sizes (half "
+            "contrast: the boundary of ISO 13322-1 and of drgan's masks)."
+        )
     return None
 
 
@@ -213,6 +225,8 @@ def compare_with_classical(
     if cause:
         return said + cause
     if value is None:
+        if abs(gap) <= AGREE:
+            return said + f": the two agree within {100 * AGREE:.0f} % (the segmenter has no closed-loop check)."
         return said + "; without a closed-loop check neither can be preferred: look at both overlays."
     if abs(value) <= EXACT:
         return (
