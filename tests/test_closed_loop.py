@@ -179,6 +179,10 @@ def test_the_report_says_when_the_segmenter_and_the_classical_sizes_disagree_and
     # a segmenter biased by +20 % on exact truth, 16 % above the classical sizes: its bias explains the gap
     biased = compare_with_classical(58.0, 50.0, check_of(0.20, 0.15, 0.25))
     assert "what the closed-loop check predicts" in biased and "trusts the classical sizes" in biased
+    merged = compare_with_classical(58.0, 50.0, {**check_of(0.20, 0.15, 0.25), "merged": 0.069, "edge_offset_px": 0.0})
+    assert "(6.9 % of the generated particles merged with a neighbour)." in merged
+    wide = compare_with_classical(58.0, 50.0, {**check_of(0.20, 0.15, 0.25), "merged": 0.01, "edge_offset_px": 1.2})
+    assert "(its outlines +1.20 px from the true edge)." in wide
     # biased on generated images, yet within 5 % of the classical sizes (tio2_tsem: +14 % on piled generated scenes,
     # -2 % from the classical, +0.8 % on the annotated test ids): the agreement of two methods is trusted
     both = compare_with_classical(49.0, 50.0, {**check_of(0.144, 0.076, 0.274), "merged": 0.219})

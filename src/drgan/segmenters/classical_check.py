@@ -183,6 +183,16 @@ def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Map
     return None
 
 
+def _why_biased(check: Mapping) -> str:
+    """Where a biased check's error comes from: merged particles or outlines off the true edge."""
+    merged, edge = check.get("merged"), check.get("edge_offset_px")
+    if merged is not None and merged >= MERGE_EXCESS / 2:
+        return f" ({100 * merged:.1f} % of the generated particles merged with a neighbour)"
+    if edge is not None and abs(edge) >= 0.5:
+        return f" (its outlines {edge:+.2f} px from the true edge)"
+    return ""
+
+
 def compare_with_classical(
     median_px: float | None, classical_px: float | None, check: Mapping | None, outlines: Mapping | None = None
 ) -> str:
@@ -208,7 +218,7 @@ def compare_with_classical(
             return (
                 said + f": the gap is what the closed-loop check predicts (the segmenter measures {_percent(value)} on "
                 "generated images with exact outlines). drgan trusts the classical sizes more: the segmenter's "
-                "outlines are biased by its own measured error."
+                "sizes carry its own measured error" + _why_biased(check) + "."
             )
         if abs(gap) <= AGREE:  # a biased check, yet the two methods agree on the user's images
             merged = check.get("merged")
