@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 from test_segment import disc_image, disc_labels, make_generated, tiny_segment_overrides
 
 from drgan.configs import compose
-from drgan.data.imagej import write_label_tiff
+from drgan.data.imagej import read_label_tiff, write_label_tiff
 from drgan.errors import ConfigError, DataError
 from drgan.segmenters.agreement import (
     Attempts,
@@ -82,7 +82,7 @@ def test_the_reference_is_read_and_checked_before_training(tmp_path):
     s = agreement_settings(OmegaConf.create({"images": str(images), "reference": str(labels), "max_images": 2}))
     items = read_reference(s)
     assert [item.id for item, _ in items] == ["a", "c"]  # spread over the sorted ids
-    assert items[0][1].dtype == bool and items[0][1].shape == (40, 40) and items[0][1].any()
+    assert items[0][1].shape == (40, 40) and len(np.unique(items[0][1])) > 2  # the classical particles, each its id
     write_label_tiff(labels / "c.tif", np.zeros((30, 40), np.int32))
     with pytest.raises(DataError, match=r"c.tif is 40 x 30 px, the image .*c.tif 40 x 40 px"):
         read_reference(s)
@@ -170,6 +170,30 @@ def test_segment_with_the_check_trains_another_seed_when_the_first_covers_too_li
     # done: running it again changes nothing and trains nothing
     again = segment(compose([*overrides, "ckpt_path=last"], config_name="segment"))
     assert again == metrics and json.loads((out / "metrics.json").read_text()) == written
+
+
+def test_segment_checks_its_calibrated_split_on_the_users_images_against_the_classical_count(tmp_path):
+    from drgan.segment import segment
+
+    data = make_generated(tmp_path / "gen")
+    images, labels = _images_and_reference(tmp_path / "real", ["a", "b"])
+    out = tmp_path / "run"
+    overrides = tiny_segment_overrides(
+        data, tmp_path, out, "logger=none", "trainer.max_epochs=1", "check_fraction=0", "agreement.min_covered=0.0",
+        "agreement.min_dice=0.0", f"agreement.images={images}", f"agreement.reference={labels}",
+        "agreement.crop_rows=null",
+    )  # fmt: skip
+    segment(compose(overrides, config_name="segment"))
+    calibration = json.loads((out / "metrics.json").read_text())["split_calibration"]
+    guard = calibration["real_count"]
+    classical = sum(int((np.bincount(read_label_tiff(labels / f"{k}.tif")[0].ravel())[1:] >= 8).sum()) for k in "ab")
+    assert guard["images"] == 2 and guard["classical"] == classical > 0
+    # what was stored is what the guard decided: the choice moved only when its count was more than 10 % off
+    chosen = {k: calibration[k] for k in guard["from"]}
+    assert (chosen != guard["from"]) == guard["moved"]
+    assert guard["moved"] == (
+        abs(guard["chosen_count"] / classical - 1) > 0.10 and guard["count"] != guard["chosen_count"]
+    )
 
 
 def test_segment_refuses_a_bad_reference_before_training(tmp_path):

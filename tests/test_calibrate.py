@@ -219,3 +219,51 @@ def test_calibrate_split_records_the_sizes_of_every_setting_and_chooses_by_the_o
     merged, apart = result["table"]
     assert merged["count_error"] == -0.5 and apart["count_error"] == 0.0  # one blob for two discs; both found
     assert result["split_core"] == 0.7 and result["objective"] == "sizes" and result["count_error"] == 0.0
+
+
+def _pairs_of_discs(size=96, r1=9.0, r2=7.0, gap=14.0):
+    """Four pairs of overlapping discs of radii ``r1`` and ``r2`` (centres ``gap`` apart: the smaller one's distance
+    peak stands between 1 and 4 px above the neck, so a split depth of 1 px cuts the neck and one of 4 px does not),
+    as classical instance labels (each disc its own id) and as a particle probability image (0.95 inside, 0.02 out)."""
+    yy, xx = np.mgrid[:size, :size]
+    labels = np.zeros((size, size), np.int32)
+    k = 0
+    for cy in (24, 72):
+        for cx in (24, 72):
+            for r, dx in ((r1, -gap / 2), (r2, gap / 2)):
+                k += 1
+                labels[((yy - cy) ** 2 + (xx - cx - dx) ** 2 <= r * r) & (labels == 0)] = k
+    return labels, np.where(labels > 0, 0.95, 0.02).astype(np.float32)
+
+
+def test_the_real_count_guard_keeps_a_choice_near_the_classical_count_and_moves_one_that_merges():
+    from types import SimpleNamespace
+
+    from drgan.segmenters.calibrate import REAL_COUNT_GUARD, real_count_guard
+
+    labels, probs = _pairs_of_discs()
+    items = [(SimpleNamespace(image=probs, id="a"), labels)]
+    row = lambda depth, ap50: {"split_seeds": "hmaxima", "split_depth": depth, "split_core": None, "ap50": ap50,  # noqa: E731
+                               "median_error": 0.01 * depth, "count_error": -0.01 * depth}  # fmt: skip
+    table = [row(1.0, 0.80), row(4.0, 0.77), row(16.0, 0.50)]  # depth 16: outside the 0.05 AP50 margin
+    calibration = {"split": "watershed", "split_smooth": 1.0, "objective": "sizes", "table": table, **table[1]}
+    model = ProbabilityImage()
+    moved = real_count_guard(model, calibration, items)
+    # depth 4 takes each pair for one particle: 4 against the classical 8 (-50 %); depth 1 cuts every neck
+    guard = moved["real_count"]
+    assert (guard["classical"], guard["chosen_count"], guard["count"], guard["moved"]) == (8, 4, 8, True)
+    assert moved["split_depth"] == 1.0 and moved["ap50"] == 0.80 and moved["median_error"] == 0.01
+    assert guard["from"] == {"split_seeds": "hmaxima", "split_depth": 4.0, "split_core": None}
+    # the choice that counts as the classical segmentation does stays, its calibration untouched but for the record
+    kept = real_count_guard(model, {**calibration, **table[0]}, items)
+    assert not kept["real_count"]["moved"] and kept["split_depth"] == 1.0 and kept["real_count"]["count"] == 8
+    # within the guard's distance nothing moves: 8 classical particles, a choice that finds 4 is 50 % off (> 10 %);
+    # classical labels that split one disc more (9) leave depth 1 11 % off and depth 4 56 %: depth 1 kept
+    assert REAL_COUNT_GUARD == 0.10
+    more = labels.copy()
+    more[(more == 1) & (np.arange(96)[None, :] < 14)] = 99  # the first disc's left part a particle of its own
+    near = real_count_guard(model, {**calibration, **table[0]}, [(items[0][0], more)])
+    assert near["real_count"]["classical"] == 9 and not near["real_count"]["moved"]
+    # an instance-aware segmenter's seed levels, or no real images: the calibration as it was
+    assert real_count_guard(model, {**calibration, "split": "centres"}, items) == {**calibration, "split": "centres"}
+    assert real_count_guard(model, calibration, []) is calibration

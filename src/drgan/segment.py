@@ -155,7 +155,7 @@ def guarded(cfg: DictConfig, guard, stopper, calibration_grid) -> dict:
         if attempts.records and mlflow is not None:  # a retry is its own MLflow run, named by its seed
             with open_dict(cfg):
                 cfg.logger.mlflow.run_name = f"{first_name}/seed={seed}"
-        fit_and_record(cfg, prepare(cfg), stopper, calibration_grid, time.perf_counter())
+        fit_and_record(cfg, prepare(cfg), stopper, calibration_grid, time.perf_counter(), items)
         check = check_agreement(out / "checkpoints" / "last.ckpt", items, progress)
         log.info(
             "seed %d: its foreground covers %.1f %% of the classical one on %d of the images (Dice %.3f; at least "
@@ -286,9 +286,12 @@ def prepare_finetune(cfg: DictConfig) -> Prepared:
     )  # fmt: skip
 
 
-def fit_and_record(cfg: DictConfig, prepared: Prepared, stopper, calibration_grid, wall_start: float) -> dict:
-    """Train ``prepared.model`` into cfg.out, then calibrate its split, run its closed-loop check, log and write
-    metrics.json; the final metrics."""
+def fit_and_record(
+    cfg: DictConfig, prepared: Prepared, stopper, calibration_grid, wall_start: float, real_items=None
+) -> dict:
+    """Train ``prepared.model`` into cfg.out, then calibrate its split (checked on ``real_items``, the user's images
+    with their classical labels, when given), run its closed-loop check, log and write metrics.json; the final
+    metrics."""
     from hydra.utils import instantiate
     from lightning.pytorch.callbacks import ModelCheckpoint
 
@@ -376,7 +379,7 @@ def fit_and_record(cfg: DictConfig, prepared: Prepared, stopper, calibration_gri
     progress = bool(cfg.trainer.get("enable_progress_bar", True))
     # the split is chosen on the validation pairs and, when fine-tuning, on the user's corrected images first
     calibration_pairs = [*prepared.corrected, *(val_loader.dataset.pairs if val_loader is not None else [])]
-    calibration = calibrate(model, calibration_pairs, calibration_grid, last, progress)
+    calibration = calibrate(model, calibration_pairs, calibration_grid, last, progress, real_items)
     if calibration is not None:
         metrics["split/ap50"] = calibration["ap50"]
     check = closed_loop_check(model, prepared.check_pairs, calibration, last, progress)
@@ -411,11 +414,19 @@ def fit_and_record(cfg: DictConfig, prepared: Prepared, stopper, calibration_gri
     return metrics
 
 
-def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool) -> dict | None:
-    """Choose the touching-particle split on ``pairs`` (the validation pairs; drgan.segmenters.calibrate) and store it
+def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool, real_items=None) -> dict | None:
+    """Choose the touching-particle split on ``pairs`` (the validation pairs; drgan.segmenters.calibrate), check its
+    particle count on ``real_items`` (the user's images and their classical labels: `real_count_guard`) and store it
     in ``last`` for evaluate/analyze's ``split_core: auto``; None when calibration is off or impossible."""
     from drgan.checkpoint_io import add_entry
-    from drgan.segmenters.calibrate import CHECKPOINT_KEY, SEEDED, as_array_free, calibrate_split, markdown_table
+    from drgan.segmenters.calibrate import (
+        CHECKPOINT_KEY,
+        SEEDED,
+        as_array_free,
+        calibrate_split,
+        markdown_table,
+        real_count_guard,
+    )
 
     if grid is None:
         return None
@@ -427,6 +438,9 @@ def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool) -> di
     except ValueError as error:
         log.warning("split calibration skipped: %s", error)
         return None
+    if real_items:
+        calibration = as_array_free(real_count_guard(model, calibration, real_items))
+        _log_real_count(calibration.get("real_count"))
     add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
     chosen = (
         f"seed_level {calibration['seed_level']}"
@@ -444,6 +458,22 @@ def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool) -> di
         markdown_table(calibration),
     )
     return calibration
+
+
+def _log_real_count(guard: dict | None) -> None:
+    if not guard:
+        return
+    said = (
+        f"the split's count on {guard['images']} of your images: {guard['chosen_count']} particles against the "
+        f"classical segmentation's {guard['classical']} ({100 * (guard['chosen_count'] / guard['classical'] - 1):+.1f} %)"
+    )
+    if guard["moved"]:
+        log.warning(
+            "%s: the generated pairs' choice merges or splits your particles; the setting within the AP50 margin "
+            "nearest the classical count taken instead (%d particles)", said, guard["count"],
+        )  # fmt: skip
+    else:
+        log.info("%s: the choice kept", said)
 
 
 def closed_loop_check(model, pairs, calibration: dict | None, last: Path, progress: bool) -> dict | None:

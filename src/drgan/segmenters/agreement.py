@@ -82,8 +82,10 @@ def spread(ids: Sequence[str], n: int) -> list[str]:
 
 
 def read_reference(s: AgreementSettings) -> list[tuple[object, np.ndarray]]:
-    """(image item, classical foreground) of up to ``max_images`` reference images, every file read and checked (the
-    same image rows the predictor sees: ``crop_rows``), or a DataError naming the file."""
+    """(image item, classical instance labels) of up to ``max_images`` reference images, every file read and checked
+    (the same image rows the predictor sees: ``crop_rows``), or a DataError naming the file. The labels' foreground
+    (> 0) is what `foreground_agreement` compares; their particles are what the split's count guard counts
+    (drgan.segmenters.calibrate.real_count_guard)."""
     from drgan.data.imagej import read_label_tiff
     from drgan.data.images import list_images
     from drgan.segmenters.pairs import read_image_item
@@ -102,13 +104,13 @@ def read_reference(s: AgreementSettings) -> list[tuple[object, np.ndarray]]:
     items = []
     for path, image_id in zip(paths, ids):
         item = read_image_item(path, image_id, s.crop_rows)
-        foreground = read_label_tiff(labels[image_id])[0] > 0
-        if foreground.shape != item.image.shape:
+        classical = read_label_tiff(labels[image_id])[0]
+        if classical.shape != item.image.shape:
             raise DataError(
-                f"agreement.reference: {labels[image_id]} is {foreground.shape[1]} x {foreground.shape[0]} px, the "
+                f"agreement.reference: {labels[image_id]} is {classical.shape[1]} x {classical.shape[0]} px, the "
                 f"image {path} {item.image.shape[1]} x {item.image.shape[0]} px (after its info bar): expected the same"
             )
-        items.append((item, foreground))
+        items.append((item, classical))
     return items
 
 
@@ -137,7 +139,7 @@ def check_agreement(checkpoint: Path, items: Sequence[tuple[object, np.ndarray]]
     predictor.check(images)
     iterator = track(images, "checking against the classical foreground", unit="images") if progress else images
     found = [np.asarray(predictor(item)) > 0 for item in iterator]
-    result = foreground_agreement([ref for _, ref in items], found)
+    result = foreground_agreement([ref > 0 for _, ref in items], found)
     return {**result, "ids": [item.id for item in images]}
 
 
