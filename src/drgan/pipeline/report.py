@@ -117,6 +117,14 @@ def segment_summary(folder: Path) -> dict:
             f"{_number((check.get('count_error') or {}).get('value'), '{:+.1%}')}, edge "
             f"{_number(check.get('edge_offset_px'), '{:+.2f}')} px"
         )
+    guard = calibration.get("real_count") or {}
+    if guard.get("moved"):
+        was = guard["from"]
+        weight = (
+            f" (depth {was['split_depth']} core {was['split_core']} on the generated pairs counted "
+            f"{guard['chosen_count']} particles on your images against the classical {guard['classical']}: the count's "
+            f"nearest kept)" + weight
+        )
     agreement = metrics.get("agreement") or {}
     agreed = f"; {agreement['why']}" if agreement.get("why") else ""
     kept = [a for a in agreement.get("attempts", []) if a.get("attempt") == agreement.get("kept_attempt")]
