@@ -612,3 +612,19 @@ def test_a_quick_profile_of_a_small_folder_does_not_shorten_the_gans_estimate(tm
     expected = 2 * (typical["generate"] + typical["segment"]) + typical["analyze"]
     whole = re.search(r"the whole run: ~([\d.]+) (s|min) left", lines[-1])
     assert float(whole.group(1)) * (60 if whole.group(2) == "min" else 1) == pytest.approx(expected, abs=6)
+
+
+def test_the_report_says_when_the_count_on_the_users_images_moved_the_split(tmp_path):
+    from drgan.pipeline.report import segment_summary
+
+    was = {"split_seeds": "hmaxima", "split_depth": 4.0, "split_core": 0.5}
+    guard = {"images": 4, "classical": 274, "chosen_count": 217, "count": 285, "moved": True, "from": was}
+    calibration = {"split_seeds": "hmaxima", "split_depth": 1.0, "split_core": 0.5, "real_count": guard}
+    metrics = {"epoch": 12, "stop_reason": "max_epochs", "val/dsc": 0.9, "split_calibration": calibration}
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    line = segment_summary(tmp_path)["line"]
+    assert "split depth 1.0 core 0.5 (depth 4.0 core 0.5 on the generated pairs counted 217" in line
+    assert "against the classical 274" in line
+    guard["moved"] = False
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    assert "counted" not in segment_summary(tmp_path)["line"]
