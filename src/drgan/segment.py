@@ -438,8 +438,10 @@ def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool, real_
     except ValueError as error:
         log.warning("split calibration skipped: %s", error)
         return None
-    if real_items:
-        calibration = as_array_free(real_count_guard(model, calibration, real_items))
+    if real_items:  # the segmenter as analyze loads it (its pixel scale and noise level are checkpoint entries)
+        from drgan.segmenters.registry import load_segmenter
+
+        calibration = as_array_free(real_count_guard(load_segmenter(last), calibration, real_items))
         _log_real_count(calibration.get("real_count"))
     add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
     chosen = (

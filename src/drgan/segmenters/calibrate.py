@@ -225,8 +225,9 @@ def _count(labels: np.ndarray) -> int:
 
 def real_count_guard(model, calibration: dict, items: Sequence[tuple[object, np.ndarray]]) -> dict:
     """``calibration`` (a watershed one, `calibrate_split`'s) checked on the user's images: ``items`` are (image item,
-    classical instance labels) pairs (drgan.segmenters.agreement.read_reference). The network runs once per image,
-    at its own pixel scale and noise level as evaluate and analyze predict; each setting within the objective's AP50
+    classical instance labels) pairs (drgan.segmenters.agreement.read_reference). The network (``model`` as
+    drgan.segmenters.registry.load_segmenter returns it, with its checkpoint's pixel scale and noise level) runs once
+    per image as evaluate and analyze predict; each setting within the objective's AP50
     margin splits it, and the particles (specks left out, figure annotations dropped) are counted against the
     classical ones. Returns the calibration with ``real_count`` (the counts, the setting's and the decision) and,
     where the chosen count is more than REAL_COUNT_GUARD from the classical count, the nearest setting instead."""
