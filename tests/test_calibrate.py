@@ -257,8 +257,12 @@ def test_the_real_count_guard_keeps_a_choice_near_the_classical_count_and_moves_
     # the choice that counts as the classical segmentation does stays, its calibration untouched but for the record
     kept = real_count_guard(model, {**calibration, **table[0]}, items)
     assert not kept["real_count"]["moved"] and kept["split_depth"] == 1.0 and kept["real_count"]["count"] == 8
-    # within the guard's distance nothing moves: 8 classical particles, a choice that finds 4 is 50 % off (> 10 %);
-    # classical labels that split one disc more (9) leave depth 1 11 % off and depth 4 56 %: depth 1 kept
+    # the classical count is a floor, not a target: a choice that finds more particles than it stays (classical labels
+    # that merge every pair: 4 against depth 1's 8)
+    pairs_merged = np.where(labels > 0, (labels + 1) // 2, 0)
+    above = real_count_guard(model, {**calibration, **table[0]}, [(items[0][0], pairs_merged)])
+    assert above["real_count"]["classical"] == 4 and not above["real_count"]["moved"] and above["split_depth"] == 1.0
+    # classical labels that split one disc more (9) leave depth 1 11 % below, the nearest there is: depth 1 kept
     assert REAL_COUNT_GUARD == 0.10
     more = labels.copy()
     more[(more == 1) & (np.arange(96)[None, :] < 14)] = 99  # the first disc's left part a particle of its own
