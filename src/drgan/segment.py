@@ -471,8 +471,9 @@ def _log_real_count(guard: dict | None) -> None:
     )
     if guard["moved"]:
         log.warning(
-            "%s: the generated pairs' choice merges or splits your particles; the setting within the AP50 margin "
-            "nearest the classical count taken instead (%d particles)", said, guard["count"],
+            "%s: the generated pairs' choice merges particles of your images that even the classical segmentation "
+            "separates; the setting within the AP50 margin nearest the classical count taken instead (%d particles)",
+            said, guard["count"],
         )  # fmt: skip
     else:
         log.info("%s: the choice kept", said)
