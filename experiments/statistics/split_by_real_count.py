@@ -22,13 +22,10 @@ from drgan.segmenters.agreement import spread
 from drgan.segmenters.inference import (
     check_noise_match,
     filled_holes,
-    predict_probs,
-    resample,
-    resample_probs,
+    probs_at_scale,
     split_touching,
     without_annotations,
 )
-from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import read_image_item
 from drgan.segmenters.registry import load_segmenter
 
@@ -65,10 +62,7 @@ def main() -> None:
     predicted, n_classical = [], 0
     for path, image_id in zip(list_images(images, ids), ids):
         item = read_image_item(path, image_id, "auto")
-        probs = predict_probs(model, match_noise(resample(item.image, scale), level))
-        if scale != 1.0:
-            probs = resample_probs(probs, item.image.shape)
-        predicted.append((item.image, probs[:3]))
+        predicted.append((item.image, probs_at_scale(model, item.image, scale, level)[:3]))
         n_classical += counted(read_label_tiff(labels_dir / f"{image_id}.tif")[0])
     ranked = []
     for (seeds, depth, core), ap50 in candidates.items():

@@ -118,20 +118,20 @@ def segment_summary(folder: Path) -> dict:
             f"{_number(check.get('edge_offset_px'), '{:+.2f}')} px"
         )
     guard = calibration.get("real_count") or {}
-    if guard.get("moved"):
-        was = guard["from"]
-        weight = (
-            f" (depth {was['split_depth']} core {was['split_core']} on the generated pairs counted "
-            f"{guard['chosen_count']} particles on your images against the classical {guard['classical']}: the count's "
-            f"nearest kept)" + weight
-        )
+    was = guard.get("from") or {}
+    moved = (
+        f" (depth {was['split_depth']} core {was['split_core']} on the generated pairs counted {guard['chosen_count']} "
+        f"particles on your images against the classical {guard['classical']}: the count's nearest kept)"
+        if guard.get("moved")
+        else ""
+    )
     agreement = metrics.get("agreement") or {}
     agreed = f"; {agreement['why']}" if agreement.get("why") else ""
     kept = [a for a in agreement.get("attempts", []) if a.get("attempt") == agreement.get("kept_attempt")]
     return {
         "line": f"{metrics.get('epoch')} epochs ({metrics.get('stop_reason')}), val DSC "
         f"{_number(metrics.get('val/dsc'))}, split depth {calibration.get('split_depth')} core "
-        f"{calibration.get('split_core')}{weight}{checked}{agreed}",
+        f"{calibration.get('split_core')}{moved}{weight}{checked}{agreed}",
         "metrics": {"segment/val_dsc": metrics.get("val/dsc"), "segment/epochs": metrics.get("epoch")}
         | {k: metrics[k] for k in ("check/median_error", "check/count_error", "check/edge_offset_px") if k in metrics}
         | (

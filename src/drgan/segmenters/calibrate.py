@@ -238,23 +238,17 @@ def real_count_guard(model, calibration: dict, items: Sequence[tuple[object, np.
     from drgan.segmenters.inference import (
         check_noise_match,
         filled_holes,
-        predict_probs,
-        resample,
-        resample_probs,
+        probs_at_scale,
         split_touching,
         without_annotations,
     )
-    from drgan.segmenters.noise_match import match_noise
 
     if calibration.get("split") != "watershed" or not items:
         return calibration
     scale = float(getattr(model, "pixel_scale", 1.0) or 1.0)
     level = check_noise_match(getattr(model, "train_noise", None))
     smooth = calibration.get("split_smooth", 1.0)
-    predicted = []
-    for item, _ in items:
-        probs = predict_probs(model.eval(), match_noise(resample(item.image, scale), level))
-        predicted.append((item.image, resample_probs(probs, item.image.shape) if scale != 1.0 else probs))
+    predicted = [(item.image, probs_at_scale(model.eval(), item.image, scale, level)) for item, _ in items]
     classical = sum(_count(labels) for _, labels in items)
     if classical == 0:
         return calibration

@@ -232,6 +232,13 @@ def check_seed_level(seed_level) -> float:
     return float(seed_level)
 
 
+def probs_at_scale(model: torch.nn.Module, image: np.ndarray, scale: float, level: float | None, **kw) -> np.ndarray:
+    """The network's class probabilities of ``image`` seen resampled by ``scale`` (with white noise up to the
+    fine-noise ``level`` when it is cleaner: drgan.segmenters.noise_match), brought back to the image's size."""
+    probs = predict_probs(model, match_noise(resample(image, scale), level), **kw)
+    return resample_probs(probs, np.shape(image)) if scale != 1.0 else probs
+
+
 def predict(
     model: torch.nn.Module,
     image: np.ndarray,
@@ -282,11 +289,8 @@ def predict(
     level = check_noise_match(getattr(model, "train_noise", None) if noise_match is None else noise_match)
 
     def classes_at(scale: float) -> tuple[np.ndarray, np.ndarray]:
-        probs = predict_probs(model, match_noise(resample(image, scale), level), **kw)
-        depth, smooth = split_depth, split_smooth
-        if scale != 1.0:
-            probs = resample_probs(probs, np.shape(image))
-            depth, smooth = split_depth / scale, split_smooth / scale
+        probs = probs_at_scale(model, image, scale, level, **kw)
+        depth, smooth = split_depth / scale, split_smooth / scale
         if split == "star":
             if probs.shape[0] < 6:
                 raise ConfigError(
