@@ -12,7 +12,16 @@ from conftest import compose
 from test_segment import disc_image, make_real
 
 from drgan.errors import ConfigError
-from drgan.segmenters.classical_check import ClassicalReference, compare_with_classical, outline_comparison, pool
+from drgan.segmenters.classical_check import (
+    BOTH,
+    CLASSICAL,
+    SEGMENTER,
+    ClassicalReference,
+    compare_with_classical,
+    judge,
+    outline_comparison,
+    pool,
+)
 
 
 def two_touching(size: int = 48) -> np.ndarray:
@@ -105,6 +114,75 @@ def test_two_medians_within_5_percent_agree_whatever_the_merges_and_without_a_ch
     assert "check" not in merges and "separates" in merges and "trusts the classical sizes" in merges
 
 
+def test_the_verdict_names_whose_sizes_it_trusts_as_its_sentence_does():
+    cases = [  # (arguments, trusted, the sentence's words)
+        ((28.6, 24.3, exact_check(), outlines(0.35, 0.17, 0.1)), CLASSICAL, "drgan trusts the classical sizes"),
+        ((28.6, 24.3, exact_check()), SEGMENTER, "drgan trusts the segmenter's sizes"),
+        ((20.0, 24.0, exact_check(), outlines(0.04, 0.40)), SEGMENTER, "drgan trusts the segmenter's sizes"),
+        ((25.0, 24.3, exact_check()), BOTH, "drgan trusts these sizes"),
+        ((26.0, 24.3, {"median_error": {"value": 0.12, "low": 0.08, "high": 0.16}}), CLASSICAL, "classical sizes more"),
+        ((36.0, 30.0, None, outlines(0.05, 0.05)), None, "neither can be preferred"),
+        ((40.0, 24.3, {"median_error": {"value": 0.12, "low": 0.08, "high": 0.16}}), None, "Neither is trusted"),
+        ((None, 24.3, exact_check()), None, "No comparison"),
+    ]
+    for args, trusted, words in cases:
+        verdict = judge(*args)
+        assert verdict.trusted == trusted and words in verdict.sentence, (args, verdict)
+        assert compare_with_classical(*args) == verdict.sentence
+
+
+def test_what_the_users_images_say_comes_before_the_checks_interval():
+    # tio2_sem with the profile at the segmented outlines: +9.6 % from the classical median, inside the exact check's
+    # interval (+1.7, +10.6 %), yet the segmenter merges 35 % of the classical particles (the train masks: segmenter
+    # +20.7 %, classical +9.0 %)
+    inside = judge(28.6, 26.1, exact_check(), outlines(0.35, 0.17))
+    assert inside.trusted == CLASSICAL and "beyond" not in inside.sentence and "35 % of the classical" in inside.sentence
+    assert judge(28.6, 26.1, exact_check()).trusted == BOTH  # without the comparison: the check's interval rules
+    # a biased check whose gap the classical segmentation's merges explain: not the classical sizes
+    biased = {"median_error": {"value": 0.12, "low": 0.02, "high": 0.20}, "merged": 0.05}
+    assert judge(22.0, 24.3, biased, outlines(0.04, 0.52)).trusted == SEGMENTER
+    # cej: medians 1.4 % apart, a biased check (+6.3 %) and a classical segmentation that merges half the segmenter's
+    # particles: the two medians agree, and the classical count (-33 % against the masks) is not promoted
+    cej = {"median_error": {"value": 0.063, "low": -0.001, "high": 0.130}, "merged": 0.05}
+    agreed = judge(64.8, 65.7, cej, outlines(0.04, 0.52))
+    assert agreed.trusted == BOTH and "agree within 5 %" in agreed.sentence
+
+
+def test_classical_particles_are_counted_as_analyze_counts_and_sized_at_half_contrast(tmp_path):
+    labels = two_touching()
+    labels[40:42, 40:42] = 4  # a 4 px² speck
+    found = ClassicalReference(tmp_path, 20.0, 0.5).particles(labels, min_area_px=8)
+    assert found.count == 3  # the speck out
+    d8, d6 = 2 * np.sqrt(64 / np.pi), 2 * np.sqrt(36 / np.pi)  # equivalent diameters at the segmented outlines
+    np.testing.assert_allclose(found.diameter, [d8 + 1, d8 + 1, d6 + 1])  # + 2 x 0.5 px
+    np.testing.assert_allclose(found.area, np.pi / 4 * found.diameter**2)
+
+
+def test_images_the_profile_did_not_segment_are_segmented_with_its_settings(tmp_path):
+    from drgan.data.classical import SegmentParams, resolve_params
+    from drgan.data.imagej import write_label_tiff
+
+    labels = np.zeros((64, 64), np.int32)
+    yy, xx = np.mgrid[:64, :64]
+    for k, (y, x) in enumerate([(14, 14), (14, 46), (46, 14), (46, 46)], 1):
+        labels[(yy - y) ** 2 + (xx - x) ** 2 <= 36] = k  # four apart discs of 13 px
+    image = disc_image(labels)
+    params = resolve_params([image], SegmentParams(scale=13.0, neck_depth=0.0), "bright")[0].as_dict()
+    (tmp_path / "labels").mkdir()
+    (tmp_path / "profile.json").write_text(json.dumps(
+        {"sizes": {"median_diameter_px": 13.0}, "segmentation": {"params": params}, "polarity": {"polarity": "bright"}}
+    ))  # fmt: skip
+    stored = two_touching(64)
+    write_label_tiff(tmp_path / "labels" / "seen.tif", stored)
+    reference = ClassicalReference.of_run(tmp_path)
+    np.testing.assert_array_equal(reference.labels_of("seen", image), stored)  # the profile's own, as it wrote them
+    fresh = reference.labels_of("new", image)  # segmented now: the four discs
+    assert len(np.unique(fresh[fresh > 0])) == 4 and ((fresh > 0) == (labels > 0)).mean() > 0.97
+    # a profile record without its settings compares its own images only
+    (tmp_path / "profile.json").write_text(json.dumps({"sizes": {"median_diameter_px": 13.0}}))
+    assert ClassicalReference.of_run(tmp_path).labels_of("new", image) is None
+
+
 def test_a_pipeline_state_from_before_the_comparison_still_gets_the_medians_compared():
     from drgan.pipeline.report import analyze_details
 
@@ -122,7 +200,7 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
                      {k: (v > 0) * 255 for k, v in fields.items()}, {"train": [], "test": sorted(fields)})  # fmt: skip
     profile = tmp_path / "profile"
     (profile / "labels").mkdir(parents=True)
-    (profile / "profile.json").write_text(json.dumps({"sizes": {"median_diameter_px": 6.77, "outline_shift_px": 0}}))
+    (profile / "profile.json").write_text(json.dumps({"sizes": {"median_diameter_px": 7.77, "outline_shift_px": 0.5}}))
     for k in ("f0", "f1"):  # the profile segmented two of the three images (its training images)
         write_label_tiff(profile / "labels" / f"{k}.tif", fields[k])
     merged = two_touching()
@@ -137,6 +215,29 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
     text = (tmp_path / "an" / "statistics.md").read_text()
     assert "On your 2 images the segmenter holds 67 % of the classical particles" in text
     assert "drgan trusts the classical sizes" in text
+    # the trusted sizes beside the segmenter's: the classical particles of the 2 images, at half contrast (+ 2 x 0.5)
+    assert summary["trusted"] == CLASSICAL
+    theirs = classical["statistics"]
+    d8, d6 = 2 * np.sqrt(64 / np.pi), 2 * np.sqrt(36 / np.pi)
+    assert theirs["count"]["value"] == 6 and theirs["median_diameter"]["value"] == pytest.approx(d8 + 1)
+    assert summary["statistics"]["median_diameter"]["value"] == pytest.approx((2 * np.sqrt(128 / np.pi) + d6) / 2)
+    assert "| statistic | segmenter: value [95 % interval] | classical: value [95 % interval] |" in text
+    assert f"| median diameter (px) | {summary['statistics']['median_diameter']['value']:.3g} | {d8 + 1:.3g} |" in text
+    assert "**drgan trusts the classical sizes** (the right-hand column" in text
+    rows = (tmp_path / "an" / "particles_classical.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    assert len(rows) == 1 + 6 and "half_contrast_diameter_px" in header
+    row = dict(zip(header, rows[1].split(",")))
+    assert (row["image"], row["id"]) == ("f0", "1")
+    assert float(row["half_contrast_diameter_px"]) == pytest.approx(float(row["equivalent_diameter_px"]) + 1)
+    # the pipeline report's analyze line puts the trusted sizes first
+    from drgan.pipeline.report import analyze_summary
+
+    line = analyze_summary(tmp_path / "an")["line"]
+    assert line.startswith(
+        f"drgan trusts the classical sizes: median diameter {d8 + 1:.1f} px (6 particles in 2 images"
+    )
+    assert "the segmenter's: 6 particles in 3 images" in line
 
 
 def test_a_profile_folder_without_its_run_is_refused_before_any_image_is_read(tmp_path):

@@ -105,6 +105,18 @@ def particle_rows(
     return rows
 
 
+def classical_particle_rows(image_id: str, labels: np.ndarray, nm_per_px, s, shift_px: float) -> list[dict]:
+    """particles_classical.csv's rows: the profile's classical particles of one image as `particle_rows` (their label
+    ids are those of the profile's labels/ID.tif), with the equivalent diameter at half contrast beside the segmented
+    one (+ 2 x the profile's outline shift, as its median)."""
+    rows = particle_rows(image_id, labels, nm_per_px, s.min_area_px, s.exclude_border)
+    for row in rows:
+        row["half_contrast_diameter_px"] = max(row["equivalent_diameter_px"] + 2.0 * shift_px, 0.0)
+        if nm_per_px:
+            row["half_contrast_diameter_nm"] = row["half_contrast_diameter_px"] * nm_per_px
+    return rows
+
+
 def statistics_html(out: Path) -> str:
     """statistics.html: statistics.md, the figures, the overlays image by image and the sortable particle table."""
     from drgan.html import data_uri, markdown_html, page, particles_and_overlays
@@ -270,6 +282,8 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
 
     out = s.out
     rows, found, thickness_values, comparisons = [], [], [], []
+    compared = []  # per image classically segmented: (its classical particles at half contrast, scale, image area)
+    classical_rows = []
     for item, scale in track(list(zip(items, scales)), "segmenting images", unit="images"):
         class_map = np.asarray(predictor(item))
         labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
@@ -279,10 +293,12 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         rows += image_rows
         write_bytes(out / "overlays" / f"{item.id}.png", _overlay_png(item.image, labels, image_rows))
         write_outlines(out, item.id, labels, [r["id"] for r in image_rows], scale)  # for Fiji and napari
-        classical = reference.read(item.id, labels.shape) if reference else None
+        classical = reference.labels_of(item.id, item.image) if reference else None
         if classical is not None:  # the profile's classical segmentation of the same image, particle by particle
             counted = np.where(np.bincount(labels.ravel())[labels] >= min_area, labels, 0)  # specks out, as above
             comparisons.append(classical_check.outline_comparison(counted, classical))
+            compared.append((reference.particles(classical, min_area), scale, item.image.size))
+            classical_rows += classical_particle_rows(item.id, classical, scale, s, reference.outline_shift_px)
         if s.wires:
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (scale or 1.0))
@@ -297,14 +313,31 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     areas = [item.image.size * (f * f * 1e-6 if in_nm else 1e-6) for item, f in zip(items, factors)]
     stats = size_statistics(found, factors, areas, n_boot, s.seed)
     whole = pooled(found)
+    classical_summary = classical_check.pool(comparisons, reference) if reference else None
+    if compared:  # the classical particles' statistics, as the segmenter's, over the images segmented both ways
+        classical_found = [c[0] for c in compared]
+        classical_factors = [c[1] if in_nm else 1.0 for c in compared]
+        classical_areas = [c[2] * (f * f * 1e-6 if in_nm else 1e-6) for c, f in zip(compared, classical_factors)]
+        classical_summary["statistics"] = size_statistics(
+            classical_found, classical_factors, classical_areas, n_boot, s.seed
+        )
+    median_px = float(np.median(whole)) if whole.size else None
+    closed_loop = getattr(getattr(predictor, "model", None), "closed_loop", None)
+    verdict = (
+        classical_check.judge(median_px, classical_summary.get("median_diameter_px"), closed_loop, classical_summary)
+        if classical_summary
+        else None
+    )
     summary = {
         "images": len(items),
         "images_dir": str(Path(s.images).resolve()),  # where the images lie (the napari reader opens them beside)
-        "median_diameter_px": float(np.median(whole)) if whole.size else None,
+        "median_diameter_px": median_px,
         # the segmenter's own error on held-out generated pairs (drgan.segmenters.closed_loop), when it has one
-        "closed_loop": getattr(getattr(predictor, "model", None), "closed_loop", None),
-        # the profile's classical sizes and segmentation of the same images (drgan.segmenters.classical_check)
-        "classical": classical_check.pool(comparisons, reference) if reference else None,
+        "closed_loop": closed_loop,
+        # the profile's classical sizes and segmentation of the same images (drgan.segmenters.classical_check), with
+        # the classical particles' statistics when analyze compared images, and whose sizes drgan trusts
+        "classical": classical_summary,
+        "trusted": verdict.trusted if verdict else None,
         "unit": unit,
         "area_unit": area_unit,
         "pixel_size": pixel_note,
@@ -318,9 +351,19 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         ],
     }
     write_bytes(out / "particles.csv", _csv(rows).encode())
+    if classical_rows:
+        write_bytes(out / "particles_classical.csv", _csv(classical_rows).encode())
     write_json(out / "summary.json", summary)
     write_bytes(out / "statistics.md", statistics_markdown(summary).encode())
-    write_bytes(out / "sizes.png", figure_png(lambda plt: _size_figure(plt, _sizes(found, factors), stats, unit, bins)))
+    classical_d = (
+        _sizes(classical_found, classical_factors) if compared else None
+    )  # drawn beside the segmenter's distribution
+    write_bytes(
+        out / "sizes.png",
+        figure_png(
+            lambda plt: _size_figure(plt, _sizes(found, factors), stats, unit, bins, classical_d, summary["trusted"])
+        ),
+    )
     write_bytes(out / "histograms.png", figure_png(lambda plt: _histograms(plt, rows, in_nm, bins)))
     write_bytes(out / "statistics.html", statistics_html(out).encode())
     if s.wires:
@@ -378,9 +421,34 @@ def _interval(cell: dict, digits: int = 3) -> str:
     return text
 
 
+def _statistic_rows(s: dict, unit: str, area_unit: str) -> list[tuple[str, str]]:
+    return [
+        ("particles counted", f"{_fmt(s['count']['value'], 6)} ({_fmt(s['sized']['value'], 6)} sized)"),
+        ("particles per image", _interval(s["count_per_image"])),
+        (f"particles per {area_unit}", _interval(s["count_per_area"])),
+        (f"median diameter ({unit})", _interval(s["median_diameter"])),
+        (f"mean diameter ({unit})", _interval(s["mean_diameter"])),
+        (f"normal fit: mean, std ({unit})", f"{_interval(s['normal_mean'])}, {_interval(s['normal_std'])}"),
+        (
+            f"lognormal fit: median ({unit}), sigma",
+            f"{_interval(s['lognormal_median'])}, {_interval(s['lognormal_sigma'])}",
+        ),
+    ]
+
+
+TRUSTED_WORDS = {  # statistics.md's headline on whose sizes drgan trusts (classical_check.Verdict.trusted)
+    "classical": "**drgan trusts the classical sizes** (the right-hand column; why: below): the segmenter's "
+    "particle table and outlines are its own, the classical particles are in particles_classical.csv.",
+    "segmenter": "**drgan trusts the segmenter's sizes** (the left-hand column; why: below).",
+    "both": "The segmenter and the classical segmentation agree: **drgan trusts these sizes** (why: below).",
+    None: "**Neither size is trusted over the other** (why: below): compare the two columns and the overlays.",
+}
+
+
 def statistics_markdown(summary: dict) -> str:
     s, unit, area_unit = summary["statistics"], summary["unit"], summary["area_unit"]
     model = s.get("model")
+    classical = (summary.get("classical") or {}).get("statistics")
     lines = [
         "# Particle statistics",
         "",
@@ -388,20 +456,29 @@ def statistics_markdown(summary: dict) -> str:
         f"{summary['pixel_size']}. Components under {summary['min_area_px']:g} px² are specks (not counted); particles "
         "cut by the image border are counted but not sized. Intervals: 95 % percentile bootstrap over images.",
         "",
-        "| statistic | value [95 % interval] |",
-        "|---|---|",
-        f"| particles counted | {_fmt(s['count']['value'], 6)} ({_fmt(s['sized']['value'], 6)} sized) |",
-        f"| particles per image | {_interval(s['count_per_image'])} |",
-        f"| particles per {area_unit} | {_interval(s['count_per_area'])} |",
-        f"| median diameter ({unit}) | {_interval(s['median_diameter'])} |",
-        f"| mean diameter ({unit}) | {_interval(s['mean_diameter'])} |",
-        f"| normal fit: mean, std ({unit}) | {_interval(s['normal_mean'])}, {_interval(s['normal_std'])} |",
-        f"| lognormal fit: median ({unit}), sigma | {_interval(s['lognormal_median'])}, "
-        f"{_interval(s['lognormal_sigma'])} |",
     ]
+    if classical:  # the two side by side, the trusted one named
+        images = summary["classical"]["images"]
+        lines += [
+            f"Beside the segmenter's: the profile's classical segmentation (threshold + watershed at the profile's "
+            f"settings, no training) of {images} of the images, sized at half contrast. "
+            + TRUSTED_WORDS[summary.get("trusted")],
+            "",
+            "| statistic | segmenter: value [95 % interval] | classical: value [95 % interval] |",
+            "|---|---|---|",
+        ]
+        lines += [
+            f"| {name} | {mine} | {theirs} |"
+            for (name, mine), (_, theirs) in zip(
+                _statistic_rows(s, unit, area_unit), _statistic_rows(classical, unit, area_unit)
+            )
+        ]
+    else:
+        lines += ["| statistic | value [95 % interval] |", "|---|---|"]
+        lines += [f"| {name} | {value} |" for name, value in _statistic_rows(s, unit, area_unit)]
     if model:
         bics = ", ".join(f"{f['kind']} {f['bic']:.1f}" for f in model["fits"])
-        lines += ["", f"The sizes fit a **{model['chosen']}** distribution best (lowest BIC: {bics})."]
+        lines += ["", f"The segmenter's sizes fit a **{model['chosen']}** distribution best (lowest BIC: {bics})."]
     lines += ["", "## How far these sizes can be trusted", "", trust_paragraph(summary.get("closed_loop"))]
     if summary.get("classical"):
         lines += ["", classical_paragraph(summary)]
@@ -454,10 +531,21 @@ def _density(model: dict | None, x: np.ndarray) -> tuple[np.ndarray, str] | None
     return y, fit["kind"]
 
 
-def _size_figure(plt, diameters: np.ndarray, stats: dict, unit: str, bins: int):
+def _size_figure(
+    plt, diameters: np.ndarray, stats: dict, unit: str, bins: int, classical: np.ndarray | None = None, trusted=None
+):
+    """sizes.png: the segmenter's size distribution (histogram, the chosen fit, the median and its interval) and its
+    cumulative curve; with ``classical``, the profile's classical sizes drawn over both (the trusted one named)."""
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
+    mark = {trusted: " (trusted)"} if trusted in ("segmenter", "classical") else {}
     if len(diameters):
-        left.hist(diameters, bins=bins, density=True, color="0.75", label=f"{len(diameters)} sized particles")
+        edges = np.histogram_bin_edges(
+            diameters if classical is None or not len(classical) else np.concatenate([diameters, classical]), bins
+        )
+        left.hist(
+            diameters, bins=edges, density=True, color="0.75",
+            label=f"segmenter{mark.get('segmenter', '')}: {len(diameters)} sized particles",
+        )  # fmt: skip
         x = np.linspace(max(diameters.min() * 0.8, 1e-6), diameters.max() * 1.1, 400)
         fitted = _density(stats.get("model"), x)
         if fitted is not None:
@@ -467,7 +555,14 @@ def _size_figure(plt, diameters: np.ndarray, stats: dict, unit: str, bins: int):
         if math.isfinite(median["low"]):
             left.axvspan(median["low"], median["high"], color="C0", alpha=0.15, label="95 % interval")
         ordered = np.sort(diameters)
-        right.step(ordered, np.arange(1, len(ordered) + 1) / len(ordered), where="post", color="k")
+        right.step(ordered, np.arange(1, len(ordered) + 1) / len(ordered), where="post", color="k", label="segmenter")
+        if classical is not None and len(classical):
+            name = f"classical{mark.get('classical', '')}"
+            left.hist(classical, bins=edges, density=True, histtype="step", color="C2", lw=1.5,
+                      label=f"{name}: {len(classical)} particles, median {_fmt(float(np.median(classical)))} {unit}")  # fmt: skip
+            ordered = np.sort(classical)
+            right.step(ordered, np.arange(1, len(ordered) + 1) / len(ordered), where="post", color="C2", label=name)
+            right.legend(fontsize=8)
     left.set_xlabel(f"equivalent diameter ({unit})")
     left.set_ylabel("density")
     if len(diameters):

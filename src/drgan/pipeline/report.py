@@ -153,28 +153,45 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(handle))
 
 
+def _bracket(cell: dict) -> str:
+    """A statistic's 95 % interval as " [low, high]"; "" without one (no bootstrap, one image)."""
+    low, high = cell.get("low"), cell.get("high")
+    return f" [{_number(low, '{:.1f}')}, {_number(high, '{:.1f}')}]" if isinstance(low, float) and low == low else ""
+
+
 def analyze_summary(folder: Path) -> dict:
     summary = _json(folder / "summary.json")
     if not summary:
         return {}
     stats, unit = summary.get("statistics") or {}, summary.get("unit", "px")
     count, median = (stats.get(k, {}).get("value") for k in ("count", "median_diameter"))
-    low, high = stats.get("median_diameter", {}).get("low"), stats.get("median_diameter", {}).get("high")
     model = (stats.get("model") or {}).get("chosen")
-    interval = (
-        f" [{_number(low, '{:.1f}')}, {_number(high, '{:.1f}')}]" if isinstance(low, float) and low == low else ""
-    )
+    interval = _bracket(stats.get("median_diameter", {}))
     # the profile's sizes and segmentation compared by analyze (profile=); runs before that: the profile's median
     classical = summary.get("classical") or {
         "median_diameter_px": profile_summary(folder.parent / "profile").get("median_diameter_px")
     }
+    line = (
+        f"{_number(count, '{:.0f}')} particles in {summary.get('images')} images, median diameter "
+        f"{_number(median, '{:.1f}')}{interval} {unit}" + (f", {model}" if model else "")
+    )
+    theirs = classical.get("statistics")
+    if summary.get("trusted") == "classical" and theirs:  # the sizes drgan trusts come first in statistics.md too
+        cell = theirs["median_diameter"]
+        line = (
+            f"drgan trusts the classical sizes: median diameter {_number(cell.get('value'), '{:.1f}')}"
+            f"{_bracket(cell)} {unit} ({_number(theirs['count']['value'], '{:.0f}')} particles in "
+            f"{classical.get('images')} images, the profile's threshold + watershed at half contrast); the "
+            f"segmenter's: {line}"
+        )
     return {
         "closed_loop": summary.get("closed_loop"),
         "median_diameter_px": summary.get("median_diameter_px"),
         "classical": classical,
-        "line": f"{_number(count, '{:.0f}')} particles in {summary.get('images')} images, median diameter "
-        f"{_number(median, '{:.1f}')}{interval} {unit}" + (f", {model}" if model else ""),
-        "metrics": {"analyze/particles": count, f"analyze/median_diameter_{unit}": median},
+        "trusted": summary.get("trusted"),
+        "line": line,
+        "metrics": {"analyze/particles": count, f"analyze/median_diameter_{unit}": median}
+        | ({f"analyze/classical_median_diameter_{unit}": theirs["median_diameter"]["value"]} if theirs else {}),
         "particles": count,
         "median_diameter": median,
         "unit": unit,

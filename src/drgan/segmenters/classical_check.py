@@ -18,8 +18,9 @@ comparing the two segmentations particle by particle on the user's images says w
   generated images its outlines lie at the true edge: it places the edge elsewhere on the user's images. The classical
   sizes are trusted when the profile found the images' half contrast (else both outlines are conventions).
 
-`compare_with_classical` writes the sentence the report and statistics.md print. The measurements that set these
-rules: experiments/statistics/README.md, "Which sizes to trust when the two disagree".
+`judge` gives the sentence the report and statistics.md print and whose sizes drgan trusts; analyze then sizes the
+classical particles too (`ClassicalReference.particles`, at half contrast) and puts the trusted sizes first. The
+measurements that set these rules: experiments/statistics/README.md, "Which sizes to trust when the two disagree".
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,16 +40,30 @@ log = logging.getLogger(__name__)
 EXACT = 0.05  # a closed-loop median error within this counts as exact (issue target on real images: 5 %)
 AGREE = 0.05  # the classical median may differ this much beyond the closed-loop interval and still agree
 MERGE_EXCESS = 0.10  # merges (shares of particles) one segmentation makes beyond the other's that explain a gap
+SEGMENTER, CLASSICAL, BOTH = "segmenter", "classical", "both"  # whose sizes drgan trusts (Verdict.trusted)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """`judge`'s answer: the sentence, and whose sizes drgan trusts: SEGMENTER, CLASSICAL, BOTH (the two agree) or
+    None (no comparison, or neither can be preferred)."""
+
+    sentence: str
+    trusted: str | None
 
 
 @dataclass(frozen=True)
 class ClassicalReference:
     """A drgan.profile run's classical segmentation: its label images (``labels/ID.tif``), its median diameter (at
-    half contrast when it found the images' mean edge) and how far it moved the segmented outlines to get there."""
+    half contrast when it found the images' mean edge), how far it moved the segmented outlines to get there, and the
+    settings it segmented with (resolved parameters and polarity), so that any image of the same kind is segmented the
+    same way."""
 
     labels: Path
     median_diameter_px: float | None
     outline_shift_px: float
+    params: Mapping | None = None  # drgan.data.classical.SegmentParams as the profile resolved them (its scale search)
+    polarity: str | None = None
 
     @classmethod
     def of_run(cls, folder: Path) -> ClassicalReference:
@@ -58,8 +73,17 @@ class ClassicalReference:
             raise ConfigError(f"profile={folder}: expected a drgan.profile run folder (profile.json in it)")
         if not labels.is_dir():
             log.warning("profile=%s has no labels/ (a profile run older than its label images): medians only", folder)
-        sizes = json.loads(record.read_text()).get("sizes") or {}
-        return cls(labels, sizes.get("median_diameter_px"), float(sizes.get("outline_shift_px") or 0.0))
+        run = json.loads(record.read_text())
+        sizes = run.get("sizes") or {}
+        params = (run.get("segmentation") or {}).get("params")
+        polarity = (run.get("polarity") or {}).get("polarity")
+        return cls(
+            labels,
+            sizes.get("median_diameter_px"),
+            float(sizes.get("outline_shift_px") or 0.0),
+            params if params and polarity else None,
+            polarity if params else None,
+        )
 
     def read(self, image_id: str, shape: tuple[int, int]) -> np.ndarray | None:
         """The classical instance labels of ``image_id``; None when the profile did not segment that image (it reads
@@ -74,6 +98,27 @@ class ClassicalReference:
             log.warning("%s: %s px, the segmented image %s px: not compared", path, labels.shape, tuple(shape))
             return None
         return labels
+
+    def labels_of(self, image_id: str, image: np.ndarray) -> np.ndarray | None:
+        """The classical instance labels of an image: the profile's own (`read`) where it segmented the image, else
+        the image segmented now with the profile's settings (the same labels where both exist; ~2 s for 1024 x 712
+        px); None for an image the profile segmented at another size, or a profile run without its settings."""
+        if (self.labels / f"{image_id}.tif").is_file() or not self.params:
+            return self.read(image_id, image.shape)
+        from drgan.data.classical import SegmentParams
+        from drgan.data.measurements import segment_image
+
+        return segment_image(image, SegmentParams.from_config(dict(self.params)), self.polarity).labels
+
+    def particles(self, labels: np.ndarray, min_area_px: float):
+        """One image's classical particles as analyze counts its own (components under ``min_area_px`` at the
+        segmented outline are specks), sized at half contrast: every equivalent diameter + 2 x ``outline_shift_px``
+        (as the profile's median), the area with it."""
+        from drgan.metrics.statistics import particles
+
+        found = particles(labels).at_least(min_area_px)
+        diameter = np.maximum(found.diameter + 2.0 * self.outline_shift_px, 0.0)
+        return replace(found, diameter=diameter, area=np.pi / 4.0 * diameter**2)
 
 
 def outline_comparison(segmenter: np.ndarray, classical: np.ndarray) -> dict:
@@ -135,9 +180,9 @@ def _interval(cell: Mapping) -> tuple[float, float]:
     return low, high
 
 
-def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Mapping | None) -> str | None:
-    """Why the two medians disagree, read from the two segmentations of the user's images, and which is trusted; None
-    when they agree within ``AGREE`` or the comparison says nothing decisive."""
+def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Mapping | None) -> Verdict | None:
+    """Why the two medians disagree, read from the two segmentations of the user's images, and which is trusted (the
+    sentence's continuation); None when they agree within ``AGREE`` or the comparison says nothing decisive."""
     if not outlines or not outlines.get("images") or abs(gap) <= AGREE:
         return None
     by_segmenter, by_classical = outlines["merged_by_segmenter"], outlines["merged_by_classical"]
@@ -150,18 +195,20 @@ def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Map
             if generated is not None
             else "): it merges touching particles that the classical segmentation separates"
         )
-        return (
+        return Verdict(
             f". On your {n} images the segmenter holds {_share(by_segmenter)} of the classical particles in one region "
             f"with a neighbour (the classical segmentation {_share(by_classical)} of the segmenter's{unseen}, so its "
             "particles come out larger and fewer. drgan trusts the classical sizes more; the segmenter's count is low "
             "too. The classical segmentation merges touching particles as well: count a few by hand, or score a few "
-            "annotated images (annotated=), before publishing the count."
+            "annotated images (annotated=), before publishing the count.",
+            CLASSICAL,
         )
     if gap < 0 and by_classical >= by_segmenter + MERGE_EXCESS:
-        return (
+        return Verdict(
             f". On your {n} images the classical segmentation holds {_share(by_classical)} of the segmenter's particles "
             f"in one region with a neighbour (the segmenter {_share(by_segmenter)} of the classical ones): the "
-            "classical sizes are merges. drgan trusts the segmenter's sizes."
+            "classical sizes are merges. drgan trusts the segmenter's sizes.",
+            SEGMENTER,
         )
     difference = outlines.get("matched_difference_px")
     if difference is None or not outlines.get("half_contrast"):
@@ -175,10 +222,11 @@ def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Map
             if edge is not None
             else ""
         )
-        return (
+        return Verdict(
             f". The {outlines['matched']} particles both find are {difference:+.1f} px in diameter from the classical "
             f"outlines at half contrast of your images' mean edge{where}. drgan trusts the classical sizes (half "
-            "contrast: the boundary of ISO 13322-1 and of drgan's masks)."
+            "contrast: the boundary of ISO 13322-1 and of drgan's masks).",
+            CLASSICAL,
         )
     return None
 
@@ -193,60 +241,81 @@ def _why_biased(check: Mapping) -> str:
     return ""
 
 
+def _agreement(check: Mapping | None, value: float | None) -> str:
+    """The sentence's end where the two medians agree within ``AGREE``."""
+    if value is None:
+        return f": the two agree within {100 * AGREE:.0f} % (the segmenter has no closed-loop check)."
+    if abs(value) <= EXACT:
+        return ": the two agree, and the segmenter is exact on generated images. drgan trusts these sizes."
+    merged = check.get("merged")
+    how = f" ({100 * merged:.1f} % of their particles merged)" if merged is not None else ""
+    return (
+        f": the two agree within {100 * AGREE:.0f} %, though on generated images the segmenter measures "
+        f"{_percent(value)}{how}. Two independent methods agree on your images, so the generated scenes are "
+        "harder to measure than yours (their touching particles show no neck the segmenter can cut, e.g. "
+        "particles piled over each other) and drgan trusts these sizes; score a few annotated images "
+        "(annotated=) to be sure."
+    )
+
+
 def compare_with_classical(
     median_px: float | None, classical_px: float | None, check: Mapping | None, outlines: Mapping | None = None
 ) -> str:
-    """The sentence on the segmenter's median diameter against the profile's classical one (threshold + watershed on
-    the same images, no training): whether they agree within the closed-loop interval (widened by ``AGREE``), and
-    where they do not, why (``outlines``: `pool`'s comparison of the two segmentations, when measured) and which one
-    drgan trusts."""
+    """`judge`'s sentence."""
+    return judge(median_px, classical_px, check, outlines).sentence
+
+
+def judge(
+    median_px: float | None, classical_px: float | None, check: Mapping | None, outlines: Mapping | None = None
+) -> Verdict:
+    """The segmenter's median diameter against the profile's classical one (threshold + watershed on the same images,
+    no training): whether they agree within the closed-loop interval (widened by ``AGREE``), and where they do not, why
+    (``outlines``: `pool`'s comparison of the two segmentations, when measured) and whose sizes drgan trusts."""
     if not median_px or not classical_px:
-        return "No comparison with the profile's classical sizes (one of the two medians is missing)."
+        return Verdict("No comparison with the profile's classical sizes (one of the two medians is missing).", None)
     gap = median_px / classical_px - 1.0
     said = (
         f"The segmenter's median diameter ({median_px:.1f} px) is {100 * gap:+.1f} % from the profile's classical one "
         f"({classical_px:.1f} px; threshold + watershed, no training)"
     )
     value = (check or {}).get("median_error", {}).get("value")
+    if abs(gap) <= AGREE:  # two independent methods agree on the user's images, whatever the check says
+        return Verdict(said + _agreement(check, value), BOTH)
+    # what the user's images say (merges either way, outlines off half contrast) comes before the check's interval
+    cause = _cause(gap, classical_px, check, outlines)
     if value is not None:
         low, high = _interval(check["median_error"])
-        if low - AGREE <= gap <= high + AGREE:
-            if abs(value) <= EXACT:
-                return (
-                    said + ": the two agree, and the segmenter is exact on generated images. drgan trusts these sizes."
-                )
-            return (
+        if not low - AGREE <= gap <= high + AGREE:
+            said += (
+                f", beyond the closed-loop interval [{_percent(low)}, {_percent(high)}] widened by {100 * AGREE:.0f} %"
+            )
+        elif cause is None and abs(value) <= EXACT:
+            return Verdict(
+                said + ": the two agree, and the segmenter is exact on generated images. drgan trusts these sizes.",
+                BOTH,
+            )
+        elif cause is None:
+            return Verdict(
                 said + f": the gap is what the closed-loop check predicts (the segmenter measures {_percent(value)} on "
                 "generated images with exact outlines). drgan trusts the classical sizes more: the segmenter's "
-                "sizes carry its own measured error" + _why_biased(check) + "."
+                "sizes carry its own measured error" + _why_biased(check) + ".",
+                CLASSICAL,
             )
-        if abs(gap) <= AGREE:  # a biased check, yet the two methods agree on the user's images
-            merged = check.get("merged")
-            how = f" ({100 * merged:.1f} % of their particles merged)" if merged is not None else ""
-            return (
-                said + f": the two agree within {100 * AGREE:.0f} %, though on generated images the segmenter measures "
-                f"{_percent(value)}{how}. Two independent methods agree on your images, so the generated scenes are "
-                "harder to measure than yours (their touching particles show no neck the segmenter can cut, e.g. "
-                "particles piled over each other) and drgan trusts these sizes; score a few annotated images "
-                "(annotated=) to be sure."
-            )
-        said += f", beyond the closed-loop interval [{_percent(low)}, {_percent(high)}] widened by {100 * AGREE:.0f} %"
-    cause = _cause(gap, classical_px, check, outlines)
     if cause:
-        return said + cause
+        return Verdict(said + cause.sentence, cause.trusted)
     if value is None:
-        if abs(gap) <= AGREE:
-            return said + f": the two agree within {100 * AGREE:.0f} % (the segmenter has no closed-loop check)."
-        return said + "; without a closed-loop check neither can be preferred: look at both overlays."
+        return Verdict(said + "; without a closed-loop check neither can be preferred: look at both overlays.", None)
     if abs(value) <= EXACT:
-        return (
+        return Verdict(
             said + ": the segmenter is exact on generated images, so the gap is either the classical segmentation's "
             "own error (merges, fringes, specks) or a difference between your images and the generated ones at the "
             "particles' edges. drgan trusts the segmenter's sizes (its error is measured, the classical one's is "
-            "not); compare the two overlays before publishing."
+            "not); compare the two overlays before publishing.",
+            SEGMENTER,
         )
-    return (
+    return Verdict(
         said + f": the segmenter is itself biased ({_percent(value)} on generated images) and disagrees with the "
         "classical sizes by more than that. Neither is trusted: compare the two overlays, or score both on a few "
-        "annotated images (annotated=)."
+        "annotated images (annotated=).",
+        None,
     )
