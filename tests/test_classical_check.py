@@ -136,7 +136,9 @@ def test_what_the_users_images_say_comes_before_the_checks_interval():
     # interval (+1.7, +10.6 %), yet the segmenter merges 35 % of the classical particles (the train masks: segmenter
     # +20.7 %, classical +9.0 %)
     inside = judge(28.6, 26.1, exact_check(), outlines(0.35, 0.17))
-    assert inside.trusted == CLASSICAL and "beyond" not in inside.sentence and "35 % of the classical" in inside.sentence
+    assert (
+        inside.trusted == CLASSICAL and "beyond" not in inside.sentence and "35 % of the classical" in inside.sentence
+    )
     assert judge(28.6, 26.1, exact_check()).trusted == BOTH  # without the comparison: the check's interval rules
     # a biased check whose gap the classical segmentation's merges explain: not the classical sizes
     biased = {"median_error": {"value": 0.12, "low": 0.02, "high": 0.20}, "merged": 0.05}
@@ -238,6 +240,38 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
         f"drgan trusts the classical sizes: median diameter {d8 + 1:.1f} px (6 particles in 2 images"
     )
     assert "the segmenter's: 6 particles in 3 images" in line
+    # evaluate scores the sizes the report gives against the masks (binary: the pair is one 128 px² particle there)
+    from drgan.evaluate import evaluate
+
+    (tmp_path / "two.json").write_text(json.dumps({"train": [], "test": ["f0", "f1"]}))
+    scored = [f"data={real}", "bootstrap=0", f"reported={tmp_path / 'an'}", "overlays=false"]
+    stats = evaluate(
+        compose([*scored, f"out={tmp_path / 'ev'}", f"split={tmp_path / 'two.json'}"], config_name="evaluate"),
+        predictors={"run0": lambda item: separate_regions(merged)},
+    )["statistics"]
+    masks_median = np.median([2 * np.sqrt(128 / np.pi), d6, 2 * np.sqrt(128 / np.pi), d6])
+    assert stats["reported"]["median_error"]["value"] == pytest.approx((d8 + 1) / masks_median - 1)
+    assert stats["reported"]["count_error"]["value"] == pytest.approx(6 / 4 - 1)
+    assert stats["run0"]["count_error"]["value"] == pytest.approx(0.0)  # the segmenter merged the pair as the masks
+    assert "reported: the sizes the analyze run (reported=) gave" in (tmp_path / "ev" / "statistics.md").read_text()
+    # an image the classical sizes do not cover: not scored (f2 was not in the profile)
+    assert (
+        "reported"
+        not in evaluate(
+            compose([*scored, f"out={tmp_path / 'ev3'}"], config_name="evaluate"),
+            predictors={"run0": lambda item: separate_regions(merged)},
+        )["statistics"]
+    )
+
+
+def test_evaluate_refuses_a_reported_folder_that_is_not_an_analyze_run(tmp_path):
+    from drgan.evaluate import EvaluateSettings
+
+    real = make_real(tmp_path / "real", {"a": disc_image(two_touching())}, {"a": (two_touching() > 0) * 255},
+                     {"train": [], "test": ["a"]})  # fmt: skip
+    cfg = compose([f"data={real}", "model=classical", f"reported={tmp_path / 'nothing'}"], config_name="evaluate")
+    with pytest.raises(ConfigError, match="reported=.*nothing.*drgan.analyze run folder"):
+        EvaluateSettings.from_config(cfg)
 
 
 def test_a_profile_folder_without_its_run_is_refused_before_any_image_is_read(tmp_path):

@@ -279,7 +279,8 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
                                       *named["segment"]], o / "segment" / "metrics.json"),
         "analyze": ("drgan.analyze", [model, f"images={data}", f"out={o / 'analyze'}", f"profile={o / 'profile'}", "nm_per_px=2.5",
                                       "inference.tile=64"], o / "analyze" / "particles.csv"),
-        "evaluate": ("drgan.evaluate", [model, f"data={tmp_path / 'a'}", f"out={o / 'evaluate'}", "subset=all"],
+        "evaluate": ("drgan.evaluate", [model, f"data={tmp_path / 'a'}", f"out={o / 'evaluate'}",
+                                        f"reported={o / 'analyze'}", "subset=all"],
                      o / "evaluate" / "results.md"),
     }  # fmt: skip
     assert stage_table.PIPELINE_KEYS == {
@@ -310,7 +311,7 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
             "ckpt_path",
         ),
         "analyze": ("model", "images", "out", "profile"),
-        "evaluate": ("model", "models", "data", "out"),
+        "evaluate": ("model", "models", "data", "out", "reported"),
     }
     assert pipeline.STAGES == stage_table.STAGES == ("profile", "train", "generate", "segment", "finetune",
                                                       "analyze", "evaluate")  # fmt: skip

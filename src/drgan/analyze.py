@@ -283,6 +283,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     out = s.out
     rows, found, thickness_values, comparisons = [], [], [], []
     compared = []  # per image classically segmented: (its classical particles at half contrast, scale, image area)
+    segmented = []  # their ids
     classical_rows = []
     for item, scale in track(list(zip(items, scales)), "segmenting images", unit="images"):
         class_map = np.asarray(predictor(item))
@@ -298,6 +299,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
             counted = np.where(np.bincount(labels.ravel())[labels] >= min_area, labels, 0)  # specks out, as above
             comparisons.append(classical_check.outline_comparison(counted, classical))
             compared.append((reference.particles(classical, min_area), scale, item.image.size))
+            segmented.append(item.id)
             classical_rows += classical_particle_rows(item.id, classical, scale, s, reference.outline_shift_px)
         if s.wires:
             thick = local_thickness(class_map > 0)
@@ -321,6 +323,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         classical_summary["statistics"] = size_statistics(
             classical_found, classical_factors, classical_areas, n_boot, s.seed
         )
+        classical_summary["segmented"] = segmented  # the images particles_classical.csv covers
     median_px = float(np.median(whole)) if whole.size else None
     closed_loop = getattr(getattr(predictor, "model", None), "closed_loop", None)
     verdict = (

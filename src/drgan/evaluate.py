@@ -61,6 +61,7 @@ from drgan.metrics.instance_scores import (
 from drgan.metrics.statistics import compare_sizes, count_errors, particles, pooled
 from drgan.progress import track
 from drgan.runtime import stage_main, start
+from drgan.segmenters.classical_check import check_reported, reported_particles
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +183,7 @@ class EvaluateSettings:
     nm_per_px: float | None = None
     min_area_px: float = 8.0
     overlay_alpha: float = 0.5
+    reported: Path | None = None  # an analyze run of these images: the sizes it reported, scored as run "reported"
     inference: dict = field(default_factory=dict)  # checkpoints only
 
     @classmethod
@@ -211,6 +213,7 @@ class EvaluateSettings:
             nm_per_px=pixel_size("evaluate", cfg.get("nm_per_px")),
             min_area_px=min_area,
             overlay_alpha=float(cfg.get("overlay_alpha", cls.overlay_alpha)),
+            reported=check_reported(cfg.reported) if cfg.get("reported") else None,
             inference=plain_node(cfg, "inference"),
         )
 
@@ -300,7 +303,10 @@ def evaluate(settings: EvaluateSettings | DictConfig, predictors: dict | None = 
         "std": {s: v[1] for s, v in stats.items()},
     }
     if s.statistics:
-        result["statistics"] = particle_statistics(s, out, found, truth, ids, sources)
+        reported = reported_particles(s.reported, [item.id for item, _ in samples]) if s.reported else None
+        if reported:  # the sizes the user's report gives for these images, scored as a run of their own
+            found[REPORTED] = reported[1]
+        result["statistics"] = particle_statistics(s, out, found, truth, ids, sources, reported and reported[0])
     return result
 
 
@@ -325,12 +331,22 @@ def statistics_min_area(cfg: DictConfig) -> float:
     return area
 
 
+REPORTED = "reported"  # the run name of the sizes an analyze run reported (``reported=``)
+
+
 def particle_statistics(
-    s: EvaluateSettings, out: Path, found: dict, truth: list, ids: list[str], sources: dict | None = None
+    s: EvaluateSettings,
+    out: Path,
+    found: dict,
+    truth: list,
+    ids: list[str],
+    sources: dict | None = None,
+    reported: str | None = None,
 ) -> dict:
     """Each run's particle statistics against the masks' (drgan.metrics.statistics); writes statistics.md,
     statistics.csv and sizes.png. Returns {run: {statistic: {value, low, high}}, plus "count_errors": [...] and,
-    with ``sources`` (per run, error_sources of each image), "sources": summed_sources}."""
+    with ``sources`` (per run, error_sources of each image), "sources": summed_sources}. ``reported``: whose sizes
+    the run named REPORTED holds (an analyze run's trusted table: ``classical`` or ``segmenter``)."""
     n_boot, seed, nm, min_area = s.bootstrap, s.seed, s.nm_per_px, s.min_area_px
     truth = [t.at_least(min_area) for t in truth]
     found = {run: [p.at_least(min_area) for p in mine] for run, mine in found.items()}
@@ -338,10 +354,10 @@ def particle_statistics(
     for run, mine in found.items():
         result[run] = compare_sizes(mine, truth, n_boot=n_boot, seed=seed)
         result[run]["count_errors"] = count_errors(mine, truth).tolist()
-        if sources:
+        if sources and run in sources:
             result[run]["sources"] = summed_sources(sources[run])
     write_bytes(out / "statistics.csv", statistics_csv(result).encode())
-    write_bytes(out / "statistics.md", statistics_markdown(result, truth, ids, nm, n_boot).encode())
+    write_bytes(out / "statistics.md", statistics_markdown(result, truth, ids, nm, n_boot, reported).encode())
     write_bytes(out / "sizes.png", size_figure(found, truth, nm))
     for run, values in result.items():
         log.info(
@@ -368,7 +384,9 @@ def statistics_csv(result: dict) -> str:
     return buf.getvalue()
 
 
-def statistics_markdown(result: dict, truth: list, ids: list[str], nm: float | None, n_boot: int) -> str:
+def statistics_markdown(
+    result: dict, truth: list, ids: list[str], nm: float | None, n_boot: int, reported: str | None = None
+) -> str:
     def interval(cell: dict, scale: float = 1.0, fmt: str = "{:.3f}") -> str:
         value = fmt.format(scale * cell["value"])
         if np.isfinite(cell["low"]):
@@ -399,14 +417,26 @@ def statistics_markdown(result: dict, truth: list, ids: list[str], nm: float | N
             f"| {interval(v['mean_error'], 100, '{:+.1f} %')} | {interval(v['count_error'], 100, '{:+.1f} %')} "
             f"| {abs_count:.1f} | {interval(v['ks'])} | {interval(v['w1'], scale, '{:.2f}')} |"
         )
-    if len(result) > 1:
+    if reported:
+        md += [
+            "",
+            f"{REPORTED}: the sizes the analyze run (reported=) gave for these images, the table it trusted: "
+            + (
+                "the profile's classical particles at half contrast (particles_classical.csv)."
+                if reported == "classical"
+                else "the segmenter's (particles.csv)."
+            ),
+        ]
+    runs = {run: v for run, v in result.items() if run != REPORTED}
+    if len(runs) > 1:
         keys = ("median_error", "mean_error", "count_error", "ks", "w1")
-        spread = {k: _mean_std([v[k]["value"] for v in result.values()]) for k in keys}
+        spread = {k: _mean_std([v[k]["value"] for v in runs.values()]) for k in keys}
         md += [
             "",
             "Over runs (mean +- sample std): " + ", ".join(f"{k} {m:.3f} +- {s:.3f}" for k, (m, s) in spread.items()),
         ]
-    if all("sources" in v for v in result.values()):
+    with_sources = {run: v for run, v in result.items() if "sources" in v}
+    if with_sources:
         md += [
             "",
             "## Where particles are lost",
@@ -419,7 +449,7 @@ def statistics_markdown(result: dict, truth: list, ids: list[str], nm: float | N
             f"| run | true particles | {' | '.join(ERROR_SOURCES)} | false | boundary offset ({unit}) |",
             "|---|---|" + "---|" * len(ERROR_SOURCES) + "---|---|",
         ]
-        for run, v in result.items():
+        for run, v in with_sources.items():
             src = v["sources"]
             share = " | ".join(f"{100 * src[k] / max(src['n_true'], 1):.1f} %" for k in ERROR_SOURCES)
             md.append(

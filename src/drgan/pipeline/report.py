@@ -204,14 +204,22 @@ def evaluate_summary(folder: Path) -> dict:
     if not means:
         return {}
     scores = {k: float(means[0][k]) for k in ("dsc", "ap50", "pq") if means[0].get(k)}
-    stats = {r["statistic"]: float(r["value"]) for r in _rows(folder / "statistics.csv") if r.get("run") == "run0"}
+    rows = _rows(folder / "statistics.csv")
+    stats = {r["statistic"]: float(r["value"]) for r in rows if r.get("run") == "run0"}
+    reported = {r["statistic"]: float(r["value"]) for r in rows if r.get("run") == "reported"}
     line = f"DSC {_number(scores.get('dsc'))}, AP50 {_number(scores.get('ap50'))}, PQ {_number(scores.get('pq'))}"
     if "median_error" in stats:
         line += f"; median diameter {100 * stats['median_error']:+.1f} %, count {100 * stats['count_error']:+.1f} %"
+    if "median_error" in reported:  # the sizes analyze reported (its trusted table), when not the segmenter's own
+        line += (
+            f"; the sizes the report gives: median diameter {100 * reported['median_error']:+.1f} %, count "
+            f"{100 * reported['count_error']:+.1f} %"
+        )
     return {
         "line": line,
         "metrics": {f"evaluate/{k}": v for k, v in scores.items()}
-        | {f"evaluate/{k}": stats[k] for k in ("median_error", "count_error") if k in stats},
+        | {f"evaluate/{k}": stats[k] for k in ("median_error", "count_error") if k in stats}
+        | {f"evaluate/reported_{k}": reported[k] for k in ("median_error", "count_error") if k in reported},
         "scores": scores,
         "statistics": {k: stats[k] for k in ("median_error", "count_error", "ks", "w1") if k in stats},
     }

@@ -183,11 +183,13 @@ PIPELINE: list[StageSpec] = [
         paced=False,
         wire=lambda c: None if c.annotated is None else
         [f"model={_segmenter(c)}", f"data={c.annotated}", f"out={c.folder('evaluate')}",
+         f"reported={c.folder('analyze')}",
          *([] if (c.annotated / "split.json").is_file() else ["subset=all"])],
-        keys=("model", "models", "data", "out"),
+        keys=("model", "models", "data", "out", "reported"),
         done=lambda c: c.folder("evaluate") / "results.md",
         summary=report.evaluate_summary,
-        what="scores the segmenter on the annotated images (never used for anything else)",
+        what="scores the segmenter on the annotated images (never used for anything else), and the sizes the analyze "
+        "stage reported for them",
         links=(("scores", "results.md"), ("statistics", "statistics.md"), ("sizes", "sizes.png"),
                ("overlays", "overlays")),
         artifacts=("results.md", "statistics.md"),

@@ -319,3 +319,55 @@ def judge(
         "annotated images (annotated=).",
         None,
     )
+
+
+# the particle table of the sizes analyze reports, by its verdict: (file, diameter column)
+TABLES = {CLASSICAL: ("particles_classical.csv", "half_contrast_diameter_px")}
+OWN_TABLE = ("particles.csv", "equivalent_diameter_px")
+
+
+def check_reported(folder) -> Path:
+    """``reported=``: an analyze run folder (summary.json, particles.csv), or a ConfigError before any image is read."""
+    path = Path(str(folder)).expanduser()
+    if not (path / "summary.json").is_file() or not (path / OWN_TABLE[0]).is_file():
+        raise ConfigError(f"reported={folder}: expected a drgan.analyze run folder (summary.json, particles.csv in it)")
+    return path
+
+
+def reported_particles(folder: Path, ids: Sequence[str]) -> tuple[str, list] | None:
+    """The sizes an analyze run reported for the images ``ids``, per image as drgan.metrics.statistics.Particles: the
+    table its verdict trusts (``particles_classical.csv``, diameters at half contrast, where it trusted the classical
+    sizes; else ``particles.csv``), and which (``classical`` or ``segmenter``). None, logged, when the run did not
+    measure every one of ``ids``."""
+    import csv
+
+    from drgan.metrics.statistics import Particles
+
+    summary = json.loads((folder / "summary.json").read_text())
+    trusted = summary.get("trusted")
+    which = CLASSICAL if trusted in TABLES and (folder / TABLES[trusted][0]).is_file() else SEGMENTER
+    name, column = TABLES.get(which, OWN_TABLE)
+    if which == CLASSICAL:
+        measured = set((summary.get("classical") or {}).get("segmented") or [])
+    else:
+        measured = {str(r["image"]) for r in summary.get("per_image") or []}
+    missing = [i for i in ids if i not in measured]
+    if missing:
+        log.warning(
+            "reported=%s: its %s sizes do not cover %d of the %d images scored (%s): they are not scored",
+            folder, which, len(missing), len(ids), ", ".join(missing[:5]),
+        )  # fmt: skip
+        return None
+    rows: dict[str, list] = {i: [] for i in ids}
+    with (folder / name).open(newline="") as handle:
+        for row in csv.DictReader(handle):
+            if row["image"] in rows:
+                rows[row["image"]].append(
+                    (float(row[column]), float(row["axis_ratio"]), row["touches_border"] == "True")
+                )
+    found = []
+    for image_id in ids:
+        values = np.asarray(rows[image_id], np.float64).reshape(-1, 3)
+        diameter = values[:, 0]
+        found.append(Particles(np.pi / 4.0 * diameter**2, diameter, values[:, 1], values[:, 2].astype(bool)))
+    return which, found
