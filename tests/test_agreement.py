@@ -172,6 +172,26 @@ def test_segment_with_the_check_trains_another_seed_when_the_first_covers_too_li
     assert again == metrics and json.loads((out / "metrics.json").read_text()) == written
 
 
+def test_each_attempt_has_an_early_stopping_of_its_own(tmp_path):
+    from drgan.segment import segment
+
+    data = make_generated(tmp_path / "gen")
+    images, labels = _images_and_reference(tmp_path / "real", ["a", "b"])
+    out = tmp_path / "run"
+    overrides = tiny_segment_overrides(
+        data, tmp_path, out, "logger=none", "trainer.max_epochs=3", "check_fraction=0", "split_calibration=null",
+        "early_stopping.patience=1", "early_stopping.min_delta=1000",  # no epoch improves on the first one
+        f"agreement.images={images}", f"agreement.reference={labels}", "agreement.min_covered=1.0",
+        "agreement.retries=1", "agreement.crop_rows=null",
+    )  # fmt: skip
+    segment(compose(overrides, config_name="segment"))
+    attempts = [json.loads(m.read_text()) for m in sorted((out / "attempts").glob("*/metrics.json"))]
+    attempts.append(json.loads((out / "metrics.json").read_text()))  # the kept one is back in the run folder
+    # each attempt: epoch 0 sets its best, epoch 1 does not beat it by 1000: stopped after 2 epochs (a stopper shared
+    # with the first attempt stopped the second after its epoch 0)
+    assert len(attempts) == 2 and all(m["epoch"] == 2 and "patience" in m["stop_reason"] for m in attempts), attempts
+
+
 def test_segment_checks_its_calibrated_split_on_the_users_images_against_the_classical_count(tmp_path):
     from drgan.segment import segment
 

@@ -129,14 +129,16 @@ def segment(cfg: DictConfig) -> dict:
     finetuning = bool(cfg.get("finetune") or cfg.get("corrected"))
     guard = None if finetuning else agreement_settings(cfg.get("agreement"))
     if guard is not None:
-        return guarded(cfg, guard, stopper, calibration_grid)
+        return guarded(cfg, guard, calibration_grid)
     prepared = prepare_finetune(cfg) if finetuning else prepare(cfg)
     return fit_and_record(cfg, prepared, stopper, calibration_grid, wall_start)
 
 
-def guarded(cfg: DictConfig, guard, stopper, calibration_grid) -> dict:
+def guarded(cfg: DictConfig, guard, calibration_grid) -> dict:
     """Train, check the segmenter against the classical foreground of the user's images, and train the next seed
-    while it covers too little of it (drgan.segmenters.agreement); the best-agreeing attempt is kept in cfg.out."""
+    while it covers too little of it (drgan.segmenters.agreement); the best-agreeing attempt is kept in cfg.out. Each
+    attempt has an early stopping of its own (one shared would carry the last attempt's best loss and patience into
+    the next, and stop it after its first epoch)."""
     import lightning.pytorch as L
 
     from drgan.segmenters.agreement import Attempts, check_agreement, read_reference
@@ -155,6 +157,7 @@ def guarded(cfg: DictConfig, guard, stopper, calibration_grid) -> dict:
         if attempts.records and mlflow is not None:  # a retry is its own MLflow run, named by its seed
             with open_dict(cfg):
                 cfg.logger.mlflow.run_name = f"{first_name}/seed={seed}"
+        stopper = early_stopping(cfg.get("early_stopping"))
         fit_and_record(cfg, prepare(cfg), stopper, calibration_grid, time.perf_counter(), items)
         check = check_agreement(out / "checkpoints" / "last.ckpt", items, progress)
         log.info(
