@@ -4,6 +4,7 @@ when it covers too little (drgan.segmenters.agreement, drgan.segment's ``agreeme
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -145,17 +146,25 @@ def test_the_retries_end_and_the_best_of_the_weak_seeds_is_kept(tmp_path):
     assert (tmp_path / "checkpoints" / "last.ckpt").read_text() == "seed0"
 
 
-def test_segment_with_the_check_trains_another_seed_when_the_first_covers_too_little(tmp_path):
-    from drgan.segment import segment
-
+def guarded_run(tmp_path, *settings: str) -> tuple[list[str], Path, Path]:
+    """A tiny guarded segment run's overrides (generated discs, two real images and their classical labels, no
+    logger, no closed-loop check), its run folder and the reference labels' folder."""
     data = make_generated(tmp_path / "gen")
     images, labels = _images_and_reference(tmp_path / "real", ["a", "b"])
     out = tmp_path / "run"
     overrides = tiny_segment_overrides(
-        data, tmp_path, out, "logger=none", "trainer.max_epochs=1", "check_fraction=0", "split_calibration=null",
-        f"agreement.images={images}", f"agreement.reference={labels}", "agreement.min_covered=1.0",
-        "agreement.retries=1", "agreement.crop_rows=null",
+        data, tmp_path, out, "logger=none", "check_fraction=0", f"agreement.images={images}",
+        f"agreement.reference={labels}", "agreement.crop_rows=null", *settings,
     )  # fmt: skip
+    return overrides, out, labels
+
+
+def test_segment_with_the_check_trains_another_seed_when_the_first_covers_too_little(tmp_path):
+    from drgan.segment import segment
+
+    overrides, out, _ = guarded_run(
+        tmp_path, "trainer.max_epochs=1", "split_calibration=null", "agreement.min_covered=1.0", "agreement.retries=1"
+    )
     metrics = segment(compose(overrides, config_name="segment"))
     written = json.loads((out / "metrics.json").read_text())
     agreement = written["agreement"]
@@ -175,14 +184,9 @@ def test_segment_with_the_check_trains_another_seed_when_the_first_covers_too_li
 def test_each_attempt_has_an_early_stopping_of_its_own(tmp_path):
     from drgan.segment import segment
 
-    data = make_generated(tmp_path / "gen")
-    images, labels = _images_and_reference(tmp_path / "real", ["a", "b"])
-    out = tmp_path / "run"
-    overrides = tiny_segment_overrides(
-        data, tmp_path, out, "logger=none", "trainer.max_epochs=3", "check_fraction=0", "split_calibration=null",
+    overrides, out, _ = guarded_run(
+        tmp_path, "trainer.max_epochs=3", "split_calibration=null", "agreement.min_covered=1.0", "agreement.retries=1",
         "early_stopping.patience=1", "early_stopping.min_delta=1000",  # no epoch improves on the first one
-        f"agreement.images={images}", f"agreement.reference={labels}", "agreement.min_covered=1.0",
-        "agreement.retries=1", "agreement.crop_rows=null",
     )  # fmt: skip
     segment(compose(overrides, config_name="segment"))
     attempts = [json.loads(m.read_text()) for m in sorted((out / "attempts").glob("*/metrics.json"))]
@@ -195,14 +199,9 @@ def test_each_attempt_has_an_early_stopping_of_its_own(tmp_path):
 def test_segment_checks_its_calibrated_split_on_the_users_images_against_the_classical_count(tmp_path):
     from drgan.segment import segment
 
-    data = make_generated(tmp_path / "gen")
-    images, labels = _images_and_reference(tmp_path / "real", ["a", "b"])
-    out = tmp_path / "run"
-    overrides = tiny_segment_overrides(
-        data, tmp_path, out, "logger=none", "trainer.max_epochs=1", "check_fraction=0", "agreement.min_covered=0.0",
-        "agreement.min_dice=0.0", f"agreement.images={images}", f"agreement.reference={labels}",
-        "agreement.crop_rows=null",
-    )  # fmt: skip
+    overrides, out, labels = guarded_run(
+        tmp_path, "trainer.max_epochs=1", "agreement.min_covered=0.0", "agreement.min_dice=0.0"
+    )
     segment(compose(overrides, config_name="segment"))
     calibration = json.loads((out / "metrics.json").read_text())["split_calibration"]
     guard = calibration["real_count"]
