@@ -139,7 +139,7 @@ def test_what_the_users_images_say_comes_before_the_checks_interval():
     assert (
         inside.trusted == CLASSICAL and "beyond" not in inside.sentence and "35 % of the classical" in inside.sentence
     )
-    assert judge(28.6, 26.1, exact_check()).trusted == BOTH  # without the comparison: the check's interval rules
+    assert judge(28.6, 26.1, exact_check()).trusted == SEGMENTER  # without the comparison: the check's interval
     # a biased check whose gap the classical segmentation's merges explain: not the classical sizes
     biased = {"median_error": {"value": 0.12, "low": 0.02, "high": 0.20}, "merged": 0.05}
     assert judge(22.0, 24.3, biased, outlines(0.04, 0.52)).trusted == SEGMENTER
@@ -172,7 +172,8 @@ def test_images_the_profile_did_not_segment_are_segmented_with_its_settings(tmp_
     params = resolve_params([image], SegmentParams(scale=13.0, neck_depth=0.0), "bright")[0].as_dict()
     (tmp_path / "labels").mkdir()
     (tmp_path / "profile.json").write_text(json.dumps(
-        {"sizes": {"median_diameter_px": 13.0}, "segmentation": {"params": params}, "polarity": {"polarity": "bright"}}
+        {"sizes": {"median_diameter_px": 13.0}, "segmentation": {"params": params},
+         "polarity": {"value": "bright", "setting": "bright"}}  # as a profile with data.polarity=bright writes it
     ))  # fmt: skip
     stored = two_touching(64)
     write_label_tiff(tmp_path / "labels" / "seen.tif", stored)
@@ -193,8 +194,10 @@ def test_a_pipeline_state_from_before_the_comparison_still_gets_the_medians_comp
 
 
 def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tmp_path):
-    from drgan.analyze import analyze
+    from drgan.analyze import analyze, statistics_markdown
     from drgan.data.imagej import write_label_tiff
+    from drgan.evaluate import evaluate
+    from drgan.pipeline.report import analyze_summary, evaluate_summary
     from drgan.segmenters.inference import separate_regions
 
     fields = {f"f{i}": two_touching() for i in range(3)}
@@ -202,7 +205,8 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
                      {k: (v > 0) * 255 for k, v in fields.items()}, {"train": [], "test": sorted(fields)})  # fmt: skip
     profile = tmp_path / "profile"
     (profile / "labels").mkdir(parents=True)
-    (profile / "profile.json").write_text(json.dumps({"sizes": {"median_diameter_px": 7.77, "outline_shift_px": 0.5}}))
+    # the classical outlines lie 0.5 px outside half contrast; no settings recorded: its own two images only
+    (profile / "profile.json").write_text(json.dumps({"sizes": {"median_diameter_px": 7.0, "outline_shift_px": -0.5}}))
     for k in ("f0", "f1"):  # the profile segmented two of the three images (its training images)
         write_label_tiff(profile / "labels" / f"{k}.tif", fields[k])
     merged = two_touching()
@@ -216,52 +220,82 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
     assert classical["merged_by_segmenter"] == pytest.approx(4 / 6) and classical["merged_by_classical"] == 0
     text = (tmp_path / "an" / "statistics.md").read_text()
     assert "On your 2 images the segmenter holds 67 % of the classical particles" in text
-    assert "drgan trusts the classical sizes" in text
-    # the trusted sizes beside the segmenter's: the classical particles of the 2 images, at half contrast (+ 2 x 0.5)
-    assert summary["trusted"] == CLASSICAL
+    # the trusted sizes beside the segmenter's: the classical particles of the 2 images, at half contrast (- 2 x 0.5)
+    assert summary["trusted"] == CLASSICAL and summary["verdict"] in text
     theirs = classical["statistics"]
-    d8, d6 = 2 * np.sqrt(64 / np.pi), 2 * np.sqrt(36 / np.pi)
-    assert theirs["count"]["value"] == 6 and theirs["median_diameter"]["value"] == pytest.approx(d8 + 1)
-    assert summary["statistics"]["median_diameter"]["value"] == pytest.approx((2 * np.sqrt(128 / np.pi) + d6) / 2)
+    d8, d6, d128 = (2 * np.sqrt(a / np.pi) for a in (64, 36, 128))
+    assert theirs["count"]["value"] == 6 and theirs["median_diameter"]["value"] == pytest.approx(d8 - 1)
+    # the verdict compares the medians the table shows (the profile's own, of its images, kept beside)
+    assert classical["median_diameter_px"] == pytest.approx(d8 - 1) and classical["profile_median_diameter_px"] == 7.0
+    ours = summary["statistics"]["median_diameter"]["value"]
+    assert ours == pytest.approx((d128 + d6) / 2) and f"({d8 - 1:.1f} px; threshold" in summary["verdict"]
     assert "| statistic | segmenter: value [95 % interval] | classical: value [95 % interval] |" in text
-    assert f"| median diameter (px) | {summary['statistics']['median_diameter']['value']:.3g} | {d8 + 1:.3g} |" in text
-    assert "**drgan trusts the classical sizes** (the right-hand column" in text
+    assert f"| median diameter (px) | {ours:.3g} | {d8 - 1:.3g} |" in text
+    assert "sized at half contrast of the images' mean edge. **drgan trusts the classical sizes** (the right" in text
     rows = (tmp_path / "an" / "particles_classical.csv").read_text().splitlines()
     header = rows[0].split(",")
     assert len(rows) == 1 + 6 and "half_contrast_diameter_px" in header
     row = dict(zip(header, rows[1].split(",")))
     assert (row["image"], row["id"]) == ("f0", "1")
-    assert float(row["half_contrast_diameter_px"]) == pytest.approx(float(row["equivalent_diameter_px"]) + 1)
+    assert float(row["half_contrast_diameter_px"]) == pytest.approx(float(row["equivalent_diameter_px"]) - 1)
+    # the headline follows the verdict and says where the sizes lie
+    for trusted, words in (("both", "agree within 5 %: **drgan trusts these sizes** and reports the segmenter's"),
+                           ("segmenter", "**drgan trusts the segmenter's sizes** (the left-hand column"),
+                           (None, "**Neither size is trusted over the other**")):  # fmt: skip
+        assert words in statistics_markdown({**summary, "trusted": trusted})
+    unshifted = {**summary, "classical": {**classical, "half_contrast": False}}
+    assert "sized at its segmented outlines (the profile found no mean edge" in statistics_markdown(unshifted)
     # the pipeline report's analyze line puts the trusted sizes first
-    from drgan.pipeline.report import analyze_summary
-
     line = analyze_summary(tmp_path / "an")["line"]
     assert line.startswith(
-        f"drgan trusts the classical sizes: median diameter {d8 + 1:.1f} px (6 particles in 2 images"
+        f"drgan trusts the classical sizes: median diameter {d8 - 1:.1f} px (6 particles in 2 images"
     )
     assert "the segmenter's: 6 particles in 3 images" in line
     # evaluate scores the sizes the report gives against the masks (binary: the pair is one 128 px² particle there)
-    from drgan.evaluate import evaluate
-
     (tmp_path / "two.json").write_text(json.dumps({"train": [], "test": ["f0", "f1"]}))
     scored = [f"data={real}", "bootstrap=0", f"reported={tmp_path / 'an'}", "overlays=false"]
     stats = evaluate(
         compose([*scored, f"out={tmp_path / 'ev'}", f"split={tmp_path / 'two.json'}"], config_name="evaluate"),
         predictors={"run0": lambda item: separate_regions(merged)},
     )["statistics"]
-    masks_median = np.median([2 * np.sqrt(128 / np.pi), d6, 2 * np.sqrt(128 / np.pi), d6])
-    assert stats["reported"]["median_error"]["value"] == pytest.approx((d8 + 1) / masks_median - 1)
+    masks_median = np.median([d128, d6, d128, d6])
+    assert stats["reported"]["median_error"]["value"] == pytest.approx((d8 - 1) / masks_median - 1)
     assert stats["reported"]["count_error"]["value"] == pytest.approx(6 / 4 - 1)
     assert stats["run0"]["count_error"]["value"] == pytest.approx(0.0)  # the segmenter merged the pair as the masks
-    assert "reported: the sizes the analyze run (reported=) gave" in (tmp_path / "ev" / "statistics.md").read_text()
-    # an image the classical sizes do not cover: not scored (f2 was not in the profile)
     assert (
-        "reported"
-        not in evaluate(
-            compose([*scored, f"out={tmp_path / 'ev3'}"], config_name="evaluate"),
-            predictors={"run0": lambda item: separate_regions(merged)},
-        )["statistics"]
+        "reported: the sizes the analyze run (reported=) gave for these images: the profile's classical"
+        in (tmp_path / "ev" / "statistics.md").read_text()
     )
+    scores = evaluate_summary(tmp_path / "ev")
+    assert (
+        f"the sizes the report gives (the classical ones): median diameter {100 * ((d8 - 1) / masks_median - 1):+.1f} %"
+        in scores["line"]
+    )
+    assert scores["metrics"]["evaluate/reported_count_error"] == pytest.approx(0.5)
+    # an image the classical sizes do not cover (f2 was not in the profile): not scored, and not quoted
+    unscored = evaluate(compose([*scored, f"out={tmp_path / 'ev3'}"], config_name="evaluate"),
+                        predictors={"run0": lambda item: separate_regions(merged)})  # fmt: skip
+    assert "reported" not in unscored["statistics"] and "report gives" not in evaluate_summary(tmp_path / "ev3")["line"]
+
+
+def test_the_reported_table_falls_back_to_the_segmenters_and_refuses_other_images(tmp_path, caplog):
+    from drgan.segmenters.classical_check import reported_particles
+
+    folder = tmp_path / "an"
+    folder.mkdir()
+    header = "id,image,area_px,equivalent_diameter_px,axis_ratio,touches_border,sized\n"
+    (folder / "particles.csv").write_text(header + "1,a,100,11.28,1.0,False,True\n2,a,50,7.98,1.0,True,False\n")
+    summary = {"images_dir": str(tmp_path / "images"), "per_image": [{"image": "a"}, {"image": "b"}]}
+    (folder / "summary.json").write_text(json.dumps({**summary, "trusted": "classical"}))  # its table is missing
+    got = reported_particles(folder, ["a", "b"], tmp_path / "images")
+    assert got.table == SEGMENTER and [p.count for p in got.particles] == [2, 0]
+    np.testing.assert_allclose(got.particles[0].diameter, [11.28, 7.98])
+    assert got.particles[0].border.tolist() == [False, True]
+    (folder / "summary.json").write_text(json.dumps(summary))  # a summary from before the verdict
+    assert reported_particles(folder, ["a"], tmp_path / "images").table == SEGMENTER
+    assert reported_particles(folder, ["a"], tmp_path / "elsewhere") is None  # the same ids, another folder
+    assert reported_particles(folder, ["a", "c"], tmp_path / "images") is None  # an image it did not measure
+    assert "not scored" in caplog.text
 
 
 def test_evaluate_refuses_a_reported_folder_that_is_not_an_analyze_run(tmp_path):

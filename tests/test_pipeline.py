@@ -219,6 +219,25 @@ def test_changed_settings_of_a_done_stage_stop_the_rerun_and_redo_runs_it_again(
     assert fake.names() == ["segment", "analyze"] and "model.normalize=none" in fake.calls[0]
 
 
+def test_a_stage_done_before_the_pipeline_wired_a_key_stays_done(tmp_path, monkeypatch, capsys):
+    images_folder(tmp_path / "images")
+    fake = FakeStages(monkeypatch)
+    pipeline.run(settings(tmp_path), echo=lambda line: None)
+    record = tmp_path / "out" / "pipeline.json"
+    state = json.loads(record.read_text())
+    args = state["stages"]["analyze"]["args"]
+    state["stages"]["analyze"]["args"] = [a for a in args if not a.startswith("profile=")]  # an older drgan's record
+    record.write_text(json.dumps(state))
+    fake.calls = []
+    pipeline.run(settings(tmp_path), echo=lambda line: None)
+    assert fake.calls == [] and "analyze was done by an older drgan without profile=" in capsys.readouterr().err
+    # a value the record holds otherwise is a changed setting, not a new key
+    state["stages"]["analyze"]["args"] = ["profile=elsewhere" if a.startswith("profile=") else a for a in args]
+    record.write_text(json.dumps(state))
+    with pytest.raises(ConfigError, match="stage analyze is done with other settings"):
+        pipeline.run(settings(tmp_path), echo=lambda line: None)
+
+
 def test_corrected_outlines_added_to_a_finished_run_fine_tune_and_analyze_again(tmp_path, monkeypatch):
     """corrected=DIR on a finished run: the finetune stage runs, and analyze, done before it with segment's segmenter,
     runs again after it with the fine-tuned one (a done stage after one that runs is run again); nothing else reruns.

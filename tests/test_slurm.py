@@ -144,7 +144,7 @@ def test_a_batch_file_is_checked_row_by_row_before_anything_runs(tmp_path):
         batch.parse_batch([f"batch={good}", f"data.dir={tmp_path}"])
 
 
-def _fake_sample(folder: Path, diameters: list[float], check: float) -> None:
+def _fake_sample(folder: Path, diameters: list[float], check: float, classical: list[float] | None = None) -> None:
     (folder / "analyze").mkdir(parents=True)
     rows = [{"id": i, "image": "a", "equivalent_diameter_px": d, "sized": "True"} for i, d in enumerate(diameters)]
     rows.append({"id": 99, "image": "a", "equivalent_diameter_px": 500.0, "sized": "False"})  # cut by the border
@@ -153,6 +153,15 @@ def _fake_sample(folder: Path, diameters: list[float], check: float) -> None:
     summary = {"images": 2, "unit": "px", "closed_loop": {"median_error": {"value": check}},
                "statistics": {"count": {"value": len(diameters) + 1},
                               "median_diameter": {"value": median, "low": median - 1.0, "high": median + 1.0}}}  # fmt: skip
+    if classical:  # its analyze trusted the classical sizes (particles_classical.csv, diameters at half contrast)
+        rows = [
+            {"id": i, "image": "a", "half_contrast_diameter_px": d, "sized": "True"} for i, d in enumerate(classical)
+        ]
+        _csv(folder / "analyze" / "particles_classical.csv", rows)
+        middle = float(np.median(classical))
+        summary["trusted"] = "classical"
+        summary["classical"] = {"statistics": {"count": {"value": len(classical)},
+                                               "median_diameter": {"value": middle, "low": middle, "high": middle}}}  # fmt: skip
     (folder / "analyze" / "summary.json").write_text(json.dumps(summary))
     (folder / "pipeline.json").write_text(json.dumps({"stages": {"analyze": {"state": "done"}}}))
 
@@ -162,7 +171,9 @@ def test_the_study_summary_compares_the_samples_sizes_from_their_folders(tmp_pat
     study = tmp_path / "study"
     _fake_sample(study / "small", [10.0, 11.0, 12.0, 13.0, 14.0], 0.05)
     _fake_sample(study / "large", [20.0, 22.0, 24.0, 26.0, 28.0, 30.0], -0.02)
-    rows = [{"name": "small", "dir": "a"}, {"name": "large", "dir": "a"}, {"name": "lost", "dir": "a"}]
+    _fake_sample(study / "merged", [40.0, 44.0], 0.01, classical=[20.0, 21.0, 22.0])
+    rows = [{"name": "small", "dir": "a"}, {"name": "large", "dir": "a"}, {"name": "merged", "dir": "a"},
+            {"name": "lost", "dir": "a"}]  # fmt: skip
     b = batch.parse_batch([f"batch={_csv(tmp_path / 'study.csv', rows)}", f"out={study}"])
     summary = batch.write_summary(b, {"lost": "exit code 1"})
     by = {r["sample"]: r for r in summary["samples"]}
@@ -170,11 +181,13 @@ def test_the_study_summary_compares_the_samples_sizes_from_their_folders(tmp_pat
     assert by["small"]["p10"] == pytest.approx(np.percentile([10, 11, 12, 13, 14], 10))
     assert by["lost"]["median"] is None
     text = (study / "summary.md").read_text()
-    assert "| small | done | 2 | 6 | 12.0 [11.0, 13.0] | 10.4-13.6 | px | +5.0% |" in text
+    assert "| small | done | 2 | 6 | 12.0 [11.0, 13.0] | 10.4-13.6 | px | segmenter | +5.0% |" in text
+    # a sample whose report trusts the classical sizes: those in the study too
+    assert by["merged"]["median"] == 21.0 and by["merged"]["sized"] == 3 and by["merged"]["sizes"] == "classical"
     assert "| lost | failed |" in text and "- lost failed: exit code 1" in text
     assert (study / "sizes.png").stat().st_size > 10_000
     table = list(csv.DictReader(open(study / "summary.csv")))
-    assert [r["sample"] for r in table] == ["small", "large", "lost"] and float(table[1]["median"]) == 25.0
+    assert [r["sample"] for r in table] == ["small", "large", "merged", "lost"] and float(table[1]["median"]) == 25.0
 
 
 # --- through a real SLURM ---------------------------------------------------------------------------------

@@ -17,6 +17,10 @@ Writes, in ``out``:
 - statistics.md and summary.json: counts (total, per image, per area), median and mean diameter, the size
   distribution's model (normal / lognormal / two-lognormal mixture by BIC, as the profile fits it) and its
   parameters, each with a 95 % percentile bootstrap interval over images (images are the independent samples);
+  with ``profile=``, the same for the profile's classical segmentation of the images beside them, and whose sizes
+  drgan trusts and why (drgan.segmenters.classical_check; summary.json's ``trusted``, ``verdict``);
+- particles_classical.csv (with ``profile=``): the classical particles as particles.csv, plus
+  half_contrast_diameter_px (the diameter at half contrast, where the profile measured the images' mean edge);
 - sizes.png: histogram of the sized particles with the fitted density, and the cumulative distribution;
   histograms.png: area and diameter histograms;
 - overlays/ID.png: every image with each particle's outline (cut particles in another colour) and its id, to check
@@ -324,6 +328,11 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
             classical_found, classical_factors, classical_areas, n_boot, s.seed
         )
         classical_summary["segmented"] = segmented  # the images particles_classical.csv covers
+        # the verdict compares like with like: the classical median of the images analyzed (the profile's own, of
+        # its images only, kept beside it), as the right-hand column of statistics.md shows it
+        theirs = pooled(classical_found)
+        classical_summary["profile_median_diameter_px"] = classical_summary["median_diameter_px"]
+        classical_summary["median_diameter_px"] = float(np.median(theirs)) if theirs.size else None
     median_px = float(np.median(whole)) if whole.size else None
     closed_loop = getattr(getattr(predictor, "model", None), "closed_loop", None)
     verdict = (
@@ -341,10 +350,12 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         # the classical particles' statistics when analyze compared images, and whose sizes drgan trusts
         "classical": classical_summary,
         "trusted": verdict.trusted if verdict else None,
+        "verdict": verdict.sentence if verdict else None,
         "unit": unit,
         "area_unit": area_unit,
         "pixel_size": pixel_note,
         "min_area_px": min_area,
+        "exclude_border": s.exclude_border,
         "model": predictor.source,
         "inference": predictor.how,
         "statistics": stats,
@@ -356,6 +367,8 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     write_bytes(out / "particles.csv", _csv(rows).encode())
     if classical_rows:
         write_bytes(out / "particles_classical.csv", _csv(classical_rows).encode())
+    else:  # a rerun into the same folder must not leave an earlier run's classical table beside this run's
+        (out / "particles_classical.csv").unlink(missing_ok=True)
     write_json(out / "summary.json", summary)
     write_bytes(out / "statistics.md", statistics_markdown(summary).encode())
     classical_d = (
@@ -443,7 +456,8 @@ TRUSTED_WORDS = {  # statistics.md's headline on whose sizes drgan trusts (class
     "classical": "**drgan trusts the classical sizes** (the right-hand column; why: below): the segmenter's "
     "particle table and outlines are its own, the classical particles are in particles_classical.csv.",
     "segmenter": "**drgan trusts the segmenter's sizes** (the left-hand column; why: below).",
-    "both": "The segmenter and the classical segmentation agree: **drgan trusts these sizes** (why: below).",
+    "both": "The two median diameters agree within 5 %: **drgan trusts these sizes** and reports the segmenter's "
+    "(the left-hand column, particles.csv; why: below).",
     None: "**Neither size is trusted over the other** (why: below): compare the two columns and the overlays.",
 }
 
@@ -464,7 +478,12 @@ def statistics_markdown(summary: dict) -> str:
         images = summary["classical"]["images"]
         lines += [
             f"Beside the segmenter's: the profile's classical segmentation (threshold + watershed at the profile's "
-            f"settings, no training) of {images} of the images, sized at half contrast. "
+            f"settings, no training) of {images} of the images, "
+            + (
+                "sized at half contrast of the images' mean edge. "
+                if summary["classical"].get("half_contrast")
+                else "sized at its segmented outlines (the profile found no mean edge to move them to half contrast). "
+            )
             + TRUSTED_WORDS[summary.get("trusted")],
             "",
             "| statistic | segmenter: value [95 % interval] | classical: value [95 % interval] |",
@@ -508,6 +527,8 @@ def classical_paragraph(summary: dict) -> str:
     """statistics.md's comparison with the profile's classical sizes of the same images, and which drgan trusts."""
     from drgan.segmenters.classical_check import compare_with_classical
 
+    if summary.get("verdict"):  # as analyze judged it
+        return summary["verdict"]
     classical = summary["classical"]
     return compare_with_classical(
         summary.get("median_diameter_px"), classical.get("median_diameter_px"), summary.get("closed_loop"), classical

@@ -50,7 +50,7 @@ from omegaconf import DictConfig
 from drgan.configs import plain_node
 from drgan.data.imagej import write_outlines
 from drgan.errors import ConfigError, pixel_size
-from drgan.io import write_bytes, write_with
+from drgan.io import write_bytes, write_json, write_with
 from drgan.metrics.instance_scores import (
     ERROR_SOURCES,
     binarize_and_label,
@@ -303,10 +303,16 @@ def evaluate(settings: EvaluateSettings | DictConfig, predictors: dict | None = 
         "std": {s: v[1] for s, v in stats.items()},
     }
     if s.statistics:
-        reported = reported_particles(s.reported, [item.id for item, _ in samples]) if s.reported else None
+        reported = (
+            reported_particles(s.reported, [item.id for item, _ in samples], s.data / "images") if s.reported else None
+        )
         if reported:  # the sizes the user's report gives for these images, scored as a run of their own
-            found[REPORTED] = reported[1]
-        result["statistics"] = particle_statistics(s, out, found, truth, ids, sources, reported and reported[0])
+            found[REPORTED] = reported.particles
+            write_json(out / "reported.json", {"analyze": str(s.reported), "table": reported.table,
+                                               "trusted": reported.trusted})  # fmt: skip
+        else:
+            (out / "reported.json").unlink(missing_ok=True)
+        result["statistics"] = particle_statistics(s, out, found, truth, ids, sources, reported)
     return result
 
 
@@ -341,15 +347,15 @@ def particle_statistics(
     truth: list,
     ids: list[str],
     sources: dict | None = None,
-    reported: str | None = None,
+    reported=None,
 ) -> dict:
     """Each run's particle statistics against the masks' (drgan.metrics.statistics); writes statistics.md,
     statistics.csv and sizes.png. Returns {run: {statistic: {value, low, high}}, plus "count_errors": [...] and,
-    with ``sources`` (per run, error_sources of each image), "sources": summed_sources}. ``reported``: whose sizes
-    the run named REPORTED holds (an analyze run's trusted table: ``classical`` or ``segmenter``)."""
+    with ``sources`` (per run, error_sources of each image), "sources": summed_sources}. ``reported``: what the run
+    named REPORTED holds (classical_check.Reported: an analyze run's table, its specks already left out)."""
     n_boot, seed, nm, min_area = s.bootstrap, s.seed, s.nm_per_px, s.min_area_px
     truth = [t.at_least(min_area) for t in truth]
-    found = {run: [p.at_least(min_area) for p in mine] for run, mine in found.items()}
+    found = {run: mine if run == REPORTED else [p.at_least(min_area) for p in mine] for run, mine in found.items()}
     result = {}
     for run, mine in found.items():
         result[run] = compare_sizes(mine, truth, n_boot=n_boot, seed=seed)
@@ -384,9 +390,7 @@ def statistics_csv(result: dict) -> str:
     return buf.getvalue()
 
 
-def statistics_markdown(
-    result: dict, truth: list, ids: list[str], nm: float | None, n_boot: int, reported: str | None = None
-) -> str:
+def statistics_markdown(result: dict, truth: list, ids: list[str], nm: float | None, n_boot: int, reported=None) -> str:
     def interval(cell: dict, scale: float = 1.0, fmt: str = "{:.3f}") -> str:
         value = fmt.format(scale * cell["value"])
         if np.isfinite(cell["low"]):
@@ -420,12 +424,7 @@ def statistics_markdown(
     if reported:
         md += [
             "",
-            f"{REPORTED}: the sizes the analyze run (reported=) gave for these images, the table it trusted: "
-            + (
-                "the profile's classical particles at half contrast (particles_classical.csv)."
-                if reported == "classical"
-                else "the segmenter's (particles.csv)."
-            ),
+            f"{REPORTED}: the sizes the analyze run (reported=) gave for these images: {reported.words()}.",
         ]
     runs = {run: v for run, v in result.items() if run != REPORTED}
     if len(runs) > 1:

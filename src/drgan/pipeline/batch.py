@@ -284,10 +284,18 @@ def sample_row(name: str, folder: Path) -> dict:
     """One sample's line of the study: its analyze and segment outputs read back (empty where they are missing)."""
     stats = (json.loads((folder / "analyze" / "summary.json").read_text()) if (folder / "analyze" / "summary.json").is_file() else {})  # fmt: skip
     row = {"sample": name, "images": stats.get("images"), "unit": stats.get("unit", "px")}
-    median = (stats.get("statistics") or {}).get("median_diameter") or {}
+    # the sizes the sample's report gives: the classical ones where its analyze trusted them (particles_classical.csv)
+    classical = stats.get("trusted") == "classical" and (stats.get("classical") or {}).get("statistics")
+    row["sizes"] = "classical" if classical else "segmenter"
+    given = classical or stats.get("statistics") or {}
+    median = given.get("median_diameter") or {}
     row["median"], row["low"], row["high"] = (median.get(k) for k in ("value", "low", "high"))
-    row["particles"] = ((stats.get("statistics") or {}).get("count") or {}).get("value")
-    diameters = sized_diameters(folder / "analyze" / "particles.csv", row["unit"])
+    row["particles"] = (given.get("count") or {}).get("value")
+    diameters = (
+        sized_diameters(folder / "analyze" / "particles_classical.csv", row["unit"], "half_contrast_diameter")
+        if classical
+        else sized_diameters(folder / "analyze" / "particles.csv", row["unit"])
+    )
     row["p10"], row["p90"] = (float(np.percentile(diameters, q)) if diameters.size else None for q in (10, 90))
     row["sized"] = int(diameters.size)
     check = stats.get("closed_loop") or {}
@@ -300,10 +308,10 @@ def sample_row(name: str, folder: Path) -> dict:
     return row
 
 
-def sized_diameters(path: Path, unit: str) -> np.ndarray:
+def sized_diameters(path: Path, unit: str, name: str = "equivalent_diameter") -> np.ndarray:
     if not path.is_file():
         return np.zeros(0)
-    column = f"equivalent_diameter_{unit}"
+    column = f"{name}_{unit}"
     values = [float(r[column]) for r in csv.DictReader(io.StringIO(path.read_text()))
               if r.get("sized", "True") in ("True", "true", "1") and r.get(column)]  # fmt: skip
     return np.asarray(values, dtype=np.float64)
@@ -322,17 +330,19 @@ def write_summary(b: Batch, failures: dict[str, str] | None = None) -> dict:
         f"# Study {b.study}: {len(rows)} samples ({b.csv})", "",
         "Median equivalent diameter per sample with its 95 % bootstrap interval over the sample's images, the 10th-90th "
         "percentiles of its sized particles (not cut by the image border), and the segmenter's own median-diameter "
-        "error on held-out generated images (closed loop: how far its sizes can be trusted). Each sample's report: "
-        "NAME/report.md.", "",
-        "| sample | state | images | particles | median diameter [95 %] | p10-p90 | unit | closed-loop median error |",
-        "|---|---|---|---|---|---|---|---|",
+        "error on held-out generated images (closed loop: how far its sizes can be trusted). sizes: whose sizes the "
+        "sample's report gives (the segmenter's, or the classical segmentation's where its analyze trusted those). "
+        "Each sample's report: NAME/report.md.", "",
+        "| sample | state | images | particles | median diameter [95 %] | p10-p90 | unit | sizes | closed-loop median "
+        "error |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]  # fmt: skip
     for r in rows:
         state = "failed" if r["sample"] in failures else r["state"]
         lines.append(
             f"| {r['sample']} | {state} | {_cell(r['images'], '{:.0f}')} | {_cell(r['particles'], '{:.0f}')} | "
             f"{_cell(r['median'])} [{_cell(r['low'])}, {_cell(r['high'])}] | {_cell(r['p10'])}-{_cell(r['p90'])} | "
-            f"{r['unit']} | {_cell(r['closed_loop_median_error'], '{:+.1%}')} |"
+            f"{r['unit']} | {r['sizes']} | {_cell(r['closed_loop_median_error'], '{:+.1%}')} |"
         )
     if len(units) > 1:
         lines += ["", f"Units differ between samples ({', '.join(sorted(units))}): compare only those in one unit."]
@@ -342,7 +352,7 @@ def write_summary(b: Batch, failures: dict[str, str] | None = None) -> dict:
         lines += ["", "![size distributions](sizes.png)"]
     write_bytes(b.out / "summary.md", ("\n".join(lines) + "\n").encode())
     fields = ["sample", "state", "images", "particles", "sized", "median", "low", "high", "p10", "p90", "unit",
-              "closed_loop_median_error"]  # fmt: skip
+              "sizes", "closed_loop_median_error"]  # fmt: skip
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()

@@ -189,6 +189,7 @@ def analyze_summary(folder: Path) -> dict:
         "median_diameter_px": summary.get("median_diameter_px"),
         "classical": classical,
         "trusted": summary.get("trusted"),
+        "verdict": summary.get("verdict"),
         "line": line,
         "metrics": {"analyze/particles": count, f"analyze/median_diameter_{unit}": median}
         | ({f"analyze/classical_median_diameter_{unit}": theirs["median_diameter"]["value"]} if theirs else {}),
@@ -206,14 +207,19 @@ def evaluate_summary(folder: Path) -> dict:
     scores = {k: float(means[0][k]) for k in ("dsc", "ap50", "pq") if means[0].get(k)}
     rows = _rows(folder / "statistics.csv")
     stats = {r["statistic"]: float(r["value"]) for r in rows if r.get("run") == "run0"}
-    reported = {r["statistic"]: float(r["value"]) for r in rows if r.get("run") == "reported"}
+    source = _json(folder / "reported.json")  # which table the run "reported" holds (evaluate reported=)
+    reported = (
+        {r["statistic"]: float(r["value"]) for r in rows if r.get("run") == "reported"}
+        if source.get("table") == "classical"  # else it repeats the segmenter's own numbers
+        else {}
+    )
     line = f"DSC {_number(scores.get('dsc'))}, AP50 {_number(scores.get('ap50'))}, PQ {_number(scores.get('pq'))}"
     if "median_error" in stats:
         line += f"; median diameter {100 * stats['median_error']:+.1f} %, count {100 * stats['count_error']:+.1f} %"
     if "median_error" in reported:  # the sizes analyze reported (its trusted table), when not the segmenter's own
         line += (
-            f"; the sizes the report gives: median diameter {100 * reported['median_error']:+.1f} %, count "
-            f"{100 * reported['count_error']:+.1f} %"
+            f"; the sizes the report gives (the classical ones): median diameter {100 * reported['median_error']:+.1f}"
+            f" %, count {100 * reported['count_error']:+.1f} %"
         )
     return {
         "line": line,
@@ -241,8 +247,11 @@ def analyze_details(summary: dict, settings) -> list[str]:
     )]  # fmt: skip
     lines.append(
         "- against the profile: "
-        + compare_with_classical(
-            summary.get("median_diameter_px"), classical.get("median_diameter_px"), check, classical
+        + (  # as analyze judged it; runs from before it stored its verdict: judged again
+            summary.get("verdict")
+            or compare_with_classical(
+                summary.get("median_diameter_px"), classical.get("median_diameter_px"), check, classical
+            )
         )
     )
     return lines

@@ -91,14 +91,30 @@ def stale_difference(recorded: Sequence[str], current: Sequence[str]) -> str:
     return "; ".join(parts)
 
 
+def _key(arg: str) -> str:
+    return arg.split("=", 1)[0]
+
+
 def stale_check(stage: Stage, record: dict) -> None:
-    """A done stage whose settings changed since is not rerun silently: the difference, and what to do."""
-    if record.get("args") != stage.recorded():
-        raise ConfigError(
-            f"pipeline: stage {stage.name} is done with other settings "
-            f"({stale_difference(record.get('args') or [], stage.recorded())}); run it and the "
-            f"stages after it again with redo={stage.name}, or keep it and drop the new settings"
+    """A done stage whose settings changed since is not rerun silently: the difference, and what to do. Keys the
+    pipeline wires itself that the record lacks altogether (a stage done by an older drgan, before it wired them)
+    leave the stage done, with a note on stderr."""
+    recorded, current = record.get("args") or [], stage.recorded()
+    if recorded == current:
+        return
+    had = {_key(a) for a in recorded}
+    added = [a for a in current if a not in recorded]
+    if set(recorded) <= set(current) and all(_key(a) in stage.spec.keys and _key(a) not in had for a in added):
+        print(
+            f"pipeline: {stage.name} was done by an older drgan without {', '.join(added)}; kept (redo={stage.name} "
+            "runs it with them)",
+            file=sys.stderr,
         )
+        return
+    raise ConfigError(
+        f"pipeline: stage {stage.name} is done with other settings ({stale_difference(recorded, current)}); run it "
+        f"and the stages after it again with redo={stage.name}, or keep it and drop the new settings"
+    )
 
 
 def prepare_redo(s: Settings, state, stages: Sequence[Stage]) -> None:

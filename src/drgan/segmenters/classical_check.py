@@ -4,9 +4,9 @@ trusts.
 The closed-loop check (drgan.segmenters.closed_loop) measures a segmenter where the truth is exact, on generated
 images, so it cannot see what the generated images lack. The profile's classical segmentation (threshold + watershed at
 the measured scale; its sizes at half contrast of the images' mean edge, the boundary of ISO 13322-1 and of drgan's
-masks) measures the same images without training. When the two medians disagree beyond the check's interval,
-comparing the two segmentations particle by particle on the user's images says why (`outline_comparison`, pooled by
-`pool`; analyze writes the pool to summary.json as ``classical``):
+masks) measures the same images without training. Two medians within 5 % agree; where they differ more, comparing the two
+segmentations particle by particle on the user's images says why (`outline_comparison`, pooled by `pool`; analyze
+writes the pool to summary.json as ``classical``), before the check's interval is consulted:
 
 - **merges**: the segmenter's regions hold two or more classical particles far more often than the classical regions
   hold two of the segmenter's, and than the segmenter merged generated particles: it merges on the user's images
@@ -76,7 +76,8 @@ class ClassicalReference:
         run = json.loads(record.read_text())
         sizes = run.get("sizes") or {}
         params = (run.get("segmentation") or {}).get("params")
-        polarity = (run.get("polarity") or {}).get("polarity")
+        found = run.get("polarity") or {}
+        polarity = found.get("value") or found.get("polarity")  # used (value), else as detected (older records)
         return cls(
             labels,
             sizes.get("median_diameter_px"),
@@ -291,8 +292,11 @@ def judge(
             )
         elif cause is None and abs(value) <= EXACT:
             return Verdict(
-                said + ": the two agree, and the segmenter is exact on generated images. drgan trusts these sizes.",
-                BOTH,
+                said + f": within what the closed-loop check allows (the segmenter measures {_percent(value)} "
+                f"[{_percent(low)}, {_percent(high)}] on generated images with exact outlines), and your images show "
+                "no cause for the gap (no merges either way, outlines at the same edge). drgan trusts the segmenter's "
+                "sizes.",
+                SEGMENTER,
             )
         elif cause is None:
             return Verdict(
@@ -334,16 +338,25 @@ def check_reported(folder) -> Path:
     return path
 
 
-def reported_particles(folder: Path, ids: Sequence[str]) -> tuple[str, list] | None:
-    """The sizes an analyze run reported for the images ``ids``, per image as drgan.metrics.statistics.Particles: the
-    table its verdict trusts (``particles_classical.csv``, diameters at half contrast, where it trusted the classical
-    sizes; else ``particles.csv``), and which (``classical`` or ``segmenter``). None, logged, when the run did not
-    measure every one of ``ids``."""
+def reported_particles(folder: Path, ids: Sequence[str], images_dir: Path) -> Reported | None:
+    """The sizes an analyze run reported for the images ``ids`` of ``images_dir``, per image as
+    drgan.metrics.statistics.Particles: the table its verdict trusts (``particles_classical.csv``, where it trusted the
+    classical sizes; else ``particles.csv``), and which (``classical`` or ``segmenter``). None, logged, when the run
+    measured another folder or not every one of ``ids`` (the ids alone could name other images)."""
     import csv
 
     from drgan.metrics.statistics import Particles
 
     summary = json.loads((folder / "summary.json").read_text())
+    measured_dir = summary.get("images_dir")
+    if measured_dir is None or Path(measured_dir).resolve() != Path(images_dir).resolve():
+        log.warning(
+            "reported=%s measured the images of %s, not the scored %s: its sizes are not scored", folder,
+            measured_dir, images_dir,
+        )  # fmt: skip
+        return None
+    if summary.get("exclude_border"):
+        log.warning("reported=%s left particles cut by the border out (exclude_border): its count is low", folder)
     trusted = summary.get("trusted")
     which = CLASSICAL if trusted in TABLES and (folder / TABLES[trusted][0]).is_file() else SEGMENTER
     name, column = TABLES.get(which, OWN_TABLE)
@@ -370,4 +383,22 @@ def reported_particles(folder: Path, ids: Sequence[str]) -> tuple[str, list] | N
         values = np.asarray(rows[image_id], np.float64).reshape(-1, 3)
         diameter = values[:, 0]
         found.append(Particles(np.pi / 4.0 * diameter**2, diameter, values[:, 1], values[:, 2].astype(bool)))
-    return which, found
+    return Reported(which, trusted, found)
+
+
+@dataclass(frozen=True)
+class Reported:
+    """`reported_particles`' answer: which table (``classical`` or ``segmenter``), the verdict's ``trusted``, and per
+    image the particles (already counted as analyze counts: specks out)."""
+
+    table: str
+    trusted: str | None
+    particles: list
+
+    def words(self) -> str:
+        """What the table is, for statistics.md."""
+        if self.table == CLASSICAL:
+            return "the profile's classical particles (particles_classical.csv), the sizes it trusted"
+        if self.trusted in (SEGMENTER, BOTH):
+            return "the segmenter's (particles.csv), the sizes it trusted"
+        return "the segmenter's (particles.csv); it trusted neither table over the other"
