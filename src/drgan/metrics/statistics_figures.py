@@ -56,7 +56,12 @@ def size_figure(
         if fitted is not None:
             left.plot(x, fitted[0], "C3", label=f"{fitted[1]} fit")
         median = stats["median_diameter"]
-        left.axvline(median["value"], color="C0", ls="--", label=f"median {fmt(median['value'])} {unit}")
+        left.axvline(
+            median["value"],
+            color="C0",
+            ls="--",
+            label=f"{'segmenter ' if classical is not None else ''}median {fmt(median['value'])} {unit}",
+        )
         if math.isfinite(median["low"]):
             left.axvspan(median["low"], median["high"], color="C0", alpha=0.15, label="95 % interval")
         ordered = np.sort(diameters)
