@@ -66,7 +66,14 @@ def main() -> None:
     (seg_median, seg_count), (cls_median, cls_count) = errors(mine), errors(theirs)
     trusted = summary.get("trusted")
     reported = {"classical": (cls_median, cls_count)}.get(trusted, (seg_median, seg_count))
-    head = ["run", f"{args.subset} images", "trusted", "segmenter median / count", "classical median / count", "reported median / count"]
+    head = [
+        "run",
+        f"{args.subset} images",
+        "trusted",
+        "segmenter median / count",
+        "classical median / count",
+        "reported median / count",
+    ]
     print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     cells = [(seg_median, seg_count), (cls_median, cls_count), reported]
     print(
