@@ -238,6 +238,18 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
     row = dict(zip(header, rows[1].split(",")))
     assert (row["image"], row["id"]) == ("f0", "1")
     assert float(row["half_contrast_diameter_px"]) == pytest.approx(float(row["equivalent_diameter_px"]) - 1)
+    # their outlines for Fiji and napari: the label image holds the particles of particles_classical.csv, by id
+    from drgan.data.imagej import read_label_tiff
+
+    for k in ("f0", "f1"):
+        ids = sorted(
+            int(r.split(",")[header.index("id")]) for r in rows[1:] if r.split(",")[header.index("image")] == k
+        )
+        written = read_label_tiff(tmp_path / "an" / "classical" / "labels" / f"{k}.tif")[0]
+        assert sorted(np.unique(written[written > 0]).tolist()) == ids == [1, 2, 3]
+        assert (tmp_path / "an" / "classical" / "rois" / f"{k}.zip").is_file()
+        assert (tmp_path / "an" / "classical" / "overlays" / f"{k}.png").is_file()
+    assert not (tmp_path / "an" / "classical" / "labels" / "f2.tif").exists()  # not segmented classically
     # the headline follows the verdict and says where the sizes lie
     for trusted, words in (("both", "agree within 5 %: **drgan trusts these sizes** and reports the segmenter's"),
                            ("segmenter", "**drgan trusts the segmenter's sizes** (the left-hand column"),

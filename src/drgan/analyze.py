@@ -20,7 +20,8 @@ Writes, in ``out``:
   with ``profile=``, the same for the profile's classical segmentation of the images beside them, and whose sizes
   drgan trusts and why (drgan.segmenters.classical_check; summary.json's ``trusted``, ``verdict``);
 - particles_classical.csv (with ``profile=``): the classical particles as particles.csv, plus
-  half_contrast_diameter_px (the diameter at half contrast, where the profile measured the images' mean edge);
+  half_contrast_diameter_px (the diameter at half contrast, where the profile measured the images' mean edge), and
+  their outlines in classical/ (overlays/ID.png, labels/ID.tif, rois/ID.zip, at the segmented outline);
 - sizes.png: histogram of the sized particles with the fitted density, and the cumulative distribution;
   histograms.png: area and diameter histograms;
 - overlays/ID.png: every image with each particle's outline (cut particles in another colour) and its id, to check
@@ -41,6 +42,7 @@ import csv
 import io
 import logging
 import math
+import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -312,7 +314,12 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
             comparisons.append(classical_check.outline_comparison(counted, classical))
             compared.append((reference.particles(classical, min_area), scale, item.image.size))
             segmented.append(item.id)
-            classical_rows += classical_particle_rows(item.id, classical, scale, s, reference.outline_shift_px)
+            these = classical_particle_rows(item.id, classical, scale, s, reference.outline_shift_px)
+            classical_rows += these
+            # the classical outlines where microscopists look at them (at the segmented outline: a label image
+            # cannot move by a fraction of a pixel): classical/overlays, labels/ and rois/, ids of particles_classical
+            write_bytes(out / "classical" / "overlays" / f"{item.id}.png", overlay_png(item.image, classical, these))
+            write_outlines(out / "classical", item.id, classical, [r["id"] for r in these], scale)
         if s.wires:
             thick = local_thickness(class_map > 0)
             thickness_values.append(thick[class_map > 0] * (scale or 1.0))
@@ -377,6 +384,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         write_bytes(out / "particles_classical.csv", _csv(classical_rows).encode())
     else:  # a rerun into the same folder must not leave an earlier run's classical table beside this run's
         (out / "particles_classical.csv").unlink(missing_ok=True)
+        shutil.rmtree(out / "classical", ignore_errors=True)
     write_json(out / "summary.json", summary)
     write_bytes(out / "statistics.md", statistics_markdown(summary).encode())
     classical_d = (
