@@ -119,13 +119,14 @@ def particle_rows(
     return rows
 
 
-def classical_particle_rows(image_id: str, labels: np.ndarray, nm_per_px, s, shift_px: float) -> list[dict]:
+def classical_particle_rows(image_id: str, labels: np.ndarray, nm_per_px, s, reference) -> list[dict]:
     """particles_classical.csv's rows: the profile's classical particles of one image as `particle_rows` (their label
     ids are those of the profile's labels/ID.tif), with the equivalent diameter at half contrast beside the segmented
-    one (+ 2 x the profile's outline shift, as its median)."""
+    one (``reference``: the profile's classical_check.ClassicalReference, whose outline shift moves it, as its
+    median)."""
     rows = particle_rows(image_id, labels, nm_per_px, s.min_area_px, s.exclude_border)
     for row in rows:
-        row["half_contrast_diameter_px"] = max(row["equivalent_diameter_px"] + 2.0 * shift_px, 0.0)
+        row["half_contrast_diameter_px"] = float(reference.at_half_contrast(row["equivalent_diameter_px"]))
         if nm_per_px:
             row["half_contrast_diameter_nm"] = row["half_contrast_diameter_px"] * nm_per_px
     return rows
@@ -296,8 +297,8 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
 
     out = s.out
     rows, found, thickness_values, comparisons = [], [], [], []
-    compared = []  # per image classically segmented: (its classical particles at half contrast, scale, image area)
-    segmented = []  # their ids
+    # per image classically segmented: (its id, its classical particles at half contrast, scale, image area)
+    compared = []
     classical_rows = []
     for item, scale in track(list(zip(items, scales)), "segmenting images", unit="images"):
         class_map = np.asarray(predictor(item))
@@ -312,9 +313,8 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         if classical is not None:  # the profile's classical segmentation of the same image, particle by particle
             counted = np.where(np.bincount(labels.ravel())[labels] >= min_area, labels, 0)  # specks out, as above
             comparisons.append(classical_check.outline_comparison(counted, classical))
-            compared.append((reference.particles(classical, min_area), scale, item.image.size))
-            segmented.append(item.id)
-            these = classical_particle_rows(item.id, classical, scale, s, reference.outline_shift_px)
+            compared.append((item.id, reference.particles(classical, min_area), scale, item.image.size))
+            these = classical_particle_rows(item.id, classical, scale, s, reference)
             classical_rows += these
             # the classical outlines where microscopists look at them (at the segmented outline: a label image
             # cannot move by a fraction of a pixel): classical/overlays, labels/ and rois/, ids of particles_classical
@@ -336,13 +336,13 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     whole = pooled(found)
     classical_summary = classical_check.pool(comparisons, reference) if reference else None
     if compared:  # the classical particles' statistics, as the segmenter's, over the images segmented both ways
-        classical_found = [c[0] for c in compared]
-        classical_factors = [c[1] if in_nm else 1.0 for c in compared]
-        classical_areas = [c[2] * (f * f * 1e-6 if in_nm else 1e-6) for c, f in zip(compared, classical_factors)]
+        segmented, classical_found, classical_scales, image_sizes = zip(*compared)
+        classical_factors = [f if in_nm else 1.0 for f in classical_scales]
+        classical_areas = [n * (f * f * 1e-6 if in_nm else 1e-6) for n, f in zip(image_sizes, classical_factors)]
         classical_summary["statistics"] = size_statistics(
             classical_found, classical_factors, classical_areas, n_boot, s.seed
         )
-        classical_summary["segmented"] = segmented  # the images particles_classical.csv covers
+        classical_summary["segmented"] = list(segmented)  # the images particles_classical.csv covers
         # the verdict compares like with like: the classical median of the images analyzed (the profile's own, of
         # its images only, kept beside it), as the right-hand column of statistics.md shows it
         theirs = pooled(classical_found)

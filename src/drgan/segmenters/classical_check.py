@@ -118,8 +118,12 @@ class ClassicalReference:
         from drgan.metrics.statistics import particles
 
         found = particles(labels).at_least(min_area_px)
-        diameter = np.maximum(found.diameter + 2.0 * self.outline_shift_px, 0.0)
+        diameter = self.at_half_contrast(found.diameter)
         return replace(found, diameter=diameter, area=np.pi / 4.0 * diameter**2)
+
+    def at_half_contrast(self, diameter):
+        """Equivalent diameters (px) at the segmented outlines moved to half contrast: + 2 x ``outline_shift_px``."""
+        return np.maximum(np.asarray(diameter, np.float64) + 2.0 * self.outline_shift_px, 0.0)
 
 
 def outline_comparison(segmenter: np.ndarray, classical: np.ndarray) -> dict:
