@@ -383,8 +383,11 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
     # one 128 px window per 160 px image: 3 windows, far from 16 with 3 whole particles, so training keeps windows
     # with one whole particle (as it counts them: bounding box off every window edge)
     assert counts.whole["windows"] == 3 and counts.whole["at_least_3"] <= counts.whole["at_least_1"] <= 3
-    cfg = compose(["material=big_discs", "renderer.resolution=32"], config_name="train")
+    cfg = compose(["material=big_discs"], config_name="train")
     assert cfg.material.view_width == 128 and cfg.data.view_width == 128 and cfg.data.min_particles == 1
+    # rendered at the profile's patch size, the real windows area-averaged to it (EMPS saa890 rendered 512 px windows
+    # at 512 px, 4 x the pixels of every GAN step and generated pair, while the material said 256)
+    assert cfg.renderer.resolution == 32 and cfg.data.patch_size == 32
     assert cfg.material.noise_grain_px == pytest.approx(result.background.grain_px * 32 / 128, abs=0.01)
     # The scene's particle range is that of the windows training keeps (>= data.min_particles), not of the few with
     # 3 or more (EMPS saa890: 6-6 from those where its 512 px windows hold 1-2 particles)

@@ -377,6 +377,14 @@ def material_yaml(result: ProfileResult, fits: list, chosen) -> tuple[str, str]:
     body = {"material": material}
     if size:
         body["size"] = size
+    render_px = result.particles_per_patch.render_px
+    if render_px:  # a window wider than the render: area-averaged to it, for the real patches and the renders alike
+        body["renderer"] = {"resolution": int(render_px)}
+        notes["renderer.resolution"] = (
+            f"{render_px} px: the wide windows are rendered (and the real ones area-averaged) at the profile's patch "
+            f"size, {render_px / result.particles_per_patch.patch_size:g} x their real px; the generated pairs keep "
+            "the factor (manifest pixel_scale) and the segmenter resamples your images by it"
+        )
     segmentation, data_notes = data_settings(result)
     notes.update(data_notes)
     body["data"] = {
