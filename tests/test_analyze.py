@@ -12,7 +12,7 @@ import tifffile
 from conftest import compose
 from test_segment import disc_image, make_real
 
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, DataError
 
 
 def field(seed: int, size: int = 64) -> np.ndarray:
@@ -98,6 +98,22 @@ def test_the_pixel_size_comes_from_the_tiff_and_a_given_one_wins(tmp_path):
     assert rows[0]["equivalent_diameter_nm"] == pytest.approx(2.5 * rows[0]["equivalent_diameter_px"])
     table = list(csv.DictReader((tmp_path / "an2" / "particles.csv").open()))
     assert {"equivalent_diameter_nm", "sized", "axis_ratio"} <= set(table[0])
+    # read back per image as the reported sizes and the study summary read it: the rows of each image, in order
+    from drgan.metrics.statistics import read_particle_table
+    from drgan.pipeline.batch import sized_diameters
+
+    back = read_particle_table(tmp_path / "an2" / "particles.csv", "equivalent_diameter_nm")
+    assert sorted(back) == ["a", "b"]
+    for image_id, read in back.items():
+        mine = [r for r in table if r["image"] == image_id]
+        np.testing.assert_allclose(read.diameter, [float(r["equivalent_diameter_nm"]) for r in mine])
+        assert read.border.tolist() == [r["touches_border"] == "True" for r in mine] and read.border.any()
+    whole = sized_diameters(tmp_path / "an2" / "particles.csv", "nm")
+    np.testing.assert_allclose(np.sort(whole), np.sort([float(r["equivalent_diameter_nm"]) for r in table
+                                                        if r["sized"] == "True"]))  # fmt: skip
+    with pytest.raises(DataError, match="equivalent_diameter_um"):
+        read_particle_table(tmp_path / "an2" / "particles.csv", "equivalent_diameter_um")
+    assert read_particle_table(tmp_path / "missing.csv") == {}
 
 
 @pytest.mark.parametrize("key, value", [("nm_per_px", "-1"), ("min_area_px", "-3"), ("bootstrap", "1.5")])

@@ -146,17 +146,17 @@ def test_a_batch_file_is_checked_row_by_row_before_anything_runs(tmp_path):
 
 def _fake_sample(folder: Path, diameters: list[float], check: float, classical: list[float] | None = None) -> None:
     (folder / "analyze").mkdir(parents=True)
-    rows = [{"id": i, "image": "a", "equivalent_diameter_px": d, "sized": "True"} for i, d in enumerate(diameters)]
-    rows.append({"id": 99, "image": "a", "equivalent_diameter_px": 500.0, "sized": "False"})  # cut by the border
+    whole = {"axis_ratio": 1.0, "touches_border": "False", "sized": "True"}
+    rows = [{"id": i, "image": "a", "equivalent_diameter_px": d, **whole} for i, d in enumerate(diameters)]
+    cut = {"axis_ratio": 1.0, "touches_border": "True", "sized": "False"}  # cut by the border: counted, not sized
+    rows.append({"id": 99, "image": "a", "equivalent_diameter_px": 500.0, **cut})
     _csv(folder / "analyze" / "particles.csv", rows)
     median = float(np.median(diameters))
     summary = {"images": 2, "unit": "px", "closed_loop": {"median_error": {"value": check}},
                "statistics": {"count": {"value": len(diameters) + 1},
                               "median_diameter": {"value": median, "low": median - 1.0, "high": median + 1.0}}}  # fmt: skip
     if classical:  # its analyze trusted the classical sizes (particles_classical.csv, diameters at half contrast)
-        rows = [
-            {"id": i, "image": "a", "half_contrast_diameter_px": d, "sized": "True"} for i, d in enumerate(classical)
-        ]
+        rows = [{"id": i, "image": "a", "half_contrast_diameter_px": d, **whole} for i, d in enumerate(classical)]
         _csv(folder / "analyze" / "particles_classical.csv", rows)
         middle = float(np.median(classical))
         summary["trusted"] = "classical"

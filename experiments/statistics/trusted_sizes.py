@@ -14,26 +14,18 @@ image), so the trusted sizes' error is read where the user's report gives them:
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 from pathlib import Path
 
 import numpy as np
 
-from drgan.metrics.statistics import particles
+from drgan.metrics.statistics import particles, read_particle_table
 from drgan.segmenters.pairs import load_real_items
 
 
 def table(path: Path, diameter: str) -> dict[str, tuple[int, np.ndarray]]:
     """Per image: (particles counted, diameters of those not cut by the border) from an analyze particle table."""
-    found: dict[str, tuple[int, list[float]]] = {}
-    with path.open(newline="") as handle:
-        for row in csv.DictReader(handle):
-            count, sized = found.setdefault(row["image"], (0, []))
-            if row["sized"] == "True":
-                sized.append(float(row[diameter]))
-            found[row["image"]] = (count + 1, sized)
-    return {k: (n, np.asarray(d)) for k, (n, d) in found.items()}
+    return {k: (p.count, p.whole().diameter) for k, p in read_particle_table(path, diameter).items()}
 
 
 def main() -> None:

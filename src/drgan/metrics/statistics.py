@@ -26,10 +26,11 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from drgan.errors import ConfigError
+from drgan.errors import ConfigError, DataError
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,41 @@ class Particles:
 
     def _subset(self, keep: np.ndarray) -> Particles:
         return Particles(self.area[keep], self.diameter[keep], self.axis_ratio[keep], self.border[keep])
+
+
+def no_particles() -> Particles:
+    """An image without particles."""
+    return Particles(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool))
+
+
+def read_particle_table(path: Path, diameter: str = "equivalent_diameter_px") -> dict[str, Particles]:
+    """A particle table of drgan.analyze (particles.csv, particles_classical.csv: one row per particle, its image's
+    id in ``image``) read back per image, in the file's order: the ``diameter`` column's sizes (an area of pi/4 d^2
+    with them, so that a table sized at half contrast reads as its own sizes; an empty cell, e.g. nm without a pixel
+    size, reads NaN), the axis ratios and the border flags. {} when there is no file; a DataError naming the file
+    and the column when the table lacks one."""
+    import csv
+
+    if not path.is_file():
+        return {}
+    found: dict[str, list[tuple[float, float, bool]]] = {}
+    with path.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        missing = [c for c in ("image", diameter, "axis_ratio", "touches_border") if c not in (reader.fieldnames or [])]
+        if missing:
+            raise DataError(f"{path}: expected the columns {', '.join(missing)} of an analyze particle table")
+        for row in reader:
+            cell = row[diameter]
+            found.setdefault(row["image"], []).append(
+                (float(cell) if cell else np.nan, float(row["axis_ratio"]), row["touches_border"] == "True")
+            )
+    tables = {}
+    for image_id, rows in found.items():
+        d, ratio, border = (np.asarray(v) for v in zip(*rows))
+        tables[image_id] = Particles(
+            np.pi / 4.0 * d**2, d.astype(np.float64), ratio.astype(np.float64), border.astype(bool)
+        )
+    return tables
 
 
 def particles(labels: np.ndarray) -> Particles:

@@ -309,12 +309,12 @@ def sample_row(name: str, folder: Path) -> dict:
 
 
 def sized_diameters(path: Path, unit: str, name: str = "equivalent_diameter") -> np.ndarray:
-    if not path.is_file():
-        return np.zeros(0)
-    column = f"{name}_{unit}"
-    values = [float(r[column]) for r in csv.DictReader(io.StringIO(path.read_text()))
-              if r.get("sized", "True") in ("True", "true", "1") and r.get(column)]  # fmt: skip
-    return np.asarray(values, dtype=np.float64)
+    """The diameters (column NAME_UNIT) of an analyze particle table's particles not cut by the border."""
+    from drgan.metrics.statistics import read_particle_table
+
+    sized = [p.whole().diameter for p in read_particle_table(path, f"{name}_{unit}").values()]
+    values = np.concatenate(sized) if sized else np.zeros(0)
+    return values[np.isfinite(values)]
 
 
 def _cell(value, fmt: str = "{:.1f}") -> str:

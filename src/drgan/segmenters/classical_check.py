@@ -347,9 +347,7 @@ def reported_particles(folder: Path, ids: Sequence[str], images_dir: Path) -> Re
     drgan.metrics.statistics.Particles: the table its verdict trusts (``particles_classical.csv``, where it trusted the
     classical sizes; else ``particles.csv``), and which (``classical`` or ``segmenter``). None, logged, when the run
     measured another folder or not every one of ``ids`` (the ids alone could name other images)."""
-    import csv
-
-    from drgan.metrics.statistics import Particles
+    from drgan.metrics.statistics import no_particles, read_particle_table
 
     summary = json.loads((folder / "summary.json").read_text())
     measured_dir = summary.get("images_dir")
@@ -375,18 +373,8 @@ def reported_particles(folder: Path, ids: Sequence[str], images_dir: Path) -> Re
             folder, which, len(missing), len(ids), ", ".join(missing[:5]),
         )  # fmt: skip
         return None
-    rows: dict[str, list] = {i: [] for i in ids}
-    with (folder / name).open(newline="") as handle:
-        for row in csv.DictReader(handle):
-            if row["image"] in rows:
-                rows[row["image"]].append(
-                    (float(row[column]), float(row["axis_ratio"]), row["touches_border"] == "True")
-                )
-    found = []
-    for image_id in ids:
-        values = np.asarray(rows[image_id], np.float64).reshape(-1, 3)
-        diameter = values[:, 0]
-        found.append(Particles(np.pi / 4.0 * diameter**2, diameter, values[:, 1], values[:, 2].astype(bool)))
+    table = read_particle_table(folder / name, column)
+    found = [table.get(image_id, no_particles()) for image_id in ids]
     return Reported(which, trusted, found)
 
 
