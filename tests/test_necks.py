@@ -72,3 +72,17 @@ def test_the_contact_check_warns_when_the_generated_contacts_hide_their_neck_mor
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warned) == 2 and "60%" in warned[0] and "30%" in warned[0] and 0.02 < WARN_HIDDEN < 0.30
     assert "placement.max_height" in warned[0] and "recapture" in warned[1]  # the cause by polarity
+
+
+def test_a_handful_of_real_contacts_is_not_compared(caplog):
+    from drgan.synthetic.contact_check import MIN_REAL_CONTACTS, hidden_difference, log_result
+
+    exact = {"contacts": 37, "hidden": 0.405}
+    assert hidden_difference({"contacts": MIN_REAL_CONTACTS, "hidden": 0.25}, exact) == pytest.approx(0.155)
+    assert hidden_difference({"contacts": 1, "hidden": 0.0}, exact) is None  # one contact: no share to compare
+    assert hidden_difference(None, exact) is None and hidden_difference({"contacts": 50, "hidden": 0.1}, None) is None
+    with caplog.at_level(logging.INFO, logger="drgan.synthetic.contact_check"):
+        log_result({"real": {"contacts": 1, "hidden": 0.0}, "generated": {"hidden": 0.13}, "generated_exact": exact,
+                    "hidden_difference": None, "polarity": "dark"})  # fmt: skip
+    assert not [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert "1 real contacts are too few to compare" in caplog.text
