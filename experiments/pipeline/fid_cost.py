@@ -32,6 +32,7 @@ def main() -> None:
     parser.add_argument("run", type=Path, help="a drgan.train run folder (checkpoints/epochs/, fid_cache/, patches/)")
     parser.add_argument("--n", type=int, nargs="+", default=[64, 96, 128], help="FID images (prefixes of the largest)")
     parser.add_argument("--spp", type=int, nargs="+", default=[0, 64], help="render spp; 0: the training spp")
+    parser.add_argument("--epochs", type=int, nargs="+", default=None, help="these epochs only (default: every one)")
     args = parser.parse_args()
     caches = sorted((args.run / "fid_cache").glob("real_*.npz"))
     if len(caches) != 1:
@@ -44,13 +45,15 @@ def main() -> None:
     n_max = max(args.n)
     rows: dict[tuple[int, int], dict[int, tuple[float, float]]] = {}
     print(f"command: python experiments/pipeline/fid_cost.py {args.run} --n {' '.join(map(str, args.n))} "
-          f"--spp {' '.join(map(str, args.spp))}")  # fmt: skip
+          f"--spp {' '.join(map(str, args.spp))}" + (f" --epochs {' '.join(map(str, args.epochs))}" if args.epochs else ""))  # fmt: skip
     print(
         "\n| epoch | spp | render s per image | " + " | ".join(f"FID n={n} (std)" for n in args.n) + " | logged FID |"
     )
     print("|---|---|---|" + "---|" * (len(args.n) + 1))
     for ckpt in sorted((args.run / "checkpoints" / "epochs").glob("epoch_*.ckpt")):
         epoch = int(ckpt.stem.split("_")[1])
+        if args.epochs is not None and epoch not in args.epochs:
+            continue
         module = GANModule.load_from_checkpoint(ckpt, map_location="cpu")
         module.eval()
         if module.textured:
