@@ -28,7 +28,8 @@ def _rows(path: Path) -> list[dict]:
 def seed_row(segment: Path, evaluate: Path) -> dict:
     check = json.loads((segment / "metrics.json").read_text())["closed_loop"]
     mean = next(r for r in _rows(evaluate / "results.csv") if r["image"] == "mean")
-    stats = {r["statistic"]: float(r["value"]) for r in _rows(evaluate / "statistics.csv")}
+    rows = _rows(evaluate / "statistics.csv")  # the segmenter's rows: a pipeline's evaluate adds run "reported" after
+    stats = {r["statistic"]: float(r["value"]) for r in rows if r["run"] == rows[0]["run"]}
     return {
         "cl_median": 100 * check["median_error"]["value"],
         "cl_count": 100 * check["count_error"]["value"],
