@@ -116,6 +116,21 @@ def test_the_pixel_size_comes_from_the_tiff_and_a_given_one_wins(tmp_path):
     assert read_particle_table(tmp_path / "missing.csv") == {}
 
 
+def test_a_table_without_particles_has_every_column_and_reads_empty(tmp_path):
+    """An analyze run that found nothing writes the header a run with particles writes (evaluate's reported sizes
+    read it back: a header without axis_ratio stopped the tiny pipeline's evaluate)."""
+    from drgan.analyze import EMPTY_TABLE_COLUMNS, _csv, particle_rows
+    from drgan.metrics.statistics import read_particle_table
+
+    labels = field(0)
+    assert tuple(particle_rows("a", labels)[0]) == EMPTY_TABLE_COLUMNS  # the px columns of a row, in order
+    (tmp_path / "none.csv").write_text(_csv([]))
+    assert (tmp_path / "none.csv").read_text().strip().split(",") == list(EMPTY_TABLE_COLUMNS)
+    assert read_particle_table(tmp_path / "none.csv") == {}
+    (tmp_path / "old.csv").write_text("id,image,area_px,equivalent_diameter_px,touches_border,sized\n")
+    assert read_particle_table(tmp_path / "old.csv") == {}  # an older run's empty table: nothing to read
+
+
 @pytest.mark.parametrize("key, value", [("nm_per_px", "-1"), ("min_area_px", "-3"), ("bootstrap", "1.5")])
 def test_bad_settings_stop_before_any_image_is_read(key, value, tmp_path):
     from drgan.analyze import analyze

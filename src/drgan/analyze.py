@@ -431,8 +431,13 @@ def local_thickness(particle: np.ndarray) -> np.ndarray:
 # --- outputs -----------------------------------------------------------------------------------------------
 
 
+# the header of a table without particles: particle_rows' columns (pixel units)
+EMPTY_TABLE_COLUMNS = ("id", "image", "area_px", "equivalent_diameter_px", "axis_ratio", "centroid_y", "centroid_x",
+                       "bbox_min_row", "bbox_min_col", "bbox_max_row", "bbox_max_col", "touches_border", "sized")  # fmt: skip
+
+
 def _csv(rows: list[dict]) -> str:
-    fields = list(rows[0]) if rows else ["id", "image", "area_px", "equivalent_diameter_px", "touches_border", "sized"]
+    fields = list(rows[0]) if rows else list(EMPTY_TABLE_COLUMNS)
     for row in rows:  # images with and without a pixel size: every column once
         fields += [k for k in row if k not in fields]
     buf = io.StringIO()

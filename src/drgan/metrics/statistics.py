@@ -67,8 +67,8 @@ def read_particle_table(path: Path, diameter: str = "equivalent_diameter_px") ->
     """A particle table of drgan.analyze (particles.csv, particles_classical.csv: one row per particle, its image's
     id in ``image``) read back per image, in the file's order: the ``diameter`` column's sizes (an area of pi/4 d^2
     with them, so that a table sized at half contrast reads as its own sizes; an empty cell, e.g. nm without a pixel
-    size, reads NaN), the axis ratios and the border flags. {} when there is no file; a DataError naming the file
-    and the column when the table lacks one."""
+    size, reads NaN), the axis ratios and the border flags. {} when there is no file or no particle; a DataError
+    naming the file and the column when a table with particles lacks one."""
     import csv
 
     if not path.is_file():
@@ -76,17 +76,18 @@ def read_particle_table(path: Path, diameter: str = "equivalent_diameter_px") ->
     found: dict[str, list[tuple[float, float, bool]]] = {}
     with path.open(newline="") as handle:
         reader = csv.DictReader(handle)
-        missing = [c for c in ("image", diameter, "axis_ratio", "touches_border") if c not in (reader.fieldnames or [])]
-        if missing:
-            raise DataError(f"{path}: expected the columns {', '.join(missing)} of an analyze particle table")
-        for row in reader:
-            cell = row[diameter]
-            found.setdefault(row["image"], []).append(
-                (float(cell) if cell else np.nan, float(row["axis_ratio"]), row["touches_border"] == "True")
-            )
+        rows = list(reader)
+    missing = [c for c in ("image", diameter, "axis_ratio", "touches_border") if c not in (reader.fieldnames or [])]
+    if rows and missing:  # a table without particles has nothing to read, whatever its header
+        raise DataError(f"{path}: expected the columns {', '.join(missing)} of an analyze particle table")
+    for row in rows:
+        cell = row[diameter]
+        found.setdefault(row["image"], []).append(
+            (float(cell) if cell else np.nan, float(row["axis_ratio"]), row["touches_border"] == "True")
+        )
     tables = {}
-    for image_id, rows in found.items():
-        d, ratio, border = (np.asarray(v) for v in zip(*rows))
+    for image_id, values in found.items():
+        d, ratio, border = (np.asarray(v) for v in zip(*values))
         tables[image_id] = Particles(
             np.pi / 4.0 * d**2, d.astype(np.float64), ratio.astype(np.float64), border.astype(bool)
         )
