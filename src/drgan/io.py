@@ -1,4 +1,5 @@
-"""Atomic file writes: long jobs never leave half-written files (write to a temporary name, then rename)."""
+"""Atomic file writes: long jobs never leave half-written files (write to a temporary name, then rename); and the
+CSV tables drgan writes read back."""
 
 from __future__ import annotations
 
@@ -89,3 +90,16 @@ def figure_png(draw) -> bytes:
     fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
     plt.close(fig)
     return buf.getvalue()
+
+
+def read_csv(path: str | os.PathLike) -> tuple[list[dict], list[str]]:
+    """A CSV table drgan wrote (header row first): its rows as dicts of strings and its columns; ([], []) when there
+    is no file."""
+    import csv
+
+    path = Path(path)
+    if not path.is_file():
+        return [], []
+    with path.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        return list(reader), list(reader.fieldnames or [])

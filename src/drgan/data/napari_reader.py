@@ -6,11 +6,11 @@ layer data tuples, as the contract asks."""
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 from collections.abc import Callable
 from pathlib import Path
+
+from drgan.io import read_csv
 
 LayerData = tuple  # (data, keyword arguments, layer type)
 
@@ -37,7 +37,7 @@ def read_run(path: str | list[str]) -> list[LayerData]:
     folder = analyze_folder(path[0] if isinstance(path, list) else path)
     summary = json.loads((folder / "summary.json").read_text()) if (folder / "summary.json").is_file() else {}
     images_dir = Path(summary["images_dir"]) if summary.get("images_dir") else None
-    rows = list(csv.DictReader(io.StringIO((folder / "particles.csv").read_text())))
+    rows = read_csv(folder / "particles.csv")[0]
     layers: list[LayerData] = []
     for tif in sorted((folder / "labels").glob("*.tif")):
         image_id = tif.stem

@@ -69,15 +69,11 @@ def read_particle_table(path: Path, diameter: str = "equivalent_diameter_px") ->
     with them, so that a table sized at half contrast reads as its own sizes; an empty cell, e.g. nm without a pixel
     size, reads NaN), the axis ratios and the border flags. {} when there is no file or no particle; a DataError
     naming the file and the column when a table with particles lacks one."""
-    import csv
+    from drgan.io import read_csv
 
-    if not path.is_file():
-        return {}
+    rows, columns = read_csv(path)
     found: dict[str, list[tuple[float, float, bool]]] = {}
-    with path.open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        rows = list(reader)
-    missing = [c for c in ("image", diameter, "axis_ratio", "touches_border") if c not in (reader.fieldnames or [])]
+    missing = [c for c in ("image", diameter, "axis_ratio", "touches_border") if c not in columns]
     if rows and missing:  # a table without particles has nothing to read, whatever its header
         raise DataError(f"{path}: expected the columns {', '.join(missing)} of an analyze particle table")
     for row in rows:

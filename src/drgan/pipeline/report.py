@@ -5,13 +5,12 @@ stage chose and why."""
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
 from pathlib import Path
 
-from drgan.io import write_bytes
+from drgan.io import read_csv, write_bytes
 
 
 def _json(path: Path) -> dict:
@@ -146,13 +145,6 @@ def segment_summary(folder: Path) -> dict:
     }
 
 
-def _rows(path: Path) -> list[dict]:
-    if not path.is_file():
-        return []
-    with path.open(newline="") as handle:
-        return list(csv.DictReader(handle))
-
-
 def _bracket(cell: dict) -> str:
     """A statistic's 95 % interval as " [low, high]"; "" without one (no bootstrap, one image)."""
     low, high = cell.get("low"), cell.get("high")
@@ -201,11 +193,11 @@ def analyze_summary(folder: Path) -> dict:
 
 
 def evaluate_summary(folder: Path) -> dict:
-    means = [r for r in _rows(folder / "results.csv") if r.get("image") == "mean"]
+    means = [r for r in read_csv(folder / "results.csv")[0] if r.get("image") == "mean"]
     if not means:
         return {}
     scores = {k: float(means[0][k]) for k in ("dsc", "ap50", "pq") if means[0].get(k)}
-    rows = _rows(folder / "statistics.csv")
+    rows = read_csv(folder / "statistics.csv")[0]
     stats = {r["statistic"]: float(r["value"]) for r in rows if r.get("run") == "run0"}
     source = _json(folder / "reported.json")  # which table the run "reported" holds (evaluate reported=)
     reported = (
