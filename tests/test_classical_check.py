@@ -82,6 +82,25 @@ def test_the_report_trusts_the_classical_sizes_when_the_segmenter_merges_on_the_
     assert "trusts the segmenter's sizes" in compare_with_classical(28.6, 24.3, exact_check(0.30), outlines(0.35, 0.17))
 
 
+def test_merges_by_the_segmentation_that_finds_more_particles_do_not_explain_the_gap():
+    # EMPS apsusc: the segmenter merges 27 % of the classical particles (the classical 8 % of its) yet finds 270 to the
+    # classical 164: the classical segmentation misses particles, its count -38.5 % on the annotated test images
+    apsusc = {**outlines(0.27, 0.08, half_contrast=False), "classical_particles": 164, "segmenter_particles": 270}
+    verdict = judge(120.9, 114.0, exact_check(0.06) | {"median_error": {"value": 0.005, "low": -0.10, "high": 0.31}},
+                    apsusc)  # fmt: skip
+    assert verdict.trusted == SEGMENTER
+    assert "yet finds 270 particles to 164 (the classical segmentation misses" in verdict.sentence
+    assert "no merges either way" not in verdict.sentence
+    # the same shares with the segmenter finding fewer: the merges explain the gap (the rule before the counts)
+    fewer = {**apsusc, "segmenter_particles": 150}
+    assert judge(120.9, 114.0, exact_check(0.06), fewer).trusted == CLASSICAL
+    # the other way: a classical segmentation that merges yet outnumbers the segmenter is not the merger
+    other = {**outlines(0.04, 0.40), "classical_particles": 300, "segmenter_particles": 200}
+    said = judge(20.0, 24.0, exact_check(), other).sentence
+    assert "yet finds 300 particles to 200 (the segmenter misses" in said and "Merges do not explain" in said
+    assert judge(20.0, 24.0, exact_check(), {**other, "classical_particles": 150}).trusted == SEGMENTER
+
+
 def test_the_report_trusts_the_segmenter_when_the_classical_segmentation_merges():
     said = compare_with_classical(20.0, 24.0, exact_check(), outlines(0.04, 0.40))
     assert "-16.7 %" in said and "40 % of the segmenter's particles" in said and "trusts the segmenter's sizes" in said
