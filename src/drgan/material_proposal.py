@@ -93,7 +93,7 @@ def data_settings(result: ProfileResult) -> tuple[dict, dict]:
     whole = counts.whole
     if whole is not None and whole["at_least_3"] < MIN_TRAIN_WINDOWS:
         # Training keeps windows showing data.min_particles *whole* particles: large or densely packed ones are
-        # cut by most window edges (EMPS apsusc: 104 px spheres, 2 windows of 8 images with 3 whole ones).
+        # cut by most window edges (~100 px spheres: a few windows of a folder show 3 whole ones).
         k = next((k for k in (2, 1) if whole[f"at_least_{k}"] >= MIN_TRAIN_WINDOWS), 1)
         if k < data.get("min_particles", 3):
             data["min_particles"] = k
@@ -128,11 +128,11 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
         size_px, spread = lognormal["median"], lognormal["sigma"]
         spread_note = "sigma of log(diameter), lognormal fit"
     # A material's sizes are largest extents (a mesh's scale); the profile measures equivalent diameters of
-    # projected areas: ~0.9 x the largest extent for the TiO2 particles (tio2_sem: masks 26.5 px, extent 30 px).
+    # projected areas: ~0.9 x the largest extent for the paper's TiO2 particles (their masks against their meshes).
     size_px *= EXTENT_PER_DIAMETER
     # The constellations' range is that of the windows training keeps: those with data.min_particles particles (3,
-    # or fewer for large or packed particles). EMPS saa890 (1-2 particles of 282 px per 512 px window) had the range
-    # of its few windows with 3 or more, 6-6, and rendered packed heaps where its windows hold one or two particles.
+    # or fewer for large or packed particles): the range of the few windows with 3 or more would render packed heaps
+    # where the windows hold one or two particles.
     k = data_settings(result)[0].get("min_particles", 3)
     kept = (counts.kept_counts or {}).get(str(k)) or counts.with_3_or_more
     if not kept["windows"]:
@@ -169,9 +169,8 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
         )
     background = result.background
     # The background shows the detector's noise: it bounds the learned noise for every parent. Without the bound an
-    # SEM material's learned noise rose to its parent's limit 0.2 on clean images (EMPS cej: 0.006 measured, the
-    # generator at 0.18-0.19, FID 387-437; experiments/pipeline/README.md); tio2_sem's run learned 0.020 against
-    # 0.011 measured, inside 2.2 x. A render with Monte Carlo grain adds its own on top of the learned noise.
+    # SEM material's learned noise can rise to its parent's limit on clean images (experiments/pipeline/README.md).
+    # A render with Monte Carlo grain adds its own on top of the learned noise.
     material["noise_sigma"] = {
         "min": 0.001,
         "max": round(max(NOISE_LIMIT_FLOOR, NOISE_LIMIT_FACTOR * background.noise_sigma), 4),
@@ -302,7 +301,7 @@ def parent_stage_reach(parent: str) -> tuple[float, float] | None:
 def stage_limits(parent: str, background_grey: float) -> tuple[dict, str] | None:
     """``material.imaging.stage_bsdf.base_color`` limits wide enough for the images' background grey, with why; None
     when the parent's own limits reach it (or its scene has no lit stage). The paper SEM/HIM materials render their
-    stage at most ~0.15 grey; SEM images with a mid-grey stage (EMPS cej: 0.43) need a larger base colour, which the
+    stage at most ~0.15 grey; SEM images with a mid-grey stage (~0.4) need a larger base colour, which the
     grey start (drgan.callbacks.grey_start) then finds within the widened limits."""
     reach = parent_stage_reach(parent)
     if reach is None:
@@ -318,7 +317,7 @@ def stage_limits(parent: str, background_grey: float) -> tuple[dict, str] | None
 
 
 # The outline blur (measurements.edge_blur, render px) of SEM renders made with each reconstruction filter
-# (material.filter_stddev): EMPS cej's material (tio2_him scene), 6 layouts each, the FCN at its initial values
+# (material.filter_stddev): a profiled SEM material (tio2_him scene), 6 layouts each, the FCN at its initial values
 # (experiments/pipeline/README.md, "outline blur"). A render's outline is never sharper than ~0.96 px (shading, the
 # pixel's footprint); the paper's HIM materials' 3.0 renders 2.7 px.
 FILTER_FOR_BLUR = ((0.96, 0.5), (1.12, 1.0), (1.52, 1.5), (1.96, 2.0), (2.69, 3.0))

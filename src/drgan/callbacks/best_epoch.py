@@ -15,12 +15,12 @@ difference: two independent estimates of one FID differ by that much about 5 % o
 any other of the top_k does not compete, so spread decides only among FIDs statistically indistinguishable from
 the lowest. The lowest FID is never beaten, so there is always a contender. The stds are a few FID points (the
 real TiO2 patches half against half, ~65 images each: 2.1 SEM, 2.9 TSEM; ~130 images give less), so the rule is
-tighter than the old fixed 10 % where FIDs are above ~60-80. In the issue's TEM run, FIDs 123.1 and 132.6 with stds of
-~2 (what ~65-130 images give) differ by 9.5, over the 5.7 allowed: the lower FID wins whatever the spreads, where the
-old margin (12.3 points at that FID) let the spread choose the 132.6.
-A pair where either entry has no ``fid_std`` (histories from before it, or written by hand) falls back to the
-fixed margin: b is beaten when fid_b > (1 + 0.1) x fid_a (``FALLBACK_MARGIN``; with no stds at all this is the
-old rule, of the top_k only FIDs at most 1.1 x the lowest compete). A number for ``fid_margin`` is that fixed
+tighter than a fixed 10 % where FIDs are above ~60-80: FIDs 123.1 and 132.6 with stds of ~2 differ by 9.5, over the
+5.7 allowed, and the lower FID wins whatever the spreads, where a 10 % margin (12.3 points at that FID) would let the
+spread choose the 132.6.
+A pair where either entry has no ``fid_std`` (histories from before it, or written by hand) falls back to a
+fixed margin: b is beaten when fid_b > (1 + 0.1) x fid_a (``FALLBACK_MARGIN``; with no stds at all, of the top_k
+only FIDs at most 1.1 x the lowest compete). A number for ``fid_margin`` is that fixed
 margin for every pair; null lets all top_k compete. The margin keeps the FID weighing in short runs: with 5
 epochs or fewer every epoch is among the "5 lowest", and spread alone would pick an epoch of far higher FID.
 
@@ -39,8 +39,8 @@ a warning). ``brightness_range: auto`` (default) takes the range from the real t
 background grey / the real grey, separately for particles and background, at least 1/1.1-1.1x; i.e. an epoch
 is off when its mean grey (over ~130 images, far steadier than one patch) is where fewer than 5 % of the real
 patches are. On the mined TiO2 patches that is particles 0.75-1.26x and background 0.57-1.35x for SEM, particles
-0.91-1.10x (the floor) and background 0.70-1.60x for TSEM (negatives, dark particles): tighter than the old fixed
-0.5-2x, which let through a background 0.62x real. The range is logged once and written to best_epoch.json. A
+0.91-1.10x (the floor) and background 0.70-1.60x for TSEM (negatives, dark particles): tighter than a fixed
+0.5-2x, which lets through a background 0.62x real. The range is logged once and written to best_epoch.json. A
 fixed ``[low, high]`` applies to particles and background alike; null switches the guard off. A generator can
 reach its lowest FID with images several times too dark (4.6x in a TiO2 SEM run, experiments/tio2_sem/RESULTS.md),
 and a segmenter trained on such images finds nothing in the real ones.
@@ -75,7 +75,7 @@ from drgan.io import write_json
 log = logging.getLogger(__name__)
 
 FID_SIGMAS = 2.0  # fid_margin auto: a lower FID wins outright past this many standard errors of the difference
-FALLBACK_MARGIN = 0.1  # fid_margin auto, for a pair without fid_std: the old fixed relative margin
+FALLBACK_MARGIN = 0.1  # fid_margin auto, for a pair without fid_std: a fixed relative margin
 
 
 def parameter_spread(values: np.ndarray, low, high) -> float:

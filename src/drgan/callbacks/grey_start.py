@@ -16,19 +16,18 @@ deviation are differentiable in the image) and solves for the FCN's last-layer b
 steps on the three differences (each step the least change of the biases that zeroes them to first order, from their
 Jacobian: one adjoint pass per number through the same renders), so that a bias that hardly changes the numbers hardly
 moves; later steps are shortened (each step's renders are a new sample of layouts and noise, which a full step would
-chase). The weights, hence the FCN's dependence on the constellation, are left as initialised. (Adam on the biases,
-tried first, moved a bias with a tiny, noisy gradient at its full rate: on EMPS actbio the noise sigma rose from 0.08
-to 0.12, its noise from 0.053 to 0.083 against the real 0.056.) It stops after ``steps`` steps or once every number is within
+chase). The weights, hence the FCN's dependence on the constellation, are left as initialised. (A first-order
+optimizer moves a bias with a tiny, noisy gradient at its full rate, e.g. the noise away from the real level.) It
+stops after ``steps`` steps or once every number is within
 ``tolerance`` (grey units; the noise within NOISE_TOLERANCE of the real) for two steps in a row. Resumed runs (global step > 0) and runs started from another run's weights (``init_from``)
 are left alone. What it did is logged and written to ``<run>/grey_start.json``.
 
 **The anchor** (``anchor`` > 0, every run, resumed ones too): the generator's loss gets ``GreyAnchor``'s penalty,
 zero while the render's particle and background grey lie within the range the real patches themselves span (the
 best-epoch rule's brightness range), and anchor x the squared distance outside it. Why: where the scene cannot show
-what the real particles look like (EMPS actbio's hollow rings against the scene's solid spheres; a film's coarse grain
-against a uniform stage), the adversarial loss trades that structure against the only knobs that reach it, the grey
-levels, and drifts them out of the real range (actbio: the film from 0.67 at the start to 0.80 within 67 steps, 0.57 x
-the real negative, and never back in 6 evaluations). The anchor leaves the game alone inside the range and stops the
+what the real particles look like (hollow rings against the scene's solid spheres; a film's coarse grain against a
+uniform stage), the adversarial loss trades that structure against the only knobs that reach it, the grey levels,
+and drifts them out of the real range for good (experiments/pipeline/README.md). The anchor leaves the game alone inside the range and stops the
 trade at its edge.
 """
 

@@ -6,9 +6,8 @@ The ROI of a particle is the outline of its pixels, traced along their edges (Im
 Particles make such "traced" ROIs): its vertices are pixel corners, (x, y) with pixel (row r, column c) covering
 [c, c + 1) x [r, r + 1). Filled, it gives back exactly the particle's pixels, so Fiji's Measure on the ROI set gives
 the areas of particles.csv, except where a particle has holes: a traced ROI has one outline, so it covers them
-(measured on 3 train images each with a TSEM segmenter: the ROI area exceeded particles.csv's by at most 0.2 % on
-tio2_tsem, 3.7 % on tio2_sem, 7.8 % on 3 EMPS images, every case a predicted particle with interior holes; the label
-TIFF keeps the exact pixels). A particle whose pixels touch only at corners would be outlined by its largest
+(on real images a few percent at most, every case a predicted particle with interior holes; the label TIFF keeps
+the exact pixels). A particle whose pixels touch only at corners would be outlined by its largest
 4-connected piece (drgan's particles are 4-connected components, so that does not happen to them). The ROI format is written with ``roifile`` (by tifffile's author), the TIFF
 with ``tifffile``, both already what scikit-image and the ImageJ community use.
 """

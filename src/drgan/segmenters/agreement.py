@@ -1,12 +1,10 @@
 """A weak segmenter caught before it reaches the user's numbers: its agreement with the classical segmentation of the
 user's own images, and another seed when it leaves too much of it uncovered.
 
-One U-Net seed in four trained on tio2_sem's pipeline pairs misses the agglomerates' inner particles on the real
-images (test DSC 0.730 against 0.93-0.95 for the others) while its closed-loop check on generated pairs looks as good
-as theirs: the check's pairs are its training distribution. The profile's classical segmentation (threshold +
-watershed at the measured scale) finds the particles' area on such images without training (DSC 0.90 on tio2_sem's
-train ids), so the share of its foreground that the segmenter's foreground covers ranks seeds as the truth does:
-0.60 / 0.86 / 0.94 / 0.96 for seeds of truth DSC 0.72 / 0.88 / 0.94 / 0.95 on the 32 train ids
+A U-Net seed can miss the agglomerates' inner particles on the real images while its closed-loop check on generated
+pairs looks as good as the other seeds': the check's pairs are its training distribution. The profile's classical
+segmentation (threshold + watershed at the measured scale) finds the particles' area on such images without
+training, so the share of its foreground that the segmenter's foreground covers ranks seeds as the truth does
 (experiments/statistics/README.md, "A weak seed caught without annotations"). No annotation is read.
 
 drgan.segment (the pipeline wires ``agreement.images`` and ``agreement.reference``: its data folder and the profile's

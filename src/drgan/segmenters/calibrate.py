@@ -39,7 +39,7 @@ GRID_DEFAULTS = {
     "objective": "sizes",  # sizes: the nearest sizes and counts within 0.05 AP50 (sizes_best); ap50: the highest AP50
     "seeds": ["hmaxima", "components"],  # inference.split_seeds (drgan.segmenters.inference.SEED_RULES); ties: first
     "cores": [None, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98],
-    "depths": [1.0, 2.0, 4.0, 8.0, 16.0],  # px; the larger ones for particles of 100 px and more (EMPS actbio)
+    "depths": [1.0, 2.0, 4.0, 8.0, 16.0],  # px; the larger ones for particles of 100 px and more
     "levels": [0.3, 0.4, 0.5, 0.6, 0.7],  # the instance-aware segmenter's seed levels (drgan.segmenters.instances)
     "max_pairs": 100,
 }
@@ -47,10 +47,9 @@ TIE = 0.002  # AP50 differences below this are ties, broken by the particles' si
 SIZES_AP50_MARGIN = 0.05  # objective sizes: the split may give up this much validation AP50 for exact sizes
 MIN_AREA_PX = 8.0  # components under this are specks in the size statistics (drgan.evaluate's min_area_px)
 # Median diameter (px) of the validation pairs' particles from which a tie between split depths goes to the larger
-# depth. Placed by four ties scored both ways on annotated train ids (experiments/pipeline/README.md, "Tied split
-# depths"): the larger depth won for particles of 58 and 221 px (EMPS cej, saa890: fewer fragments of rough or
-# faceted outlines, AP50 +0.05 and +0.36), the smaller for 25-27 px (tio2_sem, tio2_tsem: fewer merges); two ties
-# held out (EMPS actbio 103 px, apsusc 87 px) agree.
+# depth: large particles have rough or faceted outlines that a shallow split cuts into fragments, small ones touch
+# and a deep split merges them (ties scored both ways on annotated train ids: experiments/pipeline/README.md, "Tied
+# split depths").
 LARGE_PARTICLE_PX = 40.0
 # Image px per real px of the pairs a segmenter learned from (a generated set's manifest pixel_scale: below 1 when
 # the GAN saw large particles in windows wider than its render); inference resamples real images by it.
@@ -211,12 +210,10 @@ def tied_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:
 
 # The size-first choice stands unless its particle count on the user's own images (the agreement check's, up to 8 the
 # profile segmented) falls more than this below the classical segmentation's count there; the setting within the AP50
-# margin nearest that count is taken then. Generated validation pairs can rank the splits by size the other way from
-# the real images: tsem4's chose splits that merge on them (-16..-21 % from the classical count; test ids, 3 seeds:
-# count -23.8 -> +1.0 %, median +14.1 -> +1.3 %, AP50 0.603 -> 0.641 with the guard). One-sided, since the classical
-# watershed merges far more often than it splits (packed spheres: EMPS apsusc's segmenters count +17..+100 % above it
-# and are right on the test ids, +4.6 % for seed 0; a two-sided guard took that seed to -36.7 %); tio2_sem, tio2_tsem
-# and cej keep their choice (experiments/statistics/README.md, "The closed loop over the sets, three seeds").
+# margin nearest that count is taken then: generated validation pairs can rank the splits by size the other way from
+# the real images, choosing a split that merges on them. One-sided, since the classical watershed merges far more
+# often than it splits (on packed spheres a right segmenter counts well above it). Measured:
+# experiments/statistics/README.md, "The closed loop over the sets, three seeds".
 REAL_COUNT_GUARD = 0.10
 
 

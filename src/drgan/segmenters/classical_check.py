@@ -38,7 +38,7 @@ from drgan.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-EXACT = 0.05  # a closed-loop median error within this counts as exact (issue target on real images: 5 %)
+EXACT = 0.05  # a closed-loop median error within this counts as exact (the size target on real images: 5 %)
 AGREE = 0.05  # the classical median may differ this much beyond the closed-loop interval and still agree
 MERGE_EXCESS = 0.10  # merges (shares of particles) one segmentation makes beyond the other's that explain a gap
 SEGMENTER, CLASSICAL, BOTH = "segmenter", "classical", "both"  # whose sizes drgan trusts (Verdict.trusted)
@@ -246,8 +246,7 @@ def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Map
 def _outnumbers(merger: int | None, other: int | None) -> bool:
     """Whether the segmentation that merges the other's particles still finds as many particles or more: then the
     other one misses particles outright, its count is no ceiling and its median is of the particles it found, so the
-    merges do not explain the gap (EMPS apsusc: the segmenter merged 27 % of the classical particles yet found 270 to
-    the classical 164; the classical sizes it was trusted for counted -38.5 % on the annotated test images)."""
+    merges do not explain the gap (experiments/statistics/README.md, "Which sizes to trust")."""
     return merger is not None and other is not None and merger >= other
 
 

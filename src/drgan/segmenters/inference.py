@@ -14,8 +14,9 @@ or contour class (probabilities summed > 0.5), seeds = the h-maxima (depth ``spl
 smoothed distance transform of the predicted particle class, so the contour pixels the network does draw
 deepen the valleys between particles. Neighbouring watershed regions are then separated by a 1-px line of
 the contour class, so that 4-connected labelling of the particle class (drgan.metrics.instance_scores,
-drgan.analyze) returns one instance per region. Defaults (depth 2 px, smoothing 1 px) were chosen on 10
-real *train* images of TiO2 SEM (experiments/tio2_sem/RESULTS.md), never on test images.
+drgan.analyze) returns one instance per region. Defaults (depth 2 px, smoothing 1 px) were chosen on annotated
+real *train* images (experiments/tio2_sem/RESULTS.md), never on test images; drgan.segment calibrates the split per
+segmenter on its validation pairs (drgan.segmenters.calibrate).
 """
 
 from __future__ import annotations
@@ -356,8 +357,8 @@ AUTO = "auto"  # inference.pixel_scale: per_image for the instance-aware segment
 def resolve_pixel_scale(model, value):
     """``inference.pixel_scale`` with "auto" resolved: ``PER_IMAGE`` for a segmenter that learnt whole particles at one
     working diameter (``needs_centres``: the instance-aware one, drgan.segmenters.pairs.working_scale) and stores it,
-    else None (the segmenter's own scale: the U-Net's classes are local). Measured: EMPS saa890's real-trained
-    instance-aware segmenter, AP50 0.580 -> 0.678 over 3 seeds (experiments/statistics/README.md)."""
+    else None (the segmenter's own scale: the U-Net's classes are local). Measured in experiments/statistics/README.md,
+    "A scale per image"."""
     if value != AUTO:
         return value
     return PER_IMAGE if getattr(model, "needs_centres", False) and getattr(model, "working_diameter", None) else None
@@ -374,16 +375,16 @@ def image_scale(classes: np.ndarray, probs: np.ndarray, working_diameter: float,
     scale), or None to keep ``scale``: fewer than RESCALE_MIN_PARTICLES particles, or a scale less than
     RESCALE_TOLERANCE x ``scale``. At most RESCALE_RANGE x ``scale`` (and 16). Only enlarging: merged particles
     measure larger than they are, fragments smaller but the area weighting discounts them, so only a measurement
-    of small particles is trusted (EMPS saa890, held-out train images: shrinking an image whose first pass merged
-    62 % of its particles merged 75 %). The particles are those of the split ``classes``,
+    of small particles is trusted (shrinking an image whose first pass merged its particles merges more). The
+    particles are those of the split ``classes``,
     else (fewer than RESCALE_MIN_PARTICLES there: particles too small for the split's seeds at this scale) the
     4-connected regions of the plain argmax of its class probabilities ``probs``; their size is the area-weighted median
     (drgan.metrics.statistics.area_median), which the specks and fragments of a first pass at the wrong scale do not
-    move (EMPS saa890: a plain median of one 395-px particle and its fragments asked for 14 x its scale).
+    move (a plain median of one large particle and its fragments measures the fragments).
 
     Why: a segmenter learns one particle size from its pairs (the instance-aware one a 40-px working diameter:
-    drgan.segmenters.pairs.working_scale); an image whose particles are far smaller (EMPS saa890's test ids mix
-    350-px and 65-px particles) is shrunk with the rest until they vanish. Cellpose estimates each image's diameter
+    drgan.segmenters.pairs.working_scale); an image whose particles are far smaller (a set that mixes 350-px and
+    65-px particles) is shrunk with the rest until they vanish. Cellpose estimates each image's diameter
     for the same reason; here the first pass's own particles measure it. One measurement, not an iteration: a
     segmenter shown particles larger than it learnt fragments them, which would measure them smaller still."""
     from drgan.metrics.instance_scores import binarize_and_label

@@ -3,9 +3,9 @@ their level before the network sees it (`inference.noise_match`).
 
 Generated pairs can be noisier than the images they imitate (the GAN's learned noise, Monte Carlo sampling at a
 low spp: `drgan.synthetic.noise_check`), and a U-Net trained on them may then read a clean real particle as something
-it never saw. On EMPS apsusc (generated pairs 2.6-3.1 x as noisy as the real images) one of three seeds found almost
-none of the real spheres (particle DSC 0.38 by its argmax); the same network on the same images with white noise of
-0.02-0.04 added: 0.78-0.81 (experiments/pipeline/README.md). Noise is only ever added, never removed: an image as
+it never saw: with generated pairs a few times as noisy as the real images, a seed can find almost none of the real
+particles, and the same network finds them once the real images carry the pairs' noise level
+(experiments/pipeline/README.md). Noise is only ever added, never removed: an image as
 noisy as the training images or more is left as it is.
 
 The level is one number per image, the same estimator on both sides: the robust standard deviation (1.4826 x the

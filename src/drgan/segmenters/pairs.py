@@ -134,7 +134,7 @@ def instance_labels(particle: np.ndarray) -> np.ndarray:
 
 def is_instance_map(raw: np.ndarray) -> bool:
     """Whether an annotation holds one id per particle (0 background, 1..N; a 16- or 32-bit label image, as Cellpose,
-    CVAT or the EMPS set write them) rather than a binary mask. An 8-bit file is always read as a binary mask: grey
+    CVAT or the EMPS data set write them) rather than a binary mask. An 8-bit file is always read as a binary mask: grey
     values there are more often a resampled or compressed binary mask's edges than particle ids."""
     raw = np.asarray(raw)
     if raw.dtype == bool or raw.dtype.itemsize < 2:
@@ -330,8 +330,8 @@ def working_scale(
     pairs' `sample_diameters` where the caller has them already.
 
     Why: a segmenter learns from ``crop``-px crops, and the instance-aware one's centre map (1 on each particle's
-    core, drgan.segmenters.instances) can only be learnt where a crop shows the whole particle: on EMPS saa890
-    (221 px particles, 128-px crops) its centre map stayed a flat 0.52 over every particle. Cellpose rescales to a
+    core, drgan.segmenters.instances) can only be learnt where a crop shows the whole particle: with particles wider
+    than the crops its centre map stays flat over every particle. Cellpose rescales to a
     working diameter (30 px) for the same reason."""
     if working_px is None or not pairs:
         return 1.0, math.nan

@@ -5,13 +5,13 @@ A segmenter cuts two touching particles apart only where the image shows a neck 
 grey on the particles' scale; a ``hidden`` contact looks like the particles themselves). It learns from the generated
 pairs and is checked on more of them (drgan.segmenters.closed_loop), so a generated set whose contacts hide their
 neck more often than the user's images do trains on cuts it cannot see and reports more merges than the real images
-will show (tio2_tsem: 57 % hidden in the default piled scenes against 27 % in the annotations, and the merges of its
-closed-loop check came from those). The real side is measured on drgan's classical segmentation of the train
-patches (the patch set's settings, as the edge check: drgan.synthetic.edge_check), the generated side on its exact
-labels, and compared (``hidden_difference``): on tio2_tsem's train ids the classical contacts hide their neck about
-as often as the annotated ones (31-35 % against 27 %), while on generated pairs it misses most hidden contacts (38 %
-against their exact 60 %: piled particles that overlap in projection show no neck of shape either, so it merges them),
-which would hide the difference; the classical measurement of the generated images is kept beside it (``generated``).
+will show (piled scenes in transmission hide many more contacts than the real images do). The real side is measured
+on drgan's classical segmentation of the train patches (the patch set's settings, as the edge check:
+drgan.synthetic.edge_check), the generated side on its exact labels, and compared (``hidden_difference``): the
+classical contacts hide their neck about as often as annotated ones, while on generated pairs the classical
+segmentation misses most hidden contacts (piled particles that overlap in projection show no neck of shape either,
+so it merges them), which would hide the difference; the classical measurement of the generated images is kept
+beside it (``generated``). Measured: experiments/statistics/README.md, "Merges where the image shows no neck".
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 WARN_HIDDEN = 0.15  # generated contacts hidden this much more often than the real ones are named
-# Fewer real contacts than this say nothing about how often they hide their neck (EMPS saa890: one contact in its
-# 4 real patches, "hidden" 0 % against the generated 40 %: a warning about a share of one)
+# Fewer real contacts than this say nothing about how often they hide their neck (a few large particles: a share of
+# one or two contacts)
 MIN_REAL_CONTACTS = 10
 
 
@@ -98,6 +98,6 @@ def log_result(result: dict) -> None:
 CAUSES = {  # what makes generated contacts hide their neck, by the particles' polarity
     "dark": "in transmission a particle piled over another hides their contact: placement.max_height and "
     "placement.min_distance_factor set the piling",
-    "bright": "rendered secondary-electron contacts shine as bright as the particles where real ones dip (tio2_sem: "
-    "neck grey median 1.03 against 0.65): material.imaging.recapture darkens them",
+    "bright": "rendered secondary-electron contacts shine as bright as the particles where real ones often dip: "
+    "material.imaging.recapture darkens them",
 }

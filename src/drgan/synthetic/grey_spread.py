@@ -2,25 +2,25 @@
 
 The generator learns one value per scene parameter, so every image of a generated set shows about the same
 background grey and particle contrast, while real micrographs vary from image to image (illumination, detector
-settings, film thickness): on tio2_tsem the real 256-px windows' background grey spans 0.69-0.87 (5th-95th
-percentile) and the generated set's 0.78-0.92 (experiments/realism/README.md). A segmenter trained on the narrow set
-calls the darkest real images all particle and the brightest all background (issue 29).
+settings, film thickness), so the generated set's background grey spans a narrower range than the real windows'
+(experiments/realism/README.md). A segmenter trained on the narrow set calls the darkest real images all particle and
+the brightest all background.
 
 With grey_spread, image i takes the (background, particle) grey of one real *train* patch, drawn with the
 image's own seed, and its grey levels are mapped by the affine function that sends its own background and
 particle grey (from its labels) there: x -> b' + (x - b) (p' - b') / (p - b), clipped to [0, 1].
 Both sides measure alike (`grey_levels`): medians of the background beyond EDGE_MARGIN px from any particle and of
 the particles' cores (EDGE_MARGIN px in). Means over the whole classes were biased on the real side, whose classical
-foreground is not the true outline: on tio2_sem it leaves the particles' bright edges and dim parts to the
-background, whose mean then came out too bright for the darkest windows (5th percentile 1.56x the masks').
+foreground is not the true outline: it leaves the particles' bright edges and dim parts to the background, whose
+mean then comes out too bright for the darkest windows.
 Labels do not change; noise and texture scale with the contrast, as they do in a real image. The real patches'
 levels come from drgan's classical segmentation with the patch set's own settings (no annotation is read), with the
 threshold's own outlines (not grown to the edges: a core's median, the dim edge left out); and the generated image's
 own levels are measured by that same segmentation
 (`GreySpread`), not by its exact labels: the classical outline is an Otsu threshold, tighter than a particle's true
-outline where its edge is dim, so its core median is brighter (on tio2_sem's train patches 0.522 against the masks'
-0.478). Measured by labels on one side and the classical outline on the other, that bias became 11 % too much
-contrast in every generated image; measured alike on both sides, it cancels (experiments/realism/README.md).
+outline where its edge is dim, so its core median is brighter. Measured by labels on one side and the classical
+outline on the other, that bias becomes too much contrast in every generated image; measured alike on both sides, it
+cancels (experiments/realism/README.md).
 """
 
 from __future__ import annotations
@@ -127,8 +127,8 @@ class GreySpread:
 
         params, _ = resolve_params(list(np.asarray(patches, dtype=np.float32)), segment, polarity)
         # The threshold's own outline, not grown to the edges (`grow_to_edges`): a level is a core's median, and the
-        # grown outline takes in the dim edge, which a render and a micrograph fade through unlike each other (on
-        # tio2_sem, grown on both sides, the generated contrast's 5th percentile came out 11 % high, 3 % without).
+        # grown outline takes in the dim edge, which a render and a micrograph fade through unlike each other (grown on
+        # both sides, the generated contrast's low end comes out too high; experiments/realism/README.md).
         params = replace(params, grow_outlines=False)
         levels = patch_grey_levels(patches, params, polarity)
         return cls(levels, params.scaled(resolution / np.shape(patches)[-1]), polarity)

@@ -1,9 +1,8 @@
 """How noisy a generated set is against the real images it imitates (`generate`'s noise_check.json).
 
 The FID and the grey checks hardly see pixel noise, and a segmenter trained on images much noisier than the real ones
-learns from speckle the real images do not have: the tio2_sem pipeline run of issue 50's first session raised its
-learned noise to 2.5 x the real noise and rendered 1,000 pairs at spp 16 whose background was 5.5 x and whose
-particles were 3.6 x as noisy as the real training patches (experiments/pipeline/README.md). This module
+learns from speckle the real images do not have: a GAN can learn a noise level several times the real one, and
+renders at a low spp add their own grain on top (experiments/pipeline/README.md). This module
 measures that ratio where generate can: the fine-scale noise (the image minus its Gaussian blur of HIGHPASS_PX, its
 standard deviation) of the background beyond MARGIN px from any particle and of the particles' cores MARGIN px
 inside, on up to SAMPLE generated images (their labels) and on the run's real train patches (drgan's classical
