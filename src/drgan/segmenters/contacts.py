@@ -4,8 +4,8 @@ centroids, which drgan.profile measures and writes into the material as ``materi
 
 The weight (drgan.segmenters.module.contact_pixels) makes a U-Net separate touching particles; it pays where real
 contacts merge (bright agglomerates in SEM) and costs AP50 where they do not (transmission images; bright spheres
-packed side by side): experiments/pipeline/README.md, "The contact weight" and "A contact-weight rule from the
-particles' arrangement".
+packed side by side): experiments/pipeline/README.md, "Contact weight 10 against 0 on each set" and
+"A contact-weight rule from the particles' arrangement".
 """
 
 from __future__ import annotations

@@ -14,8 +14,8 @@ class Calibration:
 
     Provenance: set, and each change measured, by the experiments in ``experiments/profile/`` (its README.md: "How
     the segmentation was tuned" for the lengths from the diameter, "One scale-adaptive segmentation for any images"
-    and its sessions for the rest, each under the heading that names it: seeds from the necks and the neck depth
-    chosen by the sizes, outlines at the strongest edges, dense packings of alike particles, holes inside
+    and the sections after it for the rest, each under the heading that names it: seeds from the necks and the neck
+    depth chosen by the sizes, outlines at the strongest edges, dense packings of alike particles, holes inside
     particles, every fixed point of the scale map, the plateau for small particles on noise, alike against what
     would win), against the TiO2 SEM / TSEM train masks and the EMPS instance maps. A change here is a change of
     the segmentation: measure it there first.
