@@ -237,6 +237,9 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert type(placement) is layout._PLACEMENT_KINDS[saved["agglomeration"]["placement"]]
     assert cfg.data.dir == str(folder.resolve()) and list(cfg.data.crop_rows) == [320, 336]
     assert cfg.renderer.spp == 16  # inherited from the parent (HIM)
+    # a lit stage: the stage by light sampling alone (the parent's own renders keep the general default)
+    assert cfg.renderer.integrator == "direct_light"
+    assert compose(["material=sio2_him"], config_name="train").renderer.integrator == "direct_light_mis"
     # sharp outlines (discs drawn without blur) render through a sharper filter than the HIM parent's 3 px
     from drgan.material_proposal import filter_for_blur
 
@@ -388,6 +391,7 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
     # rendered at the profile's patch size, the real windows area-averaged to it (EMPS saa890 rendered 512 px windows
     # at 512 px, 4 x the pixels of every GAN step and generated pair, while the material said 256)
     assert cfg.renderer.resolution == 32 and cfg.data.patch_size == 32
+    assert cfg.renderer.integrator == "direct_light_mis"  # transmission: no stage to light, nothing written
     assert cfg.material.noise_grain_px == pytest.approx(result.background.grain_px * 32 / 128, abs=0.01)
     # The scene's particle range is that of the windows training keeps (>= data.min_particles), not of the few with
     # 3 or more (EMPS saa890: 6-6 from those where its 512 px windows hold 1-2 particles)
