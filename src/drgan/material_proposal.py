@@ -358,7 +358,8 @@ def parent_lights_a_stage(parent: str) -> bool:
 # The integrator a profiled secondary-electron material trains with: direct_light samples the BSDF as well as the
 # lights on the particles (and on a stage whose roughness is learned or low) and only the lights on a rough stage of
 # fixed roughness, one ray fewer per stage sample; the particles render alike, the GAN's steps run ~1.4 x faster, and
-# the chain's segmenters score the same (experiments/pipeline/chain_time.md, "The integrator and the FID images").
+# the chain's segmenters score the same (experiments/pipeline/chain_time.md, "where the GAN's 20 minutes go"). The
+# paper's SEM experiment trains with it too (conf/gan/experiment/tio2_sem.yaml).
 FAST_INTEGRATOR = "direct_light"
 
 
