@@ -56,7 +56,7 @@ from drgan.data.imagej import write_outlines
 from drgan.errors import ConfigError, pixel_size
 from drgan.io import figure_png, write_bytes, write_json
 from drgan.metrics.instance_scores import binarize_and_label
-from drgan.metrics.statistics import Particles, bootstrap, particles, pooled
+from drgan.metrics.statistics import Particles, bootstrap, interval_text, particles, pooled
 from drgan.metrics.statistics_figures import (
     fmt,
     histograms,
@@ -448,10 +448,7 @@ def _csv(rows: list[dict]) -> str:
 
 
 def _interval(cell: dict, digits: int = 3) -> str:
-    text = fmt(cell["value"], digits)
-    if math.isfinite(cell.get("low", math.nan)):
-        text += f" [{fmt(cell['low'], digits)}, {fmt(cell['high'], digits)}]"
-    return text
+    return interval_text(cell, lambda value: fmt(value, digits))
 
 
 def _statistic_rows(s: dict, unit: str, area_unit: str) -> list[tuple[str, str]]:

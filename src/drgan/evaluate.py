@@ -58,7 +58,7 @@ from drgan.metrics.instance_scores import (
     match_instances,
     segmentation_scores,
 )
-from drgan.metrics.statistics import compare_sizes, count_errors, particles, pooled
+from drgan.metrics.statistics import compare_sizes, count_errors, interval_text, particles, pooled
 from drgan.progress import track
 from drgan.runtime import stage_main, start
 from drgan.segmenters.classical_check import check_reported, reported_particles
@@ -392,10 +392,7 @@ def statistics_csv(result: dict) -> str:
 
 def statistics_markdown(result: dict, truth: list, ids: list[str], nm: float | None, n_boot: int, reported=None) -> str:
     def interval(cell: dict, scale: float = 1.0, fmt: str = "{:.3f}") -> str:
-        value = fmt.format(scale * cell["value"])
-        if np.isfinite(cell["low"]):
-            return f"{value} [{fmt.format(scale * cell['low'])}, {fmt.format(scale * cell['high'])}]"
-        return value
+        return interval_text(cell, lambda value: fmt.format(scale * value))
 
     unit = "nm" if nm else "px"
     scale = float(nm) if nm else 1.0

@@ -203,6 +203,16 @@ def bootstrap(
     return result
 
 
+def interval_text(cell: Mapping, render) -> str:
+    """A `bootstrap` cell as text: ``render(value)``, then `` [render(low), render(high)]`` where the interval is
+    finite (analyze's and evaluate's tables; each passes its own number format)."""
+    text = render(cell["value"])
+    low = cell.get("low")
+    if low is not None and np.isfinite(low):
+        text += f" [{render(low)}, {render(cell['high'])}]"
+    return text
+
+
 def compare_sizes(
     pred: Sequence[Particles], true: Sequence[Particles], n_boot: int = 1000, seed: int = 0, level: float = 0.95
 ) -> dict[str, dict[str, float]]:
