@@ -275,72 +275,111 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
     from drgan.data.images import list_images
     from drgan.segmenters import classical_check
     from drgan.segmenters.pairs import read_image_item
-    from drgan.segmenters.predictors import as_predictor, load_predictor
 
     s = settings if isinstance(settings, AnalyzeSettings) else AnalyzeSettings.from_config(settings)
     reference = classical_check.ClassicalReference.of_run(s.profile) if s.profile else None
-    nm, min_area, n_boot, bins = s.nm_per_px, s.min_area_px, s.bootstrap, s.bins
     paths = list_images(s.images)
-    if predictor is None:
-        if not s.model:
-            raise ConfigError(
-                "analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment) or a folder of "
-                "predicted masks named like the images"
-            )
-        predictor = load_predictor(s.model, s.inference)
-    else:
-        predictor = as_predictor(predictor, "predictor")
-    scales, pixel_note = pixel_sizes(paths, nm)
+    predictor = _predictor(s, predictor)
+    scales, pixel_note = pixel_sizes(paths, s.nm_per_px)
     log.info("pixel size: %s", pixel_note)
     items = [read_image_item(p, p.stem, s.crop_rows) for p in paths]  # all read (and checked) before predicting
     predictor.check(items)
+    measured = segment_images(s, predictor, items, scales, reference)
+    summary, sizes = summarize(s, predictor, items, scales, pixel_note, measured, reference)
+    write_results(s, summary, measured, sizes)
+    log.info(
+        "wrote %s: %d particles in %d images, median diameter %s %s",
+        s.out / "particles.csv",
+        len(measured.rows),
+        len(items),
+        fmt(summary["statistics"]["median_diameter"]["value"]),
+        summary["unit"],
+    )
+    return measured.rows
 
-    out = s.out
-    rows, found, thickness_values, comparisons = [], [], [], []
-    # per image classically segmented: (its id, its classical particles at half contrast, scale, image area)
-    compared = []
-    classical_rows = []
+
+def _predictor(s: AnalyzeSettings, predictor):
+    """The settings' segmenter (a checkpoint, or a folder of predicted masks), or ``predictor`` checked."""
+    from drgan.segmenters.predictors import as_predictor, load_predictor
+
+    if predictor is not None:
+        return as_predictor(predictor, "predictor")
+    if not s.model:
+        raise ConfigError(
+            "analyze: give model=CHECKPOINT (a segmenter from python -m drgan.segment) or a folder of "
+            "predicted masks named like the images"
+        )
+    return load_predictor(s.model, s.inference)
+
+
+@dataclass
+class Measured:
+    """What `segment_images` measured, image by image: particle rows and particles (the segmenter's; the classical
+    ones where the profile's classical segmentation covers the image), the two segmentations compared, and local
+    thickness values (``wires``)."""
+
+    rows: list = field(default_factory=list)
+    found: list = field(default_factory=list)  # Particles per image, as drgan.evaluate counts and sizes them
+    thickness: list = field(default_factory=list)
+    comparisons: list = field(default_factory=list)  # classical_check.outline_comparison per image compared
+    compared: list = field(default_factory=list)  # (id, classical Particles at half contrast, scale, image area)
+    classical_rows: list = field(default_factory=list)
+
+
+def segment_images(s: AnalyzeSettings, predictor, items: list, scales: list, reference) -> Measured:
+    """Each image segmented and measured; its overlay, label TIFF and ROI set (and the classical ones, the thickness
+    map) written as it is done, so that a long folder holds one image's arrays at a time."""
+    from drgan.segmenters import classical_check
+
+    out, min_area, m = s.out, s.min_area_px, Measured()
     for item, scale in track(list(zip(items, scales)), "segmenting images", unit="images"):
         class_map = np.asarray(predictor(item))
         labels = binarize_and_label(class_map.astype(np.int64), particle_class=1)
         mine = particles(labels).at_least(min_area)  # what drgan.evaluate counts and sizes
-        found.append(mine)
+        m.found.append(mine)
         image_rows = particle_rows(item.id, labels, scale, min_area, s.exclude_border)
-        rows += image_rows
+        m.rows += image_rows
         write_bytes(out / "overlays" / f"{item.id}.png", overlay_png(item.image, labels, image_rows))
         write_outlines(out, item.id, labels, [r["id"] for r in image_rows], scale)  # for Fiji and napari
         classical = reference.labels_of(item.id, item.image) if reference else None
         if classical is not None:  # the profile's classical segmentation of the same image, particle by particle
             counted = np.where(np.bincount(labels.ravel())[labels] >= min_area, labels, 0)  # specks out, as above
-            comparisons.append(classical_check.outline_comparison(counted, classical))
-            compared.append((item.id, reference.particles(classical, min_area), scale, item.image.size))
+            m.comparisons.append(classical_check.outline_comparison(counted, classical))
+            m.compared.append((item.id, reference.particles(classical, min_area), scale, item.image.size))
             these = classical_particle_rows(item.id, classical, scale, s, reference)
-            classical_rows += these
+            m.classical_rows += these
             # the classical outlines where microscopists look at them (at the segmented outline: a label image
             # cannot move by a fraction of a pixel): classical/overlays, labels/ and rois/, ids of particles_classical
             write_bytes(out / "classical" / "overlays" / f"{item.id}.png", overlay_png(item.image, classical, these))
             write_outlines(out / "classical", item.id, classical, [r["id"] for r in these], scale)
         if s.wires:
             thick = local_thickness(class_map > 0)
-            thickness_values.append(thick[class_map > 0] * (scale or 1.0))
+            m.thickness.append(thick[class_map > 0] * (scale or 1.0))
             png = figure_png(lambda plt, im=item.image, t=thick, s=scale: thickness_map(plt, im, t, s))
             write_bytes(out / "thickness" / f"{item.id}.png", png)
         log.info("%s: %d particles (%d cut by the border)", item.id, mine.count, int(mine.border.sum()))
+    return m
 
-    in_nm = all(s is not None for s in scales)
-    unit = "nm" if in_nm else "px"
-    factors = [s if in_nm else 1.0 for s in scales]
-    area_unit = "µm²" if in_nm else "Mpx"
+
+def summarize(s: AnalyzeSettings, predictor, items, scales, pixel_note, m: Measured, reference) -> tuple[dict, dict]:
+    """(summary.json's content, the size figure's inputs): the size statistics in nm where every image has a pixel
+    size (else px), the classical particles' beside them where images were segmented both ways, and the verdict on
+    whose sizes drgan trusts (drgan.segmenters.classical_check)."""
+    from drgan.segmenters import classical_check
+
+    in_nm = all(scale is not None for scale in scales)
+    factors = [scale if in_nm else 1.0 for scale in scales]
     areas = [item.image.size * (f * f * 1e-6 if in_nm else 1e-6) for item, f in zip(items, factors)]
-    stats = size_statistics(found, factors, areas, n_boot, s.seed)
-    whole = pooled(found)
-    classical_summary = classical_check.pool(comparisons, reference) if reference else None
-    if compared:  # the classical particles' statistics, as the segmenter's, over the images segmented both ways
-        segmented, classical_found, classical_scales, image_sizes = zip(*compared)
+    stats = size_statistics(m.found, factors, areas, s.bootstrap, s.seed)
+    whole = pooled(m.found)
+    classical_summary = classical_check.pool(m.comparisons, reference) if reference else None
+    classical_d = None  # drawn beside the segmenter's distribution
+    if m.compared:  # the classical particles' statistics, as the segmenter's, over the images segmented both ways
+        segmented, classical_found, classical_scales, image_sizes = zip(*m.compared)
         classical_factors = [f if in_nm else 1.0 for f in classical_scales]
         classical_areas = [n * (f * f * 1e-6 if in_nm else 1e-6) for n, f in zip(image_sizes, classical_factors)]
         classical_summary["statistics"] = size_statistics(
-            classical_found, classical_factors, classical_areas, n_boot, s.seed
+            classical_found, classical_factors, classical_areas, s.bootstrap, s.seed
         )
         classical_summary["segmented"] = list(segmented)  # the images particles_classical.csv covers
         # the verdict compares like with like: the classical median of the images analyzed (the profile's own, of
@@ -348,6 +387,7 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         theirs = pooled(classical_found)
         classical_summary["profile_median_diameter_px"] = classical_summary["median_diameter_px"]
         classical_summary["median_diameter_px"] = float(np.median(theirs)) if theirs.size else None
+        classical_d = _sizes(classical_found, classical_factors)
     median_px = float(np.median(whole)) if whole.size else None
     closed_loop = getattr(getattr(predictor, "model", None), "closed_loop", None)
     verdict = (
@@ -366,53 +406,46 @@ def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict
         "classical": classical_summary,
         "trusted": verdict.trusted if verdict else None,
         "verdict": verdict.sentence if verdict else None,
-        "unit": unit,
-        "area_unit": area_unit,
+        "unit": "nm" if in_nm else "px",
+        "area_unit": "µm²" if in_nm else "Mpx",
         "pixel_size": pixel_note,
-        "min_area_px": min_area,
+        "min_area_px": s.min_area_px,
         "exclude_border": s.exclude_border,
         "model": predictor.source,
         "inference": predictor.how,
         "statistics": stats,
         "per_image": [
-            {"image": item.id, "count": p.count, "cut_by_border": int(p.border.sum()), "nm_per_px": s}
-            for item, p, s in zip(items, found, scales)
+            {"image": item.id, "count": p.count, "cut_by_border": int(p.border.sum()), "nm_per_px": scale}
+            for item, p, scale in zip(items, m.found, scales)
         ],
     }
-    write_bytes(out / "particles.csv", _csv(rows).encode())
-    if classical_rows:
-        write_bytes(out / "particles_classical.csv", _csv(classical_rows).encode())
+    return summary, {"diameters": _sizes(m.found, factors), "classical": classical_d, "in_nm": in_nm}
+
+
+def write_results(s: AnalyzeSettings, summary: dict, m: Measured, sizes: dict) -> None:
+    """The run's tables, summary, statistics.md, figures and statistics.html (each written whole: drgan.io)."""
+    out, bins, in_nm, unit = s.out, s.bins, sizes["in_nm"], summary["unit"]
+    write_bytes(out / "particles.csv", _csv(m.rows).encode())
+    if m.classical_rows:
+        write_bytes(out / "particles_classical.csv", _csv(m.classical_rows).encode())
     else:  # a rerun into the same folder must not leave an earlier run's classical table beside this run's
         (out / "particles_classical.csv").unlink(missing_ok=True)
         shutil.rmtree(out / "classical", ignore_errors=True)
     write_json(out / "summary.json", summary)
     write_bytes(out / "statistics.md", statistics_markdown(summary).encode())
-    classical_d = (
-        _sizes(classical_found, classical_factors) if compared else None
-    )  # drawn beside the segmenter's distribution
+    stats, trusted = summary["statistics"], summary["trusted"]
     write_bytes(
         out / "sizes.png",
-        figure_png(
-            lambda plt: size_figure(plt, _sizes(found, factors), stats, unit, bins, classical_d, summary["trusted"])
-        ),
+        figure_png(lambda plt: size_figure(plt, sizes["diameters"], stats, unit, bins, sizes["classical"], trusted)),
     )
-    write_bytes(out / "histograms.png", figure_png(lambda plt: histograms(plt, rows, in_nm, bins)))
+    write_bytes(out / "histograms.png", figure_png(lambda plt: histograms(plt, m.rows, in_nm, bins)))
     write_bytes(out / "statistics.html", statistics_html(out).encode())
     if s.wires:
-        values = np.concatenate(thickness_values) if thickness_values else np.zeros(0)
+        values = np.concatenate(m.thickness) if m.thickness else np.zeros(0)
         write_bytes(
             out / "thickness_histogram.png",
             figure_png(lambda plt: thickness_histogram(plt, values, in_nm, bins)),
         )
-    log.info(
-        "wrote %s: %d particles in %d images, median diameter %s %s",
-        out / "particles.csv",
-        len(rows),
-        len(items),
-        fmt(stats["median_diameter"]["value"]),
-        unit,
-    )
-    return rows
 
 
 def local_thickness(particle: np.ndarray) -> np.ndarray:
