@@ -172,68 +172,91 @@ def select_images(folder: Path, split_path: Path | None, max_images: int | None)
 def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
     """Profile the images of data.dir; write figures, profile.json, report.md and the material config."""
     s = settings if isinstance(settings, ProfileSettings) else ProfileSettings.from_config(settings)
-    folder, crop, polarity_setting, patch, name, split_path = (
-        s.data_dir,
-        s.crop_rows,
-        s.polarity,
-        s.patch_size,
-        s.name,
-        s.split,
-    )
-    paths = select_images(folder, split_path, s.max_images)
-    images = [read_grey(p, crop) for p in track(paths, "reading", unit="images")]  # checks crop on every image
-    small = [p.name for p, im in zip(paths, images) if min(im.shape) < patch]
+    paths = select_images(s.data_dir, s.split, s.max_images)
+    images = [read_grey(p, s.crop_rows) for p in track(paths, "reading", unit="images")]  # checks crop on every image
+    small = [p.name for p, im in zip(paths, images) if min(im.shape) < s.patch_size]
     if small:
-        raise DataError(f"profile: image(s) {small[:3]} are smaller than patch_size={patch} px after cropping")
+        raise DataError(f"profile: image(s) {small[:3]} are smaller than patch_size={s.patch_size} px after cropping")
 
-    polarity, estimate = resolve_polarity(polarity_setting, images)
+    polarity, estimate = resolve_polarity(s.polarity, images)
     log.info("polarity: %s (%s)", polarity, "detected" if estimate else "set")
     if estimate is not None:
         _warn_mixed_polarity(estimate, paths)
-
-    # The particle scale (and from it every segmentation length), on the images mining searches it on (scale_sample);
-    # data.segment keys given are kept as given.
-    out = s.out
-    setting = s.segment
-    try:
-        params, scale = resolve_params(scale_sample(images), setting, polarity, progress=True)
-    except NoParticles as error:
-        _write_failure_figure(out, images, polarity, None)
-        if error.search is not None:
-            profile_figures.scale_figure(out, error.search.as_dict())
-        raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, error.what, out)) from None
-
-    tables, foregrounds, labels_kept, shapes, ce, separabilities, edges, grown = [], [], [], [], [], [], [], []
-    blurs, boxes = [], []
-    for path, image in track(list(zip(paths, images)), "segmenting", unit="images"):
-        labels, foreground, separability, added = est.segment_image(image, params, polarity)
-        # labels/ID.tif: the classical outlines for Fiji and napari, and the reference drgan.segment's agreement
-        # check compares a trained segmenter with (drgan.segmenters.agreement)
-        write_label_tiff(out / "labels" / f"{path.stem}.tif", labels, est.pixel_size_nm(path)[0])
-        table = est.particle_table(labels)
-        tables.append(table)
-        foregrounds.append(foreground)
-        separabilities.append(separability)
-        grown.append(added)
-        labels_kept.append(labels if len(labels_kept) < 4 else None)
-        # The edge profile leaves out particles beside annotations (a scale bar may hide a neighbour).
-        exclude = annotation_mask(as_grey(image)) if params.annotations else None
-        edges.append(particle_edge.edge_samples(image, labels, foreground, exclude))
-        blurs.append(est.edge_blur(image, foreground, exclude))
-        shapes.append(labels.shape)
-        boxes.append(particle_boxes(labels, params))
-        ce.append(est.clark_evans(table["row"], table["col"], labels.size))
-    if not sum(len(t["diameter_px"]) for t in tables):
-        _write_failure_figure(out, images, polarity, labels_kept)
+    params, scale = _particle_scale(s, images, polarity)
+    seg = segment_all(s.out, paths, images, params, polarity)
+    if not sum(len(t["diameter_px"]) for t in seg.tables):
+        _write_failure_figure(s.out, images, polarity, seg.labels_kept)
         what = (
             f"the particle scale {params.scale} px was found, but no segment of plausible area "
             f"({params.min_area}-{params.max_area} px^2) came out of the watershed (settings {params.as_dict()}; Otsu "
-            f"separability {max(separabilities):.2f}, needed {params.min_separability})"
+            f"separability {max(seg.separabilities):.2f}, needed {params.min_separability})"
         )
-        raise DataError(_nothing_found(folder, len(images), polarity, polarity_setting, what, out))
-    noise = est.background_noise(images, foregrounds)
-    edge = particle_edge.edge_profile(edges)
+        raise DataError(_nothing_found(s.data_dir, len(images), polarity, s.polarity, what, s.out))
+    result, fits, chosen, sizes = measure(s, paths, images, polarity, estimate, params, scale, seg)
+    return write_profile(s, result, images, seg, sizes, fits, chosen, polarity, scale)
 
+
+def _particle_scale(s: ProfileSettings, images: list, polarity: str):
+    """(segmentation parameters, the scale search) on the images mining searches the scale on (scale_sample); the
+    data.segment keys given are kept as given. Where no particle is found: the failure figures, then a DataError."""
+    try:
+        return resolve_params(scale_sample(images), s.segment, polarity, progress=True)
+    except NoParticles as error:
+        _write_failure_figure(s.out, images, polarity, None)
+        if error.search is not None:
+            profile_figures.scale_figure(s.out, error.search.as_dict())
+        raise DataError(_nothing_found(s.data_dir, len(images), polarity, s.polarity, error.what, s.out)) from None
+
+
+@dataclass
+class Segmented:
+    """What `segment_all` measured per image: particle tables, foregrounds, the first four label images (figures),
+    shapes, Clark-Evans ratios, Otsu separabilities, edge samples, foreground grown to the edges, edge blurs and the
+    particles' boxes."""
+
+    tables: list = field(default_factory=list)
+    foregrounds: list = field(default_factory=list)
+    labels_kept: list = field(default_factory=list)
+    shapes: list = field(default_factory=list)
+    ce: list = field(default_factory=list)
+    separabilities: list = field(default_factory=list)
+    edges: list = field(default_factory=list)
+    grown: list = field(default_factory=list)
+    blurs: list = field(default_factory=list)
+    boxes: list = field(default_factory=list)
+
+
+def segment_all(out: Path, paths: list, images: list, params: SegmentParams, polarity: str) -> Segmented:
+    """Every image segmented classically with ``params``: its labels written (labels/ID.tif: the classical outlines
+    for Fiji and napari, and the reference drgan.segment's agreement check compares a trained segmenter with,
+    drgan.segmenters.agreement) and measured."""
+    seg = Segmented()
+    for path, image in track(list(zip(paths, images)), "segmenting", unit="images"):
+        labels, foreground, separability, added = est.segment_image(image, params, polarity)
+        write_label_tiff(out / "labels" / f"{path.stem}.tif", labels, est.pixel_size_nm(path)[0])
+        table = est.particle_table(labels)
+        seg.tables.append(table)
+        seg.foregrounds.append(foreground)
+        seg.separabilities.append(separability)
+        seg.grown.append(added)
+        seg.labels_kept.append(labels if len(seg.labels_kept) < 4 else None)
+        # The edge profile leaves out particles beside annotations (a scale bar may hide a neighbour).
+        exclude = annotation_mask(as_grey(image)) if params.annotations else None
+        seg.edges.append(particle_edge.edge_samples(image, labels, foreground, exclude))
+        seg.blurs.append(est.edge_blur(image, foreground, exclude))
+        seg.shapes.append(labels.shape)
+        seg.boxes.append(particle_boxes(labels, params))
+        seg.ce.append(est.clark_evans(table["row"], table["col"], labels.size))
+    return seg
+
+
+def measure(s: ProfileSettings, paths, images, polarity, estimate, params, scale, seg: Segmented):
+    """(the ProfileResult without its material, the size fits, the chosen fit, the half-contrast sizes and the
+    per-window counts and noise for the figures): everything the profile reports, from `segment_all`'s
+    measurements."""
+    noise = est.background_noise(images, seg.foregrounds)
+    edge = particle_edge.edge_profile(seg.edges)
+    tables, shapes = seg.tables, seg.shapes
     segmented = np.concatenate([t["diameter_px"][~t["touches_border"]] for t in tables])
     if segmented.size == 0:  # every particle touches the border: their sizes are cut, but they are all there is
         segmented = np.concatenate([t["diameter_px"] for t in tables])
@@ -243,6 +266,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
     inner = np.maximum(segmented + 2.0 * shift, 1.0)
     fits, chosen = est.fit_sizes(inner, seed=s.seed)
     # Training windows wide enough for the particles (large ones: wider than the render, area-averaged to it)
+    patch = s.patch_size
     window = est.view_window(EXTENT_PER_DIAMETER * float(np.median(inner)), patch, min(min(x) for x in shapes))
     if window != patch:
         log.info(
@@ -250,17 +274,17 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             np.median(inner), window, patch, patch / window,
         )  # fmt: skip
     counts = np.concatenate([est.patch_counts(t["row"], t["col"], sh, window) for t, sh in zip(tables, shapes)])
-    whole = np.concatenate([est.whole_particle_counts(b, sh, window) for b, sh in zip(boxes, shapes)])
+    whole = np.concatenate([est.whole_particle_counts(b, sh, window) for b, sh in zip(seg.boxes, shapes)])
     touching = float(np.mean(np.concatenate([t["touches_other"] for t in tables])))
-    ce_values = [c for c in ce if c is not None]
+    ce_values = [c for c in seg.ce if c is not None]
     ce_median = float(np.median(ce_values)) if ce_values else None
     ratios = np.concatenate([t["axis_ratio"][~t["touches_border"]] for t in tables])
     axis_ratio = float(np.median(ratios[np.isfinite(ratios)]))
     pixel_sizes = [est.pixel_size_nm(p) for p in paths]
-    known = [s for s, _ in pixel_sizes if s is not None]
-
+    known = [size for size, _ in pixel_sizes if size is not None]
+    folder, crop, split_path = s.data_dir, s.crop_rows, s.split
     result = ProfileResult(
-        name=name,
+        name=s.name,
         data=ImagesRead(
             dir=str(folder.resolve()),
             crop_rows=list(crop) if isinstance(crop, tuple) else crop,
@@ -269,21 +293,8 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             ids=[p.stem for p in paths],
             shape=list(images[0].shape),
         ),
-        polarity=PolarityFound(polarity, polarity_setting, estimate.as_dict() if estimate else {}),
-        segmentation=SegmentationFound(
-            scale_px=params.scale,
-            scale_estimate=scale.as_dict() if scale else None,
-            setting={k: v for k, v in setting.as_dict().items() if v != SegmentParams().as_dict()[k]},
-            separability_median=round(float(np.median(separabilities)), 4),
-            # images whose outlines grew out to the particles' edges, and the foreground added (median over those)
-            outlines_grown={
-                "images": sum(g > 0 for g in grown),
-                "foreground_added_median": round(float(np.median([g for g in grown if g > 0] or [0.0])), 4),
-            },
-            params=params.as_dict(),
-            particles=int(sum(len(t["diameter_px"]) for t in tables)),
-            particles_not_touching_border=int(inner.size),
-        ),
+        polarity=PolarityFound(polarity, s.polarity, estimate.as_dict() if estimate else {}),
+        segmentation=_segmentation_found(s, params, scale, seg, inner.size),
         background=type(noise)(**noise.as_dict()),  # as recorded: what the report and the material read
         sizes=SizesFound(
             median_diameter_px=round(float(np.median(inner)), 3),
@@ -295,25 +306,7 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             outline_shift_px=round(shift, 3),
             segmented_median_diameter_px=round(float(np.median(segmented)), 3),
         ),
-        particles_per_patch=PatchCounts(
-            definition=f"segments (any, border-touching included) whose centroid lies inside a "
-            f"{window} px window; windows on a grid of stride {window // 2} px",
-            patch_size=window,
-            windows=int(counts.size),
-            mean=round(float(counts.mean()), 3),
-            median=float(np.median(counts)),
-            p10=float(np.quantile(counts, 0.1)),
-            p90=float(np.quantile(counts, 0.9)),
-            # The windows training keeps (data.min_particles: 3 by default): the scene's range.
-            with_3_or_more=_quantiles(counts[counts >= 3]),
-            kept_counts={str(k): _quantiles(counts[counts >= k]) for k in (1, 2, 3)},
-            render_px=patch if window != patch else None,
-            whole={
-                "stride": STRIDE,
-                "windows": int(whole.size),
-                **{f"at_least_{k}": int((whole >= k).sum()) for k in (1, 2, 3)},
-            },
-        ),
+        particles_per_patch=_patch_counts(window, patch, counts, whole),
         agglomeration=Agglomeration(
             touching_fraction=round(touching, 4),
             clark_evans_median=round(ce_median, 4) if ce_median is not None else None,
@@ -326,13 +319,63 @@ def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
             source=pixel_sizes[0][1] if known else "unknown",
             images_with_size=len(known),
         ),
-        out=str(out.resolve()),
-        edge_blur_px=round(float(np.median(found)), 3) if (found := [b for b in blurs if b is not None]) else None,
+        out=str(s.out.resolve()),
+        edge_blur_px=round(float(np.median(found)), 3) if (found := [b for b in seg.blurs if b is not None]) else None,
     )
-    profile_figures.write_figures(out, images, labels_kept, inner, fits, chosen, noise, foregrounds, counts, polarity)
+    return result, fits, chosen, {"inner": inner, "counts": counts, "noise": noise, "edge": edge}
+
+
+def _segmentation_found(s: ProfileSettings, params, scale, seg: Segmented, sized: int) -> SegmentationFound:
+    grown = seg.grown
+    return SegmentationFound(
+        scale_px=params.scale,
+        scale_estimate=scale.as_dict() if scale else None,
+        setting={k: v for k, v in s.segment.as_dict().items() if v != SegmentParams().as_dict()[k]},
+        separability_median=round(float(np.median(seg.separabilities)), 4),
+        # images whose outlines grew out to the particles' edges, and the foreground added (median over those)
+        outlines_grown={
+            "images": sum(g > 0 for g in grown),
+            "foreground_added_median": round(float(np.median([g for g in grown if g > 0] or [0.0])), 4),
+        },
+        params=params.as_dict(),
+        particles=int(sum(len(t["diameter_px"]) for t in seg.tables)),
+        particles_not_touching_border=int(sized),
+    )
+
+
+def _patch_counts(window: int, patch: int, counts: np.ndarray, whole: np.ndarray) -> PatchCounts:
+    return PatchCounts(
+        definition=f"segments (any, border-touching included) whose centroid lies inside a "
+        f"{window} px window; windows on a grid of stride {window // 2} px",
+        patch_size=window,
+        windows=int(counts.size),
+        mean=round(float(counts.mean()), 3),
+        median=float(np.median(counts)),
+        p10=float(np.quantile(counts, 0.1)),
+        p90=float(np.quantile(counts, 0.9)),
+        # The windows training keeps (data.min_particles: 3 by default): the scene's range.
+        with_3_or_more=_quantiles(counts[counts >= 3]),
+        kept_counts={str(k): _quantiles(counts[counts >= k]) for k in (1, 2, 3)},
+        render_px=patch if window != patch else None,
+        whole={
+            "stride": STRIDE,
+            "windows": int(whole.size),
+            **{f"at_least_{k}": int((whole >= k).sum()) for k in (1, 2, 3)},
+        },
+    )
+
+
+def write_profile(s: ProfileSettings, result, images, seg: Segmented, sizes, fits, chosen, polarity, scale):
+    """The figures, the material (its parent chosen from the result), profile.json and report.md; the result with
+    the material it proposed."""
+    out = s.out
+    profile_figures.write_figures(
+        out, images, seg.labels_kept, sizes["inner"], fits, chosen, sizes["noise"], seg.foregrounds, sizes["counts"],
+        polarity,
+    )  # fmt: skip
     if scale is not None:
         profile_figures.scale_figure(out, scale.as_dict())
-    profile_figures.edge_figure(out, edge)
+    profile_figures.edge_figure(out, sizes["edge"])
     parent, yaml_text = material_yaml(result, fits, chosen)
     fringe = fringe_settings(result.edge)[0] if parent_renders_fringe(parent) else None
     result = replace(
