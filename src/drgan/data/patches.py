@@ -349,83 +349,15 @@ def mine_patches(
     """
     check_polarity(polarity, "mine_patches polarity")
     background_stride = background_stride or max(1, size // 4)
-    if len(images) != len(ids):
-        raise ConfigError(f"mine_patches: {len(images)} images but {len(ids)} ids")
-    if len(set(ids)) != len(ids):
-        raise ConfigError("mine_patches: ids must be unique")
-    if size < 8 or stride < 1 or background_stride < 1:
-        raise ConfigError(
-            f"mine_patches: size={size}, stride={stride}, background_stride={background_stride}: expected size >= 8, strides >= 1"
-        )
-    if min_particles < 1 or n_background < 0:
-        raise ConfigError(
-            f"mine_patches: min_particles={min_particles}, n_background={n_background}: expected >= 1 and >= 0"
-        )
-    if not 0 <= max_overlap < 1 or not 0 <= min_corr_distance < 1:
-        raise ConfigError(
-            f"mine_patches: max_overlap={max_overlap}, min_corr_distance={min_corr_distance}: expected in [0, 1)"
-        )
-    check_image_sizes(images, ids, size)
-    # One particle scale for the whole set (up to SCALE_IMAGES images spread over it): every image is segmented alike.
-    sample = scale_sample(images)
-    given = SegmentParams.from_config(segment)
-    if given.scale is None or given.neck_depth is None:
-        log.info(
-            "data: searching the particle scale on %d of the %d images (data.segment.scale/neck_depth not set; "
-            "about a minute per image on 2 cores)", len(sample), len(images),
-        )  # fmt: skip
-    started = time.perf_counter()
-    segment, estimate = resolve_params(sample, segment, polarity, progress=progress)
-    if estimate is not None or given.neck_depth is None:
-        pinned = f"data.segment.scale={segment.scale} data.segment.neck_depth={segment.neck_depth}"
-        if segment.min_separability != given.min_separability:
-            pinned += f" data.segment.min_separability={segment.min_separability}"
-        log.info(
-            "data: particle scale %.2f px, neck depth %s (searched in %.0f s); the same images mine alike without the "
-            "search with %s", segment.scale, segment.neck_depth, time.perf_counter() - started, pinned,
-        )  # fmt: skip
-
-    train_candidates: list[_Candidate] = []
-    background_candidates: list[_Candidate] = []
-    for index, image in enumerate(track(images, "mining patches", unit="images") if progress else images):
-        labels, foreground = segment_particles(image, segment, polarity)
-        # Background windows hold neither particle nor annotation (scale bar, text) pixels.
-        occupied = foreground | prepare(image, polarity, segment.annotations).annotations
-        height, width = image.shape
-        rows, cols = window_starts(height, size, stride), window_starts(width, size, stride)
-        counts = full_particle_counts(particle_boxes(labels, segment), rows, cols, size, size)
-        for i, r in enumerate(rows):
-            for j, c in enumerate(cols):
-                if counts[i, j] >= min_particles:
-                    train_candidates.append(_Candidate(float(counts[i, j]), index, int(r), int(c), float(counts[i, j])))
-        # Foreground fraction of every background window from one summed-area table.
-        rows, cols = window_starts(height, size, background_stride), window_starts(width, size, background_stride)
-        table = np.pad(occupied.astype(np.int64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-        sums = (
-            table[rows[:, None] + size, cols + size]
-            - table[rows[:, None], cols + size]
-            - table[rows[:, None] + size, cols]
-            + table[rows[:, None], cols]
-        )
-        for i, r in enumerate(rows):
-            for j, c in enumerate(cols):
-                if sums[i, j] == 0:  # only windows free of particles are backgrounds
-                    background_candidates.append(_Candidate(0.0, index, int(r), int(c), 0.0))
-
-    def select(candidates: list[_Candidate], limit: int | None) -> list[_Candidate]:
-        candidates = sorted(candidates, key=lambda k: (-k.score, k.image, k.row, k.col))
-        keep = _DuplicateFilter(size, max_overlap, min_corr_distance)
-        chosen = []
-        for k in candidates:
-            if limit is not None and len(chosen) >= limit:
-                break
-            if keep.accept(k.image, k.row, k.col, images[k.image][k.row : k.row + size, k.col : k.col + size]):
-                chosen.append(k)
-        return sorted(chosen, key=lambda k: (k.image, k.row, k.col))
-
-    train = select(train_candidates, None)
-    background = select(background_candidates, n_background)
-
+    _check_mining(images, ids, size, stride, background_stride, min_particles, n_background, max_overlap,
+                  min_corr_distance)  # fmt: skip
+    segment, estimate = _mining_scale(images, segment, polarity, progress)
+    train_candidates, background_candidates = _candidates(
+        images, segment, polarity, size, stride, background_stride, min_particles, progress
+    )
+    keep = {"size": size, "max_overlap": max_overlap, "min_corr_distance": min_corr_distance}
+    train = _select(images, train_candidates, None, **keep)
+    background = _select(images, background_candidates, n_background, **keep)
     report = {
         "requested": n_background,
         "found": len(background),
@@ -470,6 +402,99 @@ def mine_patches(
         background_positions=positions(background),
         params=params,
     )
+
+
+def _check_mining(images, ids, size, stride, background_stride, min_particles, n_background, max_overlap,
+                  min_corr_distance) -> None:  # fmt: skip
+    """`mine_patches`' arguments checked before any image is segmented: a ConfigError naming the bad one."""
+    if len(images) != len(ids):
+        raise ConfigError(f"mine_patches: {len(images)} images but {len(ids)} ids")
+    if len(set(ids)) != len(ids):
+        raise ConfigError("mine_patches: ids must be unique")
+    if size < 8 or stride < 1 or background_stride < 1:
+        raise ConfigError(
+            f"mine_patches: size={size}, stride={stride}, background_stride={background_stride}: expected size >= 8, strides >= 1"
+        )
+    if min_particles < 1 or n_background < 0:
+        raise ConfigError(
+            f"mine_patches: min_particles={min_particles}, n_background={n_background}: expected >= 1 and >= 0"
+        )
+    if not 0 <= max_overlap < 1 or not 0 <= min_corr_distance < 1:
+        raise ConfigError(
+            f"mine_patches: max_overlap={max_overlap}, min_corr_distance={min_corr_distance}: expected in [0, 1)"
+        )
+    check_image_sizes(images, ids, size)
+
+
+def _mining_scale(images, segment, polarity: str, progress: bool):
+    """(SegmentParams, the scale search or None): one particle scale for the whole set (up to SCALE_IMAGES images
+    spread over it), so that every image is segmented alike; the keys given are kept."""
+    sample = scale_sample(images)
+    given = SegmentParams.from_config(segment)
+    if given.scale is None or given.neck_depth is None:
+        log.info(
+            "data: searching the particle scale on %d of the %d images (data.segment.scale/neck_depth not set; "
+            "about a minute per image on 2 cores)", len(sample), len(images),
+        )  # fmt: skip
+    started = time.perf_counter()
+    segment, estimate = resolve_params(sample, segment, polarity, progress=progress)
+    if estimate is not None or given.neck_depth is None:
+        pinned = f"data.segment.scale={segment.scale} data.segment.neck_depth={segment.neck_depth}"
+        if segment.min_separability != given.min_separability:
+            pinned += f" data.segment.min_separability={segment.min_separability}"
+        log.info(
+            "data: particle scale %.2f px, neck depth %s (searched in %.0f s); the same images mine alike without the "
+            "search with %s", segment.scale, segment.neck_depth, time.perf_counter() - started, pinned,
+        )  # fmt: skip
+    return segment, estimate
+
+
+def _candidates(images, segment, polarity, size, stride, background_stride, min_particles, progress):
+    """(training candidates, background candidates) over every image: windows on the ``stride`` grid showing at
+    least ``min_particles`` whole particles (scored by their count), windows on the ``background_stride`` grid free
+    of particles and annotations (scale bars, text)."""
+    train_candidates: list[_Candidate] = []
+    background_candidates: list[_Candidate] = []
+    for index, image in enumerate(track(images, "mining patches", unit="images") if progress else images):
+        labels, foreground = segment_particles(image, segment, polarity)
+        # Background windows hold neither particle nor annotation (scale bar, text) pixels.
+        occupied = foreground | prepare(image, polarity, segment.annotations).annotations
+        height, width = image.shape
+        rows, cols = window_starts(height, size, stride), window_starts(width, size, stride)
+        counts = full_particle_counts(particle_boxes(labels, segment), rows, cols, size, size)
+        for i, r in enumerate(rows):
+            for j, c in enumerate(cols):
+                if counts[i, j] >= min_particles:
+                    train_candidates.append(_Candidate(float(counts[i, j]), index, int(r), int(c), float(counts[i, j])))
+        # Foreground fraction of every background window from one summed-area table.
+        rows, cols = window_starts(height, size, background_stride), window_starts(width, size, background_stride)
+        table = np.pad(occupied.astype(np.int64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+        sums = (
+            table[rows[:, None] + size, cols + size]
+            - table[rows[:, None], cols + size]
+            - table[rows[:, None] + size, cols]
+            + table[rows[:, None], cols]
+        )
+        for i, r in enumerate(rows):
+            for j, c in enumerate(cols):
+                if sums[i, j] == 0:  # only windows free of particles are backgrounds
+                    background_candidates.append(_Candidate(0.0, index, int(r), int(c), 0.0))
+    return train_candidates, background_candidates
+
+
+def _select(images, candidates: list[_Candidate], limit: int | None, size: int, max_overlap: float,
+            min_corr_distance: float) -> list[_Candidate]:  # fmt: skip
+    """The candidates best first (ties by image and position), near-duplicates dropped, at most ``limit``; in image
+    and position order."""
+    candidates = sorted(candidates, key=lambda k: (-k.score, k.image, k.row, k.col))
+    keep = _DuplicateFilter(size, max_overlap, min_corr_distance)
+    chosen = []
+    for k in candidates:
+        if limit is not None and len(chosen) >= limit:
+            break
+        if keep.accept(k.image, k.row, k.col, images[k.image][k.row : k.row + size, k.col : k.col + size]):
+            chosen.append(k)
+    return sorted(chosen, key=lambda k: (k.image, k.row, k.col))
 
 
 # --- checking by eye --------------------------------------------------------------------------------------

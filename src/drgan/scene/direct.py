@@ -122,7 +122,10 @@ def register() -> str:
 
 
 def _integrator_class():
-    """The integrator class for the current variant (Mitsuba's Python base classes are per variant)."""
+    """The integrator class for the current variant (Mitsuba's Python base classes are per variant).
+
+    Long because the class is defined inside it: its base exists only once a variant is set, so the class body (the
+    sampling routine, the one-pass adjoint, the recapture term) cannot live at module level."""
 
     from mitsuba.ad.integrators.common import ADIntegrator
 
