@@ -411,6 +411,18 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
 
     assert n_range(at_least_3=2) == (1, 2)  # min_particles 1: windows with >= 1
     assert n_range(at_least_3=40) == (6, 6)  # min_particles stays 3 (enough windows show 3 whole particles)
+    # a bimodal fit: the size group's two components as normals of largest extents (a lognormal's mean and std)
+    from drgan.material_proposal import EXTENT_PER_DIAMETER
+
+    two = np.concatenate([np.full(30, 20.0), np.full(30, 60.0)]) * np.exp(np.random.default_rng(0).normal(0, 0.05, 60))
+    fits2, bimodal = est.fit_sizes(two, seed=0)
+    assert bimodal.kind == "bimodal"
+    size, notes = material_settings(result, fits2, bimodal)[3:]
+    q = bimodal.params
+    mean1 = EXTENT_PER_DIAMETER * q["median1"] * np.exp(q["sigma1"] ** 2 / 2)
+    assert size["mean1"] == pytest.approx(mean1, abs=1e-3) and size["weight1"] == pytest.approx(q["weight1"], abs=1e-3)
+    assert "two lognormal components" in notes["size"]
+    assert material_settings(result, fits, chosen)[3] == {}  # no size group for a single mode
     assert (
         "#   view_width: 128 real px per training window, rendered at 32 px"
         in (tmp_path / "drgan_conf" / "material" / "big_discs.yaml").read_text()

@@ -115,10 +115,23 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
     """(parent, why, material, size, notes): what the profile measured, as the keys of a material inheriting the
     closest paper material (`choose_parent`), the size group's parameters for a bimodal fit (else {}), and per key
     why it was set."""
+    parent, why = choose_parent(result.polarity.value, result.shape.mesh_kind, result.sizes.median_diameter_px)
+    material, notes = _scene_keys(result, fits, chosen)
+    imaging, imaging_notes = _imaging_keys(result, parent)
+    material.update(imaging)
+    notes.update(imaging_notes)
+    size = _bimodal_size(chosen)
+    if size:
+        notes["size"] = f"the two lognormal components as normals (mean, std, px) x {EXTENT_PER_DIAMETER}"
+    return parent, why, material, size, notes
+
+
+def _scene_keys(result: ProfileResult, fits: list, chosen) -> tuple[dict, dict]:
+    """The material's name, polarity, particle size and spread, particles per scene, mesh kind and Clark-Evans ratio,
+    with why each was set."""
     polarity = result.polarity.value
-    sizes, counts = result.sizes, result.particles_per_patch
+    counts = result.particles_per_patch
     kind = result.shape.mesh_kind
-    parent, why = choose_parent(polarity, kind, sizes.median_diameter_px)
     by_kind = {f.kind: f for f in fits}
     if chosen.kind == "normal":
         size_px, spread = chosen.params["mean"], chosen.params["std"] / chosen.params["mean"]
@@ -167,6 +180,14 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
             "median over the images of the segmented particles' Clark-Evans ratio (< 1 clustered); it decides "
             "drgan.segment's model.contact_weight=auto for bright particles"
         )
+    return material, notes
+
+
+def _imaging_keys(result: ProfileResult, parent: str) -> tuple[dict, dict]:
+    """The keys of how the scene images: the noise bound, the window (large particles), the outline blur or the
+    detector's grain, the stage's reach and the edge fringe, with why each was set."""
+    counts = result.particles_per_patch
+    material, notes = {}, {}
     background = result.background
     # The background shows the detector's noise: it bounds the learned noise for every parent. Without the bound an
     # SEM material's learned noise can rise to its parent's limit on clean images (experiments/pipeline/README.md).
@@ -209,17 +230,21 @@ def material_settings(result: ProfileResult, fits: list, chosen) -> tuple[str, s
         if fringe is not None:  # only a measured fringe: without one the material renders none
             material["imaging"] = {"fringe": fringe}
             notes["imaging.fringe"] = why_fringe
-    size = {}
-    if chosen.kind == "bimodal":
-        p = chosen.params
-        m1, s1 = (EXTENT_PER_DIAMETER * v for v in measurements.lognormal_to_normal(p["median1"], p["sigma1"]))
-        m2, s2 = (EXTENT_PER_DIAMETER * v for v in measurements.lognormal_to_normal(p["median2"], p["sigma2"]))
-        size = {
-            k: round(float(v), 3)
-            for k, v in zip(("mean1", "std1", "mean2", "std2", "weight1"), (m1, s1, m2, s2, p["weight1"]))
-        }
-        notes["size"] = f"the two lognormal components as normals (mean, std, px) x {EXTENT_PER_DIAMETER}"
-    return parent, why, material, size, notes
+    return material, notes
+
+
+def _bimodal_size(chosen) -> dict:
+    """The size group's parameters for a bimodal fit: its two lognormal components as normals (largest extents);
+    {} for another fit."""
+    if chosen.kind != "bimodal":
+        return {}
+    p = chosen.params
+    m1, s1 = (EXTENT_PER_DIAMETER * v for v in measurements.lognormal_to_normal(p["median1"], p["sigma1"]))
+    m2, s2 = (EXTENT_PER_DIAMETER * v for v in measurements.lognormal_to_normal(p["median2"], p["sigma2"]))
+    return {
+        k: round(float(v), 3)
+        for k, v in zip(("mean1", "std1", "mean2", "std2", "weight1"), (m1, s1, m2, s2, p["weight1"]))
+    }
 
 
 @functools.cache
