@@ -107,7 +107,47 @@ def _stage_key(key: str) -> tuple[str, str] | None:
 def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     """The pipeline's settings from its YAML and the command line (``KEY=VALUE`` words); checks names, not files."""
     base = yaml.safe_load(config_path.read_text())
-    names, pipeline_keys = stage_table.STAGES, stage_table.PIPELINE_KEYS
+    names = stage_table.STAGES
+    own, stages, slurm_words = _route(argv, base, names)
+    name = _checked_name(own)
+    redo = _optional(own["redo"])
+    if redo is not None and redo not in names:
+        raise ConfigError(f"pipeline: redo={redo!r}: expected a stage, one of {', '.join(names)}")
+    annotated = _optional(own["annotated"])
+    annotated = None if annotated is None else Path(annotated).expanduser()
+    corrected = _optional(own["corrected"])
+    corrected = None if corrected is None else Path(corrected).expanduser().resolve()
+    out = _optional(own["out"])
+    out = Path("runs/pipeline") / name if out is None else Path(out).expanduser()
+    mlflow = own["mlflow"]
+    mlflow = mlflow if isinstance(mlflow, bool) else str(mlflow).lower() in ("true", "1", "yes")
+    progress = _checked_progress(own["progress"])
+    launcher, only, shard = _checked_launch(own, names)
+    slurm = parse_slurm(base.get("slurm") or {}, slurm_words, names)
+    _check_wired_keys(stages)
+    return Settings(
+        data_dir=Path(str(own["data.dir"])).expanduser().resolve(),
+        name=name,
+        annotated=annotated.resolve() if annotated else None,
+        out=out.resolve(),
+        redo=redo,
+        mlflow=mlflow,
+        stages=stages,
+        progress=progress,
+        launcher=launcher,
+        slurm=slurm,
+        only=only,
+        shard=shard,
+        experiment=_optional(own["experiment"]),
+        parent_run=_optional(own["parent_run"]),
+        argv=tuple(argv),
+        corrected=corrected,
+    )
+
+
+def _route(argv: Sequence[str], base: dict, names) -> tuple[dict, dict[str, dict[str, str]], dict[str, str]]:
+    """(the pipeline's own keys, each stage's keys, the slurm keys): the YAML's, then the command line's words
+    routed to them (a stage's key set on the command line replaces the YAML's); an unknown key is a ConfigError."""
     own = {"data.dir": base["data"]["dir"], **{k: base[k] for k in OWN_KEYS if k != "data.dir"}}
     stages: dict[str, dict[str, str]] = {
         s: {str(k): _value_text(v) for k, v in (base["stages"].get(s) or {}).items()} for s in names
@@ -131,6 +171,11 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
             )
     if not own["data.dir"]:
         raise ConfigError("pipeline: give data.dir=DIR (the folder of your images)")
+    return own, stages, slurm_words
+
+
+def _checked_name(own: dict) -> str:
+    """``name``: letters, digits, _ or -, and not a material drgan ships (the run's material takes the name)."""
     name = own["name"]
     if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
         raise ConfigError(f"pipeline: name={name!r}: expected a name of letters, digits, _ or - (e.g. name=my_tem)")
@@ -141,27 +186,22 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
             f"pipeline: name={name}: the run's material takes its name, and a material drgan ships has it "
             f"({', '.join(shipped_materials())}); choose another name, e.g. name={name}_mine"
         )
-    redo = own["redo"]
-    if redo in ("null", "None", ""):
-        redo = None
-    if redo is not None and redo not in names:
-        raise ConfigError(f"pipeline: redo={redo!r}: expected a stage, one of {', '.join(names)}")
-    annotated = _optional(own["annotated"])
-    annotated = None if annotated is None else Path(annotated).expanduser()
-    corrected = _optional(own["corrected"])
-    corrected = None if corrected is None else Path(corrected).expanduser().resolve()
-    out = own["out"]
-    out = Path("runs/pipeline") / str(name) if out in (None, "null", "None", "") else Path(str(out)).expanduser()
-    mlflow = own["mlflow"]
-    mlflow = mlflow if isinstance(mlflow, bool) else str(mlflow).lower() in ("true", "1", "yes")
+    return str(name)
+
+
+def _checked_progress(value) -> float:
+    """``progress``: seconds between progress lines (>= 0; 0: none)."""
     try:
-        progress = float(own["progress"])
+        progress = float(value)
     except (TypeError, ValueError):
         progress = -1.0
     if not (progress >= 0 and math.isfinite(progress)):
-        raise ConfigError(
-            f"pipeline: progress={own['progress']!r}: expected seconds between progress lines (>= 0; 0: none)"
-        )
+        raise ConfigError(f"pipeline: progress={value!r}: expected seconds between progress lines (>= 0; 0: none)")
+    return progress
+
+
+def _checked_launch(own: dict, names) -> tuple[str, str | None, str | None]:
+    """(launcher, only, shard), checked together: only= runs one stage here, shard= one shard of generate."""
     launcher = str(own["launcher"])
     if launcher not in LAUNCHERS:
         raise ConfigError(f"pipeline: launcher={launcher!r}: expected one of {', '.join(LAUNCHERS)}")
@@ -178,29 +218,15 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
             )
     if launcher == "slurm" and only is not None:
         raise ConfigError("pipeline: only= runs one stage here (launcher=local); launcher=slurm submits them all")
-    slurm = parse_slurm(base.get("slurm") or {}, slurm_words, names)
+    return launcher, only, shard
+
+
+def _check_wired_keys(stages: dict[str, dict[str, str]]) -> None:
+    """A ConfigError for a stage key the pipeline sets itself (the folders that wire the stages together)."""
     for stage, keys in stages.items():
-        fixed = sorted(set(k.lstrip("+~") for k in keys) & set(pipeline_keys[stage]))
+        fixed = sorted(set(k.lstrip("+~") for k in keys) & set(stage_table.PIPELINE_KEYS[stage]))
         if fixed:
             raise ConfigError(
                 f"pipeline: {stage}.{fixed[0]} is set by the pipeline (it wires the stages' folders together); "
                 f"set out= for another folder, or run python -m {stage_table.stage_spec(stage).command_module} by hand"
             )
-    return Settings(
-        data_dir=Path(str(own["data.dir"])).expanduser().resolve(),
-        name=str(name),
-        annotated=annotated.resolve() if annotated else None,
-        out=out.resolve(),
-        redo=redo,
-        mlflow=mlflow,
-        stages=stages,
-        progress=progress,
-        launcher=launcher,
-        slurm=slurm,
-        only=only,
-        shard=shard,
-        experiment=_optional(own["experiment"]),
-        parent_run=_optional(own["parent_run"]),
-        argv=tuple(argv),
-        corrected=corrected,
-    )
