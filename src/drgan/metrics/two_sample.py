@@ -245,8 +245,6 @@ def two_sample_test(
     groups_*: one name per patch (e.g. its image id): a group's patches share a fold; None: each patch its own.
     Returns a JSON-ready dict: n_per_class, total, correct, accuracy, interval (exact), wilson, p_value, auc,
     per-fold accuracies, the settings and wall time."""
-    from tqdm.auto import tqdm
-
     settings.check()
     a, b = _check_sample("A", a), _check_sample("B", b)
     if a.shape[1:] != b.shape[1:]:
@@ -260,49 +258,10 @@ def two_sample_test(
             f"two-sample test: {len(groups_a)} / {len(groups_b)} group names for "
             f"{len(a)} / {len(b)} patches (expected one per patch)"
         )
-    n = min(len(a), len(b))
-    needed = 2 * settings.folds
-    if n < needed:
-        raise DataError(
-            f"two-sample test: {len(a)} patches in A and {len(b)} in B; {settings.folds} folds need at "
-            f"least {needed} of each (2 per fold); add patches or lower test.folds"
-        )
-    rng = np.random.default_rng(settings.seed)
-    pick_a = np.sort(rng.choice(len(a), n, replace=False))
-    pick_b = np.sort(rng.choice(len(b), n, replace=False))
-    x = torch.cat([downsample(a[pick_a], settings.input_size), downsample(b[pick_b], settings.input_size)])
-    y = np.r_[np.zeros(n), np.ones(n)].astype(np.float32)
-    groups = [f"A:{groups_a[i]}" for i in pick_a] + [f"B:{groups_b[i]}" for i in pick_b]
-    fold = group_folds(y, groups, settings.folds, settings.seed)
-    n_groups = len(set(groups))
-    if len(np.unique(fold)) < settings.folds or any(len(np.unique(y[fold == f])) < 2 for f in range(settings.folds)):
-        raise DataError(
-            f"two-sample test: {n_groups} groups (e.g. images) cannot fill {settings.folds} folds with "
-            "both samples; lower test.folds or add images"
-        )
-
-    scores = np.full(2 * n, np.nan)  # held-out logit minus its fold's threshold: > 0 predicts B
+    x, y, fold, n_groups = _balanced_folds(a, b, groups_a, groups_b, settings)
     start = time.perf_counter()
-    bar = tqdm(
-        total=settings.folds * settings.epochs,
-        desc="two-sample folds x epochs",
-        unit="epoch",
-        disable=not progress,
-        leave=False,
-    )
-    try:
-        for f in range(settings.folds):
-            train, test = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
-            net = _train_one(
-                x[train], torch.from_numpy(y[train]), settings, settings.seed * 1000 + f, lambda: bar.update(1)
-            )
-            # The decision threshold from the training part only: midway between its two classes' median logits
-            # (a network trained briefly has not yet centred its bias at 0).
-            fitted = _logits(net, x[train])
-            threshold = 0.5 * (np.median(fitted[y[train] == 0]) + np.median(fitted[y[train] == 1]))
-            scores[test] = _logits(net, x[test]) - threshold
-    finally:
-        bar.close()
+    scores = _held_out_scores(x, y, fold, settings, progress)
+    n = len(y) // 2
     predicted = (scores > 0).astype(np.float32)
     correct = int((predicted == y).sum())
     total = 2 * n
@@ -331,3 +290,59 @@ def two_sample_test(
         "settings": asdict(settings),
         "wall_s": round(time.perf_counter() - start, 1),
     }
+
+
+def _balanced_folds(a, b, groups_a, groups_b, settings: ClassifierSettings):
+    """(inputs, labels, fold of each, number of groups): as many patches of each sample (the smaller's count, drawn
+    with the settings' seed), downsampled to the classifier's input, in folds that keep a group together and hold
+    both samples each; a DataError where they cannot."""
+    n = min(len(a), len(b))
+    needed = 2 * settings.folds
+    if n < needed:
+        raise DataError(
+            f"two-sample test: {len(a)} patches in A and {len(b)} in B; {settings.folds} folds need at "
+            f"least {needed} of each (2 per fold); add patches or lower test.folds"
+        )
+    rng = np.random.default_rng(settings.seed)
+    pick_a = np.sort(rng.choice(len(a), n, replace=False))
+    pick_b = np.sort(rng.choice(len(b), n, replace=False))
+    x = torch.cat([downsample(a[pick_a], settings.input_size), downsample(b[pick_b], settings.input_size)])
+    y = np.r_[np.zeros(n), np.ones(n)].astype(np.float32)
+    groups = [f"A:{groups_a[i]}" for i in pick_a] + [f"B:{groups_b[i]}" for i in pick_b]
+    fold = group_folds(y, groups, settings.folds, settings.seed)
+    n_groups = len(set(groups))
+    if len(np.unique(fold)) < settings.folds or any(len(np.unique(y[fold == f])) < 2 for f in range(settings.folds)):
+        raise DataError(
+            f"two-sample test: {n_groups} groups (e.g. images) cannot fill {settings.folds} folds with "
+            "both samples; lower test.folds or add images"
+        )
+    return x, y, fold, n_groups
+
+
+def _held_out_scores(x, y, fold, settings: ClassifierSettings, progress: bool) -> np.ndarray:
+    """Each patch's held-out score: the logit of the classifier trained on the other folds minus that fold's
+    threshold (> 0 predicts B)."""
+    from tqdm.auto import tqdm
+
+    scores = np.full(len(y), np.nan)
+    bar = tqdm(
+        total=settings.folds * settings.epochs,
+        desc="two-sample folds x epochs",
+        unit="epoch",
+        disable=not progress,
+        leave=False,
+    )
+    try:
+        for f in range(settings.folds):
+            train, test = np.flatnonzero(fold != f), np.flatnonzero(fold == f)
+            net = _train_one(
+                x[train], torch.from_numpy(y[train]), settings, settings.seed * 1000 + f, lambda: bar.update(1)
+            )
+            # The decision threshold from the training part only: midway between its two classes' median logits
+            # (a network trained briefly has not yet centred its bias at 0).
+            fitted = _logits(net, x[train])
+            threshold = 0.5 * (np.median(fitted[y[train] == 0]) + np.median(fitted[y[train] == 1]))
+            scores[test] = _logits(net, x[test]) - threshold
+    finally:
+        bar.close()
+    return scores
