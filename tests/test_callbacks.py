@@ -427,3 +427,24 @@ def test_a_kid_subset_larger_than_the_mined_patches_stops_before_the_first_step(
                 folder, tmp_path / "run", extra=["+callbacks.fid.kid_subset_size=500", "callbacks.fid.n_images=null"]
             )
         )
+
+
+def test_an_evaluations_log_line_gives_its_scores_or_says_the_screen_left_it_out(caplog):
+    import logging
+    import math
+
+    from drgan.callbacks.fid import FIDCallback
+
+    entry = {"epoch": 3, "fid": 110.84, "fid_std": 2.5, "kid": 0.1116, "brightness": 0.81, "particle_brightness": 1.02,
+             "background_brightness": 0.78, "contrast": 4.9, "n_images": 128, "seconds": 81.2}  # fmt: skip
+    with caplog.at_level(logging.INFO, logger="drgan.callbacks.fid"):
+        FIDCallback()._log_line(entry, "bright")
+        FIDCallback(screen_margin=0.2)._log_line({**entry, "fid": math.nan, "screen_kid": 0.2, "n_images": 48}, "dark")
+    full, screened = caplog.messages[-2:]
+    assert full == (
+        "epoch 3: FID 110.8 (bootstrap std 2.5), KID 0.1116, brightness 0.81 x real (particles 1.02 x, background "
+        "0.78 x, contrast 4.90 for bright particles; 128 images, 81.2 s)"
+    )
+    assert screened == (
+        "epoch 3: screened out (KID of 48 images 0.2, above the lowest so far by more than 20 %): no full FID (81.2 s)"
+    )

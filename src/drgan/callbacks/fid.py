@@ -467,17 +467,8 @@ class FIDCallback(Callback):
         std (FID NaN: screened out)."""
         fid, fid_std, kid_mean, kid_std = scores
         brightness = float(grey.mean()) / max(self.real_mean(trainer), 1e-6)
-        particle, background = levels(sums[:, :4])
-        seen_particle, seen_background = levels(sums[:, 4:])
-        if not math.isfinite(seen_particle):  # the threshold found no particle in any image (tiny renders)
-            seen_particle, seen_background = particle, background
-        real_particle, real_background = self.real_levels(trainer)
         polarity = getattr(trainer.datamodule, "polarity", None) or "bright"
-        tones = {
-            "particle_brightness": level_ratio(seen_particle, real_particle, polarity),
-            "background_brightness": level_ratio(seen_background, real_background, polarity),
-            "contrast": contrast(particle, background, polarity),
-        }
+        tones = self._tones(trainer, sums, polarity)
         seconds = time.perf_counter() - start
         entry = {
             "epoch": epoch,
@@ -495,32 +486,7 @@ class FIDCallback(Callback):
             entry["screen_kid"] = float(screen_kid)
         self.history = [h for h in self.history if h["epoch"] != epoch] + [entry]
         if trainer.is_global_zero:
-            if math.isfinite(fid):
-                log.info(
-                    "epoch %d: FID %.4g (bootstrap std %.2g), KID %.4g, brightness %.2f x real (particles %.2f x, "
-                    "background %.2f x, contrast %.2f for %s particles; %d images, %.1f s)",
-                    epoch,
-                    fid,
-                    fid_std,
-                    kid_mean,
-                    brightness,
-                    tones["particle_brightness"],
-                    tones["background_brightness"],
-                    tones["contrast"],
-                    polarity,
-                    n,
-                    seconds,
-                )
-            else:
-                log.info(
-                    "epoch %d: screened out (KID of %d images %.4g, above the lowest so far by more than %g %%): "
-                    "no full FID (%.1f s)",
-                    epoch,
-                    n,
-                    screen_kid,
-                    100 * self.screen_margin,
-                    seconds,
-                )
+            self._log_line(entry, polarity)
         metrics = [
             ("val/fid", fid),
             ("val/fid_std", fid_std),
@@ -533,6 +499,36 @@ class FIDCallback(Callback):
             metrics.append(("val/screen_kid", screen_kid))
         for key, value in metrics:
             pl_module.log(key, float(value), on_step=False, on_epoch=True, prog_bar=key == "val/fid", sync_dist=True)
+
+    def _tones(self, trainer: Trainer, sums: np.ndarray, polarity: str) -> dict[str, float]:
+        """Particle and background grey against the real patches' (as the classical segmentation sees both sides;
+        the exact labels where it found no particle) and the render's contrast (exact labels)."""
+        particle, background = levels(sums[:, :4])
+        seen_particle, seen_background = levels(sums[:, 4:])
+        if not math.isfinite(seen_particle):  # the threshold found no particle in any image (tiny renders)
+            seen_particle, seen_background = particle, background
+        real_particle, real_background = self.real_levels(trainer)
+        return {
+            "particle_brightness": level_ratio(seen_particle, real_particle, polarity),
+            "background_brightness": level_ratio(seen_background, real_background, polarity),
+            "contrast": contrast(particle, background, polarity),
+        }
+
+    def _log_line(self, entry: dict, polarity: str) -> None:
+        """An evaluation's log line: its scores, or that the KID screen left it out."""
+        if math.isfinite(entry["fid"]):
+            log.info(
+                "epoch %d: FID %.4g (bootstrap std %.2g), KID %.4g, brightness %.2f x real (particles %.2f x, "
+                "background %.2f x, contrast %.2f for %s particles; %d images, %.1f s)",
+                *(entry[k] for k in ("epoch", "fid", "fid_std", "kid", "brightness", "particle_brightness")),
+                entry["background_brightness"], entry["contrast"], polarity, entry["n_images"], entry["seconds"],
+            )  # fmt: skip
+        else:
+            log.info(
+                "epoch %d: screened out (KID of %d images %.4g, above the lowest so far by more than %g %%): "
+                "no full FID (%.1f s)",
+                entry["epoch"], entry["n_images"], entry["screen_kid"], 100 * self.screen_margin, entry["seconds"],
+            )  # fmt: skip
 
     def state_dict(self) -> dict:
         return {"history": [dict(h) for h in self.history]}

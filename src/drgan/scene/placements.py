@@ -210,7 +210,11 @@ class PoissonAgglomerates:
         check_non_negative("PoissonAgglomerates", "margin", self.margin)
 
     def sample(self, rng: np.random.Generator, sizes: np.ndarray, view_width: float) -> np.ndarray:
-        """Centres (n, 3) in px for diameters ``sizes`` (n,) in px; raises ConfigError if they cannot fit."""
+        """Centres (n, 3) in px for diameters ``sizes`` (n,) in px; raises ConfigError if they cannot fit.
+
+        Long because it is one loop over one random stream: Bridson's active lists, the clusters' growth and the
+        shell draws share its state, and every constellation a checkpoint or a dataset recorded depends on the
+        order of its draws."""
         sizes = _check_sizes("PoissonAgglomerates", sizes, view_width)
         half = _half_extents("PoissonAgglomerates", sizes, view_width, self.margin)
         n = sizes.size
