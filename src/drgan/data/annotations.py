@@ -91,75 +91,92 @@ def annotation_mask(grey: np.ndarray) -> np.ndarray:
     so they stay. A scale bar that resampling softened out of those levels is found within SOFT_LEVEL, with its label
     (`_soft_bars`). The mask is grown by 2 px (anti-aliased edges)."""
     grey = np.asarray(grey, np.float32)
-    h, w = grey.shape
-    short = min(h, w)
-    band = EDGE_BAND * short
-    mask = np.zeros((h, w), bool)
+    mask = np.zeros(grey.shape, bool)
     for candidates in (grey <= ANNOTATION_LEVEL, grey >= 1 - ANNOTATION_LEVEL):
         if candidates.mean() > 0.5:  # a saturated background, not a drawing on the image
             continue
-        labels, n = ndi.label(candidates, structure=np.ones((3, 3)))
-        if n == 0:
-            continue
-        boxes = ndi.find_objects(labels)
-        thickness = ndi.distance_transform_edt(candidates)
-        chars = np.zeros(n + 1, bool)
-        char_boxes: dict[int, tuple[slice, slice]] = {}
-        bars: list[tuple[slice, slice]] = []  # scale bars (not a line along the border)
-        inner_chars = 0  # character-shaped groups away from every edge: the image's own (gaps, grain), not text
-        for index, box in enumerate(boxes, start=1):
-            rows, cols = box
-            bh, bw = rows.stop - rows.start, cols.stop - cols.start
-            own = labels[box] == index
-            area = int(own.sum())
-            if area < 3:
-                continue
-            fill = area / (bh * bw)
-            thick = 2.0 * float(thickness[box][own].max())  # stroke width: the widest inscribed disc
-            edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop)  # px to the nearest border
-            near_edge = edge <= band
-            long_, narrow = max(bh, bw), min(bh, bw)
-            bar = _bar_shaped(long_, narrow, short) and fill >= 0.75
-            filled = ndi.binary_fill_holes(own).mean()
-            box_ = near_edge and filled >= 0.92 and narrow >= 0.03 * short and long_ <= 0.5 * short
-            char = _char_shaped(long_, thick, short)
-            # an info band: a microscope's data bar kept in a figure (JPEG grey, so not found by read_grey's exact
-            # black/white rows): across most of the width, along the top or bottom, its text inside
-            band_ = bw >= 0.6 * w and bh <= 0.3 * h and (rows.start <= band or h - rows.stop <= band) and filled >= 0.8
-            if band_ or box_:
-                # a solid box with its frame: figures draw label boxes and data bars with a grey or anti-aliased
-                # border (JPEG rings besides), a bright or dark ring around the box that is not a particle
-                m = int(min(max(2.0, FRAME_SHARE * narrow), 0.03 * short))
-                mask[max(rows.start - m, 0) : rows.stop + m, max(cols.start - m, 0) : cols.stop + m] = True
-            elif bar:
-                mask[box] |= own
-                if edge > 0:  # not a line along the border
-                    bars.append(box)
-            elif char:
-                chars[index] = near_edge
-                char_boxes[index] = box
-                inner_chars += not near_edge
-        for box, own in _crossing_bars(candidates, mask):
-            mask[box] |= own
-            bars.append(box)
-        # Characters count when near an edge (panel letters, scale-bar text); the rest stay particles or grain. Unless
-        # the inside holds them about as densely: then this level draws the image itself (a dense packing's black
-        # gaps, a bright film's white specks), and its character-shaped groups near an edge are more of the same.
-        inner_area = max(0, h - 2 * band) * max(0, w - 2 * band)
-        if (
-            inner_chars
-            and inner_area
-            and inner_chars / inner_area >= CHAR_DENSITY_SHARE * chars.sum() / (h * w - inner_area)
-        ):
-            chars[:] = False
-        # A scale bar's label is text however dense the image's own marks: characters of its grey beside it.
-        for index, box in char_boxes.items():
-            chars[index] |= any(_beside(box, bar) for bar in bars)
-        mask |= chars[labels]
+        _mark_level(candidates, mask)
     mask |= _soft_bars(grey, mask)
     if mask.any():
         mask = ndi.binary_dilation(mask, iterations=2)
     return mask
+
+
+def _mark_level(candidates: np.ndarray, mask: np.ndarray) -> None:
+    """The annotations drawn in one grey (the candidates: pixels near pure black, or near pure white) marked in
+    ``mask``: boxes, bands and bars as `_mark_shapes` finds them, then the characters that count."""
+    h, w = candidates.shape
+    labels, n = ndi.label(candidates, structure=np.ones((3, 3)))
+    if n == 0:
+        return
+    chars, char_boxes, bars, inner_chars = _mark_shapes(candidates, labels, n, mask)
+    for box, own in _crossing_bars(candidates, mask):
+        mask[box] |= own
+        bars.append(box)
+    # Characters count when near an edge (panel letters, scale-bar text); the rest stay particles or grain. Unless
+    # the inside holds them about as densely: then this level draws the image itself (a dense packing's black
+    # gaps, a bright film's white specks), and its character-shaped groups near an edge are more of the same.
+    band = EDGE_BAND * min(h, w)
+    inner_area = max(0, h - 2 * band) * max(0, w - 2 * band)
+    if (
+        inner_chars
+        and inner_area
+        and inner_chars / inner_area >= CHAR_DENSITY_SHARE * chars.sum() / (h * w - inner_area)
+    ):
+        chars[:] = False
+    # A scale bar's label is text however dense the image's own marks: characters of its grey beside it.
+    for index, box in char_boxes.items():
+        chars[index] |= any(_beside(box, bar) for bar in bars)
+    mask |= chars[labels]
+
+
+def _mark_shapes(candidates: np.ndarray, labels: np.ndarray, n: int, mask: np.ndarray):
+    """Each 8-connected group of one grey classified by its shape: info bands and solid boxes (masked with their
+    frame) and solid bars (masked; those off the border kept as scale bars) are marked in ``mask``; returns
+    (near-edge character flags per label, character boxes, scale bars, character-shaped groups away from the
+    edges)."""
+    h, w = candidates.shape
+    short = min(h, w)
+    band = EDGE_BAND * short
+    boxes = ndi.find_objects(labels)
+    thickness = ndi.distance_transform_edt(candidates)
+    chars = np.zeros(n + 1, bool)
+    char_boxes: dict[int, tuple[slice, slice]] = {}
+    bars: list[tuple[slice, slice]] = []  # scale bars (not a line along the border)
+    inner_chars = 0  # character-shaped groups away from every edge: the image's own (gaps, grain), not text
+    for index, box in enumerate(boxes, start=1):
+        rows, cols = box
+        bh, bw = rows.stop - rows.start, cols.stop - cols.start
+        own = labels[box] == index
+        area = int(own.sum())
+        if area < 3:
+            continue
+        fill = area / (bh * bw)
+        thick = 2.0 * float(thickness[box][own].max())  # stroke width: the widest inscribed disc
+        edge = min(rows.start, cols.start, h - rows.stop, w - cols.stop)  # px to the nearest border
+        near_edge = edge <= band
+        long_, narrow = max(bh, bw), min(bh, bw)
+        bar = _bar_shaped(long_, narrow, short) and fill >= 0.75
+        filled = ndi.binary_fill_holes(own).mean()
+        box_ = near_edge and filled >= 0.92 and narrow >= 0.03 * short and long_ <= 0.5 * short
+        char = _char_shaped(long_, thick, short)
+        # an info band: a microscope's data bar kept in a figure (JPEG grey, so not found by read_grey's exact
+        # black/white rows): across most of the width, along the top or bottom, its text inside
+        band_ = bw >= 0.6 * w and bh <= 0.3 * h and (rows.start <= band or h - rows.stop <= band) and filled >= 0.8
+        if band_ or box_:
+            # a solid box with its frame: figures draw label boxes and data bars with a grey or anti-aliased
+            # border (JPEG rings besides), a bright or dark ring around the box that is not a particle
+            m = int(min(max(2.0, FRAME_SHARE * narrow), 0.03 * short))
+            mask[max(rows.start - m, 0) : rows.stop + m, max(cols.start - m, 0) : cols.stop + m] = True
+        elif bar:
+            mask[box] |= own
+            if edge > 0:  # not a line along the border
+                bars.append(box)
+        elif char:
+            chars[index] = near_edge
+            char_boxes[index] = box
+            inner_chars += not near_edge
+    return chars, char_boxes, bars, inner_chars
 
 
 def _drawn_bar(own: np.ndarray, short: int, fill: float) -> bool:
