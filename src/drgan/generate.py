@@ -209,10 +209,6 @@ def pairs_pixel_scale(resolution: int, backgrounds, view_width: float) -> float:
 def generate_dataset(given: GenerateSettings) -> dict:
     """Render this shard's part of the dataset in ``given.out`` (settings as given: resolved against the checkpoint
     here); return the manifest written (merged or shard)."""
-    import torch
-
-    from drgan.models import build
-
     settings, saved_cfg = given.resolve()
     out = Path(str(settings.out)).expanduser().resolve()
     folder = DatasetFolder(out)
@@ -222,14 +218,49 @@ def generate_dataset(given: GenerateSettings) -> dict:
     if settings.merge:
         return write_manifest(folder, settings, stats=None, required=True, material=facts)
     folder.remove_partial(lambda item: owned_by(item, shard))
+    module, spread, patches = _generator(settings, saved_cfg)
+    resolution = int(module.generator.scene.spec.render.resolution)
+    pixel_scale = pairs_pixel_scale(resolution, settings.backgrounds, module.generator.scene.spec.view_width)
+    log.info(
+        "generating %d images of %s into %s (shard %s, %d x %d px, spp %s, contour %d px)",
+        settings.n, settings.material, out, shard, resolution, resolution,
+        module.generator.scene.spec.render.spp, settings.contour_px,
+    )  # fmt: skip
+    if shard.index == 0:
+        write_backgrounds(
+            folder, settings.backgrounds, settings.n_background, resolution, settings.partial, settings.polarity
+        )
+    stats = render_shard(folder, module, OmegaConf.create(saved_cfg), settings, shard, spread)
+    summary = stats.as_dict()
+    rate = summary["kept_per_minute"]
+    print(f"{stats.kept} kept, {stats.dropped} dropped, {stats.skipped} already done; "
+          + (f"{rate:.2f} images/minute ({summary['rendered_per_minute']:.2f} rendered/minute)" if rate is not None else "nothing rendered"))  # fmt: skip
+    if shard.count > 1:
+        write_shard_manifest(folder, settings, shard, summary, pixel_scale)
+    manifest = write_manifest(
+        folder,
+        settings,
+        stats=summary,
+        required=shard.count == 1,
+        pixel_scale=pixel_scale,
+        material=facts,
+    )
+    if manifest is not None:
+        counts = manifest["counts"]
+        print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "
+              f"{counts['partial_background']} partial background items (n_background={settings.n_background})")  # fmt: skip
+        write_checks(out, manifest, settings, resolution, patches)
+    return manifest
 
-    model_cfg = OmegaConf.create(saved_cfg)
+
+def _generator(settings, saved_cfg: dict):
+    """(the checkpoint's GAN module with the settings' parameters, the grey spread or None, the real patches or
+    None): the patches are loaded once where something needs them (texture, grey spread, the checks)."""
     module = load_module(Path(settings.ckpt), saved_cfg)
     use_parameters(module, settings.parameters, saved_cfg)
     resolution = int(module.generator.scene.spec.render.resolution)
-    pixel_scale = pairs_pixel_scale(resolution, settings.backgrounds, module.generator.scene.spec.view_width)
     spread = None  # with grey_spread, the real patches' grey levels each image takes one of
-    patches = None  # the real train patches, loaded once where they are needed (texture, grey spread, noise check)
+    patches = None
     if module.textured or settings.grey_spread:
         from drgan.data.patches import PatchSet
 
@@ -246,11 +277,15 @@ def generate_dataset(given: GenerateSettings) -> dict:
                 "(5th-95th percentile); each image's own measured by the same segmentation",
                 len(levels), *np.quantile(levels[:, 0], [0.05, 0.95]), *np.quantile(levels[:, 1], [0.05, 0.95]),
             )  # fmt: skip
-    log.info(
-        "generating %d images of %s into %s (shard %s, %d x %d px, spp %s, contour %d px)",
-        settings.n, settings.material, out, shard, resolution, resolution,
-        module.generator.scene.spec.render.spp, settings.contour_px,
-    )  # fmt: skip
+    return module, spread, patches
+
+
+def render_shard(folder: DatasetFolder, module, model_cfg, settings, shard: Shard, spread) -> Stats:
+    """The shard's indices rendered in order until n pairs are kept below the next index (the other shards' too),
+    each written (or its drop recorded) as it is done; indices finished before are skipped, so a rerun resumes."""
+    import torch
+
+    from drgan.models import build
 
     layouts = build.layout_sampler(model_cfg)  # built once: typing the material per image costs ~25 ms
 
@@ -258,10 +293,6 @@ def generate_dataset(given: GenerateSettings) -> dict:
         return layouts(1, seed=seed)[0]
 
     n, stats = settings.n, Stats()
-    if shard.index == 0:
-        write_backgrounds(
-            folder, settings.backgrounds, settings.n_background, resolution, settings.partial, settings.polarity
-        )
     outcomes = folder.outcomes()
     bar = _progress(settings.progress, total=math.ceil(n / shard.count))
     already = sum(1 for i, kept in outcomes.items() if kept and i % shard.count == shard.index)
@@ -274,24 +305,7 @@ def generate_dataset(given: GenerateSettings) -> dict:
                     outcomes = folder.outcomes()  # what the other shards finished meanwhile
                 if kept_below(outcomes, index) >= n:
                     break
-                if stats.rendered >= EARLY_ATTEMPTS and stats.kept == 0 and kept_below(outcomes, index) == 0:
-                    contrasts = np.asarray(stats.contrasts, dtype=np.float64)
-                    median = float(np.nanmedian(contrasts)) if np.isfinite(contrasts).any() else math.nan
-                    raise RuntimeError(
-                        f"none of the first {stats.rendered} images passed the filter (drop reasons: {dict(stats.reasons)}; "
-                        f"median contrast {median:.3f} against min_contrast={settings.min_contrast} for "
-                        f"{settings.polarity} particles, min_background={settings.min_background}). A contrast "
-                        "below 1 means the particles are on the wrong side of the background: check polarity (here "
-                        "from the checkpoint's material) and the epoch (best_epoch.json); or lower min_contrast"
-                    )
-                if index >= settings.max_attempts:
-                    have = kept_below(outcomes, index)
-                    raise RuntimeError(
-                        f"only {have} of n={n} images passed the filter in max_attempts={settings.max_attempts} "
-                        f"indices (drop reasons this run: {dict(stats.reasons) or 'none'}; min_contrast="
-                        f"{settings.min_contrast}, min_background={settings.min_background}): lower min_contrast "
-                        "or min_background, raise max_attempts, or pick a better checkpoint"
-                    )
+                _check_progress(stats, settings, outcomes, index)
                 item = syn_id(index)
                 if index in outcomes and (not outcomes[index] or folder.done(item)):
                     stats.skipped += 1
@@ -318,27 +332,30 @@ def generate_dataset(given: GenerateSettings) -> dict:
     finally:
         bar.close()
     task.close()
+    return stats
 
-    summary = stats.as_dict()
-    rate = summary["kept_per_minute"]
-    print(f"{stats.kept} kept, {stats.dropped} dropped, {stats.skipped} already done; "
-          + (f"{rate:.2f} images/minute ({summary['rendered_per_minute']:.2f} rendered/minute)" if rate is not None else "nothing rendered"))  # fmt: skip
-    if shard.count > 1:
-        write_shard_manifest(folder, settings, shard, summary, pixel_scale)
-    manifest = write_manifest(
-        folder,
-        settings,
-        stats=summary,
-        required=shard.count == 1,
-        pixel_scale=pixel_scale,
-        material=facts,
-    )
-    if manifest is not None:
-        counts = manifest["counts"]
-        print(f"dataset {out}: {counts['synthetic']} synthetic, {counts['background']} background and "
-              f"{counts['partial_background']} partial background items (n_background={settings.n_background})")  # fmt: skip
-        write_checks(out, manifest, settings, resolution, patches)
-    return manifest
+
+def _check_progress(stats: Stats, settings, outcomes: dict, index: int) -> None:
+    """A RuntimeError where generation is stuck: none of the first images passed the filter, or max_attempts
+    indices gave fewer than n pairs (what dropped them, and what to change)."""
+    if stats.rendered >= EARLY_ATTEMPTS and stats.kept == 0 and kept_below(outcomes, index) == 0:
+        contrasts = np.asarray(stats.contrasts, dtype=np.float64)
+        median = float(np.nanmedian(contrasts)) if np.isfinite(contrasts).any() else math.nan
+        raise RuntimeError(
+            f"none of the first {stats.rendered} images passed the filter (drop reasons: {dict(stats.reasons)}; "
+            f"median contrast {median:.3f} against min_contrast={settings.min_contrast} for "
+            f"{settings.polarity} particles, min_background={settings.min_background}). A contrast "
+            "below 1 means the particles are on the wrong side of the background: check polarity (here "
+            "from the checkpoint's material) and the epoch (best_epoch.json); or lower min_contrast"
+        )
+    if index >= settings.max_attempts:
+        have = kept_below(outcomes, index)
+        raise RuntimeError(
+            f"only {have} of n={settings.n} images passed the filter in max_attempts={settings.max_attempts} "
+            f"indices (drop reasons this run: {dict(stats.reasons) or 'none'}; min_contrast="
+            f"{settings.min_contrast}, min_background={settings.min_background}): lower min_contrast "
+            "or min_background, raise max_attempts, or pick a better checkpoint"
+        )
 
 
 def write_checks(out: Path, manifest: dict, settings, resolution: int, patches=None) -> dict[str, dict]:
