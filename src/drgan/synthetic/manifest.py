@@ -102,19 +102,7 @@ def write_manifest(
     # Partial backgrounds fill up what the PatchSet's backgrounds leave of n_background (once those are all done).
     wanted = n_background - len(backgrounds) if settings.partial_background else 0
     partials = [pbg_id(j) for j in range(wanted) if folder.done(pbg_id(j))]
-    problem = None
-    if cutoff is None:
-        problem = (
-            f"synthetic index {missing} ({syn_id(missing)}) is not done yet "
-            f"({kept_below(outcomes, missing)} of n={n} kept below it)"
-        )
-    elif len(backgrounds) < n_background and not backgrounds_exhausted(settings.backgrounds, len(backgrounds)):
-        problem = f"{len(backgrounds)} of n_background={n_background} background patches are done (shard 0 writes them)"
-    elif len(partials) < wanted and not partial_exhausted(folder, len(partials)):
-        problem = (
-            f"{len(partials)} of the {wanted} partial backgrounds that fill up n_background={n_background} are "
-            "done (shard 0 writes them)"
-        )
+    problem = _incomplete(folder, settings, outcomes, cutoff, missing, backgrounds, partials, wanted)
     if problem:
         if required:
             raise ConfigError(
@@ -130,12 +118,7 @@ def write_manifest(
         + [Entry.background(b).to_json() for b in backgrounds]
         + [Entry.partial_background(p).to_json() for p in partials]
     )
-    shards, scales = [], []
-    for path in sorted(folder.root.glob("manifest_shard_*.json")):
-        record = json.loads(path.read_text())
-        if record.get("config", {}).get("ckpt") == settings.ckpt:
-            shards.append({"shard": record.get("shard"), **record.get("throughput", {})})
-            scales.append(float(record.get("pixel_scale", 1.0)))
+    shards, scales = _shard_records(folder, settings.ckpt)
     if pixel_scale is None:
         pixel_scale = scales[0] if scales else 1.0
     surplus = sum(1 for i, k in outcomes.items() if k and i > cutoff)
@@ -164,6 +147,36 @@ def write_manifest(
         len(kept), len(dropped), len(backgrounds), len(partials),
     )  # fmt: skip
     return manifest
+
+
+def _incomplete(folder, settings, outcomes, cutoff, missing, backgrounds, partials, wanted) -> str | None:
+    """What the dataset still lacks (the first synthetic index not done, backgrounds or partial backgrounds shard 0
+    has not written), or None when it is complete."""
+    n, n_background = settings.n, settings.n_background
+    if cutoff is None:
+        return (
+            f"synthetic index {missing} ({syn_id(missing)}) is not done yet "
+            f"({kept_below(outcomes, missing)} of n={n} kept below it)"
+        )
+    if len(backgrounds) < n_background and not backgrounds_exhausted(settings.backgrounds, len(backgrounds)):
+        return f"{len(backgrounds)} of n_background={n_background} background patches are done (shard 0 writes them)"
+    if len(partials) < wanted and not partial_exhausted(folder, len(partials)):
+        return (
+            f"{len(partials)} of the {wanted} partial backgrounds that fill up n_background={n_background} are "
+            "done (shard 0 writes them)"
+        )
+    return None
+
+
+def _shard_records(folder: DatasetFolder, ckpt) -> tuple[list[dict], list[float]]:
+    """(throughput, pixel scale) of each shard manifest written from the same checkpoint."""
+    shards, scales = [], []
+    for path in sorted(folder.root.glob("manifest_shard_*.json")):
+        record = json.loads(path.read_text())
+        if record.get("config", {}).get("ckpt") == ckpt:
+            shards.append({"shard": record.get("shard"), **record.get("throughput", {})})
+            scales.append(float(record.get("pixel_scale", 1.0)))
+    return shards, scales
 
 
 def partial_summary(folder: DatasetFolder, partials: list[str]) -> dict:
