@@ -260,9 +260,11 @@ def _merges_outnumbered(gap: float, outlines: Mapping | None) -> str:
     if share < MERGE_EXCESS or not _outnumbers(counts[merger], counts[other]):
         return ""
     name = {SEGMENTER: "the segmenter", CLASSICAL: "the classical segmentation"}
+    whose = {SEGMENTER: "segmenter's", CLASSICAL: "classical"}
     return (
-        f" Merges do not explain the gap: {name[merger]} holds {_share(share)} of the {other} particles in one region "
-        f"with a neighbour, yet finds {counts[merger]} particles to {counts[other]} ({name[other]} misses particles)."
+        f" Merges do not explain the gap: {name[merger]} holds {_share(share)} of the {whose[other]} particles in one "
+        f"region with a neighbour, yet finds {counts[merger]} particles to {counts[other]} ({name[other]} misses "
+        "particles)."
     )
 
 
