@@ -249,37 +249,11 @@ def realism(cfg: DictConfig) -> dict:
         )
     n = n_wanted or len(real)
     source = str(cfg.synthetic)
-    detail: dict = {}
     if kind == "real":
-        first, second = real_halves(real_ids, seed)
-        in_first = np.array([i in first for i in real_ids])
-        a, groups_a = real[in_first], [i for i, keep in zip(real_ids, in_first) if keep]
-        b, groups_b = real[~in_first], [i for i, keep in zip(real_ids, in_first) if not keep]
-        label = "real vs real (train images in two halves by id)"
-        detail = {"half_a_ids": sorted(first), "half_b_ids": sorted(second)}
+        a, b, groups_a, groups_b, label, detail = _real_halves(real, real_ids, seed)
     else:
-        if kind == "dataset":
-            b, names = dataset_images(Path(source), n, seed)
-            label = f"dataset {source}"
-        elif kind == "images":
-            b, names = folder_images(Path(source), n, seed)
-            label = f"images {source}"
-        else:
-            render = cfg.get("render") or {}
-            quantize, parameters = bool(render.get("quantize", True)), render.get("parameters", "trained")
-            b, detail = checkpoint_renders(source, n, patches.background, size, spp, quantize, parameters)
-            names = [f"render_{i}" for i in range(len(b))]
-            chosen = detail["parameters"]
-            label = f"renders of {source}" + (
-                "" if chosen == "trained" else f" ({chosen if isinstance(chosen, str) else 'fixed'} values)"
-            )
-        if b.shape[1:] != (size, size):
-            raise DataError(
-                f"synthetic={source}: images of {b.shape[2]} x {b.shape[1]} px, but the real patches are "
-                f"{size} x {size} px (data.patch_size): the test compares them at one size"
-            )
-        a, groups_a, groups_b = real, real_ids, names
-        detail["synthetic_read"] = len(b)
+        b, groups_b, label, detail = _synthetic_sample(cfg, kind, source, n, seed, patches.background, size, spp)
+        a, groups_a = real, real_ids
     log.info("two-sample test: %s: %d patches (A) against %d (B), %d px", label, len(a), len(b), size)
     result = two_sample_test(a, b, settings, groups_a, groups_b, progress=bool(cfg.get("progress", True)))
     if cfg.get("fid"):
@@ -305,6 +279,44 @@ def realism(cfg: DictConfig) -> dict:
     print(f"{HEADER}\n{line}")
     log.info("wrote %s", out / "results.json")
     return summary
+
+
+def _real_halves(real: np.ndarray, real_ids: list, seed: int):
+    """(A, B, their groups, label, detail): the real train patches in two halves by image id (the test's floor)."""
+    first, second = real_halves(real_ids, seed)
+    in_first = np.array([i in first for i in real_ids])
+    a, groups_a = real[in_first], [i for i, keep in zip(real_ids, in_first) if keep]
+    b, groups_b = real[~in_first], [i for i, keep in zip(real_ids, in_first) if not keep]
+    label = "real vs real (train images in two halves by id)"
+    return a, b, groups_a, groups_b, label, {"half_a_ids": sorted(first), "half_b_ids": sorted(second)}
+
+
+def _synthetic_sample(cfg: DictConfig, kind: str, source: str, n: int, seed: int, background, size: int, spp):
+    """(images, their names, label, detail): ``n`` images of a generated dataset, a folder of images, or renders of
+    a checkpoint, at the real patches' size (a DataError otherwise)."""
+    detail: dict = {}
+    if kind == "dataset":
+        b, names = dataset_images(Path(source), n, seed)
+        label = f"dataset {source}"
+    elif kind == "images":
+        b, names = folder_images(Path(source), n, seed)
+        label = f"images {source}"
+    else:
+        render = cfg.get("render") or {}
+        quantize, parameters = bool(render.get("quantize", True)), render.get("parameters", "trained")
+        b, detail = checkpoint_renders(source, n, background, size, spp, quantize, parameters)
+        names = [f"render_{i}" for i in range(len(b))]
+        chosen = detail["parameters"]
+        label = f"renders of {source}" + (
+            "" if chosen == "trained" else f" ({chosen if isinstance(chosen, str) else 'fixed'} values)"
+        )
+    if b.shape[1:] != (size, size):
+        raise DataError(
+            f"synthetic={source}: images of {b.shape[2]} x {b.shape[1]} px, but the real patches are "
+            f"{size} x {size} px (data.patch_size): the test compares them at one size"
+        )
+    detail["synthetic_read"] = len(b)
+    return b, names, label, detail
 
 
 def sample_fid(a: np.ndarray, b: np.ndarray) -> dict:
