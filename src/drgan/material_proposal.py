@@ -255,11 +255,17 @@ def parent_material(parent: str) -> dict:
     return OmegaConf.to_container(compose([f"material={parent}"], config_name="render").material, resolve=True)
 
 
-def parent_renders_fringe(parent: str) -> bool:
-    """Whether the parent material's imaging takes an edge fringe (``material.imaging.fringe``: transmission)."""
+@functools.cache
+def parent_imaging(parent: str):
+    """The paper material ``parent``'s imaging, typed (drgan.scene.config; typed once per process, read only)."""
     from drgan.scene.config import typed_material
 
-    return typed_material(parent_material(parent)).imaging.renders_fringe
+    return typed_material(parent_material(parent)).imaging
+
+
+def parent_renders_fringe(parent: str) -> bool:
+    """Whether the parent material's imaging takes an edge fringe (``material.imaging.fringe``: transmission)."""
+    return parent_imaging(parent).renders_fringe
 
 
 FRINGE_LIMIT_FACTOR = 2.0  # a measured fringe's amplitude is learned within 0..2 x the fitted amplitude
@@ -364,9 +370,9 @@ FLAT_PILES = "poisson_flat"  # the placement group of clustered particles seen i
 def placement_group(parent: str, measured: str) -> str:
     """The placement group the material gets: the measured one, except that clustered particles seen in transmission
     get flat piles (conf/gan/placement/poisson_flat.yaml): a particle piled over another hides their contact there."""
-    from drgan.scene.config import TransmissionImaging, typed_material
+    from drgan.scene.config import TransmissionImaging
 
-    if measured == "poisson" and isinstance(typed_material(parent_material(parent)).imaging, TransmissionImaging):
+    if measured == "poisson" and isinstance(parent_imaging(parent), TransmissionImaging):
         return FLAT_PILES
     return measured
 
@@ -374,9 +380,9 @@ def placement_group(parent: str, measured: str) -> str:
 def parent_lights_a_stage(parent: str) -> bool:
     """Whether the parent material's scene lights particles on a stage (secondary-electron imaging with a stage): where
     the integrator samples the stage's surface, hence where `FAST_INTEGRATOR` saves time."""
-    from drgan.scene.config import SecondaryImaging, typed_material
+    from drgan.scene.config import SecondaryImaging
 
-    imaging = typed_material(parent_material(parent)).imaging
+    imaging = parent_imaging(parent)
     return isinstance(imaging, SecondaryImaging) and imaging.stage
 
 
@@ -390,9 +396,7 @@ FAST_INTEGRATOR = "direct_light"
 
 def parent_renders_without_sampling_noise(parent: str) -> bool:
     """Whether the parent material's scene renders without Monte Carlo grain (its imaging config says so)."""
-    from drgan.scene.config import typed_material
-
-    return typed_material(parent_material(parent)).imaging.noiseless
+    return parent_imaging(parent).noiseless
 
 
 def material_yaml(result: ProfileResult, fits: list, chosen) -> tuple[str, str]:
