@@ -419,12 +419,13 @@ def summarize(s: AnalyzeSettings, predictor, items, scales, pixel_note, m: Measu
             for item, p, scale in zip(items, m.found, scales)
         ],
     }
-    return summary, {"diameters": _sizes(m.found, factors), "classical": classical_d, "in_nm": in_nm}
+    return summary, {"diameters": _sizes(m.found, factors), "classical": classical_d}
 
 
 def write_results(s: AnalyzeSettings, summary: dict, m: Measured, sizes: dict) -> None:
     """The run's tables, summary, statistics.md, figures and statistics.html (each written whole: drgan.io)."""
-    out, bins, in_nm, unit = s.out, s.bins, sizes["in_nm"], summary["unit"]
+    out, bins, unit = s.out, s.bins, summary["unit"]
+    in_nm = unit == "nm"
     write_bytes(out / "particles.csv", _csv(m.rows).encode())
     if m.classical_rows:
         write_bytes(out / "particles_classical.csv", _csv(m.classical_rows).encode())
