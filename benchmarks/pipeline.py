@@ -59,7 +59,7 @@ def tiny_set(folder: Path, seed: int = 0, n_train: int = 2, n_test: int = 1, siz
     from PIL import Image
     from scipy import ndimage as ndi
 
-    from drgan.io import write_json, write_png, write_with
+    from drgan.core.io import write_json, write_png, write_with
 
     if folder.exists():
         shutil.rmtree(folder)  # made anew each time: the same set for the same seed

@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 
 import drgan
-from drgan.backend import dr
-from drgan.configs import compose
+from drgan.core.backend import dr
+from drgan.launch.configs import compose
 from drgan.models.gan_module import GANModule
 
 ROOT = Path(drgan.__file__).resolve().parents[2]

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 
 import drgan
-from drgan.backend import dr, mi
-from drgan.configs import compose
+from drgan.core.backend import dr, mi
+from drgan.launch.configs import compose
 from drgan.models.gan_module import GANModule
 from drgan.scene import scene as scene_module
 

@@ -36,15 +36,15 @@ import drgan
 from drgan.models.gan_module import GANModule
 
 try:
-    from drgan.configs import compose
-except ImportError:  # a checkout from before drgan.configs (comparisons against an older main)
+    from drgan.launch.configs import compose
+except ImportError:  # a checkout from before drgan.launch.configs (comparisons against an older main)
 
     def compose(overrides=(), config_name="render"):
         from hydra import compose as hydra_compose
         from hydra import initialize_config_dir
 
-        # the ${mul:} resolver: registered by drgan.resolvers (newer) or drgan.build (older checkouts)
-        for name in ("drgan.resolvers", "drgan.build"):
+        # the ${mul:} resolver: registered by drgan.core.resolvers (newer) or drgan.build (older checkouts)
+        for name in ("drgan.core.resolvers", "drgan.build"):
             try:
                 importlib.import_module(name)
                 break

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from drgan.configs import compose
+from drgan.launch.configs import compose
 from drgan.models import build
 
 ROOT = Path(__file__).resolve().parents[1]

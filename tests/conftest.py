@@ -62,7 +62,7 @@ def one_torch_thread():
 def one_render_thread():
     """Bitwise-repeatable adjoint passes: Dr.Jit sums a gradient from its threads in no fixed order, so two
     identical renders' gradients differ in the last float32 bits (up to ~1e-4 relative on a 32 px render)."""
-    from drgan import backend
+    from drgan.core import backend
 
     backend.use_variant(TEST_VARIANT)
     threads = backend.dr.thread_count()
@@ -79,7 +79,7 @@ def tiny_scene():
 
 
 def compose(overrides=(), config_name="render"):
-    """A composed config of any entry point (`drgan.configs.compose`)."""
-    from drgan.configs import compose as drgan_compose
+    """A composed config of any entry point (`drgan.launch.configs.compose`)."""
+    from drgan.launch.configs import compose as drgan_compose
 
     return drgan_compose(overrides, config_name=config_name)

@@ -11,9 +11,9 @@ import pytest
 from omegaconf import OmegaConf
 from test_segment import disc_image, disc_labels, make_generated, tiny_segment_overrides
 
-from drgan.configs import compose
+from drgan.core.errors import ConfigError, DataError
 from drgan.data.imagej import read_label_tiff, write_label_tiff
-from drgan.errors import ConfigError, DataError
+from drgan.launch.configs import compose
 from drgan.segmenters.agreement import (
     Attempts,
     agreement_settings,

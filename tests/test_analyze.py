@@ -12,7 +12,7 @@ import tifffile
 from conftest import compose
 from test_segment import disc_image, make_real
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 
 
 def field(seed: int, size: int = 64) -> np.ndarray:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.scene.labels import class_mask
 from drgan.segmenters.pairs import Pair
 
@@ -120,7 +120,7 @@ def test_bad_grids_are_config_errors_naming_the_entry(grid, message):
 
 
 def test_auto_settings_come_from_the_checkpoint_or_the_uncalibrated_defaults(tmp_path, caplog):
-    from drgan.checkpoint_io import add_entry
+    from drgan.core.checkpoint_io import add_entry
     from drgan.segmenters.calibrate import CHECKPOINT_KEY, UNCALIBRATED, resolve_auto, stored_split
 
     path = tmp_path / "x.ckpt"
@@ -153,7 +153,7 @@ def test_segment_yaml_grid_is_the_calibration_default():
     recalibrated with) are one grid."""
     from omegaconf import OmegaConf
 
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
     from drgan.segmenters.calibrate import GRID_DEFAULTS, check_grid
 
     grid = OmegaConf.to_container(compose(["data=D"], config_name="segment").split_calibration)

@@ -11,7 +11,7 @@ from test_train import images, make_images, run_train, tiny_overrides  # noqa: F
 
 from drgan.callbacks import RandomProjectionFeatures, parameter_spread, select_best
 from drgan.callbacks.best_epoch import within_brightness
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 
 def test_select_best_prefers_broadest_of_top_k():
@@ -401,7 +401,7 @@ def test_fid_settings_that_cannot_work_fail_before_the_data_are_mined(tmp_path, 
     with pytest.raises(ConfigError, match=r"kid_subset_size=9 exceeds callbacks.fid.n_images=4"):
         run_train(tiny_overrides(folder, tmp_path / "run", extra=["+callbacks.fid.kid_subset_size=9"]))
     # the Inception network's file is read and its hash checked before mining too
-    from drgan.errors import DataError
+    from drgan.core.errors import DataError
 
     bad = tmp_path / "inception.pt"
     bad.write_bytes(b"not the network")

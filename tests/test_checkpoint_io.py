@@ -1,4 +1,4 @@
-"""Checkpoint loading that cannot run code (drgan.checkpoint_io) at every entry point that reads a checkpoint.
+"""Checkpoint loading that cannot run code (drgan.core.checkpoint_io) at every entry point that reads a checkpoint.
 
 A crafted checkpoint holds an object whose unpickling would create a marker file (pathlib.Path.touch). Each
 entry point must refuse it with a message naming the setting and the file, and the marker must not exist
@@ -20,8 +20,8 @@ from test_segment import disc_image, disc_labels, eval_cfg, make_generated, make
 from test_train import make_images, run_train, tiny_overrides
 
 from drgan import generate as gen
-from drgan.checkpoint_io import load_checkpoint
-from drgan.errors import ConfigError, DataError
+from drgan.core.checkpoint_io import load_checkpoint
+from drgan.core.errors import ConfigError, DataError
 from drgan.synthetic.source import checkpoint_config, load_module
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -188,7 +188,7 @@ def test_real_checkpoints_need_no_allow_listed_class(tiny_run, segmenter_run):  
 
 
 def test_real_checkpoints_load_at_every_site(tiny_run, segmenter_run, tmp_path):  # noqa: F811
-    from drgan.runtime import resolve_checkpoint
+    from drgan.launch.runtime import resolve_checkpoint
     from drgan.segmenters.module import load_segmenter
 
     best, last = tiny_run / "checkpoints" / "best.ckpt", tiny_run / "checkpoints" / "last.ckpt"

@@ -11,7 +11,7 @@ import pytest
 from conftest import compose
 from test_segment import disc_image, make_real
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.segmenters.classical_check import (
     BOTH,
     CLASSICAL,

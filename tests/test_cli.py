@@ -72,8 +72,8 @@ TOY_STAGE = '''"""A toy stage: writes its greeting into its run folder."""
 
 from pathlib import Path
 
-from drgan.errors import ConfigError
-from drgan.runtime import stage_main
+from drgan.core.errors import ConfigError
+from drgan.launch.runtime import stage_main
 
 
 @stage_main(config_path=".", config_name="toy")
@@ -121,3 +121,12 @@ def test_every_stage_of_the_registry_is_in_a_layer_of_the_import_contracts():
     named = set(re.findall(r"drgan[\w.]*", layers))
     missing = [module for module, _, _ in cli.COMMANDS.values() if module not in named]
     assert not missing, f"add {missing} to the entry points' layer in pyproject.toml"
+
+
+def test_the_package_top_level_holds_only_what_a_user_runs():
+    """src/drgan/'s modules are the console command and the registry's stages and tools; the plumbing they share
+    lives in packages (core, launch, profiling, ...), so a new helper module at the top level fails here."""
+    commands = {module.split(".")[1] for module, _, _ in cli.COMMANDS.values()}
+    top = {path.stem for path in cli.PACKAGE.glob("*.py")} - {"__init__", "__main__", "cli"}
+    assert top <= commands, f"not a stage or tool of cli.COMMANDS: {sorted(top - commands)} (move it into a package)"
+    assert {"profile", "train", "generate", "segment", "analyze", "evaluate"} <= top

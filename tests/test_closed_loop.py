@@ -232,7 +232,7 @@ def test_a_bad_check_fraction_is_refused_before_any_pair_is_read(tmp_path):
     from conftest import compose
     from test_segment import tiny_segment_overrides
 
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.segment import segment
 
     cfg = compose(

@@ -9,8 +9,8 @@ import pytest
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from drgan.configs import ROOTS, compose, conf_dir
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
+from drgan.launch.configs import ROOTS, compose, conf_dir
 
 # The required keys (???) of each CLI's config, filled with placeholders: composition is what is tested here.
 REQUIRED = {

@@ -14,9 +14,9 @@ import tifffile
 from omegaconf import OmegaConf
 from PIL import Image
 
-from drgan.configs import compose
+from drgan.core.errors import ConfigError, DataError
 from drgan.data.imagej import write_label_tiff, write_roi_set
-from drgan.errors import ConfigError, DataError
+from drgan.launch.configs import compose
 from drgan.segmenters.corrections import (
     correction_pairs,
     crops_for_share,

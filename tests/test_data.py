@@ -13,6 +13,7 @@ import pytest
 import tifffile
 from PIL import Image
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data import (
     PatchSet,
     SegmentParams,
@@ -24,7 +25,6 @@ from drgan.data import (
     read_grey,
     read_split,
 )
-from drgan.errors import ConfigError, DataError
 
 # --- synthetic particles -----------------------------------------------------------------------------------
 
@@ -361,7 +361,7 @@ def test_the_experiments_set_the_scale_their_train_ids_give(experiment):
     (6-7 min on 2 cores): what the search finds on their train ids, as mining samples them, must be what they set."""
     from hydra.utils import instantiate
 
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
 
     data = TIO2.parent
     if not (data / experiment / "images").is_dir():
@@ -424,7 +424,7 @@ def test_train_with_too_few_patches_stops_before_fit(tmp_path, monkeypatch):
 
 
 def test_setting_int_and_float_name_the_key():
-    from drgan.errors import setting_float, setting_int
+    from drgan.core.errors import setting_float, setting_int
 
     assert setting_int("k", 3) == 3 and setting_int("k", 4.0) == 4 and setting_int("k", " 5 ") == 5
     assert setting_int("k", np.int64(6), 1) == 6 and setting_float("k", "0.5") == 0.5 and setting_float("k", 2) == 2.0
@@ -453,7 +453,7 @@ def test_atomic_writes_give_the_mode_a_plain_write_would_under_any_umask(tmp_pat
     not left at the temporary file's 0600: a colleague, or a tracking server running as another user, reads it."""
     import os
 
-    from drgan.io import write_bytes, write_json
+    from drgan.core.io import write_bytes, write_json
 
     old = os.umask(0o022)
     try:

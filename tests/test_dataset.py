@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from drgan import io
-from drgan.errors import ConfigError, DataError
+from drgan.core import io
+from drgan.core.errors import ConfigError, DataError
 from drgan.synthetic import manifest as mf
 from drgan.synthetic.folder import DatasetFolder, bg_id, syn_id, syn_index
 from drgan.synthetic.generation_settings import FIXED_SETTINGS, GenerateSettings

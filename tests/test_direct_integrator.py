@@ -8,7 +8,7 @@ import pytest
 import torch
 from conftest import PAPER_PARTICLE, PAPER_SIGMA, PAPER_STAGE, TEST_VARIANT, TINY_PHI, make_scene
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 # Learned order: stage.base_color, particle.roughness, base_color, sheen, sheen_tint, spec_tint.
 MID = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6])
@@ -149,7 +149,7 @@ def test_bsdf_sampling_follows_the_stage_roughness():
 
 
 def test_settings_are_checked():
-    from drgan.backend import mi
+    from drgan.core.backend import mi
     from drgan.scene import direct
     from drgan.scene.scene import RenderSettings
 
@@ -181,7 +181,7 @@ CPU_ONLY = pytest.mark.skipif(not TEST_VARIANT.startswith("llvm"), reason="emitt
 def test_emitter_culling_changes_no_image_or_gradient(integrator):
     """A BSDF-sampled ray is traced through the scene only if it hits the emitters' geometry: the same images
     and gradients per seed as tracing every one (the culled rays hit no emitter, so they added nothing)."""
-    from drgan.backend import dr, mi
+    from drgan.core.backend import dr, mi
 
     scene = scene_with(integrator, resolution=24)
     integrator_object = scene.scene.integrator()
@@ -209,7 +209,7 @@ def test_emitter_culling_changes_no_image_or_gradient(integrator):
 def test_emitter_geometry_is_the_emitters_and_nothing_else():
     """Mesh emitters are copied triangle for triangle; another shape becomes a box around it; delta emitters
     are left out; an environment emitter (reached by rays that hit nothing) turns culling off."""
-    from drgan.backend import dr, mi
+    from drgan.core.backend import dr, mi
     from drgan.scene import direct
 
     scene = scene_with("direct_light_mis")
@@ -242,7 +242,7 @@ def test_emitter_geometry_is_the_emitters_and_nothing_else():
 def test_culling_in_a_plain_mitsuba_scene():
     """The integrator is a Mitsuba plugin: in a scene loaded from a dict (emitters a rectangle and a sphere, the
     floor diffuse, a point light too), culling on and off give the same image."""
-    from drgan.backend import mi
+    from drgan.core.backend import mi
     from drgan.scene import direct
 
     make_scene(integrator="direct_light")  # registers the plugin for this variant

@@ -12,7 +12,7 @@ import pytest
 from test_train import images, run_train, tiny_overrides  # noqa: F401  (images: the module fixture)
 
 from drgan.callbacks import FIDEarlyStopping, RandomProjectionFeatures, should_stop
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

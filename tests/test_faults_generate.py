@@ -151,7 +151,7 @@ def test_generate_killed_by_sigkill_resumes_to_the_same_dataset(tiny_run, refere
 KILL_IN_MASK_WRITE = """
 import os, signal, runpy, sys
 from pathlib import Path
-from drgan import io
+from drgan.core import io
 
 write_bytes, masks = io.write_bytes, []
 

@@ -12,7 +12,7 @@ import torch
 from conftest import TEST_VARIANT, TINY_PHI, compose
 from test_transmission import _finite_difference
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 LIMITS = {
     "background": {"min": 0.3, "max": 1.0},
@@ -309,9 +309,9 @@ def test_the_profile_writes_a_measured_fringe_into_a_transmission_material(tmp_p
     report and its figure show the edge profile."""
     from PIL import Image
 
-    from drgan.material_proposal import FRINGE_LIMIT_FACTOR
     from drgan.models import build
     from drgan.profile import profile
+    from drgan.profiling.proposal import FRINGE_LIMIT_FACTOR
 
     folder = tmp_path / "images"
     folder.mkdir()

@@ -19,7 +19,7 @@ from PIL import Image
 from test_train import make_images, run_train, tiny_overrides
 
 from drgan import generate as gen
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.synthetic.generation_settings import GenerateSettings, defaults
 
 N = 3
@@ -455,7 +455,7 @@ def test_export_nnunet_passes_nnunet_integrity_check(dataset, tmp_path):
 def test_export_nnunet_declares_the_ignore_label_for_partial_backgrounds(partial_dataset, tmp_path):
     from nnunetv2.experiment_planning.verify_dataset_integrity import verify_dataset_integrity
 
-    from drgan.errors import DataError
+    from drgan.core.errors import DataError
 
     target = export(partial_dataset, tmp_path / "raw")
     description = json.loads((target / "dataset.json").read_text())
@@ -485,7 +485,7 @@ def test_export_nnunet_declares_the_ignore_label_for_partial_backgrounds(partial
 
 
 def test_export_and_segment_read_the_dataset_through_its_manifest(dataset, tmp_path):
-    from drgan.errors import DataError
+    from drgan.core.errors import DataError
     from drgan.segmenters.pairs import load_generated_pairs
 
     data = tmp_path / "data"

@@ -124,7 +124,7 @@ def test_sample_spp_override_renders_with_less_noise_than_training_spp():
 
 def test_fid_callback_refuses_a_bad_spp():
     from drgan.callbacks import FIDCallback
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="callbacks.fid.spp"):
         FIDCallback(spp=10)
@@ -163,7 +163,7 @@ def test_background_texture_keeps_the_fine_structure_only():
     ],
 )
 def test_bad_background_textures_are_refused(patches, highpass, match):
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.models.generator import BackgroundTexture
 
     with pytest.raises(ConfigError, match=match):
@@ -171,7 +171,7 @@ def test_bad_background_textures_are_refused(patches, highpass, match):
 
 
 def test_background_texture_changes_stage_pixels_only_and_no_gradient(one_render_thread):
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.models.generator import BackgroundTexture
 
     scene = make_scene(resolution=32, spp=4, sigma={"value": 0.001})

@@ -85,7 +85,7 @@ def test_adjoint_seed_is_derived_deterministic_and_never_the_primal():
 
 
 def test_bad_grad_seed_names_the_setting():
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.models.build import scene_spec
     from drgan.scene.scene import RenderSettings
 

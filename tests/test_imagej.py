@@ -93,7 +93,7 @@ def test_analyze_writes_a_label_tiff_and_roi_set_per_image_matching_its_particle
     from PIL import Image
 
     from drgan.analyze import analyze
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
 
     images = tmp_path / "images"
     images.mkdir()
@@ -140,7 +140,7 @@ def _analyzed(tmp_path):
     from PIL import Image
 
     from drgan.analyze import analyze
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
 
     images = tmp_path / "images"
     images.mkdir()

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 CANDIDATES = [os.environ.get("DRGAN_OFFICIAL", ""), ROOT.parent / "shared" / "official", ROOT.parents[1] / "shared" / "official"]  # fmt: skip

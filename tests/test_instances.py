@@ -14,7 +14,7 @@ from conftest import compose
 from PIL import Image
 from test_segment import disc_image, disc_labels, eval_cfg, make_real, tiny_segment_overrides
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.scene.labels import centre_distance, class_mask
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.scene.labels import class_mask
 
 

@@ -13,7 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from scipy.sparse.csgraph import connected_components
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.scene.layout import particle_counts, placement_from_config, sample_layouts, size_from_config
 from drgan.scene.placements import PoissonAgglomerates, Random2D, Random3D
 from drgan.scene.sizes import BimodalSize, LognormalSize, NormalSize

@@ -9,14 +9,8 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from drgan.loggers import (
-    MLFlowLogger,
-    SweepJob,
-    describe_runs,
-    runs_url,
-    sweep_run_name,
-    tracking_store,
-)
+from drgan.launch.loggers import MLFlowLogger, SweepJob, sweep_run_name, tracking_store
+from drgan.mlflow_ui import describe_runs, runs_url
 
 
 def hydra_jobs(command_line: list[str]) -> list[SweepJob]:
@@ -50,7 +44,7 @@ def hydra_job(tmp_path):
     from hydra import initialize_config_dir
     from hydra.core.hydra_config import HydraConfig
 
-    from drgan.configs import setup
+    from drgan.launch.configs import setup
 
     setup()  # the schemas and shared groups the raw Hydra compose below needs
 
@@ -89,7 +83,7 @@ def test_a_resumed_run_keeps_its_params_and_records_what_the_resume_changed_as_t
     first.log_hyperparams({"ckpt_path": None, "trainer": {"max_epochs": 1}, "model/lr_g": 2e-4})
     resumed = MLFlowLogger(experiment_name="tio2_sem", tracking_uri=uri, run_id=first.run_id)
     caplog.clear()  # the first start's "Experiment ... not found. Creating it."
-    with caplog.at_level(logging.INFO, logger="drgan.loggers"):
+    with caplog.at_level(logging.INFO, logger="drgan.launch.loggers"):
         resumed.log_hyperparams(
             {"ckpt_path": "last", "trainer": {"max_epochs": 2}, "model/lr_g": 2e-4, "data/n_train_patches": 130}
         )
@@ -111,10 +105,10 @@ def test_a_resumed_run_keeps_its_params_and_records_what_the_resume_changed_as_t
 def test_the_ui_serves_the_store_train_logs_to_and_links_each_runs_table(tmp_path):
     import mlflow
 
-    import drgan.resolvers
+    import drgan.core.resolvers
 
     if (
-        drgan.resolvers.user_tracking_uri() is None
+        drgan.core.resolvers.user_tracking_uri() is None
     ):  # the default store: <project>/mlruns, absolute, as drgan.train has it
         assert tracking_store() == (f"sqlite:///{Path.cwd().resolve()}/mlruns/mlflow.db", "tio2_sem")
     uri = f"sqlite:///{tmp_path}/mlruns/mlflow.db"

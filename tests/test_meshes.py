@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from drgan.errors import ConfigError, MeshError
+from drgan.core.errors import ConfigError, MeshError
 from drgan.scene.particle_meshes import (
     KINDS,
     bent_rod,

@@ -13,7 +13,7 @@ import scipy.linalg
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 from drgan.metrics import inception
 from drgan.metrics.feature_distances import FeatureStats, cached_reference_stats, fid_from_images, frechet_distance, kid
 from drgan.metrics.inception import InceptionFeatures, clean_resize

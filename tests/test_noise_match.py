@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.segmenters import noise_match as nm
 
 

@@ -13,9 +13,9 @@ import pytest
 from PIL import Image, ImageDraw, ImageFont
 from scipy import ndimage as ndi
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data import annotations
 from drgan.data import classical as P
-from drgan.errors import ConfigError, DataError
 
 
 def discs(size=192, diameter=24.0, n=12, polarity="bright", noise=0.02, grain=0.0, seed=0, gap=3.0):
@@ -57,7 +57,7 @@ def test_the_scale_search_shows_its_progress_only_when_asked(capsys):
     quiet, _ = P.resolve_params([image], None, "bright")
     assert capsys.readouterr().err == ""
     shown, _ = P.resolve_params([image], None, "bright", progress=True)
-    err = capsys.readouterr().err  # not a terminal here: drgan.progress's line when the search ends
+    err = capsys.readouterr().err  # not a terminal here: drgan.core.progress's line when the search ends
     assert re.search(r"progress: particle scale search (\d+)/\1 scales \(100 %\), .* so far, done", err), err
     assert shown == quiet  # the bar changes nothing it measures
 

@@ -18,7 +18,7 @@ import pytest
 from PIL import Image
 
 from drgan import pipeline
-from drgan.errors import ConfigError, DataError, DrganError
+from drgan.core.errors import ConfigError, DataError, DrganError
 from drgan.pipeline import runner, stage_table, stages, tracking
 
 
@@ -542,13 +542,13 @@ def test_the_report_shows_the_generated_sets_noise_against_the_real_and_its_spp(
 
 # --- progress lines ----------------------------------------------------------------------------------------
 
-SLOW_STAGE = '''"""A toy stage that reports eight steps of work through drgan.progress, as the real stages do."""
+SLOW_STAGE = '''"""A toy stage that reports eight steps of work through drgan.core.progress, as the real stages do."""
 
 import sys
 import time
 from pathlib import Path
 
-from drgan.progress import Task
+from drgan.core.progress import Task
 
 args = dict(arg.split("=", 1) for arg in sys.argv[1:])
 with Task("counting", 8, "steps") as task:
@@ -590,8 +590,8 @@ def test_the_pipeline_says_what_a_running_stage_does_its_time_left_and_the_runs_
 
 
 def test_the_whole_runs_estimate_scales_the_later_stages_by_the_runs_pace():
+    from drgan.core.progress import Report
     from drgan.pipeline import progress_line
-    from drgan.progress import Report
 
     # done stages took twice their typical time: the rest is expected at that pace
     factor = progress_line.pace([(60.0, 150.0), (600.0, 1170.0)])

@@ -7,11 +7,11 @@ import pytest
 from scipy import ndimage as ndi
 from test_data import SHAPE, SIZE, STRIDE, disc_image, lattice_centres
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data import mine_patches
 from drgan.data.classical import NoParticles
 from drgan.data.datamodule import RealPatchDataModule
 from drgan.data.polarity import detect_polarity, image_vote, isophote_convexity, resolve_polarity, to_bright
-from drgan.errors import ConfigError, DataError
 
 
 def dark_twin(image):

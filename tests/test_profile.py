@@ -12,10 +12,10 @@ from conftest import compose
 from PIL import Image
 from scipy import ndimage as ndi
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data import measurements as est
 from drgan.data.classical import SegmentParams, resolve_params
 from drgan.data.patches import window_starts
-from drgan.errors import ConfigError, DataError
 
 GREY = {"bright": 0.25, "dark": 0.75}  # background grey level
 CONTRAST = {"bright": 0.4, "dark": -0.4}
@@ -114,7 +114,7 @@ def test_agglomeration_and_shape_suggestions():
 def test_clustered_particles_seen_in_transmission_get_flat_piles():
     """A piled particle hides its contact in transmission (experiments/statistics/README.md): clustered particles of a
     transmission material get the flat poisson group, in every composed config; other materials keep the measured."""
-    from drgan.material_proposal import placement_group
+    from drgan.profiling.proposal import placement_group
 
     assert placement_group("tio2_tsem", "poisson") == "poisson_flat"
     assert placement_group("tio2_tsem", "random_2d") == "random_2d"
@@ -224,7 +224,7 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
 
     cfg = compose(["material=my_discs"], config_name="train")
     assert cfg.material.name == "my_discs" and cfg.material.meshes.kind == "sphere"
-    from drgan.material_proposal import (
+    from drgan.profiling.proposal import (
         EXTENT_PER_DIAMETER,  # a material's size is a largest extent, the fit's a diameter
     )
 
@@ -241,12 +241,12 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert cfg.renderer.integrator == "direct_light"
     assert compose(["material=sio2_him"], config_name="train").renderer.integrator == "direct_light_mis"
     # sharp outlines (discs drawn without blur) render through a sharper filter than the HIM parent's 3 px
-    from drgan.material_proposal import filter_for_blur
+    from drgan.profiling.proposal import filter_for_blur
 
     assert saved["edge_blur_px"] < 1.0 and cfg.material.filter_stddev == filter_for_blur(saved["edge_blur_px"]) == 0.5
     # The background's noise bounds the learned noise of an SEM material too (the parent's 0.2 let a GAN on clean
     # images learn 30 x the real noise); the grain stays the path tracer's (no noise_grain_px written)
-    from drgan.material_proposal import NOISE_LIMIT_FACTOR
+    from drgan.profiling.proposal import NOISE_LIMIT_FACTOR
 
     bound = max(0.01, NOISE_LIMIT_FACTOR * saved["background"]["noise_sigma"])
     assert cfg.material.noise_sigma.max == pytest.approx(bound, abs=1e-4) and bound < 0.2
@@ -269,8 +269,8 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert 0 <= grown["images"] <= n and "- `data.segment.grow_outlines`: true: " in report
     assert (f"on {grown['images']} of {n} images" if grown["images"] else f"on none of the {n} images") in report
     # A scale chosen below min_separability for its alike segments writes the lowered value, and says why
-    from drgan.data.profile_result import ProfileResult
-    from drgan.material_proposal import data_settings
+    from drgan.profiling.proposal import data_settings
+    from drgan.profiling.result import ProfileResult
 
     assert not saved["segmentation"]["scale_estimate"]["alike"]
     assert "min_separability" not in saved["material"]["data"]["segment"]
@@ -314,7 +314,7 @@ def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path,
     assert result.edge["ring"]["kind"] == "none" and result.material.fringe is None
     assert cfg.material.imaging.fringe is None and "#   edge fringe: none" in text
     assert cfg.material.noise_grain_px == pytest.approx(result.background.grain_px, abs=0.01)
-    from drgan.material_proposal import (
+    from drgan.profiling.proposal import (
         NOISE_LIMIT_FACTOR,  # the background shows the detector noise: it bounds the learned one
     )
 
@@ -342,7 +342,7 @@ def test_edge_blur_reads_the_gaussian_of_blurred_outlines_with_or_without_a_brig
 
 
 def test_filter_for_blur_interpolates_the_render_table_and_holds_its_ends():
-    from drgan.material_proposal import FILTER_FOR_BLUR, filter_for_blur
+    from drgan.profiling.proposal import FILTER_FOR_BLUR, filter_for_blur
 
     assert filter_for_blur(None) is None and filter_for_blur(0.5) == 0.5 and filter_for_blur(5.0) == 3.0
     for blur, filt in FILTER_FOR_BLUR:
@@ -397,7 +397,7 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
     # 3 or more (EMPS saa890: 6-6 from those where its 512 px windows hold 1-2 particles)
     import dataclasses
 
-    from drgan.material_proposal import material_settings
+    from drgan.profiling.proposal import material_settings
 
     fits, chosen = est.fit_sizes(np.asarray([38.0, 40.0, 41.0, 43.0, 39.0, 42.0]), seed=0)
 
@@ -412,7 +412,7 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
     assert n_range(at_least_3=2) == (1, 2)  # min_particles 1: windows with >= 1
     assert n_range(at_least_3=40) == (6, 6)  # min_particles stays 3 (enough windows show 3 whole particles)
     # a bimodal fit: the size group's two components as normals of largest extents (a lognormal's mean and std)
-    from drgan.material_proposal import EXTENT_PER_DIAMETER
+    from drgan.profiling.proposal import EXTENT_PER_DIAMETER
 
     two = np.concatenate([np.full(30, 20.0), np.full(30, 60.0)]) * np.exp(np.random.default_rng(0).normal(0, 0.05, 60))
     fits2, bimodal = est.fit_sizes(two, seed=0)
@@ -457,9 +457,9 @@ def test_a_bright_stage_beyond_the_parents_reach_widens_its_limit_enough():
     0.43) gets a stage limit under which a render reaches that grey. Dark (transmission) parents have no lit stage."""
     import torch
 
-    from drgan.configs import compose
-    from drgan.material_proposal import parent_stage_reach, stage_limits
+    from drgan.launch.configs import compose
     from drgan.models.gan_module import GANModule
+    from drgan.profiling.proposal import parent_stage_reach, stage_limits
 
     limit, grey = parent_stage_reach("tio2_him")
     assert limit == 0.3 and 0.05 < grey < 0.3

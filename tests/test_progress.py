@@ -1,4 +1,4 @@
-"""drgan.progress: the estimate of the time left, the console lines off a terminal, the progress file."""
+"""drgan.core.progress: the estimate of the time left, the console lines off a terminal, the progress file."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from drgan import progress
+from drgan.core import progress
 
 
 def test_the_estimate_is_the_rate_so_far_without_the_first_units_start_up():

@@ -16,7 +16,7 @@ import pytest
 from conftest import compose
 from PIL import Image
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 from drgan.metrics import two_sample as ts
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -215,7 +215,7 @@ def test_cli_real_vs_real_halves_by_image_and_never_reads_test_ids(images, tmp_p
 
 def write_dataset(folder: Path, images: np.ndarray, n_background: int = 2) -> Path:
     """A generated-dataset folder as drgan.synthetic reads it: manifest.json listing synthetic and background items."""
-    from drgan.io import write_json, write_png
+    from drgan.core.io import write_json, write_png
     from drgan.synthetic import BACKGROUND, SYNTHETIC, bg_id, item_files, syn_id
 
     entries = []

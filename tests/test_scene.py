@@ -7,7 +7,7 @@ import pytest
 import torch
 from conftest import PAPER_PARTICLE, PAPER_STAGE, TINY_PHI, make_scene
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 # Learned order: stage.base_color, particle.roughness, base_color, sheen, sheen_tint, spec_tint.
 MID = torch.tensor([0.2, 0.5, 0.8, 0.3, 0.4, 0.6])
@@ -98,7 +98,7 @@ def test_gradients_finite_at_limits(tiny_scene, where):
 
 
 def test_differentiable_parameters_are_exactly_the_learned_ones():
-    from drgan.backend import dr, mi
+    from drgan.core.backend import dr, mi
 
     particle = dict(PAPER_PARTICLE)
     particle["sheen_tint"] = {"value": 0.5}  # fixed: must not carry a gradient
@@ -133,7 +133,7 @@ def test_unused_scene_elements_are_not_built():
 def test_stage_and_top_light_are_mitsubas_rectangles_as_triangles():
     """`rectangle_mesh`: the surface of Mitsuba's ``rectangle`` under the same transform (rays hit it at the same
     t with the same normal, and miss it alike), as two plain triangles; the top light faces the stage."""
-    from drgan.backend import dr, mi
+    from drgan.core.backend import dr, mi
     from drgan.scene.scene import rectangle_mesh
 
     scene = make_scene()
@@ -166,7 +166,7 @@ def test_stage_and_top_light_are_mitsubas_rectangles_as_triangles():
 
 
 def test_new_layouts_compile_no_new_kernels(tiny_scene):
-    from drgan.backend import dr
+    from drgan.core.backend import dr
 
     rng = np.random.default_rng(0)
     values = MID.clone().requires_grad_(True)
@@ -293,7 +293,7 @@ def test_an_all_zero_row_is_an_absent_particle(stage):
 
 def test_box_render_plus_blur_matches_mitsubas_gaussian_filter():
     """The Gaussian reconstruction filter applied after a box-filtered render gives Mitsuba's image."""
-    from drgan.backend import mi
+    from drgan.core.backend import mi
 
     scene = make_scene(resolution=32, spp=64, filter_stddev=1.5)
     scene.set_layout(TINY_PHI)
@@ -388,7 +388,7 @@ def test_culled_torus_lights_the_scene_like_the_whole_torus(monkeypatch):
     [({"shape": "cylinder"}, "shape"), ({"minor_radius": 2.0}, "minor_radius"), ({"radiance": -1.0}, "radiance")],
 )
 def test_bad_ring_light_is_refused(kwargs, match):
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.scene.scene import TorusLight
 
     with pytest.raises(ConfigError, match=match):

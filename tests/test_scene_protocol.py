@@ -18,7 +18,7 @@ from conftest import compose
 from omegaconf import MISSING, OmegaConf
 from test_train import SIZE, run_train, tiny_overrides
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.scene.config import ImagingConfig, Material, ParameterRange, register_scene, typed_material
 from drgan.scene.parameters import parse_parameter
 from drgan.scene.scene import MeshParticles, reconstruction_blur
@@ -179,7 +179,7 @@ def test_importing_drgan_changes_no_global_state():
     """No Hydra, OmegaConf resolver or Mitsuba on import: a label helper imports numpy and scipy, not a config
     system."""
     code = (
-        "import sys, drgan, drgan.scene.labels, drgan.errors\n"
+        "import sys, drgan, drgan.scene.labels, drgan.core.errors\n"
         "heavy = sorted(m for m in ('hydra', 'mitsuba', 'drjit', 'lightning', 'torch') if m in sys.modules)\n"
         "from omegaconf import OmegaConf\n"
         "print(heavy, OmegaConf.has_resolver('mul'))\n"
@@ -317,12 +317,12 @@ class GainMaterial(Material):
 
 def test_a_new_material_key_is_a_field_of_the_typed_material(tmp_path, monkeypatch):
     """CONTRIBUTING.md, "a material": a new key is a field of drgan.scene.config.Material (here a subclass put in its
-    place, so nothing persists). The compose-time schema (drgan.configs.schemas) and typed_material both read that
+    place, so nothing persists). The compose-time schema (drgan.launch.configs.schemas) and typed_material both read that
     one class: a material file's value reaches the scene, its default fills a file without it, a mistyped value
     fails at compose naming the key, and a value its check refuses fails before a scene is built."""
     from hydra.errors import ConfigCompositionException
 
-    from drgan import configs
+    from drgan.launch import configs
     from drgan.models import build
 
     seen = []

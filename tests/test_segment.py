@@ -18,7 +18,7 @@ import torch
 from conftest import compose
 from PIL import Image
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 from drgan.scene.labels import class_mask
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -420,7 +420,7 @@ def test_mirrored_inference_is_the_mean_over_four_mirror_images_and_mirror_equiv
 def test_zscore_segmenter_ignores_detector_brightness_and_contrast():
     """A "zscore" model predicts the same on a*x + b as on x (whole-image statistics, at inference as in
     training crops); the raw "none" model does not, so the check can fail."""
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.segmenters.inference import predict_probs
     from drgan.segmenters.module import SegmenterModule
     from drgan.segmenters.pairs import CropDataset, Pair
@@ -637,7 +637,7 @@ def test_particles_on_a_figures_panel_letters_are_dropped_as_the_classical_segme
 
 
 def test_predictor_settings_are_checked_before_predicting():
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.segmenters.inference import make_predictor, predict
     from drgan.segmenters.unet import UNet
 
@@ -1054,7 +1054,7 @@ def test_missing_dataset_folder_is_named_with_its_setting(key, entry, tmp_path):
     ],
 )
 def test_segment_loader_settings_are_named_when_not_numbers(setting, message, tmp_path):
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.segment import segment
 
     data = make_real(
@@ -1074,7 +1074,7 @@ def test_segment_loader_settings_are_named_when_not_numbers(setting, message, tm
 def test_segment_stops_when_val_loss_stops_improving_and_says_why(tmp_path, caplog):
     """min_delta larger than any change: epoch 1 sets the best, epoch 2 is no improvement, patience 1 stops
     there, far before max_epochs; metrics.json names the reason. Without early stopping it runs max_epochs."""
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.segment import segment
 
     data = make_generated(tmp_path / "gen")
@@ -1153,7 +1153,7 @@ def test_split_core_opens_a_wide_neck_the_network_is_unsure_of():
     assert m.tp == 2 and m.fp == 0 and m.fn == 0
     # the foreground (particle + contour > 0.5) is kept whole: the neck is cut by a line, not removed
     assert ((strict > 0) | (split_touching(probs, split_core=0.7) == 2)).sum() == (truth > 0).sum()
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="inference.split_core"):
         split_touching(probs, split_core=1.0)

@@ -22,10 +22,10 @@ from conftest import compose
 from PIL import Image
 from test_segment import disc_image, disc_labels, eval_cfg, make_real
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.targets import target_path
 from drgan.segmenters import registry
 from drgan.segmenters.module import SegmenterModule
-from drgan.targets import target_path
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -1,6 +1,6 @@
 """One typed source per setting: the renderer group's keys are `RenderSettings`' fields.
 
-`drgan.configs.renderer_schema` derives the compose-time schema from `drgan.scene.render_settings.RenderSettings`
+`drgan.launch.configs.renderer_schema` derives the compose-time schema from `drgan.scene.render_settings.RenderSettings`
 (CONTRIBUTING.md, "Configs"), so a renderer key is declared once (type, default, check) and the YAML line that shows
 it to users must say the same default: checked here, together with what adding a field does, from compose to the
 built settings, with nothing but the field."""
@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import pytest
 from omegaconf import OmegaConf
 
-from drgan import configs
-from drgan.configs import compose, conf_dir
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
+from drgan.launch import configs
+from drgan.launch.configs import compose, conf_dir
 from drgan.scene.render_settings import RenderSettings, renderer_fields
 
 DEFAULT_YAML = conf_dir("gan") / "renderer" / "default.yaml"
@@ -87,7 +87,7 @@ def test_composing_a_config_does_not_start_the_renderer():
     and the pipeline's check does, neither imports Mitsuba nor torch."""
     code = (
         "import sys\n"
-        "from drgan.configs import compose\n"
+        "from drgan.launch.configs import compose\n"
         "compose(['renderer=sem'], config_name='train')\n"
         "print(sorted(m for m in ('mitsuba', 'drjit', 'torch', 'drgan.scene.scene') if m in sys.modules))\n"
     )

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 from drgan.pipeline import batch, parse_settings, slurm
 from drgan.pipeline.submit import job_words, submit_run
 
@@ -107,7 +107,7 @@ def test_a_jobs_command_repeats_the_users_words_with_absolute_inputs_and_one_sta
 
 
 def test_only_runs_one_stage_and_refuses_when_the_one_before_is_not_done(tmp_path):
-    from drgan.errors import DrganError
+    from drgan.core.errors import DrganError
     from drgan.pipeline import run
 
     _images(tmp_path / "im")

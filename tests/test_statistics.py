@@ -138,7 +138,7 @@ def test_evaluate_writes_particle_statistics_and_the_classical_baseline_finds_th
 
 
 def test_evaluate_leaves_specks_out_of_the_statistics_on_both_sides(tmp_path):
-    from drgan.errors import ConfigError
+    from drgan.core.errors import ConfigError
     from drgan.evaluate import evaluate
 
     ids = ["a", "b"]

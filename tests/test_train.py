@@ -18,8 +18,8 @@ import torch
 from conftest import compose
 from PIL import Image
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data.datamodule import RealPatchDataModule
-from drgan.errors import ConfigError, DataError
 
 MATERIALS = ["tio2_sem", "tio2_him", "sio2_him", "agnw_sem"]
 SIZE = 24

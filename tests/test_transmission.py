@@ -9,7 +9,7 @@ import torch
 import trimesh
 from conftest import TEST_VARIANT, compose
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 LIMITS = {
     "background": {"min": 0.3, "max": 1.0},
@@ -332,7 +332,7 @@ def test_imaging_and_transmission_settings_are_checked():
 
 
 def test_open_meshes_are_refused():
-    from drgan.errors import MeshError
+    from drgan.core.errors import MeshError
 
     open_box = unit_cube()
     open_box.update_faces(np.arange(len(open_box.faces)) > 0)

@@ -7,7 +7,7 @@ import textwrap
 import pytest
 from conftest import compose
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.models.build import scene_spec
 from drgan.scene.config import typed_material
 

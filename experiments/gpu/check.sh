@@ -37,7 +37,7 @@ for step in $steps; do
     run variant 60 python3 -c "
 import time; t = time.time()
 import mitsuba as mi; mi.set_variant('cuda_ad_rgb'); print('mitsuba', mi.__version__, mi.variant(), f'{time.time() - t:.1f} s')
-from drgan import backend; print('drgan auto ->', backend.resolve_variant('auto'), 'use_variant ->', backend.use_variant('auto'))
+from drgan.core import backend; print('drgan auto ->', backend.resolve_variant('auto'), 'use_variant ->', backend.use_variant('auto'))
 " ;;
   tests)  # the render and gradient tests (finite differences included) on cuda_ad_rgb
     DRGAN_TEST_VARIANT=cuda_ad_rgb run tests ${TESTS_LIMIT:-150} python3 -m pytest -v -p no:cacheprovider --durations=15 \

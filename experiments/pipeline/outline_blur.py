@@ -2,7 +2,7 @@
 
 The profile measures the outlines' blur of a user's images (drgan.data.measurements.edge_blur: the Gaussian whose
 slope at a step matches the steepest slope against the local grey range) and gives SEM materials the renderer filter
-whose renders show the same blur (drgan.material_proposal.FILTER_FOR_BLUR). This script prints the three numbers
+whose renders show the same blur (drgan.profiling.proposal.FILTER_FOR_BLUR). This script prints the three numbers
 that table rests on:
 
     # real: a pipeline run's profiled images, outlines from the profile's own segmentation

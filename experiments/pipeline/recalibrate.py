@@ -16,7 +16,7 @@ import argparse
 import shutil
 from pathlib import Path
 
-from drgan.checkpoint_io import add_entry
+from drgan.core.checkpoint_io import add_entry
 from drgan.segmenters.calibrate import (
     CHECKPOINT_KEY,
     GRID_DEFAULTS,

@@ -12,7 +12,7 @@ import time
 
 from hydra.utils import instantiate
 
-from drgan.configs import compose
+from drgan.launch.configs import compose
 
 
 def main() -> None:

@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from drgan.core.errors import DataError
 from drgan.data import polarity as after
 from drgan.data.images import read_grey
-from drgan.errors import DataError
 
 EMPS = Path("/work/shared/datasets/emps_train")
 BAM = {

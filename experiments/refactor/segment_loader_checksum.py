@@ -10,7 +10,7 @@ import hashlib
 
 import lightning.pytorch as L
 
-from drgan.configs import compose
+from drgan.launch.configs import compose
 from drgan.segment import dataloaders, load_training_pairs
 
 SOURCES = (["data=runs/pipeline/tsem4/generate"], ["real=../shared/datasets/tio2_tsem", "contour_px=1"])

@@ -18,7 +18,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 import drgan
-from drgan.checkpoint_io import add_entry
+from drgan.core.checkpoint_io import add_entry
 from drgan.segmenters.calibrate import CHECKPOINT_KEY, as_array_free, calibrate_split, markdown_table
 from drgan.segmenters.pairs import load_generated_pairs
 from drgan.segmenters.registry import load_segmenter

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drgan.checkpoint_io import load_checkpoint
+from drgan.core.checkpoint_io import load_checkpoint
 from drgan.data.patches import PatchSet
 
 

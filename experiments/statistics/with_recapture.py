@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from drgan.checkpoint_io import load_checkpoint
+from drgan.core.checkpoint_io import load_checkpoint
 from drgan.scene.config import check_recapture
 
 

@@ -16,11 +16,11 @@ import argparse
 
 import torch
 
-from drgan.configs import compose
 from drgan.data import particle_edge
 from drgan.data.annotations import annotation_mask
 from drgan.data.classical import resolve_params
 from drgan.data.measurements import segment_image
+from drgan.launch.configs import compose
 from drgan.models import build
 from drgan.models.generator import add_noise
 
@@ -76,7 +76,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from drgan.configs import setup
+    from drgan.launch.configs import setup
 
     setup()
     main()

@@ -32,10 +32,10 @@ import numpy as np
 import torch
 
 from drgan.callbacks.fid import FID_SEED_BASE, render_samples
-from drgan.configs import compose
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.io import write_json, write_png
 from drgan.data.patches import PatchSet
-from drgan.errors import ConfigError, DataError
-from drgan.io import write_json, write_png
+from drgan.launch.configs import compose
 from drgan.metrics.feature_distances import FeatureStats, kid
 from drgan.metrics.inception import InceptionFeatures
 from drgan.models.gan_module import GANModule

@@ -35,11 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.io import write_with
 from drgan.data.datamodule import RealPatchDataModule
 from drgan.data.images import list_images, read_grey, read_split
 from drgan.data.patches import mine_patches
-from drgan.errors import ConfigError, DataError
-from drgan.io import write_with
 from drgan.metrics.feature_distances import FeatureStats, kid
 from drgan.metrics.inception import InceptionFeatures
 

@@ -51,10 +51,12 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from drgan.configs import plain_node
+from drgan.core.errors import ConfigError, pixel_size
+from drgan.core.io import figure_png, write_bytes, write_json
+from drgan.core.progress import track
 from drgan.data.imagej import write_outlines
-from drgan.errors import ConfigError, pixel_size
-from drgan.io import figure_png, write_bytes, write_json
+from drgan.launch.configs import plain_node
+from drgan.launch.runtime import stage_main, start
 from drgan.metrics.instance_scores import binarize_and_label
 from drgan.metrics.statistics import Particles, bootstrap, interval_text, particles, pooled
 from drgan.metrics.statistics_figures import (
@@ -65,8 +67,6 @@ from drgan.metrics.statistics_figures import (
     thickness_histogram,
     thickness_map,
 )
-from drgan.progress import track
-from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,7 @@ def classical_particle_rows(image_id: str, labels: np.ndarray, nm_per_px, s, ref
 
 def statistics_html(out: Path) -> str:
     """statistics.html: statistics.md, the figures, the overlays image by image and the sortable particle table."""
-    from drgan.html import data_uri, markdown_html, page, particles_and_overlays
+    from drgan.core.html import data_uri, markdown_html, page, particles_and_overlays
 
     body = markdown_html((out / "statistics.md").read_text(), out)
     for name, caption in (("sizes.png", "Size distribution"), ("histograms.png", "Areas and diameters")):
@@ -423,7 +423,7 @@ def summarize(s: AnalyzeSettings, predictor, items, scales, pixel_note, m: Measu
 
 
 def write_results(s: AnalyzeSettings, summary: dict, m: Measured, sizes: dict) -> None:
-    """The run's tables, summary, statistics.md, figures and statistics.html (each written whole: drgan.io)."""
+    """The run's tables, summary, statistics.md, figures and statistics.html (each written whole: drgan.core.io)."""
     out, bins, unit = s.out, s.bins, summary["unit"]
     in_nm = unit == "nm"
     write_bytes(out / "particles.csv", _csv(m.rows).encode())

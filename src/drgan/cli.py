@@ -46,7 +46,7 @@ COMMANDS = {
         "conf/segmentation/export_nnunet.yaml",
         "a generated set in nnU-Net's layout",
     ),
-    "mlflow-ui": ("drgan.loggers", None, "serve the MLflow store of your runs"),
+    "mlflow-ui": ("drgan.mlflow_ui", None, "serve the MLflow store of your runs"),
     "view": ("drgan.view", None, "a run's images and particle outlines in napari (the napari extra)"),
 }
 
@@ -77,7 +77,7 @@ def help_text() -> str:
 
 
 def stage_help(name: str) -> str:
-    from drgan.runtime import stage_help as text
+    from drgan.launch.runtime import stage_help as text
 
     module, config, _ = COMMANDS[name]
     where = None if config is None else (config if Path(config).is_absolute() else f"src/drgan/{config}")

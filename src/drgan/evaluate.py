@@ -47,10 +47,12 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from drgan.configs import plain_node
+from drgan.core.errors import ConfigError, pixel_size
+from drgan.core.io import write_bytes, write_json, write_with
+from drgan.core.progress import track
 from drgan.data.imagej import write_outlines
-from drgan.errors import ConfigError, pixel_size
-from drgan.io import write_bytes, write_json, write_with
+from drgan.launch.configs import plain_node
+from drgan.launch.runtime import stage_main, start
 from drgan.metrics.instance_scores import (
     ERROR_SOURCES,
     binarize_and_label,
@@ -59,8 +61,6 @@ from drgan.metrics.instance_scores import (
     segmentation_scores,
 )
 from drgan.metrics.statistics import compare_sizes, count_errors, interval_text, particles, pooled
-from drgan.progress import track
-from drgan.runtime import stage_main, start
 from drgan.segmenters.classical_check import check_reported, reported_particles
 
 log = logging.getLogger(__name__)
@@ -458,7 +458,7 @@ def statistics_markdown(result: dict, truth: list, ids: list[str], nm: float | N
 
 def size_figure(found: dict, truth: list, nm: float | None) -> bytes:
     """PNG: histograms (left) and cumulative curves (right) of the whole particles' diameters, masks and runs."""
-    from drgan.io import figure_png
+    from drgan.core.io import figure_png
 
     scale = float(nm) if nm else 1.0
     unit = "nm" if nm else "px"

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from drgan import io
-from drgan.errors import ConfigError, DataError
-from drgan.runtime import stage_main, start
+from drgan.core import io
+from drgan.core.errors import ConfigError, DataError
+from drgan.launch.runtime import stage_main, start
 from drgan.synthetic.folder import IGNORE
 from drgan.synthetic.manifest import check_files, manifest_entries, read_manifest
 
@@ -199,7 +199,7 @@ def _copy(source: Path, destination: Path) -> None:
 
 def compose_config(overrides=()) -> DictConfig:
     """The composed config, e.g. for tests: ``compose_config(["data=DIR", "out=RAW"])``."""
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
 
     return compose(overrides, config_name="export_nnunet")
 

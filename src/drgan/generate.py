@@ -46,10 +46,10 @@ from typing import NamedTuple
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from drgan.core.errors import DataError
+from drgan.core.progress import Task
 from drgan.data.polarity import check_polarity
-from drgan.errors import DataError
-from drgan.progress import Task
-from drgan.runtime import stage_main, start
+from drgan.launch.runtime import stage_main, start
 from drgan.scene.labels import class_mask
 from drgan.synthetic.backgrounds import write_backgrounds
 from drgan.synthetic.folder import DatasetFolder, syn_id
@@ -364,7 +364,7 @@ def write_checks(out: Path, manifest: dict, settings, resolution: int, patches=N
     (fine-scale noise), edge_check.json with edge_check.png (the mean particle edge), contact_check.json (contacts
     whose neck the image hides); each logged, with a warning where the set is far from the images. Nothing without
     real patches (an imported generator). Seconds: 64 images on each side per check."""
-    from drgan.io import write_bytes, write_json
+    from drgan.core.io import write_bytes, write_json
     from drgan.synthetic import contact_check, edge_check, noise_check
 
     written = {}
@@ -383,7 +383,7 @@ def write_checks(out: Path, manifest: dict, settings, resolution: int, patches=N
 
 
 def _progress(shown: bool, total: int):
-    """The tqdm bar on a terminal; off one (a log file, the pipeline's child, a SLURM job) drgan.progress's lines say
+    """The tqdm bar on a terminal; off one (a log file, the pipeline's child, a SLURM job) drgan.core.progress's lines say
     the same, once a minute, and a bar would only repeat itself into the log."""
     import sys
 

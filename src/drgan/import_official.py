@@ -36,10 +36,10 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from drgan import io
-from drgan.checkpoint_io import refusing_unsafe
-from drgan.errors import ConfigError, check_keys
-from drgan.runtime import stage_main, start
+from drgan.core import io
+from drgan.core.checkpoint_io import refusing_unsafe
+from drgan.core.errors import ConfigError, check_keys
+from drgan.launch.runtime import stage_main, start
 from drgan.scene import particle_meshes as mesh_files
 
 log = logging.getLogger(__name__)
@@ -283,7 +283,7 @@ def output_limits(settings: dict) -> list[tuple[float, float]]:
 
 def model_config(settings: dict, tag: str, name: str | None, run: Path, mesh_dir: Path, frames, scene_files) -> dict:
     """The drgan model config (material, size, placement, renderer, model, seed) of an official experiment."""
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
 
     mesh, scene = settings["mesh_dict"], settings["scene_param_dict"]
     default_name, made_for = PAPER_NAMES.get(tag, (re.sub(r"\W+", "_", tag.lower()), f"official experiment {tag}"))
@@ -335,6 +335,40 @@ def model_config(settings: dict, tag: str, name: str | None, run: Path, mesh_dir
     }
 
 
+def copy_meshes(files: list[Path], mesh_dir: Path) -> tuple[Path, list[list[float]]]:
+    """The experiment's meshes copied into ``mesh_dir`` (emptied first), each validated; (the folder, each copied
+    mesh's [centre x, y, z, extent]). Each distinct file once: particle k takes mesh k % count, so each must serve as
+    many particles (true of the paper's folders); otherwise one file per particle."""
+    uses = Counter(p.resolve() for p in files)
+    distinct = sorted(uses, key=lambda p: p.name)
+    per_particle = len(set(uses.values())) > 1
+    if mesh_dir.exists():
+        shutil.rmtree(mesh_dir)
+    mesh_dir.mkdir(parents=True)
+    sources = files if per_particle else distinct
+    frames = []
+    for k, source in enumerate(sources):
+        centre, extent = mesh_files.mesh_frame(source)  # validated: a bad file raises MeshError naming it
+        target = mesh_dir / (f"p{k:03d}_{source.name}" if per_particle else source.name)
+        shutil.copyfile(source, target)
+        frames.append([*centre.tolist(), extent])
+    if [p.name for p in sorted(mesh_dir.iterdir())] != [
+        (f"p{k:03d}_{s.name}" if per_particle else s.name) for k, s in enumerate(sources)
+    ]:
+        raise ConfigError(f"meshes: file names of {sources} do not keep their order when sorted")
+    return mesh_dir, frames
+
+
+def copy_scene_files(sources: dict[str, Path], scene_dir: Path) -> dict[str, Path]:
+    """The scene's files (key -> path) copied into ``scene_dir``; key -> the copy."""
+    scene_dir.mkdir(parents=True, exist_ok=True)
+    copied = {}
+    for key, source in sources.items():
+        shutil.copyfile(source, scene_dir / source.name)
+        copied[key] = scene_dir / source.name
+    return copied
+
+
 def import_experiment(
     experiment: Path, out: Path, *, epoch: int | None = None, meshes: Path | None = None, scene: Path | None = None,
     name: str | None = None,
@@ -363,32 +397,8 @@ def import_experiment(
             f"its JSON learns {len(limits)} values (stage, particles, noise)"
         )
 
-    # Meshes: each distinct file once, validated; particle k takes mesh k % count, so each must serve as many
-    # particles (true of the paper's folders); otherwise one file per particle.
-    uses = Counter(p.resolve() for p in files)
-    distinct = sorted(uses, key=lambda p: p.name)
-    per_particle = len(set(uses.values())) > 1
-    mesh_dir = out / "meshes"
-    if mesh_dir.exists():
-        shutil.rmtree(mesh_dir)
-    mesh_dir.mkdir(parents=True)
-    sources = files if per_particle else distinct
-    frames = []
-    for k, source in enumerate(sources):
-        centre, extent = mesh_files.mesh_frame(source)  # validated: a bad file raises MeshError naming it
-        target = mesh_dir / (f"p{k:03d}_{source.name}" if per_particle else source.name)
-        shutil.copyfile(source, target)
-        frames.append([*centre.tolist(), extent])
-    if [p.name for p in sorted(mesh_dir.iterdir())] != [
-        (f"p{k:03d}_{s.name}" if per_particle else s.name) for k, s in enumerate(sources)
-    ]:
-        raise ConfigError(f"meshes: file names of {sources} do not keep their order when sorted")
-    scene_dir = out / "scene"
-    scene_dir.mkdir(parents=True, exist_ok=True)
-    scene_files = {}
-    for key, source in scene_files_of(scene, Path(experiment)).items():
-        shutil.copyfile(source, scene_dir / source.name)
-        scene_files[key] = scene_dir / source.name
+    mesh_dir, frames = copy_meshes(files, out / "meshes")
+    scene_files = copy_scene_files(scene_files_of(scene, Path(experiment)), out / "scene")
 
     cfg = model_config(settings, tag, name, out, mesh_dir, (frames, files), scene_files)
     material = typed_material(cfg["material"])

@@ -13,7 +13,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from drgan.runtime import stage_main, start
+from drgan.launch.runtime import stage_main, start
 from drgan.scene.particle_meshes import generator_parameters, iter_meshes, save_mesh_set
 
 log = logging.getLogger(__name__)

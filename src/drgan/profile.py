@@ -6,8 +6,8 @@ distribution (normal / lognormal / two-lognormal mixture, chosen by BIC), partic
 elongation and the pixel size. Writes, in `out` (default runs/profile/NAME): profile.json (every number),
 report.md, sizes.png, scale_search.png (how the particle scale was found), particles.png (real images with the
 detected outlines: keep them out of the repository), background_noise.png, edge_profile.png
-(drgan.data.profile_figures); and ./drgan_conf/material/NAME.yaml, a material inheriting the closest paper material
-(drgan.material_proposal), ready for `python -m drgan.train material=NAME`.
+(drgan.profiling.figures); and ./drgan_conf/material/NAME.yaml, a material inheriting the closest paper material
+(drgan.profiling.proposal), ready for `python -m drgan.train material=NAME`.
 """
 
 from __future__ import annotations
@@ -20,8 +20,11 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.io import write_bytes, write_json
+from drgan.core.progress import track
 from drgan.data import measurements as est
-from drgan.data import particle_edge, profile_figures
+from drgan.data import particle_edge
 from drgan.data.annotations import annotation_mask, as_grey
 from drgan.data.classical import NoParticles, SegmentParams, resolve_params
 from drgan.data.imagej import write_label_tiff
@@ -29,7 +32,17 @@ from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particle_edge import EDGE_BACKGROUND_PX, EDGE_INSIDE_PX, EDGE_INTERIOR_PX, EDGE_OUTSIDE_PX
 from drgan.data.patches import STRIDE, particle_boxes, scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
-from drgan.data.profile_result import (
+from drgan.launch.runtime import stage_main, start
+from drgan.profiling import figures
+from drgan.profiling.proposal import (
+    EXTENT_PER_DIAMETER,
+    WHY_SEGMENT,
+    data_settings,
+    fringe_settings,
+    material_yaml,
+    parent_renders_fringe,
+)
+from drgan.profiling.result import (
     Agglomeration,
     ImagesRead,
     MaterialProposed,
@@ -41,18 +54,6 @@ from drgan.data.profile_result import (
     ShapeFound,
     SizesFound,
 )
-from drgan.errors import ConfigError, DataError
-from drgan.io import write_bytes, write_json
-from drgan.material_proposal import (
-    EXTENT_PER_DIAMETER,
-    WHY_SEGMENT,
-    data_settings,
-    fringe_settings,
-    material_yaml,
-    parent_renders_fringe,
-)
-from drgan.progress import track
-from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +97,7 @@ class ProfileSettings:
                 f"profile: name={name!r}: expected a material name of letters, digits, _ or - "
                 "(the config is written as drgan_conf/material/NAME.yaml)"
             )
-        from drgan.configs import shipped_materials
+        from drgan.launch.configs import shipped_materials
 
         if str(name) in shipped_materials():
             raise ConfigError(
@@ -204,7 +205,7 @@ def _particle_scale(s: ProfileSettings, images: list, polarity: str):
     except NoParticles as error:
         _write_failure_figure(s.out, images, polarity, None)
         if error.search is not None:
-            profile_figures.scale_figure(s.out, error.search.as_dict())
+            figures.scale_figure(s.out, error.search.as_dict())
         raise DataError(_nothing_found(s.data_dir, len(images), polarity, s.polarity, error.what, s.out)) from None
 
 
@@ -369,13 +370,13 @@ def write_profile(s: ProfileSettings, result, images, seg: Segmented, sizes, fit
     """The figures, the material (its parent chosen from the result), profile.json and report.md; the result with
     the material it proposed."""
     out = s.out
-    profile_figures.write_figures(
+    figures.write_figures(
         out, images, seg.labels_kept, sizes["inner"], fits, chosen, sizes["noise"], seg.foregrounds, sizes["counts"],
         polarity,
     )  # fmt: skip
     if scale is not None:
-        profile_figures.scale_figure(out, scale.as_dict())
-    profile_figures.edge_figure(out, sizes["edge"])
+        figures.scale_figure(out, scale.as_dict())
+    figures.edge_figure(out, sizes["edge"])
     parent, yaml_text = material_yaml(result, fits, chosen)
     fringe = fringe_settings(result.edge)[0] if parent_renders_fringe(parent) else None
     result = replace(
@@ -415,7 +416,7 @@ def _write_failure_figure(out: Path, images, polarity: str, labels) -> None:
     """particles.png even when nothing was found: the images (with any segments) the user is asked to look at."""
     labels = labels or [None] * min(4, len(images))
     shown = [lab if lab is not None else np.zeros(im.shape, np.int32) for im, lab in zip(images, labels)][:4]
-    profile_figures.outline_figure(out, images, shown, polarity)
+    figures.outline_figure(out, images, shown, polarity)
 
 
 def _quantiles(counts: np.ndarray) -> dict:

@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError, DataError, check_keys, setting_int
-from drgan.io import write_bytes, write_json
+from drgan.core.errors import ConfigError, DataError, check_keys, setting_int
+from drgan.core.io import write_bytes, write_json
+from drgan.launch.runtime import stage_main, start
 from drgan.metrics.two_sample import ClassifierSettings, two_sample_test
-from drgan.runtime import stage_main, start
 
 log = logging.getLogger(__name__)
 

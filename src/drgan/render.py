@@ -14,9 +14,9 @@ from pathlib import Path
 from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
 
-from drgan import io
+from drgan.core import io
+from drgan.launch.runtime import stage_main, start
 from drgan.models import build
-from drgan.runtime import stage_main, start
 from drgan.scene.labels import class_mask
 
 log = logging.getLogger(__name__)

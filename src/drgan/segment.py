@@ -24,9 +24,9 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from drgan.errors import ConfigError, DataError, check_keys, setting_float, setting_int
-from drgan.io import write_json
-from drgan.runtime import stage_main, start
+from drgan.core.errors import ConfigError, DataError, check_keys, setting_float, setting_int
+from drgan.core.io import write_json
+from drgan.launch.runtime import stage_main, start
 from drgan.segmenters.agreement import agreement_settings
 from drgan.segmenters.contacts import resolve_contact_weight
 from drgan.segmenters.training import (  # segment's data (the names it exports as its own too: __all__)
@@ -295,13 +295,7 @@ def fit_and_record(
     """Train ``prepared.model`` into cfg.out, then calibrate its split (checked on ``real_items``, the user's images
     with their classical labels, when given), run its closed-loop check, log and write metrics.json; the final
     metrics."""
-    from hydra.utils import instantiate
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
-    from drgan.callbacks.progress_bar import StepProgress
-    from drgan.callbacks.resume import ResumeCheckpoint
-    from drgan.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
-    from drgan.segmenters.module import CheckpointEntries, ScoreHistory, settled
+    from drgan.segmenters.module import settled
 
     model, out = prepared.model, Path(cfg.out)
     train_loader, val_loader, n_train, n_val = dataloaders(
@@ -315,55 +309,7 @@ def fit_and_record(
         prepared.split_seed,
     )
     out.mkdir(parents=True, exist_ok=True)
-
-    ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
-    tags = {"name": str(cfg.name), "output_dir": str(out), **{str(t): "1" for t in cfg.get("tags") or []}}
-    loggers = instantiate_loggers(
-        cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags, parent_run=cfg.get("parent_run")
-    )
-    # last.ckpt at every epoch end (ResumeCheckpoint), before validation-free epoch-end work; ModelCheckpoint keeps
-    # the latest epoch's file.
-    checkpoint = ModelCheckpoint(
-        dirpath=out / "checkpoints",
-        filename="epoch_{epoch:03d}",
-        auto_insert_metric_name=False,
-        save_last=False,
-        save_top_k=1,
-    )
-    scores = ScoreHistory()
-    callbacks = [
-        CheckpointEntries(prepared.entries()),
-        ResumeCheckpoint(),
-        checkpoint,
-        scores,
-        *([stopper] if stopper is not None else []),
-        StepProgress("fine-tuning the segmenter" if prepared.corrected else "training the segmenter"),
-    ]
-    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
-    start_loggers(loggers)
-
-    params = flat_config(cfg)
-    params.update(
-        {
-            "data/n_train_pairs": n_train,
-            "data/n_val_pairs": n_val,
-            "data/n_corrected": len(prepared.corrected),
-            "model/n_parameters": sum(p.numel() for p in model.parameters()),
-        }
-    )
-    for logger in loggers:
-        try:
-            logger.log_hyperparams(params)
-        except Exception as error:  # noqa: BLE001  (a logger refusing a param must not stop training)
-            log.warning("%s: params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
-
-    log.info(
-        "segmenter %s: %d train / %d val pairs%s, run folder %s", cfg.name, n_train, n_val,
-        f" and {len(prepared.corrected)} corrected images" if prepared.corrected else "", out,
-    )  # fmt: skip
-    trainer.fit(
-        model, train_dataloaders=train_loader, val_dataloaders=val_loader, ckpt_path=ckpt_path, weights_only=True
-    )
+    trainer, loggers, scores = _fit(cfg, prepared, stopper, (train_loader, val_loader), (n_train, n_val))
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     if "val/dsc" not in metrics and scores.history:  # a resumed run whose training had finished validates nothing
@@ -417,11 +363,75 @@ def fit_and_record(
     return metrics
 
 
+def _fit(cfg: DictConfig, prepared: Prepared, stopper, loaders: tuple, sizes: tuple[int, int]):
+    """Fit ``prepared.model`` on ``loaders`` (train, validation) into cfg.out, resumed from its last.ckpt when
+    cfg.ckpt_path says so, its params logged; (trainer, loggers, the validation score history)."""
+    from hydra.utils import instantiate
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from drgan.callbacks.progress_bar import StepProgress
+    from drgan.callbacks.resume import ResumeCheckpoint
+    from drgan.launch.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
+    from drgan.segmenters.module import CheckpointEntries, ScoreHistory
+
+    model, out = prepared.model, Path(cfg.out)
+    (train_loader, val_loader), (n_train, n_val) = loaders, sizes
+    ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
+    tags = {"name": str(cfg.name), "output_dir": str(out), **{str(t): "1" for t in cfg.get("tags") or []}}
+    loggers = instantiate_loggers(
+        cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags, parent_run=cfg.get("parent_run")
+    )
+    # last.ckpt at every epoch end (ResumeCheckpoint), before validation-free epoch-end work; ModelCheckpoint keeps
+    # the latest epoch's file.
+    checkpoint = ModelCheckpoint(
+        dirpath=out / "checkpoints",
+        filename="epoch_{epoch:03d}",
+        auto_insert_metric_name=False,
+        save_last=False,
+        save_top_k=1,
+    )
+    scores = ScoreHistory()
+    callbacks = [
+        CheckpointEntries(prepared.entries()),
+        ResumeCheckpoint(),
+        checkpoint,
+        scores,
+        *([stopper] if stopper is not None else []),
+        StepProgress("fine-tuning the segmenter" if prepared.corrected else "training the segmenter"),
+    ]
+    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    start_loggers(loggers)
+
+    params = flat_config(cfg)
+    params.update(
+        {
+            "data/n_train_pairs": n_train,
+            "data/n_val_pairs": n_val,
+            "data/n_corrected": len(prepared.corrected),
+            "model/n_parameters": sum(p.numel() for p in model.parameters()),
+        }
+    )
+    for logger in loggers:
+        try:
+            logger.log_hyperparams(params)
+        except Exception as error:  # noqa: BLE001  (a logger refusing a param must not stop training)
+            log.warning("%s: params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
+
+    log.info(
+        "segmenter %s: %d train / %d val pairs%s, run folder %s", cfg.name, n_train, n_val,
+        f" and {len(prepared.corrected)} corrected images" if prepared.corrected else "", out,
+    )  # fmt: skip
+    trainer.fit(
+        model, train_dataloaders=train_loader, val_dataloaders=val_loader, ckpt_path=ckpt_path, weights_only=True
+    )
+    return trainer, loggers, scores
+
+
 def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool, real_items=None) -> dict | None:
     """Choose the touching-particle split on ``pairs`` (the validation pairs; drgan.segmenters.calibrate), check its
     particle count on ``real_items`` (the user's images and their classical labels: `real_count_guard`) and store it
     in ``last`` for evaluate/analyze's ``split_core: auto``; None when calibration is off or impossible."""
-    from drgan.checkpoint_io import add_entry
+    from drgan.core.checkpoint_io import add_entry
     from drgan.segmenters.calibrate import (
         CHECKPOINT_KEY,
         SEEDED,
@@ -485,7 +495,7 @@ def _log_real_count(guard: dict | None) -> None:
 def closed_loop_check(model, pairs, calibration: dict | None, last: Path, progress: bool) -> dict | None:
     """The segmenter scored on its held-out generated pairs (drgan.segmenters.closed_loop), with the split just
     calibrated; stored in ``last`` (evaluate/analyze and the pipeline's report quote it). None without pairs."""
-    from drgan.checkpoint_io import add_entry
+    from drgan.core.checkpoint_io import add_entry
     from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, log_summary
 
     if not pairs:

@@ -21,9 +21,9 @@ from pathlib import Path
 
 from omegaconf import DictConfig, open_dict
 
-from drgan.errors import ConfigError
-from drgan.io import write_json
-from drgan.runtime import (
+from drgan.core.errors import ConfigError
+from drgan.core.io import write_json
+from drgan.launch.runtime import (
     flat_config,
     instantiate_callbacks,
     instantiate_loggers,
@@ -37,24 +37,53 @@ log = logging.getLogger(__name__)
 
 
 def train(cfg: DictConfig) -> dict:
-    """Fit one run; return its final metrics (last step/epoch values, plus time/wall_s)."""
-    import lightning.pytorch as L
-    from hydra.utils import instantiate
+    """Fit one run; return its final metrics (last step/epoch values, plus time/wall_s).
 
-    from drgan.callbacks.early_stop import stop_reason
-    from drgan.models.gan_module import GANModule
+    Everything that needs no pixels is built or checked first (seconds): the data settings, folder and split, then
+    scene, meshes, renderer and model, the checkpoint to resume, init_from, callbacks, loggers, trainer. Only then
+    are the patches mined (20-70 s for the TiO2 SEM images), and only then does training start."""
+    import lightning.pytorch as L
 
     wall_start = time.perf_counter()
-    if cfg.get("init_from") and not Path(cfg.init_from).expanduser().is_file():  # before any data is mined
-        raise ConfigError(f"init_from={cfg.init_from}: no such checkpoint file (a .ckpt written by drgan.train)")
+    _check_inputs(cfg)
     with open_dict(cfg):  # absolute project root: every path of the run derives from it
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
     output_dir = Path(cfg.paths.output_dir)
     L.seed_everything(int(cfg.seed), workers=True)
+    datamodule, model, ckpt_path = _build_model(cfg, output_dir)
+    loggers, trainer = _build_trainer(cfg, output_dir, resumed=ckpt_path is not None)
 
-    # Everything that needs no pixels is built or checked first (seconds): the data settings, folder and split,
-    # then scene, meshes, renderer and model, the checkpoint to resume, init_from, callbacks, loggers, trainer.
-    # Only then are the patches mined (20-70 s for the TiO2 SEM images), and only then does training start.
+    output_dir.mkdir(parents=True, exist_ok=True)
+    datamodule.setup("fit")
+    m = cfg.model.get("n_constellations") or datamodule.n_train
+    if len(model.phi_bank) != int(m):
+        model.set_constellations(int(m))
+    start_loggers(loggers)
+    params = flat_config(cfg)
+    params.update({"data/n_train_patches": datamodule.n_train, "model/m": int(m)})
+    for logger in loggers:
+        try:
+            logger.log_hyperparams(params)
+        except Exception as error:  # an unreachable store must not stop training (a resume's changes: tags)
+            log.warning("%s: config params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
+
+    log.info(
+        "training %s: %d real patches, m=%d constellations, run folder %s",
+        cfg.material.name,
+        datamodule.n_train,
+        m,
+        output_dir,
+    )
+    trainer.fit(
+        model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True
+    )  # drgan.core.checkpoint_io: no code runs
+    return _finish(trainer, model, loggers, output_dir, wall_start)
+
+
+def _check_inputs(cfg: DictConfig) -> None:
+    """The run's inputs that exist or not before anything is built: init_from's file, data.dir."""
+    if cfg.get("init_from") and not Path(cfg.init_from).expanduser().is_file():  # before any data is mined
+        raise ConfigError(f"init_from={cfg.init_from}: no such checkpoint file (a .ckpt written by drgan.train)")
     if not cfg.data.get("dir"):
         raise ConfigError(
             f"data.dir is not set: material={cfg.material.name} is made for "
@@ -62,10 +91,18 @@ def train(cfg: DictConfig) -> dict:
             f"it at your images: python -m drgan.train material={cfg.material.name} data.dir=/path/to/images (check the "
             "material fits them first: python -m drgan.profile data.dir=/path/to/images name=my_particles writes one)"
         )
-    datamodule = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
-    datamodule.resolve_ids()
+
+
+def _build_model(cfg: DictConfig, output_dir: Path):
+    """(datamodule with its ids resolved, GANModule, the checkpoint to resume or None), the images' polarity and
+    particle size checked against the material and init_from's weights copied into a fresh run: no pixel read."""
+    from hydra.utils import instantiate
+
+    from drgan.models.gan_module import GANModule
     from drgan.scene.config import typed_material
 
+    datamodule = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
+    datamodule.resolve_ids()
     # polarity and particle size against the material: seconds, before mining
     datamodule.check_fits(typed_material(cfg.material))
     model = GANModule.from_config(
@@ -84,41 +121,28 @@ def train(cfg: DictConfig) -> dict:
             "material.background_texture.enabled: no real background patches to take the texture from "
             f"(data.n_background={cfg.data.get('n_background')}; set data.n_background > 0)"
         )
+    return datamodule, model, ckpt_path
+
+
+def _build_trainer(cfg: DictConfig, output_dir: Path, *, resumed: bool):
+    """(loggers, Lightning trainer with the config's callbacks), each callback's inputs checked (e.g. the FID
+    network's file and hash) before any patch is mined."""
+    from hydra.utils import instantiate
+
     tags = {"material": str(cfg.material.name), "output_dir": str(output_dir)}
     tags.update({str(t): "1" for t in cfg.get("tags") or []})
     loggers = instantiate_loggers(
-        cfg.get("logger"), output_dir, resume=ckpt_path is not None, tags=tags, parent_run=cfg.get("parent_run")
+        cfg.get("logger"), output_dir, resume=resumed, tags=tags, parent_run=cfg.get("parent_run")
     )
     callbacks = instantiate_callbacks(cfg.get("callbacks"))
-    for callback in callbacks:  # e.g. the FID network's file and hash: before mining, not at the first FID
+    for callback in callbacks:
         getattr(callback, "check_ready", lambda: None)()
-    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    return loggers, instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
 
-    output_dir.mkdir(parents=True, exist_ok=True)
-    datamodule.setup("fit")
-    m = cfg.model.get("n_constellations") or datamodule.n_train
-    if len(model.phi_bank) != int(m):
-        model.set_constellations(int(m))
-    start_loggers(loggers)
 
-    params = flat_config(cfg)
-    params.update({"data/n_train_patches": datamodule.n_train, "model/m": int(m)})
-    for logger in loggers:
-        try:
-            logger.log_hyperparams(params)
-        except Exception as error:  # an unreachable store must not stop training (a resume's changes: tags)
-            log.warning("%s: config params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
-
-    log.info(
-        "training %s: %d real patches, m=%d constellations, run folder %s",
-        cfg.material.name,
-        datamodule.n_train,
-        m,
-        output_dir,
-    )
-    trainer.fit(
-        model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True
-    )  # drgan.checkpoint_io: no code runs
+def _finish(trainer, model, loggers, output_dir: Path, wall_start: float) -> dict:
+    """The run's final metrics: logged, its stop reason tagged in MLflow, written to metrics.json (rank 0)."""
+    from drgan.callbacks.early_stop import stop_reason
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     metrics["time/wall_s"] = time.perf_counter() - wall_start

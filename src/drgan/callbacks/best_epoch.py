@@ -69,8 +69,8 @@ from drgan.callbacks.fid import (
     log_artifact,
     real_patches,
 )
-from drgan.errors import ConfigError
-from drgan.io import write_json
+from drgan.core.errors import ConfigError
+from drgan.core.io import write_json
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ from lightning.pytorch.callbacks import Timer
 
 from drgan.callbacks.best_epoch import BestEpochCallback, within_brightness
 from drgan.callbacks.fid import FIDCallback
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

@@ -66,8 +66,8 @@ import numpy as np
 import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
 
-from drgan.errors import ConfigError, check_spp
-from drgan.io import write_with
+from drgan.core.errors import ConfigError, check_spp
+from drgan.core.io import write_with
 from drgan.metrics.feature_distances import FeatureStats, cached_reference_stats, fid_bootstrap_std, kid
 from drgan.metrics.inception import InceptionFeatures
 

@@ -42,8 +42,8 @@ import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
 
 from drgan.callbacks.fid import brightness_tolerance, classical_masks, level_sums, real_patches, run_dir
-from drgan.errors import ConfigError
-from drgan.io import write_json
+from drgan.core.errors import ConfigError
+from drgan.core.io import write_json
 
 log = logging.getLogger(__name__)
 
@@ -184,28 +184,13 @@ class GreyStart(Callback):
         history, calm, first = [], 0, None
         try:
             for step in range(self.steps):
-                index = torch.randint(len(bank), (self.images,), generator=draw)
-                with torch.enable_grad():
-                    phi = bank[index.to(bank.device)].to(generator.view_width.dtype)
-                    values = generator.learned_values(phi)
-                    seeds = [(0x5EED + step * self.images + b) & 0xFFFFFFFF for b in range(self.images)]
-                    images = torch.stack(
-                        [generator.render_one(phi[b], values[b], seed=s, spp=self.spp)[0] for b, s in enumerate(seeds)]
-                    )
-                    masks = classical_masks(trainer, images.detach().cpu().numpy())
-                    synthetic = grey_levels(images, masks)
-                    terms = {k: synthetic[k] - targets[k] for k in targets if torch.isfinite(synthetic[k])}
-                    if not terms:
-                        continue
-                    residual = torch.stack(list(terms.values()))
-                    rows = [
-                        torch.autograd.grad(t, bias, retain_graph=k < len(terms) - 1)[0]
-                        for k, t in enumerate(terms.values())
-                    ]  # the Jacobian of the numbers in the biases: one adjoint pass each through the same renders
-                measured = {k: float(v.detach()) for k, v in synthetic.items()}
+                measurement = self._measure(trainer, generator, bank, draw, step, targets, bias)
+                if measurement is None:
+                    continue
+                measured, residual, jacobian = measurement
                 first = first or measured
-                history.append({"step": step, **measured, "loss": float((residual.detach() ** 2).sum())})
-                step_vector = gauss_newton_step(torch.stack(rows), residual.detach(), self.lr)
+                history.append({"step": step, **measured, "loss": float((residual**2).sum())})
+                step_vector = gauss_newton_step(jacobian, residual, self.lr)
                 if step_vector is not None:  # full steps first, then shorter ones: each step's renders are a new
                     with torch.no_grad():  # sample (other layouts, other noise), and a full step would chase it
                         bias += step_vector / (1.0 + step / SETTLE_STEPS)
@@ -244,6 +229,29 @@ class GreyStart(Callback):
                     for k in ("particle", "background", "noise")
                 ),
             )
+
+    def _measure(self, trainer: Trainer, generator, bank, draw, step: int, targets: dict, bias):
+        """One step's renders: (their grey levels, the residual against ``targets``, its Jacobian in ``bias``: one
+        adjoint pass per level through the same renders), or None where no level of them is finite."""
+        index = torch.randint(len(bank), (self.images,), generator=draw)
+        with torch.enable_grad():
+            phi = bank[index.to(bank.device)].to(generator.view_width.dtype)
+            values = generator.learned_values(phi)
+            seeds = [(0x5EED + step * self.images + b) & 0xFFFFFFFF for b in range(self.images)]
+            images = torch.stack(
+                [generator.render_one(phi[b], values[b], seed=s, spp=self.spp)[0] for b, s in enumerate(seeds)]
+            )
+            masks = classical_masks(trainer, images.detach().cpu().numpy())
+            synthetic = grey_levels(images, masks)
+            terms = {k: synthetic[k] - targets[k] for k in targets if torch.isfinite(synthetic[k])}
+            if not terms:
+                return None
+            residual = torch.stack(list(terms.values()))
+            rows = [
+                torch.autograd.grad(t, bias, retain_graph=k < len(terms) - 1)[0] for k, t in enumerate(terms.values())
+            ]
+        measured = {k: float(v.detach()) for k, v in synthetic.items()}
+        return measured, residual.detach(), torch.stack(rows)
 
     def attach_anchor(self, trainer: Trainer, pl_module: LightningModule) -> None:
         """Give the module its `GreyAnchor`: the real patches' grey levels and the range they span (the best-epoch

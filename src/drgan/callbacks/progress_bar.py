@@ -1,5 +1,5 @@
 """The training progress bar: Lightning's tqdm bar, except that an epoch the FID callback's KID screen turned
-away shows ``val/fid=screened``; and ``StepProgress``, the training steps as a drgan.progress task.
+away shows ``val/fid=screened``; and ``StepProgress``, the training steps as a drgan.core.progress task.
 
 Such an epoch logs ``val/fid`` = NaN (drgan.callbacks.fid), so that a checkpoint or early-stopping monitor never
 counts it as an improvement; Lightning's bar would print it as ``nan.0``, which reads like a failed evaluation.
@@ -13,7 +13,7 @@ from lightning.pytorch import LightningModule, Trainer
 from lightning.pytorch.callbacks import Callback, TQDMProgressBar
 
 from drgan.callbacks.fid import FIDCallback
-from drgan.progress import Task
+from drgan.core.progress import Task
 
 SCREENED = "screened"
 
@@ -39,7 +39,7 @@ class TrainingProgressBar(TQDMProgressBar):
 
 
 class StepProgress(Callback):
-    """Training steps as a drgan.progress task (the console line off a terminal, the pipeline's progress file): its
+    """Training steps as a drgan.core.progress task (the console line off a terminal, the pipeline's progress file): its
     total is ``max_epochs`` x the batches of an epoch, a resumed run counting the epochs it had done. ``task``: its
     name in the lines (the GAN's says it may stop earlier: its estimate is an upper bound)."""
 

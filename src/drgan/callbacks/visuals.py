@@ -14,8 +14,8 @@ import numpy as np
 from lightning.pytorch import Callback, LightningModule, Trainer
 
 from drgan.callbacks.fid import FIDCallback, log_artifact, real_patches, render_samples, run_dir
-from drgan.errors import ConfigError
-from drgan.io import write_with
+from drgan.core.errors import ConfigError
+from drgan.core.io import write_with
 
 # Sample-grid renders: seeds of their own (see drgan.callbacks.fid.FID_SEED_BASE).
 GRID_SEED_BASE = 0x6A1D0000

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-from drgan.errors import DataError
+from drgan.core.errors import DataError
 
 
 def as_grey(image: np.ndarray) -> np.ndarray:

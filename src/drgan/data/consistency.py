@@ -13,8 +13,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data.classical import SegmentParams, resolve_params, segment_diameters, segment_particles
-from drgan.errors import ConfigError, DataError
 from drgan.scene.config import Material
 
 log = logging.getLogger(__name__)

@@ -18,6 +18,8 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.io import write_with
 from drgan.data.classical import ScaleEstimate, SegmentParams, resolve_params
 from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.patches import (
@@ -31,8 +33,6 @@ from drgan.data.patches import (
     scale_sample,
 )
 from drgan.data.polarity import check_polarity, detect_polarity
-from drgan.errors import ConfigError, DataError
-from drgan.io import write_with
 from drgan.scene.config import Material
 
 log = logging.getLogger(__name__)

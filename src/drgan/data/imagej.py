@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.io import atomic_path
+from drgan.core.io import atomic_path
 
 # the four sides of a pixel as directed edges between its corners (x, y), clockwise on screen (y down): a side is
 # on the outline when the neighbour across it is outside

@@ -23,7 +23,7 @@ import numpy as np
 import tifffile
 from PIL import Image, UnidentifiedImageError
 
-from drgan.errors import DataError
+from drgan.core.errors import DataError
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
 _TIFF_SUFFIXES = (".tif", ".tiff")

@@ -27,9 +27,9 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
+from drgan.core.errors import DataError
 from drgan.data.classical import Segmentation, SegmentParams, segment_with_report
 from drgan.data.patches import STRIDE, full_particle_counts, window_starts
-from drgan.errors import DataError
 
 # The high-pass that isolates noise from the background's slow shading: image minus its Gaussian blur.
 HIGHPASS_SIGMA = 3.0  # px

@@ -10,7 +10,7 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
-from drgan.io import read_csv
+from drgan.core.io import read_csv
 
 LayerData = tuple  # (data, keyword arguments, layer type)
 

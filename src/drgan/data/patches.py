@@ -29,6 +29,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.io import write_with
+from drgan.core.progress import track
 from drgan.data.classical import (
     SegmentParams,
     prepare,
@@ -36,9 +39,6 @@ from drgan.data.classical import (
     segment_particles,
 )
 from drgan.data.polarity import check_polarity
-from drgan.errors import ConfigError, DataError
-from drgan.io import write_with
-from drgan.progress import track
 
 log = logging.getLogger(__name__)
 
@@ -319,6 +319,17 @@ def scale_sample(items: Sequence) -> list:
 STRIDE = 128  # px between candidate windows: data.stride's default (conf/gan/data/real_patches.yaml)
 
 
+def _stack(images: Sequence[np.ndarray], chosen: list[_Candidate], size: int) -> np.ndarray:
+    """The ``chosen`` windows of ``images`` as one (n, size, size) float32 array."""
+    patches = [images[k.image][k.row : k.row + size, k.col : k.col + size] for k in chosen]
+    return np.stack(patches).astype(np.float32) if patches else np.zeros((0, size, size), np.float32)
+
+
+def _positions(chosen: list[_Candidate]) -> np.ndarray:
+    """The ``chosen`` windows' (row, col), (n, 2) int64."""
+    return np.array([(k.row, k.col) for k in chosen], dtype=np.int64).reshape(-1, 2)
+
+
 def mine_patches(
     images: Sequence[np.ndarray],
     ids: Sequence[str],
@@ -372,13 +383,6 @@ def mine_patches(
             len(background), n_background, size, len(background),
         )  # fmt: skip
 
-    def stack(chosen: list[_Candidate]) -> np.ndarray:
-        patches = [images[k.image][k.row : k.row + size, k.col : k.col + size] for k in chosen]
-        return np.stack(patches).astype(np.float32) if patches else np.zeros((0, size, size), np.float32)
-
-    def positions(chosen: list[_Candidate]) -> np.ndarray:
-        return np.array([(k.row, k.col) for k in chosen], dtype=np.int64).reshape(-1, 2)
-
     params = {
         "size": size,
         "stride": stride,
@@ -393,13 +397,13 @@ def mine_patches(
         "background_report": report,
     }
     return PatchSet(
-        train=stack(train),
+        train=_stack(images, train, size),
         train_ids=[str(ids[k.image]) for k in train],
-        train_positions=positions(train),
+        train_positions=_positions(train),
         train_counts=np.array([int(k.value) for k in train], dtype=np.int64),
-        background=stack(background),
+        background=_stack(images, background, size),
         background_ids=[str(ids[k.image]) for k in background],
-        background_positions=positions(background),
+        background_positions=_positions(background),
         params=params,
     )
 

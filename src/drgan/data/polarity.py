@@ -39,7 +39,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.filters import gaussian, threshold_otsu
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 
 POLARITIES = ("bright", "dark")
 SETTINGS = ("auto",) + POLARITIES

@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.errors import ConfigError, DataError
-from drgan.io import write_with
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.io import write_with
 from drgan.metrics.inception import MODE, InceptionFeatures, check_images
 
 __all__ = [

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 
 __all__ = [
     "INCEPTION_SIZE",

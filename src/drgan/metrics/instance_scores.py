@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 
 __all__ = [
     "binarize_and_label",

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ def read_particle_table(path: Path, diameter: str = "equivalent_diameter_px") ->
     with them, so that a table sized at half contrast reads as its own sizes; an empty cell, e.g. nm without a pixel
     size, reads NaN), the axis ratios and the border flags. {} when there is no file or no particle; a DataError
     naming the file and the column when a table with particles lacks one."""
-    from drgan.io import read_csv
+    from drgan.core.io import read_csv
 
     rows, columns = read_csv(path)
     found: dict[str, list[tuple[float, float, bool]]] = {}

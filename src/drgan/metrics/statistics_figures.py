@@ -1,6 +1,6 @@
 """The figures drgan.analyze writes: the size distribution (sizes.png, with the classical one beside where it was
 measured), the area and diameter histograms, an image's particle outlines (overlays/ID.png) and the local-thickness
-map and histogram (wires=true). Each takes the measured values; ``plt`` is matplotlib.pyplot (drgan.io.figure_png
+map and histogram (wires=true). Each takes the measured values; ``plt`` is matplotlib.pyplot (drgan.core.io.figure_png
 passes it)."""
 
 from __future__ import annotations

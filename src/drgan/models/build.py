@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from drgan import targets
-from drgan.errors import ConfigError, MeshError, check_keys
+from drgan.core import targets
+from drgan.core.errors import ConfigError, MeshError, check_keys
 from drgan.scene import layout, particle_meshes
 from drgan.scene.config import Material, MeshSource, scene_class, typed_material
 from drgan.scene.placements import Placement

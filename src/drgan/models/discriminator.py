@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from torch import nn
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 
 class PatchDiscriminator(nn.Module):

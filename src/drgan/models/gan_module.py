@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from lightning.pytorch import LightningModule
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.models import build
 from drgan.scene.config import typed_material
 
@@ -215,8 +215,8 @@ class GANModule(LightningModule):
     ) -> GANModule:
         """The module of a drgan.train checkpoint, rebuilt with `from_config` from the config saved in it (or
         ``cfg``, e.g. with another renderer), then its weights, phi bank and step state. Loaded with
-        ``weights_only=True`` always (`drgan.checkpoint_io`): a checkpoint holding code is refused unread."""
-        from drgan.checkpoint_io import load_checkpoint
+        ``weights_only=True`` always (`drgan.core.checkpoint_io`): a checkpoint holding code is refused unread."""
+        from drgan.core.checkpoint_io import load_checkpoint
 
         if hparams_file is not None or kwargs:
             raise TypeError(f"GANModule.load_from_checkpoint: unsupported arguments {['hparams_file', *kwargs]}")
@@ -447,7 +447,7 @@ class GANModule(LightningModule):
         width is 4 x material.n_particles, its output the number of learned parameters. Returns the number
         of tensors copied.
         """
-        from drgan.checkpoint_io import load_checkpoint
+        from drgan.core.checkpoint_io import load_checkpoint
 
         path = Path(path)
         source = load_checkpoint(path, "init_from", expected="a .ckpt written by drgan.train")["state_dict"]

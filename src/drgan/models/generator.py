@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.models.regressor import ParameterRegressor
 from drgan.scene.protocol import Scene
 from drgan.scene.scene import gaussian_kernel

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.errors import ConfigError, DataError, DrganError
-from drgan.io import write_bytes, write_with
+from drgan.core.errors import ConfigError, DataError, DrganError
+from drgan.core.io import write_bytes, write_with
 from drgan.pipeline import slurm
 from drgan.pipeline.settings import Settings, parse_settings
 from drgan.pipeline.stages import check_inputs, check_stage_settings
@@ -242,7 +242,7 @@ class StudyRun:
         try:
             import mlflow
 
-            from drgan.loggers import tracking_store
+            from drgan.launch.loggers import tracking_store
             from drgan.pipeline.tracking import experiment_id_of
 
             uri, _ = tracking_store([])

@@ -1,4 +1,4 @@
-"""The pipeline's progress line while a stage runs: what the stage is doing (its own report, drgan.progress), its time
+"""The pipeline's progress line while a stage runs: what the stage is doing (its own report, drgan.core.progress), its time
 left, and the estimated end of the whole run.
 
 The whole run's estimate adds the running stage's time left (its own estimate; before it has one, its typical time
@@ -15,7 +15,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from drgan.progress import Report, duration, read_report
+from drgan.core.progress import Report, duration, read_report
 
 PROGRESS_FILE = "progress.json"
 PACE_RANGE = (0.25, 8.0)

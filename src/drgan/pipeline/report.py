@@ -10,7 +10,7 @@ import math
 import os
 from pathlib import Path
 
-from drgan.io import read_csv, write_bytes
+from drgan.core.io import read_csv, write_bytes
 
 
 def _json(path: Path) -> dict:
@@ -340,8 +340,8 @@ def write_report(settings, state: dict, stages) -> None:
 
 
 def report_html(text: str, out: Path, title: str) -> str:
-    """report.html: report.md with its figures embedded, then analyze's overlays and particle table (drgan.html)."""
-    from drgan.html import markdown_html, page, particles_and_overlays
+    """report.html: report.md with its figures embedded, then analyze's overlays and particle table (drgan.core.html)."""
+    from drgan.core.html import markdown_html, page, particles_and_overlays
 
     body = markdown_html(text, out)
     if (out / "analyze" / "particles.csv").is_file():

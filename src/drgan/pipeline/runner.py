@@ -12,7 +12,9 @@ import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 
-from drgan.errors import ConfigError, DrganError
+from drgan.core.errors import ConfigError, DrganError
+from drgan.core.progress import EVERY_ENV, STAGE_ENV
+from drgan.core.progress import FILE_ENV as PROGRESS_FILE_ENV
 from drgan.pipeline import progress_line
 from drgan.pipeline.report import write_report
 from drgan.pipeline.settings import CONFIG, REPORT_FILE, STATE_FILE, Settings, parse_settings
@@ -30,8 +32,6 @@ from drgan.pipeline.stages import (
 )
 from drgan.pipeline.submit import status_lines, submit_run
 from drgan.pipeline.tracking import State, Tracker, folder_lock
-from drgan.progress import EVERY_ENV, STAGE_ENV
-from drgan.progress import FILE_ENV as PROGRESS_FILE_ENV
 
 log = logging.getLogger("drgan.pipeline")
 
@@ -246,7 +246,7 @@ def _minutes(seconds) -> str:
 
 
 def help_text() -> str:
-    from drgan.runtime import stage_help
+    from drgan.launch.runtime import stage_help
 
     overview = sys.modules["drgan.pipeline"].__doc__ or ""
     return (

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import yaml
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.pipeline import stage_table
 from drgan.pipeline.slurm import SlurmSettings, parse_slurm
 
@@ -179,7 +179,7 @@ def _checked_name(own: dict) -> str:
     name = own["name"]
     if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
         raise ConfigError(f"pipeline: name={name!r}: expected a name of letters, digits, _ or - (e.g. name=my_tem)")
-    from drgan.configs import shipped_materials
+    from drgan.launch.configs import shipped_materials
 
     if str(name) in shipped_materials():
         raise ConfigError(

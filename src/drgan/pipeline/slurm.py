@@ -27,8 +27,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from drgan.errors import ConfigError
-from drgan.io import write_bytes
+from drgan.core.errors import ConfigError
+from drgan.core.io import write_bytes
 
 RESOURCE_KEYS = ("cpus", "mem", "gpus", "time", "partition")
 GENERAL_KEYS = ("partition", "account", "qos", "options", "shards")

@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from drgan.errors import ConfigError, DataError
+from drgan.core.errors import ConfigError, DataError
 from drgan.pipeline import stage_table
 from drgan.pipeline.settings import Settings
 from drgan.pipeline.stage_table import RESUME_KEY, Context, StageSpec
@@ -150,7 +150,7 @@ def done_after_pending(stages: Sequence[Stage], state) -> list[Stage]:
 
 def check_stage_settings(s: Settings) -> None:
     """Compose each stage's config with the user's keys for it: an unknown key or a wrong type fails now."""
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
 
     for stage, keys in s.stages.items():
         if not keys:

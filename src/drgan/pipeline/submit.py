@@ -8,7 +8,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.pipeline import progress_line, slurm
 from drgan.pipeline.settings import STATE_FILE, Settings
 from drgan.pipeline.stage_table import profiled_pixel_size

@@ -11,8 +11,8 @@ import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from drgan.errors import ConfigError
-from drgan.io import write_bytes, write_json
+from drgan.core.errors import ConfigError
+from drgan.core.io import write_bytes, write_json
 from drgan.pipeline.settings import LOCK_FILE, Settings
 from drgan.pipeline.stages import Stage
 
@@ -77,7 +77,7 @@ class Tracker:
         try:
             import mlflow
 
-            from drgan.loggers import tracking_store
+            from drgan.launch.loggers import tracking_store
 
             conf = (
                 s.out / "drgan_conf"
@@ -141,7 +141,7 @@ class Tracker:
 def experiment_id_of(client, uri: str, name: str) -> str:
     """The id of MLflow experiment ``name`` in the store at ``uri``, created if new (under the store's lock: jobs on
     many nodes may create it at once)."""
-    from drgan.loggers import store_lock
+    from drgan.launch.loggers import store_lock
 
     with store_lock(uri):
         experiment = client.get_experiment_by_name(name)

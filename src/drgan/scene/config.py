@@ -1,6 +1,6 @@
 """The material, typed: what a ``material`` config group may hold, checked when a config is composed.
 
-These dataclasses are the schema Hydra merges every material file into (registered by `drgan.configs.setup`), so a
+These dataclasses are the schema Hydra merges every material file into (registered by `drgan.launch.configs.setup`), so a
 misspelt key (``n_particles_mn: 8``) or a value of the wrong type (``n_particles: many``) fails at compose time,
 naming it. `typed_material` turns a composed or saved ``material`` node into a checked `Material` object, which is
 what the code reads: no ``.get(key, default)`` on raw mappings, each default once, here.
@@ -21,9 +21,9 @@ from typing import Any, ClassVar, Dict, List, Optional  # noqa: UP035  (OmegaCon
 
 from omegaconf import MISSING
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
+from drgan.core.targets import target_path
 from drgan.scene.parameters import MaterialParameters, Parameter, noise_parameter, parse_parameter
-from drgan.targets import target_path
 
 POLARITIES = ("bright", "dark")
 LIGHT_SHAPES = ("band", "torus")

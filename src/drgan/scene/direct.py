@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drgan import backend
+from drgan.core import backend
 from drgan.scene.mitsuba_shapes import mitsuba_mesh
 
 dr = backend.dr
@@ -113,7 +113,7 @@ def register() -> str:
     """Register ``direct_light`` with Mitsuba for the current variant (idempotent); returns its name."""
     variant = mi.variant()
     if variant is None:
-        raise RuntimeError("set a Mitsuba variant (drgan.backend.use_variant) before registering direct_light")
+        raise RuntimeError("set a Mitsuba variant (drgan.core.backend.use_variant) before registering direct_light")
     if variant not in _registered:
         cls = _integrator_class()
         mi.register_integrator(NAME, lambda props: cls(props))

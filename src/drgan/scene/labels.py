@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 BACKGROUND, PARTICLE, CONTOUR = 0, 1, 2
 IGNORE = 255  # a mask pixel of no class: left out of the loss and the scores

@@ -21,8 +21,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from drgan import targets
-from drgan.errors import ConfigError, check_int_at_least, check_positive
+from drgan.core import targets
+from drgan.core.errors import ConfigError, check_int_at_least, check_positive
 from drgan.scene.placements import OfficialPlacement, Placement, PoissonAgglomerates, Random2D, Random3D
 from drgan.scene.sizes import BimodalSize, LognormalSize, NormalSize, SizeDistribution
 

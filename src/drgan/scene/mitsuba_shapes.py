@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drgan import backend
+from drgan.core import backend
 
 mi = backend.mi
 

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from drgan import backend
-from drgan.errors import ConfigError
+from drgan.core import backend
+from drgan.core.errors import ConfigError
 from drgan.scene.config import Material, OfficialImaging, register_scene
 from drgan.scene.parameters import MaterialParameters
 from drgan.scene.scene import ParticleScene, RenderSettings

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from drgan.errors import ConfigError, setting_float
+from drgan.core.errors import ConfigError, setting_float
 
 
 @dataclass(frozen=True)

@@ -26,8 +26,8 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from drgan.errors import ConfigError, MeshError, check_keys
-from drgan.io import write_bytes
+from drgan.core.errors import ConfigError, MeshError, check_keys
+from drgan.core.io import write_bytes
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drgan.errors import ConfigError, check_int_at_least, check_non_negative, check_positive
+from drgan.core.errors import ConfigError, check_int_at_least, check_non_negative, check_positive
 
 __all__ = ["Random2D", "Random3D", "PoissonAgglomerates", "OfficialPlacement", "Placement"]
 

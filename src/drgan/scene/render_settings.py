@@ -2,7 +2,7 @@
 what the scene is (``material``: the physics).
 
 The one source of every renderer key: a field here is its type, its default and its check (`__post_init__`, a
-ConfigError naming ``renderer.KEY``). `drgan.configs` derives the group's compose-time schema from these fields
+ConfigError naming ``renderer.KEY``). `drgan.launch.configs` derives the group's compose-time schema from these fields
 (`renderer_fields`, in this order, which is the order composed configs list them in), so a new key is one field here
 plus, where users should see it, its line in ``conf/gan/renderer/default.yaml`` with the same default and its
 comment (tests/test_settings_source.py compares the two). A field another group sets names that group in its
@@ -18,7 +18,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from drgan.errors import ConfigError, check_spp
+from drgan.core.errors import ConfigError, check_spp
 
 # direct_light, direct_light_mis: drgan.scene.direct, direct illumination with a one-pass adjoint (max_depth 2 only);
 # _mis samples the BSDF as well as the lights on every surface (prb's estimator), direct_light only where it pays

@@ -27,8 +27,8 @@ import numpy as np
 import torch
 import trimesh
 
-from drgan import backend
-from drgan.errors import ConfigError, check_spp
+from drgan.core import backend
+from drgan.core.errors import ConfigError, check_spp
 from drgan.scene import direct
 from drgan.scene.config import Material, SecondaryImaging, TopLight, TorusLight, register_scene
 from drgan.scene.mitsuba_shapes import mitsuba_mesh, rectangle_mesh

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drgan.errors import ConfigError, check_non_negative, check_positive, finite_field
+from drgan.core.errors import ConfigError, check_non_negative, check_positive, finite_field
 
 __all__ = ["NormalSize", "LognormalSize", "BimodalSize", "SizeDistribution"]
 

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import trimesh
 
-from drgan.errors import ConfigError, MeshError, check_spp
+from drgan.core.errors import ConfigError, MeshError, check_spp
 from drgan.scene.config import Material, TransmissionImaging, register_scene
 from drgan.scene.parameters import MaterialParameters, Parameter
 from drgan.scene.scene import MeshParticles, RenderSettings, dr, gaussian_kernel, mi, reconstruction_blur

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.errors import ConfigError, DataError
-from drgan.io import write_json
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.io import write_json
 
 ATTEMPTS_FILE = "attempts.json"
 ATTEMPTS_DIR = "attempts"
@@ -129,7 +129,7 @@ def foreground_agreement(reference: Sequence[np.ndarray], found: Sequence[np.nda
 def check_agreement(checkpoint: Path, items: Sequence[tuple[object, np.ndarray]], progress: bool = False) -> dict:
     """The segmenter of ``checkpoint`` (as analyze predicts: its calibrated split, noise matching, working scale)
     against the reference foregrounds: `foreground_agreement` and the images' ids."""
-    from drgan.progress import track
+    from drgan.core.progress import track
     from drgan.segmenters.predictors import load_predictor
 
     predictor = load_predictor(str(checkpoint), {}, "agreement")

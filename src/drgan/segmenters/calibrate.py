@@ -24,10 +24,10 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from drgan.checkpoint_io import positive_entry
-from drgan.errors import ConfigError
+from drgan.core.checkpoint_io import positive_entry
+from drgan.core.errors import ConfigError
+from drgan.core.progress import track
 from drgan.metrics.statistics import median_diameter
-from drgan.progress import track
 
 log = logging.getLogger(__name__)
 

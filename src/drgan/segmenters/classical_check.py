@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

@@ -26,8 +26,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from drgan.errors import ConfigError
-from drgan.progress import track
+from drgan.core.errors import ConfigError
+from drgan.core.progress import track
 from drgan.scene.labels import IGNORE
 
 log = logging.getLogger(__name__)

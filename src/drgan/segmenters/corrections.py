@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data.images import list_images, resample
-from drgan.errors import ConfigError, DataError
 from drgan.scene.labels import class_mask
 from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import (

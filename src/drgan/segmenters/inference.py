@@ -27,8 +27,8 @@ import logging
 import numpy as np
 import torch
 
+from drgan.core.errors import ConfigError, DataError, check_keys
 from drgan.data.images import resample
-from drgan.errors import ConfigError, DataError, check_keys
 from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import normalization
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import torch
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.scene.labels import IGNORE, centre_distance
 from drgan.segmenters.module import SegmenterModule
 from drgan.segmenters.registry import register_segmenter

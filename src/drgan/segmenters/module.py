@@ -20,7 +20,7 @@ import lightning.pytorch as L
 import torch
 import torch.nn.functional as F
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.scene.labels import IGNORE
 from drgan.segmenters.pairs import check_normalize
 from drgan.segmenters.registry import load_segmenter, register_segmenter

@@ -24,7 +24,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from drgan.checkpoint_io import positive_entry
+from drgan.core.checkpoint_io import positive_entry
 
 MAD_TO_SIGMA = 1.4826  # a Gaussian's standard deviation per median absolute deviation
 SAMPLE = 64  # training images whose level is measured (the first ones)

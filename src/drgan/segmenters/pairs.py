@@ -25,8 +25,8 @@ import torch
 from scipy import ndimage
 from torch.utils.data import Dataset
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data.images import IMAGE_SUFFIXES, list_images, read_grey, read_split, resample, resolve_crop_rows
-from drgan.errors import ConfigError, DataError
 from drgan.scene.labels import BACKGROUND, CONTOUR, IGNORE, PARTICLE, centre_distance, class_mask
 from drgan.synthetic.manifest import image_mask_pairs
 

@@ -29,8 +29,8 @@ from typing import Protocol
 
 import numpy as np
 
+from drgan.core.errors import DataError
 from drgan.data.images import IMAGE_SUFFIXES
-from drgan.errors import DataError
 from drgan.segmenters.pairs import ImageItem, drop_mask_rows, read_raw_mask
 
 __all__ = [

@@ -7,7 +7,7 @@ rebuilds that object, so the name inside a file decides which class is construct
 anyone, and importing a module runs its code, so the name is looked up in an allow-list of segmenter classes and
 never imported: a name not on the list is refused (a ConfigError naming it) before any module is imported or any
 object built. The class found is called directly with the saved keywords; these are plain values (the file is read
-with ``weights_only=True``, drgan.checkpoint_io), and a nested ``_target_`` among them stays a dict: Hydra's
+with ``weights_only=True``, drgan.core.checkpoint_io), and a nested ``_target_`` among them stays a dict: Hydra's
 ``instantiate`` never sees a checkpoint's content.
 
 The allow-list holds
@@ -30,12 +30,12 @@ from collections.abc import Mapping
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from drgan.checkpoint_io import load_checkpoint
-from drgan.errors import ConfigError, DataError
+from drgan.core.checkpoint_io import load_checkpoint
+from drgan.core.errors import ConfigError, DataError
+from drgan.core.targets import target_path
 from drgan.segmenters.calibrate import stored_pixel_scale, stored_split, stored_working_diameter
 from drgan.segmenters.closed_loop import stored_closed_loop
 from drgan.segmenters.noise_match import stored_level
-from drgan.targets import target_path
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -173,7 +173,7 @@ def build_segmenter(node, where: str = "model"):
 def load_segmenter(path: str | Path, setting: str = "model"):
     """A trained segmenter from a Lightning checkpoint, in eval mode on the CPU.
 
-    Refuses (DataError) missing files, files that hold code (drgan.checkpoint_io: nothing in them runs), files that
+    Refuses (DataError) missing files, files that hold code (drgan.core.checkpoint_io: nothing in them runs), files that
     are not checkpoints, checkpoints of other models (e.g. a GAN checkpoint of drgan.train) and weights that do not
     fit the class; a ``_target_`` outside the allow-list is a ConfigError naming it, raised before anything is
     imported or built."""

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.scene.labels import IGNORE
 from drgan.segmenters.instances import CentreSegmenterModule
 from drgan.segmenters.registry import register_segmenter

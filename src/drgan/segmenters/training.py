@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from drgan.errors import ConfigError, setting_float, setting_int
+from drgan.core.errors import ConfigError, setting_float, setting_int
 
 log = logging.getLogger(__name__)
 

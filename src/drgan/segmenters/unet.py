@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:

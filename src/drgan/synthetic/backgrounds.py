@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan import io
-from drgan.errors import ConfigError, DataError
+from drgan.core import io
+from drgan.core.errors import ConfigError, DataError
 from drgan.synthetic.folder import BACKGROUND, IGNORE, PARTIAL_BACKGROUND, PARTIAL_RECORD, DatasetFolder, bg_id, pbg_id
 
 log = logging.getLogger(__name__)

@@ -140,7 +140,7 @@ def check_dataset(root, manifest: dict, backgrounds, polarity: str, resolution: 
 
 def figure(result: dict) -> bytes:
     """PNG: the mean edge profiles (real, generated against the classical edge, generated against its masks)."""
-    from drgan.io import figure_png
+    from drgan.core.io import figure_png
 
     def draw(plt):
         fig, axis = plt.subplots(figsize=(6, 4))

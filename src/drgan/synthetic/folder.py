@@ -11,7 +11,7 @@ mask all 0), ``pbg_0002`` partial background (a real window with particles: mask
 ``IGNORE`` = 255 on its particles and a margin around them, which a segmenter's loss leaves out; its labels/ are
 all 0, as its particles are not annotated).
 
-Every file is written atomically (drgan.io). An item is done when its meta/ID.json (kept) or dropped/ID.json
+Every file is written atomically (drgan.core.io). An item is done when its meta/ID.json (kept) or dropped/ID.json
 record exists: the record is written after the item's PNGs, so a PNG without a record is what an interrupted
 run left behind (``DatasetFolder.remove_partial``).
 """
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drgan import io
-from drgan.errors import ConfigError
+from drgan.core import io
+from drgan.core.errors import ConfigError
 from drgan.scene.labels import IGNORE  # noqa: F401  (the mask value of no class: imported from here too)
 
 log = logging.getLogger(__name__)
@@ -40,7 +40,7 @@ FILE_KINDS = ("images", "masks", "labels")  # PNG folders; meta/ID.json comes la
 MANIFEST = "manifest.json"
 CONFIG = "config.json"
 PARTIAL_RECORD = "partial_backgrounds.json"
-# drgan.io.atomic_path's temporary name for a file NAME: ".NAME.<random>.tmp<suffix of NAME>".
+# drgan.core.io.atomic_path's temporary name for a file NAME: ".NAME.<random>.tmp<suffix of NAME>".
 _TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[A-Za-z0-9_]+\.tmp(\.[A-Za-z0-9]+)?$")
 
 
@@ -144,7 +144,7 @@ class DatasetFolder:
 
     def remove_partial(self, owns) -> dict[str, int]:
         """Remove what a killed run left of the items this process owns (``owns(item) -> bool``): temporary files
-        of drgan.io's atomic writes (a SIGKILL skips their clean-up), and the PNGs of items without their
+        of drgan.core.io's atomic writes (a SIGKILL skips their clean-up), and the PNGs of items without their
         meta/ID.json or dropped/ID.json record (killed between an item's files: meta comes last). Such an item
         is not done, so this run renders it again; removing its files first means that no image is ever left
         without its mask, whatever n the next run asks for. Returns the counts removed, by kind."""

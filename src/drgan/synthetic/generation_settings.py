@@ -29,8 +29,8 @@ from typing import Any, NamedTuple
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
+from drgan.core.errors import ConfigError
 from drgan.data.polarity import check_polarity
-from drgan.errors import ConfigError
 from drgan.scene.config import typed_material
 from drgan.synthetic.backgrounds import PARTIAL_MAX_IGNORED, PartialSettings
 from drgan.synthetic.shards import Shard
@@ -271,7 +271,7 @@ def _resolve_layout(settings: GenerateSettings, material: dict) -> dict:
     """The size distribution and placement given on the command line, their ``${material.*}`` read from the
     checkpoint's ``material``, each built once: a bad key or value fails here, naming it, before any model is built.
     Returns {group: plain dict} of the groups given."""
-    from drgan.resolvers import register_resolvers
+    from drgan.core.resolvers import register_resolvers
     from drgan.scene import layout as scene_layout
 
     register_resolvers()  # ${mul:...} and the others the groups use (already there under every entry point)

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from drgan.errors import DataError
+from drgan.core.errors import DataError
 
 if TYPE_CHECKING:
     from drgan.data.classical import SegmentParams

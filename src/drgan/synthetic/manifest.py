@@ -24,8 +24,8 @@ from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from drgan import io
-from drgan.errors import ConfigError, DataError
+from drgan.core import io
+from drgan.core.errors import ConfigError, DataError
 from drgan.synthetic.backgrounds import backgrounds_exhausted, partial_exhausted
 from drgan.synthetic.folder import (
     CONFIG,

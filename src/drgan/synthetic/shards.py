@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 from drgan.synthetic.folder import BG, PARTIAL_RECORD, PBG, syn_index
 
 

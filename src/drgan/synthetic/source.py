@@ -7,7 +7,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 
 def generator_checkpoint(ckpt) -> tuple[Path, Path | None]:
@@ -32,7 +32,7 @@ def generator_checkpoint(ckpt) -> tuple[Path, Path | None]:
 
 def checkpoint_config(ckpt_file: Path) -> dict:
     """The model config (material, size, placement, renderer, model, seed) saved with a GANModule checkpoint."""
-    from drgan.checkpoint_io import load_checkpoint
+    from drgan.core.checkpoint_io import load_checkpoint
 
     checkpoint = load_checkpoint(ckpt_file, "ckpt", expected="a .ckpt written by drgan.train")
     cfg = (checkpoint.get("hyper_parameters") or {}).get("cfg")
@@ -53,7 +53,7 @@ def effective_renderer(saved: dict, overrides) -> dict:
 
 def load_module(ckpt_file: Path, model_cfg: dict):
     """GANModule in eval mode, rebuilt with ``model_cfg`` (the saved one, renderer possibly overridden)."""
-    from drgan.checkpoint_io import refusing_unsafe
+    from drgan.core.checkpoint_io import refusing_unsafe
     from drgan.models.gan_module import GANModule
 
     with refusing_unsafe("ckpt", ckpt_file):

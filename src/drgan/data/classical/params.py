@@ -6,8 +6,8 @@ import math
 from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING
 
+from drgan.core.errors import ConfigError, DataError
 from drgan.data.classical.calibration import CALIBRATION as CAL
-from drgan.errors import ConfigError, DataError
 
 if TYPE_CHECKING:
     from drgan.data.classical.scale import ScaleEstimate

@@ -22,12 +22,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from drgan.core.progress import track
 from drgan.data.classical.calibration import CALIBRATION as CAL
 from drgan.data.classical.foreground import Prepared, cut_foreground, prepare, retry_separability
 from drgan.data.classical.params import NoParticles, SegmentParams
 from drgan.data.classical.scale import Fixed, Point, ScaleEstimate, estimate_scale
 from drgan.data.classical.watershed import split_by_depth
-from drgan.progress import track
 
 
 def resolve_params(

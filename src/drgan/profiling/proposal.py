@@ -20,7 +20,7 @@ from drgan.data.measurements import VIEW_EXTENT_FRACTION
 from drgan.data.particle_edge import MAX_SATURATED
 
 if TYPE_CHECKING:
-    from drgan.data.profile_result import ProfileResult
+    from drgan.profiling.result import ProfileResult
 
 NOISE_LIMIT_FACTOR, NOISE_LIMIT_FLOOR = 2.2, 0.01  # every profiled material: noise_sigma.max = 2.2 x measured
 EXTENT_PER_DIAMETER = 1.1  # largest extent / equivalent diameter of a particle seen from above (TiO2: 30 / 26.5 px)
@@ -250,7 +250,7 @@ def _bimodal_size(chosen) -> dict:
 @functools.cache
 def parent_material(parent: str) -> dict:
     """The paper material ``parent`` as plain values (composed once per process; callers do not modify it)."""
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
 
     return OmegaConf.to_container(compose([f"material={parent}"], config_name="render").material, resolve=True)
 
@@ -312,7 +312,7 @@ def parent_stage_reach(parent: str) -> tuple[float, float] | None:
     lit stage (transmission). One render at spp 16 with the other learned values at the middle of their limits."""
     import torch
 
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
     from drgan.models.gan_module import GANModule
 
     cfg = compose([f"material={parent}", "renderer.spp=16", "renderer.resolution=128"], config_name="train")

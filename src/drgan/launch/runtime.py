@@ -15,7 +15,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from drgan.errors import ConfigError, DrganError
+from drgan.core.errors import ConfigError, DrganError
 
 log = logging.getLogger(__name__)
 
@@ -72,13 +72,13 @@ def start(main) -> None:
     """Run a stage's Hydra app from its ``__main__``: Hydra's own errors short (HYDRA_FULL_ERROR=0 unless set),
     drgan's config resolvers and schemas registered first. ``-h``/``--help`` prints the stage's own help
     (`stage_help`) instead of Hydra's generic one."""
-    from drgan.configs import setup
+    from drgan.launch.configs import setup
 
     if any(a in ("-h", "--help") for a in sys.argv[1:]) and getattr(main, "settings_file", None) is not None:
         spec = getattr(sys.modules.get("__main__"), "__spec__", None)
         command = f"python -m {spec.name}" if spec is not None else Path(sys.argv[0]).name
         docstring = getattr(sys.modules.get("__main__"), "__doc__", None) or ""
-        package = Path(__file__).resolve().parent
+        package = Path(__file__).resolve().parents[1]  # src/drgan
         where = main.settings_file.relative_to(package.parent.parent) if main.settings_file.is_relative_to(
             package.parent.parent) else main.settings_file  # fmt: skip
         with contextlib.suppress(BrokenPipeError):  # `... --help | head`: the reader left
@@ -120,7 +120,7 @@ def instantiate_loggers(
         tags = {**tags, MLFLOW_PARENT_TAG: str(parent_run)}
     from hydra.utils import instantiate
 
-    from drgan.loggers import MLFlowLogger, store_lock
+    from drgan.launch.loggers import MLFlowLogger, store_lock
 
     loggers = []
     for entry in (cfg or {}).values():
@@ -144,13 +144,13 @@ def instantiate_loggers(
 
 
 def start_loggers(loggers: list) -> None:
-    """Open the run of each logger that starts explicitly (drgan.loggers.MLFlowLogger.start)."""
+    """Open the run of each logger that starts explicitly (drgan.launch.loggers.MLFlowLogger.start)."""
     for logger in loggers:
         getattr(logger, "start", lambda: None)()
 
 
 def resolve_checkpoint(ckpt_path: str | None, output_dir: Path) -> str | None:
-    from drgan.checkpoint_io import load_checkpoint
+    from drgan.core.checkpoint_io import load_checkpoint
 
     if ckpt_path in (None, "", "null"):
         return None

@@ -15,7 +15,7 @@ import os
 import re
 from functools import cache
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Compose drgan's Hydra configs from Python (benchmarks, notebooks, tests) without a ``@hydra.main`` entry point.
 
-    from drgan.configs import compose
+    from drgan.launch.configs import compose
     cfg = compose(["material=tio2_sem", "renderer.spp=16"], config_name="train")
 
 The entry points read their configs from the package, so an installed drgan works from any folder. Two roots, one
@@ -46,9 +46,9 @@ from typing import Any, Optional
 
 from omegaconf import MISSING
 
-from drgan.errors import ConfigError
+from drgan.core.errors import ConfigError
 
-CONF_DIR = Path(__file__).resolve().parent / "conf"
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 @dataclass
@@ -104,7 +104,7 @@ def plain_node(cfg, key: str) -> dict:
 
 
 def renderer_schema(overrides: bool = False) -> type:
-    """``renderer``: the Mitsuba ``variant`` (``auto``; drgan.backend's choices), then every renderer key of
+    """``renderer``: the Mitsuba ``variant`` (``auto``; drgan.core.backend's choices), then every renderer key of
     `drgan.scene.render_settings.RenderSettings` (`renderer_fields`: its type, Optional, and its default). Every
     key may be null (= RenderSettings' default), so that generate's overrides can merge over a preset a material
     picks. ``overrides``: drgan.generate's ``renderer``, every key default null (= the checkpoint's).
@@ -147,7 +147,7 @@ def setup() -> None:
     from hydra.core.config_store import ConfigStore
     from omegaconf import OmegaConf
 
-    from drgan.resolvers import register_resolvers
+    from drgan.core.resolvers import register_resolvers
 
     # The configs put ./drgan_conf (users' own materials, e.g. from `python -m drgan.profile`) on Hydra's search
     # path; Hydra warns on every run in a folder that has none, which is the usual case and nothing to act on.

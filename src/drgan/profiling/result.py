@@ -1,7 +1,7 @@
 """What `python -m drgan.profile` measured on a folder of real images: `ProfileResult`, typed by section.
 
 profile.json is `ProfileResult.as_dict` (each section's keys in its fields' order); report.md and the material
-proposal (drgan.material_proposal) read the typed sections; `ProfileResult.from_dict` reads a profile.json back.
+proposal (drgan.profiling.proposal) read the typed sections; `ProfileResult.from_dict` reads a profile.json back.
 Values are as profile.json records them (rounded where it rounds them), so that what the report and the material
 config say is what profile.json holds. The records of objects typed elsewhere stay the dicts they write: the scale
 search (`drgan.data.classical`), the segmentation parameters, the size fits (`drgan.data.measurements.SizeFit`),
@@ -128,7 +128,7 @@ class PixelSize:
 
 @dataclass(frozen=True)
 class MaterialProposed:
-    """``material``: the config written (drgan.material_proposal)."""
+    """``material``: the config written (drgan.profiling.proposal)."""
 
     parent: str  # the paper material it inherits
     config: str  # the file written, resolved

@@ -1,5 +1,5 @@
-"""The config resolvers of drgan's YAML files, registered by `drgan.configs.setup` (every entry point and
-`drgan.configs.compose` calls it): ``${mul:a,b}`` and ``${mlflow_uri:default}``."""
+"""The config resolvers of drgan's YAML files, registered by `drgan.launch.configs.setup` (every entry point and
+`drgan.launch.configs.compose` calls it): ``${mul:a,b}`` and ``${mlflow_uri:default}``."""
 
 from __future__ import annotations
 

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import torch
 
-from drgan.errors import ConfigError, DrganError
+from drgan.core.errors import ConfigError, DrganError
 
 __all__ = ["add_entry", "load_checkpoint", "refusing_unsafe"]
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import inspect
 from collections.abc import Iterable, Mapping
 
-from drgan.errors import ConfigError, DrganError, check_keys
+from drgan.core.errors import ConfigError, DrganError, check_keys
 
 
 def target_path(cls: type) -> str:

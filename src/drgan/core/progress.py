@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TypeVar
 
-from drgan.io import atomic_path
+from drgan.core.io import atomic_path
 
 T = TypeVar("T")
 

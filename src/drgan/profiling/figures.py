@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from drgan.core.io import figure_png, write_bytes
 from drgan.data import measurements
 from drgan.data.classical import CALIBRATION, Fixed
 from drgan.data.particle_edge import edge_model
-from drgan.io import figure_png, write_bytes
 
 
 def scale_figure(out: Path, search: dict) -> None:
