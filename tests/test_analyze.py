@@ -36,8 +36,8 @@ def class_map_of(labels: np.ndarray) -> np.ndarray:
 
 
 def test_analyze_counts_and_sizes_the_particles_evaluate_does(tmp_path):
-    from drgan.analyze import analyze
-    from drgan.evaluate import evaluate
+    from drgan.analyze import AnalyzeSettings, analyze
+    from drgan.evaluate import EvaluateSettings, evaluate
 
     fields = {f"f{i}": field(i) for i in range(4)}
     real = make_real(tmp_path / "real", {k: disc_image(v) for k, v in fields.items()},
@@ -52,10 +52,10 @@ def test_analyze_counts_and_sizes_the_particles_evaluate_does(tmp_path):
         def __call__(self, item):
             return class_map_of(fields[item.id])
 
-    result = evaluate(compose([f"data={real}", f"out={tmp_path / 'eval'}", "bootstrap=0"], config_name="evaluate"),
+    result = evaluate(EvaluateSettings.from_config(compose([f"data={real}", f"out={tmp_path / 'eval'}", "bootstrap=0"], config_name="evaluate"), need_models=False),
                       predictors={"run0": TrueInstances()})  # fmt: skip
     cfg = compose([f"images={real / 'images'}", f"out={tmp_path / 'an'}", "bootstrap=200"], config_name="analyze")
-    rows = analyze(cfg, predictor=TrueInstances())
+    rows = analyze(AnalyzeSettings.from_config(cfg), predictor=TrueInstances())
     stats = result["statistics"]["run0"]
     summary = json.loads((tmp_path / "an" / "summary.json").read_text())["statistics"]
     assert summary["count"]["value"] == stats["count"]["value"] == len(rows)  # cut particles counted, specks not
@@ -77,7 +77,7 @@ def test_analyze_counts_and_sizes_the_particles_evaluate_does(tmp_path):
 
 
 def test_the_pixel_size_comes_from_the_tiff_and_a_given_one_wins(tmp_path):
-    from drgan.analyze import analyze
+    from drgan.analyze import AnalyzeSettings, analyze
 
     folder = tmp_path / "images"
     folder.mkdir()
@@ -86,7 +86,7 @@ def test_the_pixel_size_comes_from_the_tiff_and_a_given_one_wins(tmp_path):
         tifffile.imwrite(folder / f"{name}.tif", (disc_image(labels) * 255).astype(np.uint8), resolution=(1e6, 1e6),
                          resolutionunit="CENTIMETER")  # fmt: skip
     cfg = compose([f"images={folder}", f"out={tmp_path / 'an'}", "bootstrap=0"], config_name="analyze")
-    rows = analyze(cfg, predictor=lambda image: class_map_of(labels))
+    rows = analyze(AnalyzeSettings.from_config(cfg), predictor=lambda image: class_map_of(labels))
     assert rows[0]["equivalent_diameter_nm"] == pytest.approx(10 * rows[0]["equivalent_diameter_px"])
     summary = json.loads((tmp_path / "an" / "summary.json").read_text())
     assert summary["unit"] == "nm" and "10 nm/px from the images' metadata" in summary["pixel_size"]
@@ -94,7 +94,7 @@ def test_the_pixel_size_comes_from_the_tiff_and_a_given_one_wins(tmp_path):
     assert summary["statistics"]["count_per_area"]["value"] == pytest.approx(len(rows) / (2 * 0.4096))
     given = compose([f"images={folder}", f"out={tmp_path / 'an2'}", "bootstrap=0", "nm_per_px=2.5"],
                     config_name="analyze")  # fmt: skip
-    rows = analyze(given, predictor=lambda image: class_map_of(labels))
+    rows = analyze(AnalyzeSettings.from_config(given), predictor=lambda image: class_map_of(labels))
     assert rows[0]["equivalent_diameter_nm"] == pytest.approx(2.5 * rows[0]["equivalent_diameter_px"])
     table = list(csv.DictReader((tmp_path / "an2" / "particles.csv").open()))
     assert {"equivalent_diameter_nm", "sized", "axis_ratio"} <= set(table[0])
@@ -133,10 +133,10 @@ def test_a_table_without_particles_has_every_column_and_reads_empty(tmp_path):
 
 @pytest.mark.parametrize("key, value", [("nm_per_px", "-1"), ("min_area_px", "-3"), ("bootstrap", "1.5")])
 def test_bad_settings_stop_before_any_image_is_read(key, value, tmp_path):
-    from drgan.analyze import analyze
+    from drgan.analyze import AnalyzeSettings, analyze
 
     with pytest.raises(ConfigError, match=key):
-        analyze(compose([f"images={tmp_path / 'none'}", f"{key}={value}"], config_name="analyze"),
+        analyze(AnalyzeSettings.from_config(compose([f"images={tmp_path / 'none'}", f"{key}={value}"], config_name="analyze")),
                 predictor=lambda image: image > 0.5)  # fmt: skip
 
 

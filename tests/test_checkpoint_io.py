@@ -106,8 +106,8 @@ def test_train_refuses_crafted_init_from_and_ckpt_path_before_mining(crafted, im
 
 
 def test_segment_evaluate_and_analyze_refuse_a_crafted_checkpoint(crafted, tmp_path):
-    from drgan.analyze import analyze
-    from drgan.evaluate import evaluate
+    from drgan.analyze import AnalyzeSettings, analyze
+    from drgan.evaluate import EvaluateSettings, evaluate
     from drgan.segment import segment
     from drgan.segmenters.module import load_segmenter
 
@@ -119,10 +119,12 @@ def test_segment_evaluate_and_analyze_refuse_a_crafted_checkpoint(crafted, tmp_p
         tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]}
     )
     with pytest.raises(DataError, match=f"model=.*{REFUSED}"):
-        evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{path}]"]))
+        evaluate(EvaluateSettings.from_config(eval_cfg(real, tmp_path / "eval", [f"models=[{path}]"])))
     with pytest.raises(DataError, match=f"model=.*{REFUSED}"):
         analyze(
-            compose([f"model={path}", f"images={real / 'images'}", f"out={tmp_path / 'an'}"], config_name="analyze")
+            AnalyzeSettings.from_config(
+                compose([f"model={path}", f"images={real / 'images'}", f"out={tmp_path / 'an'}"], config_name="analyze")
+            )
         )
     data = make_generated(tmp_path / "gen", n=4)
     with pytest.raises(ConfigError, match=f"ckpt_path=.*{REFUSED}"):

@@ -213,9 +213,9 @@ def test_a_pipeline_state_from_before_the_comparison_still_gets_the_medians_comp
 
 
 def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tmp_path):
-    from drgan.analyze import analyze, statistics_markdown
+    from drgan.analyze import AnalyzeSettings, analyze, statistics_markdown
     from drgan.data.imagej import write_label_tiff
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
     from drgan.pipeline.report import analyze_summary, evaluate_summary
     from drgan.segmenters.inference import separate_regions
 
@@ -232,7 +232,7 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
     merged[merged == 2] = 1  # the segmenter takes the pair for one particle
     cfg = compose([f"images={real / 'images'}", f"out={tmp_path / 'an'}", "bootstrap=0", f"profile={profile}"],
                   config_name="analyze")  # fmt: skip
-    analyze(cfg, predictor=lambda item: separate_regions(merged))
+    analyze(AnalyzeSettings.from_config(cfg), predictor=lambda item: separate_regions(merged))
     summary = json.loads((tmp_path / "an" / "summary.json").read_text())
     classical = summary["classical"]
     assert classical["images"] == 2 and classical["classical_particles"] == 6 and classical["segmenter_particles"] == 4
@@ -286,7 +286,10 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
     (tmp_path / "two.json").write_text(json.dumps({"train": [], "test": ["f0", "f1"]}))
     scored = [f"data={real}", "bootstrap=0", f"reported={tmp_path / 'an'}", "overlays=false"]
     stats = evaluate(
-        compose([*scored, f"out={tmp_path / 'ev'}", f"split={tmp_path / 'two.json'}"], config_name="evaluate"),
+        EvaluateSettings.from_config(
+            compose([*scored, f"out={tmp_path / 'ev'}", f"split={tmp_path / 'two.json'}"], config_name="evaluate"),
+            need_models=False,
+        ),
         predictors={"run0": lambda item: separate_regions(merged)},
     )["statistics"]
     masks_median = np.median([d128, d6, d128, d6])
@@ -304,7 +307,7 @@ def test_analyze_compares_with_the_profile_run_and_says_which_sizes_it_trusts(tm
     )
     assert scores["metrics"]["evaluate/reported_count_error"] == pytest.approx(0.5)
     # an image the classical sizes do not cover (f2 was not in the profile): not scored, and not quoted
-    unscored = evaluate(compose([*scored, f"out={tmp_path / 'ev3'}"], config_name="evaluate"),
+    unscored = evaluate(EvaluateSettings.from_config(compose([*scored, f"out={tmp_path / 'ev3'}"], config_name="evaluate"), need_models=False),
                         predictors={"run0": lambda item: separate_regions(merged)})  # fmt: skip
     assert "reported" not in unscored["statistics"] and "report gives" not in evaluate_summary(tmp_path / "ev3")["line"]
 
@@ -340,8 +343,8 @@ def test_evaluate_refuses_a_reported_folder_that_is_not_an_analyze_run(tmp_path)
 
 
 def test_a_profile_folder_without_its_run_is_refused_before_any_image_is_read(tmp_path):
-    from drgan.analyze import analyze
+    from drgan.analyze import AnalyzeSettings, analyze
 
     cfg = compose([f"images={tmp_path}", f"out={tmp_path / 'an'}", f"profile={tmp_path / 'nothing'}"], "analyze")
     with pytest.raises(ConfigError, match="profile=.*nothing.*profile.json in it"):
-        analyze(cfg, predictor=lambda item: item)
+        analyze(AnalyzeSettings.from_config(cfg), predictor=lambda item: item)

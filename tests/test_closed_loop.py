@@ -154,11 +154,11 @@ def test_segment_scores_itself_on_held_out_pairs_and_stores_the_check(tmp_path):
     again = json.loads((out / "metrics.json").read_text())
     assert again["closed_loop"]["ids"] == check["ids"] and again["val/dsc"] == written["val/dsc"]
     # analyze's statistics.md quotes the check; the pipeline's report compares its sizes with the classical ones
-    from drgan.analyze import analyze
+    from drgan.analyze import AnalyzeSettings, analyze
 
     last = out / "checkpoints" / "last.ckpt"
     cfg = compose([f"model={last}", f"images={data / 'images'}", f"out={tmp_path / 'an'}", "bootstrap=0"], "analyze")
-    analyze(cfg)
+    analyze(AnalyzeSettings.from_config(cfg))
     assert trust_line(check) in (tmp_path / "an" / "statistics.md").read_text()
     assert json.loads((tmp_path / "an" / "summary.json").read_text())["closed_loop"] == check
 

@@ -3,6 +3,7 @@ a key the class does not take or a missing group file fails here, not in a user'
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -112,3 +113,50 @@ def test_the_training_grid_the_profile_predicts_is_the_one_training_mines():
 
     assert compose([], config_name="train").data.stride == STRIDE
     assert inspect.signature(RealPatchDataModule.__init__).parameters["stride"].default == STRIDE
+
+
+def test_read_settings_types_each_key_by_its_field_and_names_the_key_it_refuses():
+    """The one reader of a stage's keys: a field's type and bounds decide, an absent key takes the field's default,
+    a required one is named, an empty string where null is allowed is null, a field's own check speaks for itself."""
+    import dataclasses
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from drgan.core.errors import ConfigError
+    from drgan.launch.configs import read_settings, setting
+
+    def even(stage, value):
+        if value % 2:
+            raise ConfigError(f"{stage}: odd={value}: expected an even number")
+        return value // 2
+
+    @dataclasses.dataclass(frozen=True)
+    class Keys:
+        folder: Path = setting()
+        model: str | None = None
+        bins: int = setting(30, ge=1)
+        alpha: float = 0.5
+        flag: bool = False
+        rows: tuple[int, int] | str | None = "auto"
+        names: tuple[str, ...] = ()
+        odd: int = setting(4, check=even)
+
+    cfg = OmegaConf.create({"folder": "x", "model": "", "bins": 3, "alpha": 1, "rows": [2, 5], "names": ["a", "b"],
+                            "odd": 8, "unrelated": 1})  # fmt: skip
+    keys = read_settings(Keys, cfg, "stage")
+    assert keys == Keys(folder=Path("x"), model=None, bins=3, alpha=1.0, rows=(2, 5), names=("a", "b"), odd=4)
+    assert isinstance(keys.alpha, float) and read_settings(Keys, OmegaConf.create({"folder": "y"}), "s").bins == 30
+    refused = {
+        "bins": (0, "stage: bins=0: expected an integer >= 1"),
+        "flag": ("yes", "stage: flag='yes': expected true or false"),
+        "alpha": (True, "stage: alpha=True: expected a number"),
+        "rows": ([1, 2, 3], "expected a list of 2 or a string or null"),
+        "names": ("a", "expected a list"),
+        "odd": (3, "stage: odd=3: expected an even number"),
+    }
+    for key, (value, message) in refused.items():
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            read_settings(Keys, OmegaConf.create({"folder": "x", key: value}), "stage")
+    with pytest.raises(ConfigError, match=re.escape("stage: data.folder is not set")):
+        read_settings(Keys, OmegaConf.create({}), "stage", prefix="data.")

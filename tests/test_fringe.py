@@ -310,7 +310,7 @@ def test_the_profile_writes_a_measured_fringe_into_a_transmission_material(tmp_p
     from PIL import Image
 
     from drgan.models import build
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
     from drgan.profiling.proposal import FRINGE_LIMIT_FACTOR
 
     folder = tmp_path / "images"
@@ -321,7 +321,9 @@ def test_the_profile_writes_a_measured_fringe_into_a_transmission_material(tmp_p
         Image.fromarray((image * 255).round().astype(np.uint8)).save(folder / f"im{i}.png")
     monkeypatch.chdir(tmp_path)
     result = profile(
-        compose([f"data.dir={folder}", "name=tem_discs", f"out={tmp_path / 'out'}"], config_name="profile")
+        ProfileSettings.from_config(
+            compose([f"data.dir={folder}", "name=tem_discs", f"out={tmp_path / 'out'}"], config_name="profile")
+        )
     )
     assert result.material.parent == "tio2_tsem"
     edge = result.edge

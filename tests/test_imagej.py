@@ -92,7 +92,7 @@ def test_fill_polygon_reads_a_square_as_imagej_does():
 def test_analyze_writes_a_label_tiff_and_roi_set_per_image_matching_its_particles_csv(tmp_path):
     from PIL import Image
 
-    from drgan.analyze import analyze
+    from drgan.analyze import AnalyzeSettings, analyze
     from drgan.launch.configs import compose
 
     images = tmp_path / "images"
@@ -113,7 +113,7 @@ def test_analyze_writes_a_label_tiff_and_roi_set_per_image_matching_its_particle
 
     cfg = compose([f"images={images}", f"out={tmp_path / 'out'}", "nm_per_px=3.0", "bootstrap=0", "min_area_px=5"],
                   config_name="analyze")  # fmt: skip
-    rows = analyze(cfg, predictor=predictor)
+    rows = analyze(AnalyzeSettings.from_config(cfg), predictor=predictor)
     table = list(csv.DictReader(open(tmp_path / "out" / "particles.csv")))
     assert len(table) == len(rows) == 4
     for image in ("im0", "im1"):
@@ -139,7 +139,7 @@ def _analyzed(tmp_path):
     """An analyze folder of two images with real particles (a stub predictor: the bright pixels)."""
     from PIL import Image
 
-    from drgan.analyze import analyze
+    from drgan.analyze import AnalyzeSettings, analyze
     from drgan.launch.configs import compose
 
     images = tmp_path / "images"
@@ -154,7 +154,7 @@ def _analyzed(tmp_path):
         Image.fromarray((img * 255).astype(np.uint8)).save(images / f"field{k}.png")
     cfg = compose([f"images={images}", f"out={tmp_path / 'out'}", "nm_per_px=2.0", "bootstrap=50"],
                   config_name="analyze")  # fmt: skip
-    rows = analyze(cfg, predictor=lambda image: (np.asarray(image) > 0.5).astype(np.int64))
+    rows = analyze(AnalyzeSettings.from_config(cfg), predictor=lambda image: (np.asarray(image) > 0.5).astype(np.int64))
     return tmp_path / "out", rows
 
 

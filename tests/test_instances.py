@@ -128,8 +128,8 @@ def test_the_crops_carry_the_centre_targets_of_the_whole_image_cut_and_turned_wi
 
 
 def test_a_few_training_steps_through_segment_evaluate_and_analyze(tmp_path):
-    from drgan.analyze import analyze
-    from drgan.evaluate import evaluate
+    from drgan.analyze import AnalyzeSettings, analyze
+    from drgan.evaluate import EvaluateSettings, evaluate
     from drgan.segment import segment
     from drgan.segmenters.registry import load_segmenter
 
@@ -151,11 +151,13 @@ def test_a_few_training_steps_through_segment_evaluate_and_analyze(tmp_path):
     real = make_real(tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255},
                      {"train": [], "test": ["x"]})  # fmt: skip
     last = out / "checkpoints" / "last.ckpt"
-    result = evaluate(eval_cfg(real, tmp_path / "eval", [f"model={last}", "inference.tile=32"]))
+    result = evaluate(
+        EvaluateSettings.from_config(eval_cfg(real, tmp_path / "eval", [f"model={last}", "inference.tile=32"]))
+    )
     assert 0.0 <= result["mean"]["dsc"] <= 1.0
     assert f"seed_level {calibration['seed_level']}" in (tmp_path / "eval" / "results.md").read_text()
-    rows = analyze(compose([f"images={real / 'images'}", f"out={tmp_path / 'an'}", f"model={last}",
-                            "inference.tile=32"], config_name="analyze"))  # fmt: skip
+    rows = analyze(AnalyzeSettings.from_config(compose([f"images={real / 'images'}", f"out={tmp_path / 'an'}", f"model={last}",
+                            "inference.tile=32"], config_name="analyze")))  # fmt: skip
     assert (tmp_path / "an" / "particles.csv").is_file() and isinstance(rows, list)
 
 
@@ -211,7 +213,7 @@ def test_the_working_scale_follows_the_median_particle_and_stops_at_one_crop():
 
 
 def test_the_instance_aware_segmenter_learns_at_its_working_scale_and_infers_at_the_same(tmp_path):
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
     from drgan.metrics.statistics import area_median, diameters_of
     from drgan.segment import LoaderSettings, segment, working_px_of
     from drgan.segmenters.module import SegmenterModule
@@ -241,10 +243,10 @@ def test_the_instance_aware_segmenter_learns_at_its_working_scale_and_infers_at_
     labels = disc_labels(48, n=4, seed=7)
     real = make_real(tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255},
                      {"train": [], "test": ["x"]})  # fmt: skip
-    result = evaluate(eval_cfg(real, tmp_path / "eval", [f"model={out / 'checkpoints' / 'last.ckpt'}",
-                                                          "inference.tile=32"]))  # fmt: skip
+    result = evaluate(EvaluateSettings.from_config(eval_cfg(real, tmp_path / "eval", [f"model={out / 'checkpoints' / 'last.ckpt'}",
+                                                          "inference.tile=32"])))  # fmt: skip
     assert 0.0 <= result["mean"]["dsc"] <= 1.0  # the 48-px image shrunk to 24 px, its class map brought back
-    per_image = evaluate(eval_cfg(real, tmp_path / "eval_per_image", [f"model={out / 'checkpoints' / 'last.ckpt'}",
+    per_image = evaluate(EvaluateSettings.from_config(eval_cfg(real, tmp_path / "eval_per_image", [f"model={out / 'checkpoints' / 'last.ckpt'}",
                                                                       "inference.tile=32",
-                                                                      "inference.pixel_scale=per_image"]))  # fmt: skip
+                                                                      "inference.pixel_scale=per_image"])))  # fmt: skip
     assert 0.0 <= per_image["mean"]["dsc"] <= 1.0

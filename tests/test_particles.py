@@ -281,7 +281,7 @@ def test_an_empty_field_fails_clearly():
 def test_empty_folder_profile_says_what_was_tried_and_writes_the_figure(tmp_path, monkeypatch):
     from conftest import compose
 
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
 
     rng = np.random.default_rng(5)
     folder = tmp_path / "images"
@@ -291,7 +291,7 @@ def test_empty_folder_profile_says_what_was_tried_and_writes_the_figure(tmp_path
     monkeypatch.chdir(tmp_path)
     cfg = compose([f"data.dir={folder}", "name=empty", f"out={tmp_path / 'out'}", "patch_size=64"], "profile")
     with pytest.raises(DataError) as error:
-        profile(cfg)
+        profile(ProfileSettings.from_config(cfg))
     message = str(error.value)
     assert "no particles found" in message and "data.segment.scale" in message and "data.polarity" in message
     assert "nan" not in message and "no consistent particle size" in message and "scales (6-" in message

@@ -148,7 +148,7 @@ def _folder(tmp_path, polarity, n=3):
 
 
 def test_a_folder_whose_images_disagree_on_polarity_names_the_odd_ones(tmp_path, monkeypatch, caplog):
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
 
     folder = tmp_path / "images"
     folder.mkdir()
@@ -159,7 +159,7 @@ def test_a_folder_whose_images_disagree_on_polarity_names_the_odd_ones(tmp_path,
     monkeypatch.chdir(tmp_path)
     overrides = [f"data.dir={folder}", "data.crop_rows=null", "name=mixed", f"out={tmp_path / 'out'}"]
     with caplog.at_level("WARNING", logger="drgan.profile"):
-        result = profile(compose(overrides, config_name="profile"))
+        result = profile(ProfileSettings.from_config(compose(overrides, config_name="profile")))
     assert result.polarity.value == "bright"
     warned = [r.getMessage() for r in caplog.records if "look like dark particles" in r.getMessage()]
     assert len(warned) == 1 and "c.png" in warned[0] and "a.png" not in warned[0]
@@ -171,7 +171,7 @@ def test_sizes_are_measured_at_half_contrast_whatever_the_segmented_outline(tmp_
     sizes, which the material's size distribution takes, stay those of the particles at half contrast."""
     from skimage.segmentation import expand_labels
 
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
 
     folder = tmp_path / "images"
     folder.mkdir()
@@ -191,7 +191,7 @@ def test_sizes_are_measured_at_half_contrast_whatever_the_segmented_outline(tmp_
     monkeypatch.setattr(est, "segment_image", wide)
     monkeypatch.chdir(tmp_path)
     overrides = [f"data.dir={folder}", "data.crop_rows=null", "name=blurred", f"out={tmp_path / 'out'}"]
-    sizes = profile(compose(overrides, config_name="profile")).sizes
+    sizes = profile(ProfileSettings.from_config(compose(overrides, config_name="profile"))).sizes
     median = float(np.median(truth))
     assert sizes.segmented_median_diameter_px > median + 2 * grow - 1  # the outlines measured are that wide
     assert abs(sizes.outline_shift_px + grow) < 0.6  # half contrast found inside them by about what they grew
@@ -202,12 +202,12 @@ def test_sizes_are_measured_at_half_contrast_whatever_the_segmented_outline(tmp_
 
 
 def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp_path, monkeypatch):
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
 
     folder = _folder(tmp_path, "bright")
     monkeypatch.chdir(tmp_path)
     overrides = [f"data.dir={folder}", "data.crop_rows=[320,336]", "name=my_discs", f"out={tmp_path / 'out'}"]
-    result = profile(compose(overrides, config_name="profile"))
+    result = profile(ProfileSettings.from_config(compose(overrides, config_name="profile")))
     assert result.polarity.value == "bright" and result.data.split is None
     figures = ("sizes.png", "scale_search.png", "particles.png", "background_noise.png", "edge_profile.png")
     for name in ("profile.json", "report.md", *figures):
@@ -289,18 +289,22 @@ def test_cli_end_to_end_writes_profile_figures_and_a_material_train_composes(tmp
     assert "no scale agreed with its segments' size" in note and f"one size ({size:.1f} px)" in note
 
     with pytest.raises(ConfigError, match="exists"):
-        profile(compose(overrides, config_name="profile"))  # no overwrite without overwrite=true
+        profile(
+            ProfileSettings.from_config(compose(overrides, config_name="profile"))
+        )  # no overwrite without overwrite=true
 
 
 def test_dark_images_inherit_the_transmission_material_and_get_a_grain(tmp_path, monkeypatch):
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
 
     folder = _folder(tmp_path, "dark", n=2)
     monkeypatch.chdir(tmp_path)
     overrides = [f"data.dir={folder}", "name=dark_discs", f"out={tmp_path / 'out'}", "data.segment.neck_depth=0.2"]
     # the discs' median diameter given (the search is the bright test's, above): keys given travel, with their values
     overrides += ["data.segment.grow_outlines=false", "data.segment.scale=20"]
-    result = profile(compose(overrides, config_name="profile"))  # crop_rows auto: the white bar found and dropped
+    result = profile(
+        ProfileSettings.from_config(compose(overrides, config_name="profile"))
+    )  # crop_rows auto: the white bar found and dropped
     assert result.polarity.value == "dark" and result.material.parent == "tio2_tsem"
     assert result.data.crop_rows == "auto" and abs(result.sizes.median_diameter_px / 20 - 1) < 0.1
     text = (tmp_path / "drgan_conf" / "material" / "dark_discs.yaml").read_text()
@@ -368,7 +372,7 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
     """Particles that fill a render-sized window (EMPS saa890: 282 px in 256 px windows, none whole in any) are
     learned from wider windows, area-averaged to the render: the material says how wide, counts are per window,
     and the detector's grain is written in render px."""
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
 
     folder = tmp_path / "images"
     folder.mkdir()
@@ -379,7 +383,7 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
     monkeypatch.chdir(tmp_path)
     overrides = [f"data.dir={folder}", "name=big_discs", f"out={tmp_path / 'out'}", "patch_size=32",
                  "data.crop_rows=null", "data.segment.scale=40", "data.segment.neck_depth=0.0"]  # fmt: skip
-    result = profile(compose(overrides, config_name="profile"))
+    result = profile(ProfileSettings.from_config(compose(overrides, config_name="profile")))
     counts = result.particles_per_patch
     assert abs(result.sizes.median_diameter_px / 40 - 1) < 0.15
     assert counts.patch_size == 128 and counts.render_px == 32  # 44 px extent > 0.6 x 64; 256 > the 160 px images
@@ -430,24 +434,32 @@ def test_large_particles_get_a_training_window_wider_than_the_render(tmp_path, m
 
 
 def test_errors_before_compute(tmp_path, monkeypatch):
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
 
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ConfigError, match="data.dir"):
-        profile(compose(["name=x"], config_name="profile"))
+        profile(ProfileSettings.from_config(compose(["name=x"], config_name="profile")))
     with pytest.raises(ConfigError, match="no such folder"):
-        profile(compose([f"data.dir={tmp_path / 'missing'}", "name=x"], config_name="profile"))
+        profile(
+            ProfileSettings.from_config(compose([f"data.dir={tmp_path / 'missing'}", "name=x"], config_name="profile"))
+        )
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="no image files"):
-        profile(compose([f"data.dir={tmp_path / 'empty'}", "name=x"], config_name="profile"))
+        profile(
+            ProfileSettings.from_config(compose([f"data.dir={tmp_path / 'empty'}", "name=x"], config_name="profile"))
+        )
     folder = _folder(tmp_path, "bright", n=1)
     with pytest.raises(DataError, match="crop_rows"):
-        profile(compose([f"data.dir={folder}", "data.crop_rows=[300,400]", "name=x"], config_name="profile"))
+        profile(
+            ProfileSettings.from_config(
+                compose([f"data.dir={folder}", "data.crop_rows=[300,400]", "name=x"], config_name="profile")
+            )
+        )
     with pytest.raises(ConfigError, match="name"):
-        profile(compose([f"data.dir={folder}"], config_name="profile"))
+        profile(ProfileSettings.from_config(compose([f"data.dir={folder}"], config_name="profile")))
     with pytest.raises(ConfigError, match="name=tio2_tsem: a material drgan ships has that name"):
         profile(
-            compose([f"data.dir={folder}", "name=tio2_tsem"], config_name="profile")
+            ProfileSettings.from_config(compose([f"data.dir={folder}", "name=tio2_tsem"], config_name="profile"))
         )  # would shadow the shipped one
     assert not (tmp_path / "drgan_conf").exists()
 

@@ -684,10 +684,13 @@ def eval_cfg(data, out, extra=()):
 
 
 def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
-    from drgan.evaluate import GREEN, RED, SCORES, YELLOW, evaluate
+    from drgan.evaluate import GREEN, RED, SCORES, YELLOW, EvaluateSettings, evaluate
 
     data, predictors = _hand_case(tmp_path)
-    result = evaluate(eval_cfg(data, tmp_path / "out", ["overlay_alpha=1.0"]), predictors=predictors)
+    result = evaluate(
+        EvaluateSettings.from_config(eval_cfg(data, tmp_path / "out", ["overlay_alpha=1.0"]), need_models=False),
+        predictors=predictors,
+    )
     part = result["runs"]["partial"]
     assert part["dsc"] == pytest.approx(32 / 52) and part["ap50"] == pytest.approx(1 / 3)
     assert part["pq"] == pytest.approx(0.5) and part["sq"] == pytest.approx(1.0) and part["rq"] == pytest.approx(0.5)
@@ -722,7 +725,7 @@ def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
     ],
 )
 def test_evaluate_refuses_bad_inputs_before_writing(case, message, tmp_path):
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
 
     image, mask = np.full((16, 16), 0.5), np.zeros((16, 16), np.uint8)
     masks = {"a": mask}
@@ -741,9 +744,12 @@ def test_evaluate_refuses_bad_inputs_before_writing(case, message, tmp_path):
     out = tmp_path / "out"
     with pytest.raises(DataError, match=message):
         if case.startswith("not_"):
-            evaluate(eval_cfg(data, out, [f"models=[{ckpt}]"]))
+            evaluate(EvaluateSettings.from_config(eval_cfg(data, out, [f"models=[{ckpt}]"])))
         else:
-            evaluate(eval_cfg(data, out), predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
+            evaluate(
+                EvaluateSettings.from_config(eval_cfg(data, out), need_models=False),
+                predictors={"x": lambda im: np.zeros(im.shape, np.uint8)},
+            )
     assert not out.exists()
 
 
@@ -767,7 +773,7 @@ def tiny_segment_overrides(data, root, out, *extra) -> list[str]:
 
 
 def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
     from drgan.segment import TrainingPairs, segment
 
     data = make_generated(tmp_path / "gen")
@@ -813,7 +819,11 @@ def test_segment_trains_resumes_logs_and_evaluates(tmp_path, monkeypatch):
     real = make_real(
         tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]}
     )
-    result = evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{last},{last}]", "inference.tile=32"]))
+    result = evaluate(
+        EvaluateSettings.from_config(
+            eval_cfg(real, tmp_path / "eval", [f"models=[{last},{last}]", "inference.tile=32"])
+        )
+    )
     assert set(result["runs"]) == {"run0", "run1"} and result["std"]["dsc"] == pytest.approx(0.0)
     assert "split calibrated on" in (tmp_path / "eval" / "results.md").read_text()
     assert "images resampled by 0.5" in (tmp_path / "eval" / "results.md").read_text()  # says how it was scored
@@ -933,7 +943,7 @@ def test_evaluate_takes_one_model_and_a_list(tmp_path):
 
 
 def test_analyze_areas_equal_true_disc_areas(tmp_path):
-    from drgan.analyze import analyze
+    from drgan.analyze import AnalyzeSettings, analyze
 
     yy, xx = np.mgrid[:48, :48]
     labels = np.zeros((48, 48), np.int32)
@@ -946,7 +956,7 @@ def test_analyze_areas_equal_true_disc_areas(tmp_path):
         [f"images={folder}", f"out={tmp_path / 'out'}", "nm_per_px=2.0", "min_area_px=0", "wires=true"],
         config_name="analyze",
     )
-    rows = analyze(cfg, predictor=lambda im: (labels > 0).astype(np.uint8))
+    rows = analyze(AnalyzeSettings.from_config(cfg), predictor=lambda im: (labels > 0).astype(np.uint8))
     true_areas = sorted(int((labels == k).sum()) for k in range(1, labels.max() + 1))
     assert sorted(r["area_px"] for r in rows) == true_areas
     r = rows[0]
@@ -975,14 +985,17 @@ def test_local_thickness_of_a_strip():
 
 
 def test_mask_of_another_size_is_reported_with_both_sizes_not_as_a_crop_problem(tmp_path):
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
 
     # A TiO2-style crop [712, 768]: the image has 770 rows, its mask half of them.
     image, mask = np.full((770, 16), 0.5), np.zeros((385, 8), np.uint8)
     data = make_real(tmp_path / "real", {"a": image}, {"a": mask}, {"train": [], "test": ["a"]})
     cfg = compose([f"data={data}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate")
     with pytest.raises(DataError) as caught:
-        evaluate(cfg, predictors={"x": lambda im: np.zeros(im.shape, np.uint8)})
+        evaluate(
+            EvaluateSettings.from_config(cfg, need_models=False),
+            predictors={"x": lambda im: np.zeros(im.shape, np.uint8)},
+        )
     message = str(caught.value)
     assert "a_m.tif: size 8 x 385 px (W x H) differs from its image" in message and "a.tif: 16 x 770 px" in message
     assert "or, without its info bar, 16 x 714 px" in message and "crop_rows" not in message
@@ -995,7 +1008,10 @@ def test_mask_of_another_size_is_reported_with_both_sizes_not_as_a_crop_problem(
     )
     with pytest.raises(DataError, match=r"a\.tif: crop_rows .*inside its 20 rows"):
         evaluate(
-            compose([f"data={small}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate"),
+            EvaluateSettings.from_config(
+                compose([f"data={small}", f"out={tmp_path / 'out'}", "crop_rows=[712,768]"], config_name="evaluate"),
+                need_models=False,
+            ),
             predictors={"x": lambda im: np.zeros(im.shape, np.uint8)},
         )
 
@@ -1032,13 +1048,17 @@ def test_info_bars_are_found_and_masks_published_without_them_are_accepted(tmp_p
 
 @pytest.mark.parametrize("key, entry", [("real", "segment"), ("data", "segment"), ("data", "evaluate")])
 def test_missing_dataset_folder_is_named_with_its_setting(key, entry, tmp_path):
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
     from drgan.segment import segment
 
     missing = tmp_path / "nowhere"
     no_logger = ["logger=none"] if entry == "segment" else []
     cfg = compose([f"{key}={missing}", f"out={tmp_path / 'out'}", *no_logger], config_name=entry)
-    run = segment if entry == "segment" else lambda c: evaluate(c, predictors={"x": lambda im: im})
+    run = (
+        segment
+        if entry == "segment"
+        else lambda c: evaluate(EvaluateSettings.from_config(c, need_models=False), predictors={"x": lambda im: im})
+    )
     with pytest.raises(DataError, match=rf"^{key}={missing}: no such folder \(expected a") as caught:
         run(cfg)
     assert "split.json: no such file" not in str(caught.value) and not (tmp_path / "out").exists()

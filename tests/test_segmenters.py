@@ -130,8 +130,8 @@ def test_checkpoint_round_trip_and_checkpoints_without_target(tmp_path):
 @pytest.mark.parametrize("target", ["payload_mod.Segmenter", "os.system", "drgan.models.gan_module.GANModule"])
 def test_checkpoint_naming_a_class_outside_the_allow_list_is_refused_before_importing_it(target, tmp_path, monkeypatch):
     """The module a refused name points to is not imported: importing payload_mod would create the marker."""
-    from drgan.analyze import analyze
-    from drgan.evaluate import evaluate
+    from drgan.analyze import AnalyzeSettings, analyze
+    from drgan.evaluate import EvaluateSettings, evaluate
 
     marker = tmp_path / "payload_ran"
     (tmp_path / "payload_mod.py").write_text(
@@ -149,10 +149,12 @@ def test_checkpoint_naming_a_class_outside_the_allow_list_is_refused_before_impo
         tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]}
     )
     with pytest.raises(ConfigError, match=refused):
-        evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{path}]"]))
+        evaluate(EvaluateSettings.from_config(eval_cfg(real, tmp_path / "eval", [f"models=[{path}]"])))
     with pytest.raises(ConfigError, match=refused):
         analyze(
-            compose([f"model={path}", f"images={real / 'images'}", f"out={tmp_path / 'an'}"], config_name="analyze")
+            AnalyzeSettings.from_config(
+                compose([f"model={path}", f"images={real / 'images'}", f"out={tmp_path / 'an'}"], config_name="analyze")
+            )
         )
     assert not marker.exists() and "payload_mod" not in sys.modules
     assert ("drgan.models.gan_module" in sys.modules) == gan_loaded
@@ -214,7 +216,7 @@ def test_evaluate_scores_a_folder_of_predicted_masks_like_a_checkpoint(tmp_path)
     b.png (20 x 24, the file's size: its bar rows go, as the image's do): D and E as particle, column 9 between them
     contour (class 2) -> DSC 1, AP50 1. Contour counted as particle would merge D and E into one 66-px instance
     (IoU 30 / 66 < 0.5 with each): AP50 0."""
-    from drgan.evaluate import SCORES, evaluate
+    from drgan.evaluate import SCORES, EvaluateSettings, evaluate
 
     data = bar_dataset(tmp_path)
     preds = tmp_path / "nnunet_out"
@@ -238,7 +240,7 @@ def test_evaluate_scores_a_folder_of_predicted_masks_like_a_checkpoint(tmp_path)
     ckpt = save_checkpoint(tmp_path / "net.ckpt", dict(model.hparams), model.state_dict())
     out = tmp_path / "eval"
     cfg = eval_cfg(data, out, ["crop_rows=[20,24]", f"models=[{preds},{ckpt}]", "inference.tile=32"])
-    result = evaluate(cfg)
+    result = evaluate(EvaluateSettings.from_config(cfg))
     folder = result["runs"]["run0"]
     assert folder["dsc"] == pytest.approx((32 / 52 + 1) / 2) and folder["ap50"] == pytest.approx((1 / 3 + 1) / 2)
     rows = {(r["run"], r["image"]): r for r in result["rows"]}
@@ -261,7 +263,7 @@ def test_evaluate_scores_a_folder_of_predicted_masks_like_a_checkpoint(tmp_path)
 
 
 def test_a_mask_folder_that_does_not_fit_the_test_images_is_refused_naming_every_file(tmp_path):
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
 
     images = {k: np.full((16, 16), 0.5) for k in ("a", "b", "d", "e")}
     masks = {k: np.zeros((16, 16), np.uint8) for k in images}
@@ -276,7 +278,7 @@ def test_a_mask_folder_that_does_not_fit_the_test_images_is_refused_naming_every
     write_png(preds / "z.png", np.zeros((16, 16)))  # no test image z
     out = tmp_path / "eval"
     with pytest.raises(DataError) as caught:
-        evaluate(eval_cfg(data, out, [f"model={preds}"]))
+        evaluate(EvaluateSettings.from_config(eval_cfg(data, out, [f"model={preds}"])))
     message = str(caught.value)
     assert message.startswith(f"model={preds}: the predicted masks do not match the 4 image(s)")
     for line in [
@@ -292,13 +294,13 @@ def test_a_mask_folder_that_does_not_fit_the_test_images_is_refused_naming_every
     empty = tmp_path / "run_folder"
     (empty / "checkpoints").mkdir(parents=True)
     with pytest.raises(DataError, match=r"a folder without predicted masks .*give model=.*last\.ckpt"):
-        evaluate(eval_cfg(data, out, [f"model={empty}"]))
+        evaluate(EvaluateSettings.from_config(eval_cfg(data, out, [f"model={empty}"])))
     with pytest.raises(DataError, match=r"model=.*nowhere: no such file or folder \(expected a segmenter checkpoint"):
-        evaluate(eval_cfg(data, out, [f"model={tmp_path / 'nowhere'}"]))
+        evaluate(EvaluateSettings.from_config(eval_cfg(data, out, [f"model={tmp_path / 'nowhere'}"])))
 
 
 def test_analyze_measures_a_folder_of_predicted_masks(tmp_path):
-    from drgan.analyze import analyze
+    from drgan.analyze import AnalyzeSettings, analyze
 
     labels = disc_labels(48, n=4, seed=2)
     images, preds = tmp_path / "images", tmp_path / "preds"
@@ -309,14 +311,14 @@ def test_analyze_measures_a_folder_of_predicted_masks(tmp_path):
         [f"model={preds}", f"images={images}", f"out={tmp_path / 'out'}", "min_area_px=0", "crop_rows=null"],
         config_name="analyze",
     )
-    rows = analyze(cfg)
+    rows = analyze(AnalyzeSettings.from_config(cfg))
     from drgan.metrics.instance_scores import binarize_and_label
 
     expected = np.bincount(binarize_and_label((labels > 0).astype(np.int64)).ravel())[1:]
     assert sorted(r["area_px"] for r in rows) == sorted(expected.tolist())
     write_png(images / "second.png", disc_image(labels) * 255)
     with pytest.raises(DataError, match="missing: no mask for 1 image.*: second"):
-        analyze(cfg)
+        analyze(AnalyzeSettings.from_config(cfg))
 
 
 # --- a toy segmenter, added as CONTRIBUTING.md says -------------------------------------------------------------
@@ -368,7 +370,7 @@ def test_a_new_segmenter_is_a_registered_class_that_segment_trains_and_evaluate_
     from omegaconf import OmegaConf, open_dict
     from test_segment import make_generated
 
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
     from drgan.segment import segment
 
     (tmp_path / "toy_segmenter.py").write_text(TOY_SEGMENTER)
@@ -399,11 +401,17 @@ def test_a_new_segmenter_is_a_registered_class_that_segment_trains_and_evaluate_
         real = make_real(
             tmp_path / "real", {"x": disc_image(labels)}, {"x": (labels > 0) * 255}, {"train": [], "test": ["x"]}
         )
-        result = evaluate(eval_cfg(real, tmp_path / "eval", [f"models=[{last}]", "inference.tile=32"]))
+        result = evaluate(
+            EvaluateSettings.from_config(eval_cfg(real, tmp_path / "eval", [f"models=[{last}]", "inference.tile=32"]))
+        )
         assert set(result["runs"]) == {"run0"} and 0.0 <= result["runs"]["run0"]["dsc"] <= 1.0
 
         monkeypatch.setattr(registry, "_REGISTRY", {})  # the same checkpoint, the class not registered
         with pytest.raises(ConfigError, match="'toy_segmenter.PixelSegmenter' is not an allowed segmenter"):
-            evaluate(eval_cfg(real, tmp_path / "eval2", [f"models=[{last}]", "inference.tile=32"]))
+            evaluate(
+                EvaluateSettings.from_config(
+                    eval_cfg(real, tmp_path / "eval2", [f"models=[{last}]", "inference.tile=32"])
+                )
+            )
     finally:
         sys.modules.pop("toy_segmenter", None)

@@ -94,7 +94,7 @@ def test_bootstrap_intervals_cover_the_value_and_collapse_when_nothing_differs()
 
 
 def test_evaluate_writes_particle_statistics_and_the_classical_baseline_finds_the_discs(tmp_path):
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
 
     ids = ["a", "b", "c"]
     labels = {i: disc_labels(48, n=4, radius=5.0, seed=k) for k, i in enumerate(ids)}
@@ -116,7 +116,10 @@ def test_evaluate_writes_particle_statistics_and_the_classical_baseline_finds_th
             return (labels[item.id] > 0).astype(np.uint8)
 
     cfg = eval_cfg(data, tmp_path / "out", ["bootstrap=50"])
-    result = evaluate(cfg, predictors={"masks": Truth(), "classical": load_predictor("classical")})
+    result = evaluate(
+        EvaluateSettings.from_config(cfg, need_models=False),
+        predictors={"masks": Truth(), "classical": load_predictor("classical")},
+    )
     exact = result["statistics"]["masks"]
     assert exact["median_error"]["value"] == 0 and exact["count_error"]["value"] == 0 and exact["ks"]["value"] == 0
     classical = result["statistics"]["classical"]
@@ -139,7 +142,7 @@ def test_evaluate_writes_particle_statistics_and_the_classical_baseline_finds_th
 
 def test_evaluate_leaves_specks_out_of_the_statistics_on_both_sides(tmp_path):
     from drgan.core.errors import ConfigError
-    from drgan.evaluate import evaluate
+    from drgan.evaluate import EvaluateSettings, evaluate
 
     ids = ["a", "b"]
     labels = {i: disc_labels(48, n=3, radius=6.0, seed=k) for k, i in enumerate(ids)}
@@ -163,7 +166,9 @@ def test_evaluate_leaves_specks_out_of_the_statistics_on_both_sides(tmp_path):
 
     def count_error(min_area):
         cfg = eval_cfg(data, tmp_path / f"out{min_area}", ["bootstrap=0", f"min_area_px={min_area}"])
-        return evaluate(cfg, predictors={"clean": Clean()})["statistics"]["clean"]["count_error"]["value"]
+        return evaluate(EvaluateSettings.from_config(cfg, need_models=False), predictors={"clean": Clean()})[
+            "statistics"
+        ]["clean"]["count_error"]["value"]
 
     assert count_error(8) == 0
     assert count_error(0) < 0  # the specks count as particles the prediction missed
@@ -173,7 +178,10 @@ def test_evaluate_leaves_specks_out_of_the_statistics_on_both_sides(tmp_path):
             raise AssertionError("predicted before the settings were checked")
 
     with pytest.raises(ConfigError, match="min_area_px"):
-        evaluate(eval_cfg(data, tmp_path / "bad", ["min_area_px=-1"]), predictors={"never": Never()})
+        evaluate(
+            EvaluateSettings.from_config(eval_cfg(data, tmp_path / "bad", ["min_area_px=-1"]), need_models=False),
+            predictors={"never": Never()},
+        )
 
 
 def test_error_sources_name_what_became_of_each_true_particle():

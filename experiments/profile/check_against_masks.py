@@ -20,7 +20,7 @@ from omegaconf import OmegaConf
 
 from drgan.data import measurements as est
 from drgan.data.images import read_grey
-from drgan.profile import profile
+from drgan.profile import ProfileSettings, profile
 
 ROOT = Path("/work/shared/datasets")
 SETS = {  # name: (mask file pattern, crop rows of the mask, expected polarity)
@@ -66,7 +66,7 @@ def main() -> None:
                 }
             )
             start = time.perf_counter()
-            result = profile(cfg)
+            result = profile(ProfileSettings.from_config(cfg))
             seconds = time.perf_counter() - start
             params, patch = result["segmentation"]["params"], result["particles_per_patch"]["patch_size"]
             m_median, m_mean, m_med_count = mask_values(name, result["data"]["ids"], params, patch)

@@ -61,7 +61,7 @@ def profile_one(args: tuple[str, str, str]) -> dict:
     """Profile one image alone through drgan.profile.profile; the row of the table (errors caught and recorded)."""
     image_id, images, out = args
     logging.disable(logging.WARNING)
-    from drgan.profile import profile
+    from drgan.profile import ProfileSettings, profile
 
     row = {"id": image_id, **reference(image_id, Path(images))}
     start = time.perf_counter()
@@ -80,7 +80,7 @@ def profile_one(args: tuple[str, str, str]) -> dict:
             "seed": 0,
         })  # fmt: skip
         try:
-            result = profile(cfg)
+            result = profile(ProfileSettings.from_config(cfg))
             row.update(
                 polarity=result["polarity"]["value"],
                 median_px=result["sizes"]["median_diameter_px"],

@@ -46,7 +46,6 @@ import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig
@@ -55,7 +54,7 @@ from drgan.core.errors import ConfigError, pixel_size
 from drgan.core.io import figure_png, write_bytes, write_json
 from drgan.core.progress import track
 from drgan.data.imagej import write_outlines
-from drgan.launch.configs import plain_node
+from drgan.launch.configs import given, read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.instance_scores import binarize_and_label
 from drgan.metrics.statistics import Particles, bootstrap, interval_text, particles, pooled
@@ -227,56 +226,32 @@ class AnalyzeSettings:
     images: Path
     out: Path
     model: str | None = None  # a segmenter checkpoint, or a folder of predicted masks named like the images
-    crop_rows: Any = "auto"  # info-bar rows [start, stop) to drop; auto: detected; None: none
-    nm_per_px: float | None = None  # None: read from each image's metadata, else sizes in px
-    min_area_px: float = 8.0  # smaller components are specks (as drgan.evaluate's statistics)
+    crop_rows: tuple[int, int] | str | None = "auto"  # info-bar rows [start, stop) to drop; auto: detected; None: none
+    nm_per_px: float | None = setting(None, check=pixel_size)  # None: read from each image's metadata, else px
+    min_area_px: float = setting(8.0, ge=0, expected="an area in px^2 >= 0")  # smaller components are specks (as
+    # drgan.evaluate's statistics)
     exclude_border: bool = False
-    bootstrap: int = 1000
+    bootstrap: int = setting(1000, ge=0, expected="a number of resamples >= 0 (0: no intervals)")
     seed: int = 0
     wires: bool = False
-    bins: int = 30
+    bins: int = setting(30, ge=1, expected="a positive integer")
     profile: Path | None = None  # a drgan.profile run of these images: its classical sizes to compare with
     inference: dict = field(default_factory=dict)  # checkpoints only
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> AnalyzeSettings:
-        if not cfg.get("images"):
-            raise ConfigError("analyze: give images=DIR (a folder of images)")
-        min_area = cfg.get("min_area_px", cls.min_area_px)
-        if isinstance(min_area, bool) or not isinstance(min_area, (int, float)) or min_area < 0:
-            raise ConfigError(f"analyze: min_area_px={min_area!r}: expected an area in px^2 >= 0")
-        n_boot = cfg.get("bootstrap", cls.bootstrap)
-        if isinstance(n_boot, bool) or not isinstance(n_boot, int) or n_boot < 0:
-            raise ConfigError(f"analyze: bootstrap={n_boot!r}: expected a number of resamples >= 0 (0: no intervals)")
-        bins = cfg.get("bins", cls.bins)
-        if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
-            raise ConfigError(f"analyze: bins={bins!r}: expected a positive integer")
-        crop = cfg.get("crop_rows", cls.crop_rows)
-        return cls(
-            images=Path(str(cfg.images)),
-            out=Path(str(cfg.out)),
-            model=str(cfg.model) if cfg.get("model") else None,
-            crop_rows=crop if crop is None or isinstance(crop, str) else tuple(crop),
-            nm_per_px=pixel_size("analyze", cfg.get("nm_per_px")),
-            min_area_px=float(min_area),
-            exclude_border=bool(cfg.get("exclude_border", cls.exclude_border)),
-            bootstrap=n_boot,
-            seed=int(cfg.get("seed", cls.seed)),
-            wires=bool(cfg.get("wires", cls.wires)),
-            bins=bins,
-            profile=Path(str(cfg.profile)) if cfg.get("profile") else None,
-            inference=plain_node(cfg, "inference"),
-        )
+        images = given(cfg, "images", "analyze: give images=DIR (a folder of images)")
+        return read_settings(cls, cfg, "analyze", images=Path(str(images)))
 
 
-def analyze(settings: AnalyzeSettings | DictConfig, predictor=None) -> list[dict]:
+def analyze(settings: AnalyzeSettings, predictor=None) -> list[dict]:
     """Analyse every image of the settings' images folder; returns the particle rows.
     predictor: a Predictor or a function image -> class map, instead of the settings' model (tests)."""
     from drgan.data.images import list_images
     from drgan.segmenters import classical_check
     from drgan.segmenters.pairs import read_image_item
 
-    s = settings if isinstance(settings, AnalyzeSettings) else AnalyzeSettings.from_config(settings)
+    s = settings
     reference = classical_check.ClassicalReference.of_run(s.profile) if s.profile else None
     paths = list_images(s.images)
     predictor = _predictor(s, predictor)

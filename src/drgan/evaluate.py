@@ -51,7 +51,7 @@ from drgan.core.errors import ConfigError, pixel_size
 from drgan.core.io import write_bytes, write_json, write_with
 from drgan.core.progress import track
 from drgan.data.imagej import write_outlines
-from drgan.launch.configs import plain_node
+from drgan.launch.configs import given, read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.instance_scores import (
     ERROR_SOURCES,
@@ -162,6 +162,17 @@ NO_MODELS = (
 )
 
 
+def statistics_min_area(stage: str, value) -> float:
+    """``min_area_px`` (px^2, >= 0; null: 0): components below it are specks in the statistics, on both sides."""
+    try:
+        area = float(0 if value is None else value)
+    except (TypeError, ValueError):
+        area = -1.0
+    if not area >= 0:
+        raise ConfigError(f"{stage}: min_area_px={value!r}: expected an area in px^2 >= 0 (0: keep every component)")
+    return area
+
+
 @dataclass(frozen=True)
 class EvaluateSettings:
     """Every key of conf/segmentation/evaluate.yaml with its type, its default and its check (`from_config`, before
@@ -178,12 +189,13 @@ class EvaluateSettings:
     mask_suffix: str = "auto"
     overlays: bool = True
     statistics: bool = True
-    bootstrap: int = 1000
+    bootstrap: int = setting(1000, ge=0, expected="a number of resamples >= 0 (0: no intervals)")
     seed: int = 0
-    nm_per_px: float | None = None
-    min_area_px: float = 8.0
+    nm_per_px: float | None = setting(None, check=pixel_size)
+    min_area_px: float = setting(8.0, check=statistics_min_area)
     overlay_alpha: float = 0.5
-    reported: Path | None = None  # an analyze run of these images: the sizes it reported, scored as run "reported"
+    reported: Path | None = setting(None, check=lambda stage, value: check_reported(value) if value else None)  # an
+    # analyze run of these images: the sizes it reported, scored as run "reported"
     inference: dict = field(default_factory=dict)  # checkpoints only
 
     @classmethod
@@ -192,43 +204,27 @@ class EvaluateSettings:
         predictors directly, as tests do, needs none)."""
         from drgan.segmenters.pairs import REAL_DATASET, check_dataset_folder
 
-        if not cfg.get("data"):
-            raise ConfigError("evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)")
-        data_dir = check_dataset_folder(cfg.data, "data", REAL_DATASET)  # before any checkpoint is read
-        min_area = statistics_min_area(cfg)
-        models = model_sources(cfg) if need_models else [str(m) for m in cfg.get("models") or []]
-        return cls(
-            data=data_dir,
-            out=Path(str(cfg.out)),
-            models=tuple(models),
-            split=cfg.get("split"),
-            subset=str(cfg.get("subset", cls.subset)),
-            crop_rows=cfg.get("crop_rows", cls.crop_rows),
-            masks=cfg.get("masks", cls.masks),
-            mask_suffix=cfg.get("mask_suffix", cls.mask_suffix),
-            overlays=bool(cfg.get("overlays", cls.overlays)),
-            statistics=bool(cfg.get("statistics", cls.statistics)),
-            bootstrap=int(cfg.get("bootstrap", cls.bootstrap)),
-            seed=int(cfg.get("seed", cls.seed)),
-            nm_per_px=pixel_size("evaluate", cfg.get("nm_per_px")),
-            min_area_px=min_area,
-            overlay_alpha=float(cfg.get("overlay_alpha", cls.overlay_alpha)),
-            reported=check_reported(cfg.reported) if cfg.get("reported") else None,
-            inference=plain_node(cfg, "inference"),
+        data = given(
+            cfg, "data", "evaluate: give data=DATASET (a real dataset folder with images/, masks/, split.json)"
         )
+        data_dir = check_dataset_folder(data, "data", REAL_DATASET)  # before any checkpoint is read
+        return read_settings(cls, cfg, "evaluate", data=data_dir, models=tuple(model_sources(cfg, need_models)))
 
 
-def model_sources(cfg: DictConfig) -> list[str]:
+def model_sources(cfg: DictConfig, need_models: bool = True) -> list[str]:
     """The runs to score: ``model=`` (one) and ``models=[A,B,...]`` (several), in that order; each a segmenter
-    checkpoint or a folder of predicted masks."""
-    if isinstance(cfg.get("models"), str):
-        raise ConfigError(f"evaluate: models={cfg.models!r}: expected a list, e.g. models=[a.ckpt,b.ckpt]")
-    models = [str(m) for m in cfg.get("models") or []]
-    if cfg.get("model"):
-        models.insert(0, str(cfg.model))
-    if not models:
+    checkpoint or a folder of predicted masks (none: a ConfigError where ``need_models``)."""
+    runs = read_settings(_Runs, cfg, "evaluate")
+    models = [runs.model, *runs.models] if runs.model else list(runs.models)
+    if not models and need_models:
         raise ConfigError(NO_MODELS)
     return models
+
+
+@dataclass(frozen=True)
+class _Runs:
+    model: str | None = None
+    models: tuple[str, ...] = setting((), expected="a list, e.g. models=[a.ckpt,b.ckpt]")
 
 
 def _inference_line(predictors: dict) -> str:
@@ -240,18 +236,14 @@ def _inference_line(predictors: dict) -> str:
     return "; ".join(f"{run}: {how}" for run, how in hows.items())
 
 
-def evaluate(settings: EvaluateSettings | DictConfig, predictors: dict | None = None) -> dict:
+def evaluate(settings: EvaluateSettings, predictors: dict | None = None) -> dict:
     """Score every run on the test ids; returns {"runs": {run: {score: value}}, "mean": {...}, "std": {...}}.
 
     predictors: optional {run name: Predictor, or f(image) -> class map} instead of the settings' models (tests)."""
     from drgan.segmenters.pairs import load_real_items, real_ids
     from drgan.segmenters.predictors import as_predictor, load_predictor
 
-    s = (
-        settings
-        if isinstance(settings, EvaluateSettings)
-        else EvaluateSettings.from_config(settings, need_models=predictors is None)
-    )
+    s = settings
     if predictors is None:
         if not s.models:
             raise ConfigError(NO_MODELS)
@@ -323,18 +315,6 @@ def summed_sources(per_image: list[dict]) -> dict:
     offsets = np.concatenate([s["diameter_offset"] for s in per_image] or [np.zeros(0)])
     total["diameter_offset"] = float(np.median(offsets)) if len(offsets) else float("nan")
     return total
-
-
-def statistics_min_area(cfg: DictConfig) -> float:
-    """``min_area_px`` (px^2, >= 0): components below it are specks in the statistics, on both sides."""
-    value = cfg.get("min_area_px", EvaluateSettings.min_area_px)
-    try:
-        area = float(0 if value is None else value)
-    except (TypeError, ValueError):
-        area = -1.0
-    if not area >= 0:
-        raise ConfigError(f"evaluate: min_area_px={value!r}: expected an area in px^2 >= 0 (0: keep every component)")
-    return area
 
 
 REPORTED = "reported"  # the run name of the sizes an analyze run reported (``reported=``)

@@ -32,6 +32,7 @@ from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particle_edge import EDGE_BACKGROUND_PX, EDGE_INSIDE_PX, EDGE_INTERIOR_PX, EDGE_OUTSIDE_PX
 from drgan.data.patches import STRIDE, particle_boxes, scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
+from drgan.launch.configs import given, read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.profiling import figures
 from drgan.profiling.proposal import (
@@ -61,22 +62,64 @@ log = logging.getLogger(__name__)
 # --- settings and images ----------------------------------------------------------------------------------
 
 
+def _material_name(stage: str, name) -> str:
+    """``name``: the material's name, a file name of letters, digits, _ or -, not one drgan ships."""
+    from drgan.launch.configs import shipped_materials
+
+    if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
+        raise ConfigError(
+            f"{stage}: name={name!r}: expected a material name of letters, digits, _ or - "
+            "(the config is written as drgan_conf/material/NAME.yaml)"
+        )
+    if str(name) in shipped_materials():
+        raise ConfigError(
+            f"{stage}: name={name}: a material drgan ships has that name ({', '.join(shipped_materials())}); "
+            f"yours would be confused with it on the config search path. Choose another name, e.g. "
+            f"name={name}_mine"
+        )
+    return str(name)
+
+
+def _crop_rows(stage: str, crop) -> tuple[int, int] | str | None:
+    """data.crop_rows: [start, stop) with 0 <= start < stop, auto or null."""
+    if isinstance(crop, str) and crop != "auto":
+        raise ConfigError(f"{stage}: data.crop_rows={crop!r}: expected [start, stop), auto or null")
+    if crop is None or crop == "auto":
+        return crop
+    crop = list(crop)
+    if len(crop) != 2 or not all(isinstance(v, int) for v in crop) or not 0 <= crop[0] < crop[1]:
+        raise ConfigError(f"{stage}: data.crop_rows={crop}: expected [start, stop) with 0 <= start < stop")
+    return crop[0], crop[1]
+
+
+@dataclass(frozen=True)
+class ProfileData:
+    """The ``data`` keys of conf/gan/profile.yaml: the images and how to read them."""
+
+    dir: Path | None = None
+    crop_rows: tuple[int, int] | str | None = setting("auto", check=_crop_rows)
+    split: str | None = "auto"  # resolved by `resolve_split`
+    polarity: str = setting("auto", check=lambda stage, v: check_polarity(v, "data.polarity", allow_auto=True))
+    segment: SegmentParams = setting(SegmentParams(), check=lambda stage, v: SegmentParams.from_config(v))
+
+
 @dataclass(frozen=True)
 class ProfileSettings:
     """The settings of a profile run: every key of conf/gan/profile.yaml with its type, its default and its check
-    (`from_config`), resolved before any image is read. The YAML stays the user's reference (what each key means);
-    the field defaults are the same values (tests/test_profile.py composes profile.yaml and compares). A new key is
-    a field here, its check in `from_config` and, where users should see it, its line in the YAML."""
+    (`from_config`, by `drgan.launch.configs.read_settings`), resolved before any image is read. The YAML stays the
+    user's reference (what each key means); the field defaults are the same values (tests/test_profile.py composes
+    profile.yaml and compares). A new key is a field here (its check beside it) and, where users should see it, its
+    line in the YAML."""
 
-    name: str
-    data_dir: Path
-    out: Path  # figures, profile.json, report.md (the YAML's default: runs/profile/NAME)
+    name: str = setting(check=_material_name)
+    data_dir: Path = setting()  # data.dir
+    out: Path = setting()  # figures, profile.json, report.md (the YAML's default: runs/profile/NAME)
     crop_rows: tuple[int, int] | str | None = "auto"  # [start, stop), "auto" (the info bar found) or None
     split: Path | None = None  # the split.json whose train ids are profiled (data.split resolved); None: every image
     polarity: str = "auto"
     segment: SegmentParams = field(default_factory=SegmentParams)  # data.segment keys set by hand
-    patch_size: int = 256
-    max_images: int | None = None
+    patch_size: int = setting(256, ge=16, expected="an integer >= 16 px")
+    max_images: int | None = setting(None, ge=1, expected="a positive integer or null")
     overwrite: bool = False
     conf_dir: Path = Path("drgan_conf")
     seed: int = 0
@@ -89,56 +132,19 @@ class ProfileSettings:
     @classmethod
     def from_config(cls, cfg: DictConfig) -> ProfileSettings:
         """From the composed profile config; a `ConfigError` naming the key for any value that cannot be right."""
-        if not cfg.get("data") or not cfg.data.get("dir"):
-            raise ConfigError("profile: give data.dir=DIR (a folder of particle images)")
-        name = cfg.get("name")
-        if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
-            raise ConfigError(
-                f"profile: name={name!r}: expected a material name of letters, digits, _ or - "
-                "(the config is written as drgan_conf/material/NAME.yaml)"
-            )
-        from drgan.launch.configs import shipped_materials
-
-        if str(name) in shipped_materials():
-            raise ConfigError(
-                f"profile: name={name}: a material drgan ships has that name ({', '.join(shipped_materials())}); "
-                f"yours would be confused with it on the config search path. Choose another name, e.g. "
-                f"name={name}_mine"
-            )
-        folder = Path(str(cfg.data.dir)).expanduser()
+        no_dir = "profile: give data.dir=DIR (a folder of particle images)"
+        data = read_settings(ProfileData, given(cfg, "data", no_dir), "profile", prefix="data.")
+        if data.dir is None or str(data.dir) == "":
+            raise ConfigError(no_dir)
+        folder = data.dir.expanduser()
+        settings = read_settings(
+            cls, cfg, "profile", data_dir=folder, crop_rows=data.crop_rows, polarity=data.polarity, segment=data.segment
+        )
         if not folder.is_dir():
             raise ConfigError(f"profile: data.dir={folder}: no such folder (expected a folder of images)")
-        crop = cfg.data.get("crop_rows")
-        if isinstance(crop, str) and crop != "auto":
-            raise ConfigError(f"profile: data.crop_rows={crop!r}: expected [start, stop), auto or null")
-        if crop is not None and crop != "auto":
-            crop = list(crop)
-            if len(crop) != 2 or not all(isinstance(v, int) for v in crop) or not 0 <= crop[0] < crop[1]:
-                raise ConfigError(f"profile: data.crop_rows={crop}: expected [start, stop) with 0 <= start < stop")
-            crop = (crop[0], crop[1])
-        polarity = check_polarity(cfg.data.get("polarity", "auto"), "data.polarity", allow_auto=True)
-        patch = cfg.get("patch_size", 256)
-        if not isinstance(patch, int) or patch < 16:
-            raise ConfigError(f"profile: patch_size={patch}: expected an integer >= 16 px")
-        max_images = cfg.get("max_images")
-        if max_images is not None and (not isinstance(max_images, int) or max_images < 1):
-            raise ConfigError(f"profile: max_images={max_images}: expected a positive integer or null")
-        settings = cls(
-            name=str(name),
-            data_dir=folder,
-            crop_rows=crop,
-            polarity=polarity,
-            segment=_segment_setting(cfg),
-            patch_size=patch,
-            max_images=max_images,
-            overwrite=bool(cfg.get("overwrite", False)),
-            conf_dir=Path(str(cfg.get("conf_dir", "drgan_conf"))),
-            out=Path(str(cfg.out)),
-            seed=int(cfg.get("seed", 0)),
-        )
         if settings.conf_path.exists() and not settings.overwrite:
             raise ConfigError(f"profile: {settings.conf_path} exists; choose another name= or set overwrite=true")
-        return replace(settings, split=resolve_split(folder, cfg.data.get("split", "auto")))
+        return replace(settings, split=resolve_split(folder, data.split))
 
 
 def resolve_split(folder: Path, split) -> Path | None:
@@ -170,9 +176,9 @@ def select_images(folder: Path, split_path: Path | None, max_images: int | None)
 # --- the profile ------------------------------------------------------------------------------------------
 
 
-def profile(settings: ProfileSettings | DictConfig) -> ProfileResult:
+def profile(settings: ProfileSettings) -> ProfileResult:
     """Profile the images of data.dir; write figures, profile.json, report.md and the material config."""
-    s = settings if isinstance(settings, ProfileSettings) else ProfileSettings.from_config(settings)
+    s = settings
     paths = select_images(s.data_dir, s.split, s.max_images)
     images = [read_grey(p, s.crop_rows) for p in track(paths, "reading", unit="images")]  # checks crop on every image
     small = [p.name for p, im in zip(paths, images) if min(im.shape) < s.patch_size]
@@ -393,12 +399,6 @@ def write_profile(s: ProfileSettings, result, images, seg: Segmented, sizes, fit
     write_bytes(s.conf_path, yaml_text.encode())
     log.info("wrote %s and %s (parent material %s)", out / "profile.json", s.conf_path, parent)
     return result
-
-
-def _segment_setting(cfg: DictConfig) -> SegmentParams:
-    """data.segment: SegmentParams keys to set by hand (null or {}: all from the particle scale)."""
-    segment = cfg.data.get("segment")
-    return SegmentParams.from_config(OmegaConf.to_container(segment) if isinstance(segment, DictConfig) else segment)
 
 
 def _nothing_found(folder: Path, n: int, polarity: str, setting: str, what: str, out: Path) -> str:
