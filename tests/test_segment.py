@@ -1070,7 +1070,7 @@ def test_missing_dataset_folder_is_named_with_its_setting(key, entry, tmp_path):
         ("loader.crop=abc", "loader.crop='abc': expected an integer >= 1"),
         ("loader.batch_size=0", "loader.batch_size=0: expected an integer >= 1"),
         ("loader.brightness=lots", "loader.brightness='lots': expected a finite number >= 0.0"),
-        ("contour_px=1.5", "contour_px=1.5: expected an integer >= 0"),
+        ("contour_px=1.5", "segment: contour_px=1.5: expected an integer >= 0"),
     ],
 )
 def test_segment_loader_settings_are_named_when_not_numbers(setting, message, tmp_path):

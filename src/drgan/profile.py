@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from drgan.core.errors import ConfigError, DataError
 from drgan.core.io import write_bytes, write_json
 from drgan.core.progress import track
+from drgan.core.settings import given, read_settings, setting
 from drgan.data import measurements as est
 from drgan.data import particle_edge
 from drgan.data.annotations import annotation_mask, as_grey
@@ -32,7 +33,6 @@ from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particle_edge import EDGE_BACKGROUND_PX, EDGE_INSIDE_PX, EDGE_INTERIOR_PX, EDGE_OUTSIDE_PX
 from drgan.data.patches import STRIDE, particle_boxes, scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
-from drgan.launch.configs import given, read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.profiling import figures
 from drgan.profiling.proposal import (

@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from drgan.core.errors import ConfigError, DataError, check_keys, setting_float, setting_int
 from drgan.core.io import write_json
+from drgan.core.settings import read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.segmenters.agreement import agreement_settings
 from drgan.segmenters.contacts import resolve_contact_weight
@@ -110,27 +111,61 @@ class Prepared:
         return {PIXEL_SCALE_KEY: self.pixel_scale, NOISE_KEY: self.noise, WORKING_DIAMETER_KEY: self.diameter}
 
 
+@dataclass(frozen=True)
+class SegmentRun:
+    """The keys of conf/segmentation/segment.yaml that say how a run starts, what it fine-tunes and how it is
+    recorded, typed (`read_settings`); the pairs' source and loader are `TrainingPairs` and `LoaderSettings`, the
+    model and trainer groups are built by the segmenter registry and Hydra."""
+
+    out: Path = setting()
+    name: str = "synthetic"
+    seed: int = 0
+    ckpt_path: str | None = None  # null: fresh; "last": resume the run folder's last.ckpt; or a checkpoint path
+    tags: tuple[str, ...] = ()
+    parent_run: str | None = None
+    data: str | None = None
+    real: str | None = None
+    crop_rows: Any = "auto"
+    finetune: Path | None = None
+    corrected: Path | None = None
+    early_stopping: dict | None = None  # `early_stopping` builds it, once per attempt
+    split_calibration: dict | None = setting(None, check=lambda stage, grid: _check_grid(grid))
+    agreement: Any = setting(None, check=lambda stage, node: agreement_settings(node))
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> SegmentRun:
+        return read_settings(cls, cfg, "segment")
+
+    @property
+    def finetuning(self) -> bool:
+        return self.finetune is not None or self.corrected is not None
+
+
+def _check_grid(grid):
+    from drgan.segmenters.calibrate import check_grid
+
+    return check_grid(grid)
+
+
 def segment(cfg: DictConfig) -> dict:
     """Train one segmenter (or fine-tune one on a user's corrected images: ``finetune=`` with ``corrected=``);
     return final metrics. Writes everything under cfg.out."""
     import lightning.pytorch as L
 
-    from drgan.segmenters.calibrate import check_grid
-
     wall_start = time.perf_counter()
     with open_dict(cfg):
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
-    L.seed_everything(int(cfg.seed), workers=True)
+    run = SegmentRun.from_config(cfg)
+    L.seed_everything(run.seed, workers=True)
 
     # Settings first (early stopping; the model: an allow-listed class, or a ConfigError naming model._target_),
     # then data: bad folders, sizes or mask values fail here, before the run folder gets anything.
-    stopper = early_stopping(cfg.get("early_stopping"))
-    calibration_grid = check_grid(cfg.get("split_calibration"))
-    finetuning = bool(cfg.get("finetune") or cfg.get("corrected"))
-    guard = None if finetuning else agreement_settings(cfg.get("agreement"))
+    stopper = early_stopping(run.early_stopping)
+    calibration_grid = run.split_calibration
+    guard = None if run.finetuning else run.agreement
     if guard is not None:
         return guarded(cfg, guard, calibration_grid)
-    prepared = prepare_finetune(cfg) if finetuning else prepare(cfg)
+    prepared = prepare_finetune(cfg) if run.finetuning else prepare(cfg)
     return fit_and_record(cfg, prepared, stopper, calibration_grid, wall_start)
 
 
@@ -143,21 +178,22 @@ def guarded(cfg: DictConfig, guard, calibration_grid) -> dict:
 
     from drgan.segmenters.agreement import Attempts, check_agreement, read_reference
 
-    out = Path(cfg.out)
+    run = SegmentRun.from_config(cfg)
+    out = run.out
     attempts = Attempts(out, guard)
     if attempts.finished() and (out / "metrics.json").is_file():  # done before (an attempt's own is stashed)
         return _floats(json.loads((out / "metrics.json").read_text()))
     items = read_reference(guard)  # every reference file read and checked before any training
     progress = bool(cfg.trainer.get("enable_progress_bar", True))
-    mlflow = (cfg.get("logger") or {}).get("mlflow")
+    mlflow = (cfg.logger or {}).get("mlflow")
     first_name = None if mlflow is None else mlflow.get("run_name")
     while not attempts.finished():
-        seed = int(cfg.seed) + len(attempts.records)  # the torch seed; the pairs' split stays cfg.seed's
+        seed = run.seed + len(attempts.records)  # the torch seed; the pairs' split stays cfg.seed's
         L.seed_everything(seed, workers=True)
         if attempts.records and mlflow is not None:  # a retry is its own MLflow run, named by its seed
             with open_dict(cfg):
                 cfg.logger.mlflow.run_name = f"{first_name}/seed={seed}"
-        stopper = early_stopping(cfg.get("early_stopping"))
+        stopper = early_stopping(run.early_stopping)
         fit_and_record(cfg, prepare(cfg), stopper, calibration_grid, time.perf_counter(), items)
         check = check_agreement(out / "checkpoints" / "last.ckpt", items, progress)
         log.info(
@@ -213,14 +249,15 @@ def finetune_base(cfg: DictConfig) -> tuple[Path, DictConfig | None, str]:
     """(segmenter checkpoint, the base run's config or None, its generated pairs' folder) of ``finetune=RUN``: a
     pipeline run folder (its segment/), a segment run folder or a checkpoint file; ``data=`` names the pairs where
     the base run does not record them. A ConfigError or DataError names what is missing."""
-    if not cfg.get("finetune") or not cfg.get("corrected"):
+    keys = SegmentRun.from_config(cfg)
+    if keys.finetune is None or keys.corrected is None:
         raise ConfigError(
             "segment: fine-tuning needs both finetune=RUN (a pipeline run, a segment run folder or a segmenter "
             "checkpoint) and corrected=DIR (the corrected outlines: drgan.segmenters.corrections)"
         )
-    if cfg.get("real"):
+    if keys.real:
         raise ConfigError("segment: finetune= fine-tunes on generated pairs and corrected images; real= is not used")
-    run = Path(cfg.finetune).expanduser()
+    run = keys.finetune.expanduser()
     folder = run / "segment" if (run / "segment" / "checkpoints").is_dir() else run
     ckpt = run if run.is_file() else folder / "checkpoints" / "last.ckpt"
     if not ckpt.is_file():
@@ -230,7 +267,7 @@ def finetune_base(cfg: DictConfig) -> tuple[Path, DictConfig | None, str]:
         )
     config_file = (ckpt.parent.parent if run.is_file() else folder) / ".hydra" / "config.yaml"
     base = OmegaConf.load(config_file) if config_file.is_file() else None  # YAML: nothing in it runs
-    data = cfg.get("data") or (base.get("data") if base is not None else None)
+    data = keys.data or (base.get("data") if base is not None else None)
     if not data:
         raise ConfigError(
             f"finetune={run}: its run does not record the generated pairs it was trained on; give data=DIR too"
@@ -253,7 +290,8 @@ def prepare_finetune(cfg: DictConfig) -> Prepared:
     setting_float("correction.share", setting.share, 0.0)
     model = load_segmenter(ckpt, "finetune").train()  # (loaded for inference, in eval mode)
     model.hparams.lr = lr
-    split_seed = int(base.seed) if base is not None and base.get("seed") is not None else int(cfg.seed)
+    keys = SegmentRun.from_config(cfg)
+    split_seed = int(base.seed) if base is not None and base.get("seed") is not None else keys.seed
     with open_dict(cfg):
         cfg.data = data
         if base is not None:
@@ -263,7 +301,7 @@ def prepare_finetune(cfg: DictConfig) -> Prepared:
         # the model is the base's (its class and keywords, as its checkpoint records them; lr the fine-tuning's)
         cfg.model = OmegaConf.create(dict(model.hparams))
     source = checked_source(cfg)
-    items = load_corrections(cfg.corrected, setting.get("images"), cfg.get("crop_rows", "auto"))
+    items = load_corrections(keys.corrected, setting.get("images"), keys.crop_rows)
     pairs, pixel_scale, working, _, contour_width = scaled_pairs(cfg, source, source.manifest(), model)
     corrected = correction_pairs(items, model.pixel_scale, contour_width, model.train_noise)
     pairs, check_pairs = held_out_check(cfg, source, pairs, split_seed)
@@ -284,7 +322,7 @@ def prepare_finetune(cfg: DictConfig) -> Prepared:
         corrected,
         split_seed=split_seed,
         contact_why="the base segmenter's",
-        finetuned={"base": str(ckpt), "corrected": str(cfg.corrected), "images": [item.id for item, _ in items],
+        finetuned={"base": str(ckpt), "corrected": str(keys.corrected), "images": [item.id for item, _ in items],
                    "particles": n, "pixel_scale": pixel_scale},
     )  # fmt: skip
 
@@ -297,7 +335,7 @@ def fit_and_record(
     metrics."""
     from drgan.segmenters.module import settled
 
-    model, out = prepared.model, Path(cfg.out)
+    model, out = prepared.model, SegmentRun.from_config(cfg).out
     train_loader, val_loader, n_train, n_val = dataloaders(
         cfg,
         prepared.pairs,
@@ -374,13 +412,12 @@ def _fit(cfg: DictConfig, prepared: Prepared, stopper, loaders: tuple, sizes: tu
     from drgan.launch.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
     from drgan.segmenters.module import CheckpointEntries, ScoreHistory
 
-    model, out = prepared.model, Path(cfg.out)
+    run = SegmentRun.from_config(cfg)
+    model, out = prepared.model, run.out
     (train_loader, val_loader), (n_train, n_val) = loaders, sizes
-    ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), out)
-    tags = {"name": str(cfg.name), "output_dir": str(out), **{str(t): "1" for t in cfg.get("tags") or []}}
-    loggers = instantiate_loggers(
-        cfg.get("logger"), out, resume=ckpt_path is not None, tags=tags, parent_run=cfg.get("parent_run")
-    )
+    ckpt_path = resolve_checkpoint(run.ckpt_path, out)
+    tags = {"name": run.name, "output_dir": str(out), **{t: "1" for t in run.tags}}
+    loggers = instantiate_loggers(cfg.logger, out, resume=ckpt_path is not None, tags=tags, parent_run=run.parent_run)
     # last.ckpt at every epoch end (ResumeCheckpoint), before validation-free epoch-end work; ModelCheckpoint keeps
     # the latest epoch's file.
     checkpoint = ModelCheckpoint(
@@ -418,7 +455,7 @@ def _fit(cfg: DictConfig, prepared: Prepared, stopper, loaders: tuple, sizes: tu
             log.warning("%s: params not (all) logged: %s", type(logger).__name__, str(error).splitlines()[0])
 
     log.info(
-        "segmenter %s: %d train / %d val pairs%s, run folder %s", cfg.name, n_train, n_val,
+        "segmenter %s: %d train / %d val pairs%s, run folder %s", run.name, n_train, n_val,
         f" and {len(prepared.corrected)} corrected images" if prepared.corrected else "", out,
     )  # fmt: skip
     trainer.fit(

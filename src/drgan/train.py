@@ -17,12 +17,14 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig, open_dict
 
 from drgan.core.errors import ConfigError
 from drgan.core.io import write_json
+from drgan.core.settings import read_settings
 from drgan.launch.runtime import (
     flat_config,
     instantiate_callbacks,
@@ -36,6 +38,26 @@ from drgan.launch.runtime import (
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class TrainRun:
+    """The keys of conf/gan/train.yaml that say how a run starts and is recorded, typed (`read_settings`); the groups
+    (material, renderer, model, data, callbacks, logger, trainer) are typed by their schemas and built by Hydra."""
+
+    seed: int = 0
+    ckpt_path: str | None = None  # null: fresh; "last": resume from the run folder's last.ckpt; or a path
+    init_from: Path | None = None  # another run's checkpoint: its FCN and D weights start this run
+    tags: tuple[str, ...] = ()
+    parent_run: str | None = None
+    optimized_metric: str | None = None
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> TrainRun:
+        run = read_settings(cls, cfg, "train")
+        if run.init_from is not None and not run.init_from.expanduser().is_file():  # before any data is mined
+            raise ConfigError(f"init_from={run.init_from}: no such checkpoint file (a .ckpt written by drgan.train)")
+        return run
+
+
 def train(cfg: DictConfig) -> dict:
     """Fit one run; return its final metrics (last step/epoch values, plus time/wall_s).
 
@@ -45,17 +67,18 @@ def train(cfg: DictConfig) -> dict:
     import lightning.pytorch as L
 
     wall_start = time.perf_counter()
-    _check_inputs(cfg)
+    run = TrainRun.from_config(cfg)
+    _check_data(cfg)
     with open_dict(cfg):  # absolute project root: every path of the run derives from it
         cfg.paths.root_dir = str(Path(cfg.paths.root_dir).expanduser().resolve())
     output_dir = Path(cfg.paths.output_dir)
-    L.seed_everything(int(cfg.seed), workers=True)
-    datamodule, model, ckpt_path = _build_model(cfg, output_dir)
-    loggers, trainer = _build_trainer(cfg, output_dir, resumed=ckpt_path is not None)
+    L.seed_everything(run.seed, workers=True)
+    datamodule, model, ckpt_path = _build_model(cfg, run, output_dir)
+    loggers, trainer = _build_trainer(cfg, run, output_dir, resumed=ckpt_path is not None)
 
     output_dir.mkdir(parents=True, exist_ok=True)
     datamodule.setup("fit")
-    m = cfg.model.get("n_constellations") or datamodule.n_train
+    m = cfg.model.n_constellations or datamodule.n_train
     if len(model.phi_bank) != int(m):
         model.set_constellations(int(m))
     start_loggers(loggers)
@@ -80,20 +103,18 @@ def train(cfg: DictConfig) -> dict:
     return _finish(trainer, model, loggers, output_dir, wall_start)
 
 
-def _check_inputs(cfg: DictConfig) -> None:
-    """The run's inputs that exist or not before anything is built: init_from's file, data.dir."""
-    if cfg.get("init_from") and not Path(cfg.init_from).expanduser().is_file():  # before any data is mined
-        raise ConfigError(f"init_from={cfg.init_from}: no such checkpoint file (a .ckpt written by drgan.train)")
-    if not cfg.data.get("dir"):
+def _check_data(cfg: DictConfig) -> None:
+    """data.dir, set before anything is built."""
+    if not cfg.data.dir:
         raise ConfigError(
             f"data.dir is not set: material={cfg.material.name} is made for "
-            f"{cfg.material.get('made_for') or 'images drgan does not ship'}, and no such images are configured. Point "
+            f"{cfg.material.made_for or 'images drgan does not ship'}, and no such images are configured. Point "
             f"it at your images: python -m drgan.train material={cfg.material.name} data.dir=/path/to/images (check the "
             "material fits them first: python -m drgan.profile data.dir=/path/to/images name=my_particles writes one)"
         )
 
 
-def _build_model(cfg: DictConfig, output_dir: Path):
+def _build_model(cfg: DictConfig, run: TrainRun, output_dir: Path):
     """(datamodule with its ids resolved, GANModule, the checkpoint to resume or None), the images' polarity and
     particle size checked against the material and init_from's weights copied into a fresh run: no pixel read."""
     from hydra.utils import instantiate
@@ -108,33 +129,31 @@ def _build_model(cfg: DictConfig, output_dir: Path):
     model = GANModule.from_config(
         cfg, base_dir=cfg.paths.root_dir
     )  # phi bank: after mining, when m is the number of patches
-    ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
-    if cfg.get("init_from") and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights
-        copied = model.load_weights(Path(cfg.init_from).expanduser())
+    ckpt_path = resolve_checkpoint(run.ckpt_path, output_dir)
+    if run.init_from is not None and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights
+        copied = model.load_weights(run.init_from.expanduser())
         log.info(
             "init_from=%s: %d weight tensors of the FCN and discriminator copied; a fresh run from epoch 0",
-            cfg.init_from,
+            run.init_from,
             copied,
         )
-    if model.textured and int(cfg.data.get("n_background") or 0) < 1:  # the texture comes from mined background patches
+    if model.textured and int(datamodule.n_background or 0) < 1:  # the texture comes from mined background patches
         raise ConfigError(
             "material.background_texture.enabled: no real background patches to take the texture from "
-            f"(data.n_background={cfg.data.get('n_background')}; set data.n_background > 0)"
+            f"(data.n_background={datamodule.n_background}; set data.n_background > 0)"
         )
     return datamodule, model, ckpt_path
 
 
-def _build_trainer(cfg: DictConfig, output_dir: Path, *, resumed: bool):
+def _build_trainer(cfg: DictConfig, run: TrainRun, output_dir: Path, *, resumed: bool):
     """(loggers, Lightning trainer with the config's callbacks), each callback's inputs checked (e.g. the FID
     network's file and hash) before any patch is mined."""
     from hydra.utils import instantiate
 
     tags = {"material": str(cfg.material.name), "output_dir": str(output_dir)}
-    tags.update({str(t): "1" for t in cfg.get("tags") or []})
-    loggers = instantiate_loggers(
-        cfg.get("logger"), output_dir, resume=resumed, tags=tags, parent_run=cfg.get("parent_run")
-    )
-    callbacks = instantiate_callbacks(cfg.get("callbacks"))
+    tags.update({t: "1" for t in run.tags})
+    loggers = instantiate_loggers(cfg.logger, output_dir, resume=resumed, tags=tags, parent_run=run.parent_run)
+    callbacks = instantiate_callbacks(cfg.callbacks)
     for callback in callbacks:
         getattr(callback, "check_ready", lambda: None)()
     return loggers, instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
@@ -176,7 +195,7 @@ def _finish(trainer, model, loggers, output_dir: Path, wall_start: float) -> dic
 def main(cfg: DictConfig):
     metrics = train(cfg)
     # Hydra sweepers (e.g. Optuna) optimise the value returned: `optimized_metric=val/fid`.
-    key = cfg.get("optimized_metric")
+    key = TrainRun.from_config(cfg).optimized_metric
     if key:
         if key not in metrics:
             raise ConfigError(f"optimized_metric={key}: not among the final metrics {sorted(metrics)}")

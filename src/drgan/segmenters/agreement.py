@@ -22,13 +22,15 @@ import json
 import os
 import shutil
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from drgan.core.errors import ConfigError, DataError
 from drgan.core.io import write_json
+from drgan.core.settings import read_settings, setting
 
 ATTEMPTS_FILE = "attempts.json"
 ATTEMPTS_DIR = "attempts"
@@ -37,13 +39,15 @@ MOVED = ("checkpoints", "metrics.json")  # what one attempt leaves in the run fo
 
 @dataclass(frozen=True)
 class AgreementSettings:
-    images: Path  # the user's images (named like the reference labels)
-    reference: Path  # their classical instance labels, ID.tif (the profile's labels/)
-    max_images: int = 8
-    min_covered: float = 0.85
-    min_dice: float = 0.6
-    retries: int = 1
-    crop_rows: object = "auto"
+    """The ``agreement`` block of segment.yaml, typed (`agreement_settings`)."""
+
+    images: Path = setting()  # the user's images (named like the reference labels)
+    reference: Path = setting()  # their classical instance labels, ID.tif (the profile's labels/)
+    max_images: int = setting(8, ge=1)
+    min_covered: float = setting(0.85, ge=0, expected="a share in [0, 1]", le=1)
+    min_dice: float = setting(0.6, ge=0, expected="a share in [0, 1]", le=1)
+    retries: int = setting(1, ge=0)
+    crop_rows: Any = "auto"
 
 
 def agreement_settings(node) -> AgreementSettings | None:
@@ -52,23 +56,8 @@ def agreement_settings(node) -> AgreementSettings | None:
         return None
     if node.get("images") is None:
         raise ConfigError("agreement.reference is set but agreement.images is null: expected the folder of the images")
-    for key, default in (("min_covered", 0.85), ("min_dice", 0.6)):
-        share = node.get(key, default)
-        if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share <= 1.0:
-            raise ConfigError(f"agreement.{key}={share!r}: expected a share in [0, 1]")
-    for key in ("max_images", "retries"):
-        value = node.get(key, 1)
-        if isinstance(value, bool) or not isinstance(value, int) or value < (1 if key == "max_images" else 0):
-            raise ConfigError(f"agreement.{key}={value!r}: expected an integer >= {1 if key == 'max_images' else 0}")
-    return AgreementSettings(
-        Path(str(node.images)).expanduser(),
-        Path(str(node.reference)).expanduser(),
-        int(node.get("max_images", 8)),
-        float(node.get("min_covered", 0.85)),
-        float(node.get("min_dice", 0.6)),
-        int(node.get("retries", 1)),
-        node.get("crop_rows", "auto"),
-    )
+    typed = read_settings(AgreementSettings, node, "segment", prefix="agreement.")
+    return replace(typed, images=typed.images.expanduser(), reference=typed.reference.expanduser())
 
 
 def spread(ids: Sequence[str], n: int) -> list[str]:

@@ -12,8 +12,15 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.core.errors import ConfigError, setting_float, setting_int
+from drgan.core.settings import read_settings, setting
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class _Source:
+    data: str | None = None
+    real: str | None = None
 
 
 @dataclass(frozen=True)
@@ -25,25 +32,17 @@ class TrainingPairs:
     data: str | None = None
     real: str | None = None
     split: str | None = None
-    contour_px: int = 1
+    contour_px: int = setting(1, ge=0)
     crop_rows: Any = "auto"
     masks: str = "masks"
     mask_suffix: str = "auto"
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> TrainingPairs:
-        if bool(cfg.get("data")) == bool(cfg.get("real")):
+        source = read_settings(_Source, cfg, "segment")
+        if bool(source.data) == bool(source.real):
             raise ConfigError("segment: give exactly one of data=DIR (generated pairs) or real=DATASET (real baseline)")
-        if cfg.get("data"):
-            return cls(data=cfg.data)
-        return cls(
-            real=cfg.real,
-            split=cfg.get("split"),
-            contour_px=setting_int("contour_px", cfg.contour_px, 0),
-            crop_rows=cfg.get("crop_rows"),
-            masks=cfg.get("masks", "masks"),
-            mask_suffix=cfg.get("mask_suffix", "auto"),
-        )
+        return read_settings(cls, cfg, "segment") if source.real else cls(data=source.data)  # real-only keys: real
 
     def manifest(self) -> dict | None:
         """The generated set's manifest.json (drgan.synthetic.manifest), None for real images and hand-made pairs."""
@@ -262,7 +261,7 @@ def dataloaders(
     if per_pair == "auto":
         # Real images are sampled by their area (an epoch of 20 large tiles is not 20 crops); generated pairs are
         # windows the GAN rendered, sampled once each, as their number (1,000 and more) already sets the epoch.
-        per_pair = crops_by_area(train_pairs, ld.crop * scale) if cfg.get("real") else 1
+        per_pair = crops_by_area(train_pairs, ld.crop * scale) if TrainingPairs.from_config(cfg).real else 1
     if corrected:
         counts = [per_pair] * len(train_pairs) if isinstance(per_pair, int) else list(per_pair)
         share = setting_float("correction.share", cfg.correction.share, 0.0)
@@ -328,6 +327,15 @@ def held_out_check(cfg: DictConfig, source: TrainingPairs, pairs, seed: int | No
 
 def check_fraction(cfg: DictConfig) -> float:
     """``check_fraction`` as a number in [0, 0.5), or a ConfigError naming it (closed_loop.checked_fraction)."""
+    return read_settings(_HeldOut, cfg, "segment").check_fraction
+
+
+def _check_fraction(stage: str, value) -> float:
     from drgan.segmenters.closed_loop import checked_fraction
 
-    return checked_fraction(setting_float("check_fraction", cfg.get("check_fraction", 0.0), 0.0))
+    return checked_fraction(setting_float("check_fraction", value, 0.0))
+
+
+@dataclass(frozen=True)
+class _HeldOut:
+    check_fraction: float = setting(0.0, check=_check_fraction)
