@@ -407,10 +407,10 @@ def test_partial_backgrounds_resume_and_refuse_other_settings(tiny_run, partial_
 
 
 def export(data, out, *extra):
-    from drgan.export_nnunet import compose_config
+    from drgan.export_nnunet import ExportSettings, compose_config
     from drgan.export_nnunet import export as run
 
-    return run(compose_config([f"data={data}", f"out={out}", *extra]))
+    return run(ExportSettings.from_config(compose_config([f"data={data}", f"out={out}", *extra])))
 
 
 def test_export_nnunet_layout_and_dataset_json(dataset, tmp_path):

@@ -196,10 +196,10 @@ def images(tmp_path_factory) -> Path:
 def test_cli_real_vs_real_halves_by_image_and_never_reads_test_ids(images, tmp_path, monkeypatch):
     from drgan.callbacks.fid import RandomProjectionFeatures
     from drgan.metrics import inception
-    from drgan.realism import realism
+    from drgan.realism import RealismSettings, realism
 
     monkeypatch.setattr(inception, "InceptionFeatures", lambda: RandomProjectionFeatures(dim=8))  # FID beside the test
-    summary = realism(realism_cfg(images, tmp_path / "out", "real", "fid=true"))
+    summary = realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "out", "real", "fid=true")))
     assert np.isfinite(summary["test"]["fid"]) and summary["test"]["fid"] >= 0 and "kid" in summary["test"]
     assert summary["markdown"].endswith(f" {summary['test']['fid']:.1f} |")
     source, test = summary["source"], summary["test"]
@@ -231,54 +231,66 @@ def write_dataset(folder: Path, images: np.ndarray, n_background: int = 2) -> Pa
 
 
 def test_cli_reads_a_generated_dataset_and_tells_flat_grey_images_from_discs(images, tmp_path):
-    from drgan.realism import realism
+    from drgan.realism import RealismSettings, realism
 
     rng = np.random.default_rng(0)
     flat = np.clip(0.5 + 0.01 * rng.standard_normal((40, SIZE, SIZE)), 0, 1)
     data = write_dataset(tmp_path / "dataset", flat)
-    summary = realism(realism_cfg(images, tmp_path / "out", data, "test.epochs=6"))
+    summary = realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "out", data, "test.epochs=6")))
     assert summary["source"]["kind"] == "dataset"
     assert summary["test"]["accuracy"] >= 0.9 and summary["test"]["interval"][0] > 0.5
 
     wrong = write_dataset(tmp_path / "wrong", np.zeros((10, 32, 32)))
     with pytest.raises(DataError, match="32 x 32 px, but the real patches are 24 x 24"):
-        realism(realism_cfg(images, tmp_path / "out2", wrong))
+        realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "out2", wrong)))
 
 
 def test_cli_renders_a_checkpoint(images, tmp_path):
     from test_train import run_train, tiny_overrides
 
-    from drgan.realism import realism
+    from drgan.realism import RealismSettings, realism
 
     run = tmp_path / "run"
     run_train(tiny_overrides(images, run, extra=["trainer.max_epochs=1", "trainer.limit_train_batches=1"]))
-    summary = realism(realism_cfg(images, tmp_path / "out", run, "n_synthetic=12"))
+    summary = realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "out", run, "n_synthetic=12")))
     assert summary["source"]["kind"] == "checkpoint" and summary["source"]["resolution"] == SIZE
     assert summary["source"]["quantized_8bit"] and summary["source"]["synthetic_read"] == 12
     assert summary["test"]["n_per_class"] == 12 and summary["source"]["parameters"] == "trained"
-    middle = realism(realism_cfg(images, tmp_path / "mid", run, "n_synthetic=12", "render.parameters=middle"))
+    middle = realism(
+        RealismSettings.from_config(
+            realism_cfg(images, tmp_path / "mid", run, "n_synthetic=12", "render.parameters=middle")
+        )
+    )
     assert middle["source"]["parameters"] == "middle" and middle["source"]["label"].endswith("(middle values)")
     with pytest.raises(DataError, match="renders 24 px images"):
         realism(
-            realism_cfg(
-                images, tmp_path / "out2", run / "checkpoints" / "best.ckpt", "data.patch_size=16", "test.input_size=8"
+            RealismSettings.from_config(
+                realism_cfg(
+                    images,
+                    tmp_path / "out2",
+                    run / "checkpoints" / "best.ckpt",
+                    "data.patch_size=16",
+                    "test.input_size=8",
+                )
             )
         )
 
 
 def test_cli_bad_inputs(images, tmp_path):
-    from drgan.realism import realism
+    from drgan.realism import RealismSettings, realism
 
     with pytest.raises(ConfigError, match="synthetic=real"):
-        realism(realism_cfg(images, tmp_path / "o", "null"))
+        realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "o", "null")))
     with pytest.raises(ConfigError, match="no such file or folder"):
-        realism(realism_cfg(images, tmp_path / "o", tmp_path / "missing"))
+        realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "o", tmp_path / "missing")))
     (tmp_path / "notes.txt").write_text("x")
     with pytest.raises(ConfigError, match="not a .ckpt"):
-        realism(realism_cfg(images, tmp_path / "o", tmp_path / "notes.txt"))
+        realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "o", tmp_path / "notes.txt")))
     with pytest.raises(ConfigError, match="data.dir"):
-        realism(compose(["synthetic=real", f"out={tmp_path / 'o'}"], config_name="realism"))
+        realism(
+            RealismSettings.from_config(compose(["synthetic=real", f"out={tmp_path / 'o'}"], config_name="realism"))
+        )
     with pytest.raises(DataError, match="at least 40"):  # too few real patches for 20 folds
-        realism(realism_cfg(images, tmp_path / "o", "real", "test.folds=20"))
+        realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "o", "real", "test.folds=20")))
     with pytest.raises(ConfigError, match=r"test: unknown setting.*colour"):
-        realism(realism_cfg(images, tmp_path / "o", "real", "+test.colour=1"))
+        realism(RealismSettings.from_config(realism_cfg(images, tmp_path / "o", "real", "+test.colour=1")))

@@ -23,13 +23,15 @@ from __future__ import annotations
 import json
 import logging
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from drgan.core import io
 from drgan.core.errors import ConfigError, DataError
+from drgan.core.settings import read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.synthetic.folder import IGNORE
 from drgan.synthetic.manifest import check_files, manifest_entries, read_manifest
@@ -85,17 +87,29 @@ def dataset_json(
     }
 
 
-def export(cfg: DictConfig) -> Path:
+@dataclass(frozen=True)
+class ExportSettings:
+    """Every key of conf/segmentation/export_nnunet.yaml, typed (`read_settings`)."""
+
+    data: Path = setting()
+    out: Path = setting()
+    dataset_id: int = setting(501, ge=1, le=999, expected="an integer in 1..999 (nnU-Net's DatasetNNN)")
+    name: str = "TiO2SEM"
+    channel_names: dict = field(default_factory=lambda: {"0": "SEM"})
+    labels: dict = field(default_factory=lambda: {"background": 0, "particle": 1, "contour": 2})
+    description: str | None = None
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> ExportSettings:
+        return read_settings(cls, cfg, "export_nnunet")
+
+
+def export(s: ExportSettings) -> Path:
     """Write the nnU-Net raw dataset; return its folder."""
-    data = Path(str(cfg.data)).expanduser().resolve()
-    out = Path(str(cfg.out)).expanduser().resolve()
-    folder_name = dataset_folder_name(cfg.dataset_id, cfg.name)
-    channel_names = (
-        OmegaConf.to_container(cfg.channel_names)
-        if isinstance(cfg.channel_names, DictConfig)
-        else dict(cfg.channel_names)
-    )
-    labels = OmegaConf.to_container(cfg.labels) if isinstance(cfg.labels, DictConfig) else dict(cfg.labels)
+    data = s.data.expanduser().resolve()
+    out = s.out.expanduser().resolve()
+    folder_name = dataset_folder_name(s.dataset_id, s.name)
+    channel_names, labels = s.channel_names, s.labels
     if not channel_names:
         raise ConfigError("channel_names: expected at least one channel, e.g. {'0': 'SEM'}")
     check_labels(labels)
@@ -105,10 +119,10 @@ def export(cfg: DictConfig) -> Path:
     ignored = _ignored_cases(data, entries, labels)
     if ignored and IGNORE_NAME not in labels:
         labels = {**labels, IGNORE_NAME: max(int(v) for v in labels.values()) + 1}
-    description = dataset_json(manifest, len(entries), channel_names, labels, str(cfg.name), cfg.get("description"))
+    description = dataset_json(manifest, len(entries), channel_names, labels, s.name, s.description)
 
     target = out / folder_name
-    _check_target(out, target, cfg.dataset_id, description, {e.id for e in entries})
+    _check_target(out, target, s.dataset_id, description, {e.id for e in entries})
     for entry in entries:
         _copy(data / entry.files["image"], target / "imagesTr" / f"{entry.id}{CHANNEL}.png")
         if entry.id in ignored:
@@ -206,7 +220,7 @@ def compose_config(overrides=()) -> DictConfig:
 
 @stage_main("conf/segmentation", "export_nnunet")
 def main(cfg: DictConfig) -> None:
-    export(cfg)
+    export(ExportSettings.from_config(cfg))
 
 
 if __name__ == "__main__":

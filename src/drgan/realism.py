@@ -25,13 +25,16 @@ of real patches: keep it out of repositories).
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from drgan.core.errors import ConfigError, DataError, check_keys, setting_int
+from drgan.core.errors import ConfigError, DataError, check_keys
 from drgan.core.io import write_bytes, write_json
+from drgan.core.settings import read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.two_sample import ClassifierSettings, two_sample_test
 
@@ -45,13 +48,13 @@ HEADER = "| source | patches per class | accuracy [95 % CI] | p (vs 0.5) | AUC |
 # --- the real patches -------------------------------------------------------------------------------------------
 
 
-def real_patches(cfg: DictConfig):
-    """The RealPatchDataModule of cfg.data, set up: its mined patches (train ids only) and ids."""
-    from drgan.data.datamodule import RealPatchDataModule
-
-    data = OmegaConf.to_container(cfg.data, resolve=True) if isinstance(cfg.data, DictConfig) else dict(cfg.data)
+def data_keys(stage: str, data) -> dict:
+    """``data``: the RealPatchDataModule's keys (dir required), checked before any image is read."""
+    data = dict(data or {})
     if not data.get("dir"):
-        raise ConfigError("realism: give data.dir=DIR (the folder of real images; its split.json's train ids are read)")
+        raise ConfigError(
+            f"{stage}: give data.dir=DIR (the folder of real images; its split.json's train ids are read)"
+        )
     allowed = {
         "dir",
         "split",
@@ -66,6 +69,13 @@ def real_patches(cfg: DictConfig):
         "polarity",
     }
     check_keys("data", data, sorted(allowed), "setting")
+    return data
+
+
+def real_patches(data: dict):
+    """The RealPatchDataModule of the ``data`` keys, set up: its mined patches (train ids only) and ids."""
+    from drgan.data.datamodule import RealPatchDataModule
+
     module = RealPatchDataModule(**data, augment=False, check_material=False)
     module.setup()
     patches = module.patches
@@ -208,37 +218,73 @@ def real_halves(ids: list[str], seed: int) -> tuple[set[str], set[str]]:
 # --- the test ---------------------------------------------------------------------------------------------------
 
 
-def classifier_settings(cfg: DictConfig) -> ClassifierSettings:
-    test = dict(OmegaConf.to_container(cfg.get("test") or {}, resolve=True))
+def classifier_settings(test, seed: int) -> ClassifierSettings:
+    """``test``: the classifier's keys (drgan.metrics.two_sample.ClassifierSettings), checked; ``seed`` the run's."""
+    test = dict(test or {})
     allowed = set(ClassifierSettings.__dataclass_fields__) - {"seed"}
     check_keys("test", test, sorted(allowed), "setting")
     try:
         test = {k: float(v) if k in ("lr", "weight_decay") else v for k, v in test.items()}
     except (TypeError, ValueError):
         raise ConfigError(f"realism: test.lr / test.weight_decay: expected numbers (got {test})") from None
-    settings = ClassifierSettings(**test, seed=setting_int("seed", cfg.get("seed", 0), 0))
+    settings = ClassifierSettings(**test, seed=seed)
     settings.check()
     return settings
 
 
-def realism(cfg: DictConfig) -> dict:
-    """Run the two-sample test of cfg.synthetic against the real train patches of cfg.data; write the results."""
+@dataclass(frozen=True)
+class RenderKeys:
+    """``render``: how a checkpoint's images are rendered for the test (synthetic=CHECKPOINT only)."""
+
+    spp: int | None = setting(None, ge=1)  # null: the checkpoint's training spp
+    parameters: Any = "trained"  # trained | initial | middle | {key: value, ...} (as drgan.generate's)
+    quantize: bool = True
+
+
+@dataclass(frozen=True)
+class RealismSettings:
+    """Every key of conf/gan/realism.yaml, typed and checked (`read_settings`) before any image is read."""
+
+    synthetic: str = setting(check=lambda stage, source: (source_kind(source), str(source))[1])
+    out: Path = setting()
+    data: dict = setting(check=data_keys)
+    n_synthetic: int | None = setting(None, ge=2)
+    render: RenderKeys = setting(
+        RenderKeys(), check=lambda stage, node: read_settings(RenderKeys, node or {}, stage, prefix="render.")
+    )
+    test: dict = field(default_factory=dict)  # the classifier's keys (`classifier`)
+    fid: bool = True
+    seed: int = setting(0, ge=0)
+    threads: int | None = setting(1, ge=1)
+    progress: bool = True
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> RealismSettings:
+        settings = read_settings(cls, cfg, "realism")
+        classifier_settings(settings.test, settings.seed)  # checked now, before any patch is mined
+        return settings
+
+    @property
+    def kind(self) -> str:
+        return source_kind(self.synthetic)
+
+    @property
+    def classifier(self) -> ClassifierSettings:
+        return classifier_settings(self.test, self.seed)
+
+
+def realism(s: RealismSettings) -> dict:
+    """Run the two-sample test of ``synthetic`` against the real train patches of ``data``; write the results."""
     import torch
 
-    settings = classifier_settings(cfg)
-    kind = source_kind(cfg.get("synthetic"))
-    n_wanted = cfg.get("n_synthetic")
-    if n_wanted is not None:
-        n_wanted = setting_int("n_synthetic", n_wanted, 2)
-    spp = (cfg.get("render") or {}).get("spp")
-    if spp is not None:
-        spp = setting_int("render.spp", spp, 1)
-    threads = cfg.get("threads")
-    if threads is not None:
-        torch.set_num_threads(setting_int("threads", threads, 1))
+    settings = s.classifier
+    kind = s.kind
+    n_wanted, spp = s.n_synthetic, s.render.spp
+    if s.threads is not None:
+        torch.set_num_threads(s.threads)
     seed = settings.seed
 
-    module = real_patches(cfg)
+    module = real_patches(s.data)
     patches = module.patches
     real, real_ids = patches.train, list(patches.train_ids)
     size = real.shape[1]
@@ -248,18 +294,18 @@ def realism(cfg: DictConfig) -> dict:
             f"need at least {2 * settings.folds}: lower data.stride or data.min_particles, or test.folds"
         )
     n = n_wanted or len(real)
-    source = str(cfg.synthetic)
+    source = s.synthetic
     if kind == "real":
         a, b, groups_a, groups_b, label, detail = _real_halves(real, real_ids, seed)
     else:
-        b, groups_b, label, detail = _synthetic_sample(cfg, kind, source, n, seed, patches.background, size, spp)
+        b, groups_b, label, detail = _synthetic_sample(s.render, kind, source, n, seed, patches.background, size, spp)
         a, groups_a = real, real_ids
     log.info("two-sample test: %s: %d patches (A) against %d (B), %d px", label, len(a), len(b), size)
-    result = two_sample_test(a, b, settings, groups_a, groups_b, progress=bool(cfg.get("progress", True)))
-    if cfg.get("fid"):
+    result = two_sample_test(a, b, settings, groups_a, groups_b, progress=s.progress)
+    if s.fid:
         result.update(sample_fid(a, b))
     line = markdown_line(label, result)
-    out = Path(str(cfg.out))
+    out = s.out
     summary = {
         "source": {"synthetic": source, "kind": kind, "label": label, **detail},
         "real": {
@@ -268,7 +314,7 @@ def realism(cfg: DictConfig) -> dict:
             "patches": len(real),
             "patch_size": size,
             "polarity": module.polarity,
-            "data": OmegaConf.to_container(cfg.data, resolve=True),
+            "data": s.data,
         },
         "test": result,
         "markdown": line,
@@ -291,7 +337,7 @@ def _real_halves(real: np.ndarray, real_ids: list, seed: int):
     return a, b, groups_a, groups_b, label, {"half_a_ids": sorted(first), "half_b_ids": sorted(second)}
 
 
-def _synthetic_sample(cfg: DictConfig, kind: str, source: str, n: int, seed: int, background, size: int, spp):
+def _synthetic_sample(render: RenderKeys, kind: str, source: str, n: int, seed: int, background, size: int, spp):
     """(images, their names, label, detail): ``n`` images of a generated dataset, a folder of images, or renders of
     a checkpoint, at the real patches' size (a DataError otherwise)."""
     detail: dict = {}
@@ -302,8 +348,7 @@ def _synthetic_sample(cfg: DictConfig, kind: str, source: str, n: int, seed: int
         b, names = folder_images(Path(source), n, seed)
         label = f"images {source}"
     else:
-        render = cfg.get("render") or {}
-        quantize, parameters = bool(render.get("quantize", True)), render.get("parameters", "trained")
+        quantize, parameters = render.quantize, render.parameters
         b, detail = checkpoint_renders(source, n, background, size, spp, quantize, parameters)
         names = [f"render_{i}" for i in range(len(b))]
         chosen = detail["parameters"]
@@ -342,7 +387,7 @@ def markdown_line(label: str, result: dict) -> str:
 
 @stage_main("conf/gan", "realism")
 def main(cfg: DictConfig):
-    realism(cfg)
+    realism(RealismSettings.from_config(cfg))
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ def read_settings(cls: type, cfg, stage: str, *, prefix: str = "", **resolved):
         if f.name in resolved or not f.init:
             continue
         where = f"{stage}: {prefix}{f.name}"
-        if cfg is None or f.name not in cfg:
+        if cfg is None or f.name not in cfg or (isinstance(cfg, DictConfig) and OmegaConf.is_missing(cfg, f.name)):
             if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
                 raise ConfigError(f"{where} is not set")
             continue
