@@ -124,7 +124,7 @@ def test_read_settings_types_each_key_by_its_field_and_names_the_key_it_refuses(
     from omegaconf import OmegaConf
 
     from drgan.core.errors import ConfigError
-    from drgan.core.settings import read_settings, setting
+    from drgan.core.typed_settings import read_settings, setting
 
     def even(stage, value):
         if value % 2:

@@ -72,12 +72,24 @@ def test_stage_keys_are_routed_to_their_stage_and_replace_the_configs_defaults(t
         (["data.dir=/d", "name=m", "train.hydra.run.dir=/elsewhere"], "train.hydra.run.dir is set by the pipeline"),
         (["data.dir=/d", "name=m", "segment"], "expected KEY=VALUE"),
         (["data.dir=/d", "name=m", "progress=often"], "progress='often': expected seconds between progress lines"),
-        (["data.dir=/d", "name=m", "progress=-5"], "progress='-5'"),
+        (["data.dir=/d", "name=m", "progress=-5"], "progress=-5: expected seconds"),
+        (["data.dir=/d", "name=m", "mlflow=maybe"], "mlflow='maybe': expected true or false"),
+        (["data.dir=/d", "name=m", "launcher=cluster"], "launcher='cluster': expected one of local, slurm"),
     ],
 )
 def test_bad_settings_are_refused_with_the_key_named(argv, match):
     with pytest.raises(ConfigError, match=match):
         pipeline.parse_settings(argv)
+
+
+def test_the_pipelines_own_values_read_as_yaml_values():
+    """A command line's value of the pipeline's own keys reads as Hydra reads a stage's: null or nothing is null,
+    numbers are numbers, a number where a name is expected is its text."""
+    given = pipeline.parse_settings(
+        ["data.dir=/d", "name=2024", "out=", "annotated=null", "progress=0.5", "mlflow=false"]
+    )
+    assert (given.name, given.annotated, given.progress, given.mlflow) == ("2024", None, 0.5, False)
+    assert given.out == (Path("runs/pipeline") / "2024").resolve()
 
 
 # --- inputs, before any stage runs --------------------------------------------------------------------------

@@ -50,7 +50,7 @@ from omegaconf import DictConfig
 from drgan.core.errors import ConfigError, pixel_size
 from drgan.core.io import write_bytes, write_json, write_with
 from drgan.core.progress import track
-from drgan.core.settings import given, read_settings, setting
+from drgan.core.typed_settings import given, read_settings, setting
 from drgan.data.imagej import write_outlines
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.instance_scores import (

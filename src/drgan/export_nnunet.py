@@ -31,7 +31,7 @@ from omegaconf import DictConfig
 
 from drgan.core import io
 from drgan.core.errors import ConfigError, DataError
-from drgan.core.settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.synthetic.folder import IGNORE
 from drgan.synthetic.manifest import check_files, manifest_entries, read_manifest

@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from drgan.core.errors import ConfigError, DataError
 from drgan.core.io import write_bytes, write_json
 from drgan.core.progress import track
-from drgan.core.settings import given, read_settings, setting
+from drgan.core.typed_settings import given, read_settings, setting
 from drgan.data import measurements as est
 from drgan.data import particle_edge
 from drgan.data.annotations import annotation_mask, as_grey

@@ -34,7 +34,7 @@ from omegaconf import DictConfig
 
 from drgan.core.errors import ConfigError, DataError, check_keys
 from drgan.core.io import write_bytes, write_json
-from drgan.core.settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.two_sample import ClassifierSettings, two_sample_test
 

@@ -17,18 +17,20 @@ from omegaconf import DictConfig, OmegaConf
 from drgan.core import io
 from drgan.launch.runtime import stage_main, start
 from drgan.models import build
+from drgan.scene.config import typed_material
 from drgan.scene.labels import class_mask
 
 log = logging.getLogger(__name__)
 
 
 def render_to_folder(cfg: DictConfig, out: Path, base_dir: Path | None = None) -> dict:
-    generator = build.build_generator(cfg, base_dir=base_dir, seed=int(cfg.seed))
-    phi = build.sample_phi(cfg, m=1, seed=int(cfg.seed))[0]
+    material = typed_material(cfg.material)
+    generator = build.build_generator(cfg, base_dir=base_dir, seed=int(cfg.seed), material=material)
+    phi = build.sample_phi(cfg, m=1, seed=int(cfg.seed), material=material)[0]
     start = time.perf_counter()
     sample = generator.sample(phi, seed=int(cfg.seed))
     seconds = time.perf_counter() - start
-    mask = class_mask(sample.labels, int(cfg.material.contour_px))
+    mask = class_mask(sample.labels, material.contour_px)
     io.write_png(out / "image.png", sample.image)
     io.write_png(out / "labels.png", sample.labels)
     io.write_png(out / "mask.png", mask)

@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from drgan.core.errors import ConfigError, DataError, check_keys, setting_float, setting_int
 from drgan.core.io import write_json
-from drgan.core.settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting
 from drgan.launch.runtime import stage_main, start
 from drgan.segmenters.agreement import agreement_settings
 from drgan.segmenters.contacts import resolve_contact_weight

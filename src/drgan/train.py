@@ -24,7 +24,7 @@ from omegaconf import DictConfig, open_dict
 
 from drgan.core.errors import ConfigError
 from drgan.core.io import write_json
-from drgan.core.settings import read_settings
+from drgan.core.typed_settings import read_settings
 from drgan.launch.runtime import (
     flat_config,
     instantiate_callbacks,
@@ -124,11 +124,9 @@ def _build_model(cfg: DictConfig, run: TrainRun, output_dir: Path):
 
     datamodule = instantiate(cfg.data, resolution=int(cfg.renderer.resolution))
     datamodule.resolve_ids()
-    # polarity and particle size against the material: seconds, before mining
-    datamodule.check_fits(typed_material(cfg.material))
-    model = GANModule.from_config(
-        cfg, base_dir=cfg.paths.root_dir
-    )  # phi bank: after mining, when m is the number of patches
+    material = typed_material(cfg.material)  # typed once: the data's checks and the model read it
+    datamodule.check_fits(material)  # polarity and particle size against the material: seconds, before mining
+    model = GANModule.from_config(cfg, base_dir=cfg.paths.root_dir, material=material)  # phi bank: after mining
     ckpt_path = resolve_checkpoint(run.ckpt_path, output_dir)
     if run.init_from is not None and ckpt_path is None:  # a resumed run already holds its (fine-tuned) weights
         copied = model.load_weights(run.init_from.expanduser())

@@ -77,14 +77,17 @@ def material_scene(material: Material, renderer: Mapping, base_dir: str | Path |
     return cls.from_config(material, settings, unit_meshes, variant=str(renderer.get("variant") or "auto"))
 
 
-def build_generator(cfg: DictConfig, base_dir: str | Path | None = None, seed: int = 0):
-    """The generator of a composed config: the scene of ``cfg.material``, the FCN of ``cfg.model``."""
+def build_generator(
+    cfg: DictConfig, base_dir: str | Path | None = None, seed: int = 0, material: Material | None = None
+):
+    """The generator of a composed config: the scene of ``cfg.material`` (``material``: it typed already), the FCN of
+    ``cfg.model``."""
     import torch
 
     from drgan.models.generator import Generator
 
     torch.manual_seed(seed)
-    material = typed_material(cfg.material)
+    material = typed_material(cfg.material if material is None else material)
     model = cfg.model
     return Generator(
         material_scene(material, cfg.renderer, base_dir),
@@ -121,9 +124,10 @@ class LayoutSampler:
         )
 
 
-def layout_sampler(cfg: DictConfig) -> LayoutSampler:
-    """The LayoutSampler of a composed config (``size``, ``placement``, ``material.n_particles[_min]``, view width)."""
-    material = typed_material(cfg.material)
+def layout_sampler(cfg: DictConfig, material: Material | None = None) -> LayoutSampler:
+    """The LayoutSampler of a composed config (``size``, ``placement``, ``material.n_particles[_min]``, view width;
+    ``material``: ``cfg.material`` typed already)."""
+    material = typed_material(cfg.material if material is None else material)
     return LayoutSampler(
         size=layout.size_from_config(_plain(cfg.size)),
         placement=layout.placement_from_config(_plain(cfg.placement)),
@@ -133,9 +137,9 @@ def layout_sampler(cfg: DictConfig) -> LayoutSampler:
     )
 
 
-def sample_phi(cfg: DictConfig, m: int, seed: int) -> np.ndarray:
+def sample_phi(cfg: DictConfig, m: int, seed: int, material: Material | None = None) -> np.ndarray:
     """Phi (m, n, 4) for the material with the configured size distribution and placement (`layout_sampler`)."""
-    return layout_sampler(cfg)(m, seed)
+    return layout_sampler(cfg, material)(m, seed)
 
 
 def make_background_texture(highpass_px: float | None, patches) -> BackgroundTexture | None:

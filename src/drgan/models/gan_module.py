@@ -27,7 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from drgan.core.errors import ConfigError
 from drgan.models import build
-from drgan.scene.config import typed_material
+from drgan.scene.config import Material, typed_material
 
 log = logging.getLogger(__name__)
 
@@ -185,25 +185,31 @@ class GANModule(LightningModule):
 
     @classmethod
     def from_config(
-        cls, cfg: DictConfig | Mapping, m: int | None = None, base_dir: str | Path | None = None
+        cls,
+        cfg: DictConfig | Mapping,
+        m: int | None = None,
+        base_dir: str | Path | None = None,
+        material: Material | None = None,
     ) -> GANModule:
         """The module of a composed config (or its ``model_config``): scene, generator and discriminator built
         by `drgan.models.build` (generator first: both draw their initial weights from torch's seeded RNG);
-        m: constellations in the phi bank (default: ``model.n_constellations``, else set later)."""
+        m: constellations in the phi bank (default: ``model.n_constellations``, else set later); ``material``:
+        ``cfg.material`` typed already (else typed here, once)."""
         plain = model_config(cfg)
         cfg = OmegaConf.create(plain)
         model = cfg.get("model") or OmegaConf.create({})
         seed = int(cfg.get("seed", 0))
+        material = typed_material(cfg.material if material is None else material)
         training = GANTraining.from_config(OmegaConf.to_container(model))
-        generator = build.build_generator(cfg, base_dir=base_dir, seed=seed)
+        generator = build.build_generator(cfg, base_dir=base_dir, seed=seed, material=material)
         discriminator = build.build_discriminator(model)
         m = m if m is not None else model.get("n_constellations")
         return cls(
             generator,
             discriminator,
-            build.layout_sampler(cfg),
+            build.layout_sampler(cfg, material),
             training,
-            texture_highpass_px=typed_material(cfg.material).texture_highpass_px,
+            texture_highpass_px=material.texture_highpass_px,
             m=m,
             seed=seed,
             config={"cfg": plain, "base_dir": None if base_dir is None else str(base_dir)},

@@ -12,6 +12,7 @@ from pathlib import Path
 import yaml
 
 from drgan.core.errors import ConfigError
+from drgan.core.typed_settings import read_settings, setting
 from drgan.pipeline import stage_table
 from drgan.pipeline.slurm import SlurmSettings, parse_slurm
 
@@ -77,11 +78,6 @@ def _value_text(value) -> str:
     return str(value)
 
 
-def _optional(value) -> str | None:
-    """A setting that may be unset: None for null (YAML's or the command line's ``null``, ``None``, empty)."""
-    return None if value in (None, "null", "None", "") else str(value)
-
-
 def _split_override(text: str) -> tuple[str, str | None]:
     """``key=value`` -> (key, value); ``~key`` (a deletion) -> (``~key``, None)."""
     if text.startswith("~") and "=" not in text:
@@ -104,44 +100,63 @@ def _stage_key(key: str) -> tuple[str, str] | None:
     return None
 
 
+@dataclass(frozen=True)
+class _OwnKeys:
+    """The pipeline's own keys (pipeline.yaml), typed by `read_settings` from the YAML's values and the command
+    line's (read as YAML values: ``null`` or nothing is null, ``true``/``false`` booleans, numbers numbers)."""
+
+    name: str = setting(check=lambda stage, value: _checked_name(value))
+    annotated: Path | None = None
+    corrected: Path | None = None
+    out: Path | None = None
+    redo: str | None = setting(None, check=lambda stage, value: _checked_stage("redo", value))
+    mlflow: bool = True
+    progress: float = setting(60.0, ge=0, expected="seconds between progress lines (>= 0; 0: none)")
+    launcher: str = setting("local", check=lambda stage, value: _checked_choice("launcher", value, LAUNCHERS))
+    only: str | None = setting(None, check=lambda stage, value: _checked_stage("only", value))
+    shard: str | None = None
+    experiment: str | None = None
+    parent_run: str | None = None
+
+
+def _yaml_value(text):
+    """A command line's value as YAML reads it (a path or a word stays text); nothing is null."""
+    if text is None or text == "":
+        return None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
 def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     """The pipeline's settings from its YAML and the command line (``KEY=VALUE`` words); checks names, not files."""
     base = yaml.safe_load(config_path.read_text())
     names = stage_table.STAGES
     own, stages, slurm_words = _route(argv, base, names)
-    name = _checked_name(own)
-    redo = _optional(own["redo"])
-    if redo is not None and redo not in names:
-        raise ConfigError(f"pipeline: redo={redo!r}: expected a stage, one of {', '.join(names)}")
-    annotated = _optional(own["annotated"])
-    annotated = None if annotated is None else Path(annotated).expanduser()
-    corrected = _optional(own["corrected"])
-    corrected = None if corrected is None else Path(corrected).expanduser().resolve()
-    out = _optional(own["out"])
-    out = Path("runs/pipeline") / name if out is None else Path(out).expanduser()
-    mlflow = own["mlflow"]
-    mlflow = mlflow if isinstance(mlflow, bool) else str(mlflow).lower() in ("true", "1", "yes")
-    progress = _checked_progress(own["progress"])
-    launcher, only, shard = _checked_launch(own, names)
+    keys = read_settings(_OwnKeys, {k: v for k, v in own.items() if k != "data.dir"}, "pipeline")
+    if keys.progress == math.inf:
+        raise ConfigError(f"pipeline: progress={keys.progress}: expected seconds between progress lines (>= 0)")
+    shard = _checked_shard(keys)
     slurm = parse_slurm(base.get("slurm") or {}, slurm_words, names)
     _check_wired_keys(stages)
     return Settings(
         data_dir=Path(str(own["data.dir"])).expanduser().resolve(),
-        name=name,
-        annotated=annotated.resolve() if annotated else None,
-        out=out.resolve(),
-        redo=redo,
-        mlflow=mlflow,
+        name=keys.name,
+        annotated=keys.annotated.expanduser().resolve() if keys.annotated else None,
+        out=(Path("runs/pipeline") / keys.name if keys.out is None else keys.out.expanduser()).resolve(),
+        redo=keys.redo,
+        mlflow=keys.mlflow,
         stages=stages,
-        progress=progress,
-        launcher=launcher,
+        progress=keys.progress,
+        launcher=keys.launcher,
         slurm=slurm,
-        only=only,
+        only=keys.only,
         shard=shard,
-        experiment=_optional(own["experiment"]),
-        parent_run=_optional(own["parent_run"]),
+        experiment=keys.experiment,
+        parent_run=keys.parent_run,
         argv=tuple(argv),
-        corrected=corrected,
+        corrected=keys.corrected.expanduser().resolve() if keys.corrected else None,
     )
 
 
@@ -163,7 +178,7 @@ def _route(argv: Sequence[str], base: dict, names) -> tuple[dict, dict[str, dict
             stages[stage].pop(inner.lstrip("+~"), None)  # one value per key: the command line's replaces the YAML's
             stages[stage][inner] = value
         elif key in OWN_KEYS:
-            own[key] = value
+            own[key] = _yaml_value(value)
         else:
             raise ConfigError(
                 f"pipeline: {key}: not a setting of the pipeline ({', '.join(OWN_KEYS)}) nor a stage's key "
@@ -174,9 +189,8 @@ def _route(argv: Sequence[str], base: dict, names) -> tuple[dict, dict[str, dict
     return own, stages, slurm_words
 
 
-def _checked_name(own: dict) -> str:
+def _checked_name(name) -> str:
     """``name``: letters, digits, _ or -, and not a material drgan ships (the run's material takes the name)."""
-    name = own["name"]
     if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
         raise ConfigError(f"pipeline: name={name!r}: expected a name of letters, digits, _ or - (e.g. name=my_tem)")
     from drgan.launch.configs import shipped_materials
@@ -189,26 +203,25 @@ def _checked_name(own: dict) -> str:
     return str(name)
 
 
-def _checked_progress(value) -> float:
-    """``progress``: seconds between progress lines (>= 0; 0: none)."""
-    try:
-        progress = float(value)
-    except (TypeError, ValueError):
-        progress = -1.0
-    if not (progress >= 0 and math.isfinite(progress)):
-        raise ConfigError(f"pipeline: progress={value!r}: expected seconds between progress lines (>= 0; 0: none)")
-    return progress
+def _checked_choice(key: str, value, choices) -> str:
+    if value not in choices:
+        raise ConfigError(f"pipeline: {key}={value!r}: expected one of {', '.join(choices)}")
+    return value
 
 
-def _checked_launch(own: dict, names) -> tuple[str, str | None, str | None]:
-    """(launcher, only, shard), checked together: only= runs one stage here, shard= one shard of generate."""
-    launcher = str(own["launcher"])
-    if launcher not in LAUNCHERS:
-        raise ConfigError(f"pipeline: launcher={launcher!r}: expected one of {', '.join(LAUNCHERS)}")
-    only = _optional(own["only"])
-    if only is not None and only not in names:
-        raise ConfigError(f"pipeline: only={only!r}: expected a stage, one of {', '.join(names)}")
-    shard = _optional(own["shard"])
+def _checked_stage(key: str, value) -> str | None:
+    """``redo``/``only``: a stage's name, or null."""
+    if value is None:
+        return None
+    if value not in stage_table.STAGES:
+        raise ConfigError(f"pipeline: {key}={value!r}: expected a stage, one of {', '.join(stage_table.STAGES)}")
+    return value
+
+
+def _checked_shard(keys: _OwnKeys) -> str | None:
+    """``shard`` with ``only`` and ``launcher``, checked together: only= runs one stage here, shard= one shard of
+    generate."""
+    shard, only = keys.shard, keys.only
     if shard is not None:
         parts = shard.split("/")
         if only != "generate" or not re.fullmatch(r"\d+/\d+", shard) or int(parts[0]) >= int(parts[1]):
@@ -216,9 +229,9 @@ def _checked_launch(own: dict, names) -> tuple[str, str | None, str | None]:
                 f"pipeline: shard={shard!r}: expected only=generate with shard=i/N (0 <= i < N): one shard of the "
                 "pairs, as a SLURM job array's task runs it (slurm.shards=N does this for you)"
             )
-    if launcher == "slurm" and only is not None:
+    if keys.launcher == "slurm" and only is not None:
         raise ConfigError("pipeline: only= runs one stage here (launcher=local); launcher=slurm submits them all")
-    return launcher, only, shard
+    return shard
 
 
 def _check_wired_keys(stages: dict[str, dict[str, str]]) -> None:

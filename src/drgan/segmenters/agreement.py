@@ -30,7 +30,7 @@ import numpy as np
 
 from drgan.core.errors import ConfigError, DataError
 from drgan.core.io import write_json
-from drgan.core.settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting
 
 ATTEMPTS_FILE = "attempts.json"
 ATTEMPTS_DIR = "attempts"

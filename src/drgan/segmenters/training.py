@@ -12,7 +12,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.core.errors import ConfigError, setting_float, setting_int
-from drgan.core.settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting
 
 log = logging.getLogger(__name__)
 

@@ -92,8 +92,9 @@ def _as_type(value, hint) -> tuple[bool, Any]:
     if hint is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
         return ok, float(value) if ok else value
-    if hint is str:
-        return isinstance(value, str), value
+    if hint is str:  # a number where text is expected is its text (name=2024), as OmegaConf reads it
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        return isinstance(value, str) or number, str(value) if number else value
     if hint is Path:
         return isinstance(value, (str, Path)), Path(str(value))
     if origin is tuple and isinstance(value, (list, tuple)):
