@@ -209,16 +209,16 @@ def pairs_pixel_scale(resolution: int, backgrounds, view_width: float) -> float:
 def generate_dataset(given: GenerateSettings) -> dict:
     """Render this shard's part of the dataset in ``given.out`` (settings as given: resolved against the checkpoint
     here); return the manifest written (merged or shard)."""
-    settings, saved_cfg = given.resolve()
+    settings, saved_cfg, material = given.resolve()
     out = Path(str(settings.out)).expanduser().resolve()
     folder = DatasetFolder(out)
     shard = Shard.parse(settings.shard)
     folder.check_settings(settings.fixed())
-    facts = material_facts(saved_cfg["material"])
+    facts = material_facts(material)
     if settings.merge:
         return write_manifest(folder, settings, stats=None, required=True, material=facts)
     folder.remove_partial(lambda item: owned_by(item, shard))
-    module, spread, patches = _generator(settings, saved_cfg)
+    module, spread, patches = _generator(settings, saved_cfg, material)
     resolution = int(module.generator.scene.spec.render.resolution)
     pixel_scale = pairs_pixel_scale(resolution, settings.backgrounds, module.generator.scene.spec.view_width)
     log.info(
@@ -253,10 +253,10 @@ def generate_dataset(given: GenerateSettings) -> dict:
     return manifest
 
 
-def _generator(settings, saved_cfg: dict):
+def _generator(settings, saved_cfg: dict, material):
     """(the checkpoint's GAN module with the settings' parameters, the grey spread or None, the real patches or
     None): the patches are loaded once where something needs them (texture, grey spread, the checks)."""
-    module = load_module(Path(settings.ckpt), saved_cfg)
+    module = load_module(Path(settings.ckpt), saved_cfg, material)
     use_parameters(module, settings.parameters, saved_cfg)
     resolution = int(module.generator.scene.spec.render.resolution)
     spread = None  # with grey_spread, the real patches' grey levels each image takes one of

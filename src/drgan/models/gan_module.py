@@ -217,7 +217,15 @@ class GANModule(LightningModule):
 
     @classmethod
     def load_from_checkpoint(
-        cls, checkpoint_path, map_location=None, hparams_file=None, strict=True, cfg=None, weights_only=True, **kwargs
+        cls,
+        checkpoint_path,
+        map_location=None,
+        hparams_file=None,
+        strict=True,
+        cfg=None,
+        weights_only=True,
+        material: Material | None = None,
+        **kwargs,
     ) -> GANModule:
         """The module of a drgan.train checkpoint, rebuilt with `from_config` from the config saved in it (or
         ``cfg``, e.g. with another renderer), then its weights, phi bank and step state. Loaded with
@@ -235,7 +243,7 @@ class GANModule(LightningModule):
                 f"ckpt={path}: no model config in its hyperparameters (a GANModule built by hand, or not a GANModule "
                 "checkpoint); pass cfg= to rebuild it"
             )
-        module = cls.from_config(config, m=hparams.get("m"), base_dir=hparams.get("base_dir"))
+        module = cls.from_config(config, m=hparams.get("m"), base_dir=hparams.get("base_dir"), material=material)
         module.on_load_checkpoint(checkpoint)
         module.load_state_dict(checkpoint["state_dict"], strict=strict)
         return module if map_location is None else module.to(map_location)

@@ -31,7 +31,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from drgan.core.errors import ConfigError
 from drgan.data.polarity import check_polarity
-from drgan.scene.config import typed_material
+from drgan.scene.config import Material, typed_material
 from drgan.synthetic.backgrounds import PARTIAL_MAX_IGNORED, PartialSettings
 from drgan.synthetic.shards import Shard
 from drgan.synthetic.source import checkpoint_config, effective_renderer, generator_checkpoint
@@ -241,7 +241,7 @@ class GenerateSettings:
             backgrounds=str(backgrounds) if backgrounds else None,
             **given_layout,
         )
-        return Resolved(resolved, {**saved, **layout, "renderer": renderer})
+        return Resolved(resolved, {**saved, **layout, "renderer": renderer}, typed)
 
     @property
     def partial(self) -> PartialSettings:
@@ -295,6 +295,7 @@ class Resolved(NamedTuple):
 
     settings: GenerateSettings  # every "null = the checkpoint's" filled in
     model_cfg: dict  # the checkpoint's config with the effective renderer (not recorded: the checkpoint holds it)
+    material: Material  # the checkpoint's material, typed once here (the module and the manifest read it)
 
 
 def defaults(settings_type: type[GenerateSettings] = GenerateSettings) -> dict:

@@ -51,13 +51,16 @@ def effective_renderer(saved: dict, overrides) -> dict:
     return renderer
 
 
-def load_module(ckpt_file: Path, model_cfg: dict):
-    """GANModule in eval mode, rebuilt with ``model_cfg`` (the saved one, renderer possibly overridden)."""
+def load_module(ckpt_file: Path, model_cfg: dict, material=None):
+    """GANModule in eval mode, rebuilt with ``model_cfg`` (the saved one, renderer possibly overridden; ``material``:
+    its material typed already)."""
     from drgan.core.checkpoint_io import refusing_unsafe
     from drgan.models.gan_module import GANModule
 
     with refusing_unsafe("ckpt", ckpt_file):
-        module = GANModule.load_from_checkpoint(ckpt_file, map_location="cpu", cfg=model_cfg, weights_only=True)
+        module = GANModule.load_from_checkpoint(
+            ckpt_file, map_location="cpu", cfg=model_cfg, weights_only=True, material=material
+        )
     module.eval()
     return module
 
