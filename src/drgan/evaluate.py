@@ -241,23 +241,45 @@ def evaluate(settings: EvaluateSettings, predictors: dict | None = None) -> dict
 
     predictors: optional {run name: Predictor, or f(image) -> class map} instead of the settings' models (tests)."""
     from drgan.segmenters.pairs import load_real_items, real_ids
-    from drgan.segmenters.predictors import as_predictor, load_predictor
 
     s = settings
-    if predictors is None:
-        if not s.models:
-            raise ConfigError(NO_MODELS)
-        predictors = {f"run{k}": load_predictor(m, s.inference) for k, m in enumerate(s.models)}
-    else:
-        predictors = {run: as_predictor(p, run) for run, p in predictors.items()}
+    predictors = _predictors(s, predictors)
     ids = real_ids(s.data, s.split, s.subset, setting="data")
     samples = load_real_items(s.data, ids, s.crop_rows, s.mask_suffix, s.masks)  # every image/mask read and checked
     for predictor in predictors.values():
         predictor.check([item for item, _ in samples])  # a mask folder: every mask read and compared with its image
+    rows, found, sources = score_runs(s, predictors, samples)
+    result = write_scores(s.out, rows, ids, predictors)
+    if s.statistics:
+        truth = [particles(true_labels) for _, true_labels in samples]
+        reported = (
+            reported_particles(s.reported, [item.id for item, _ in samples], s.data / "images") if s.reported else None
+        )
+        if reported:  # the sizes the user's report gives for these images, scored as a run of their own
+            found[REPORTED] = reported.particles
+            write_json(s.out / "reported.json", {"analyze": str(s.reported), "table": reported.table,
+                                                 "trusted": reported.trusted})  # fmt: skip
+        else:
+            (s.out / "reported.json").unlink(missing_ok=True)
+        result["statistics"] = particle_statistics(s, s.out, found, truth, ids, sources, reported)
+    return result
 
-    out = s.out
+
+def _predictors(s: EvaluateSettings, given: dict | None) -> dict:
+    """{run: Predictor}: ``given`` (tests) as predictors, else the settings' models loaded (run0, run1, ...)."""
+    from drgan.segmenters.predictors import as_predictor, load_predictor
+
+    if given is not None:
+        return {run: as_predictor(p, run) for run, p in given.items()}
+    if not s.models:
+        raise ConfigError(NO_MODELS)
+    return {f"run{k}": load_predictor(m, s.inference) for k, m in enumerate(s.models)}
+
+
+def score_runs(s: EvaluateSettings, predictors: dict, samples: list) -> tuple[list[dict], dict, dict]:
+    """(a row of scores per run and image, {run: each image's particles}, {run: each image's error sources}); the
+    first run's overlays and outlines written per image."""
     rows = []
-    truth = [particles(true_labels) for _, true_labels in samples]
     found: dict[str, list] = {run: [] for run in predictors}
     sources: dict[str, list] = {run: [] for run in predictors}
     for k, (run, predictor) in enumerate(predictors.items()):
@@ -278,9 +300,15 @@ def evaluate(settings: EvaluateSettings, predictors: dict | None = None) -> dict
 
                 rgb = overlay(image, pred_labels, true_labels, s.overlay_alpha)
                 write_with(
-                    out / "overlays" / f"{image_id}.png", lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG")
+                    s.out / "overlays" / f"{image_id}.png",
+                    lambda f, rgb=rgb: Image.fromarray(rgb).save(f, format="PNG"),
                 )
-                write_outlines(out, image_id, pred_labels)  # for Fiji and napari
+                write_outlines(s.out, image_id, pred_labels)  # for Fiji and napari
+    return rows, found, sources
+
+
+def write_scores(out: Path, rows: list[dict], ids: list[str], predictors: dict) -> dict:
+    """results.csv and results.md of the rows; {"runs": per-run means, "rows", "mean", "std" over the runs}."""
     runs = list(predictors)
     csv_text, md_text = tables(rows, runs, ids, _inference_line(predictors))
     write_bytes(out / "results.csv", csv_text.encode())
@@ -288,24 +316,12 @@ def evaluate(settings: EvaluateSettings, predictors: dict | None = None) -> dict
     per_run = {r: {s: float(np.mean([x[s] for x in rows if x["run"] == r])) for s in SCORES} for r in runs}
     stats = {s: _mean_std([per_run[r][s] for r in runs]) for s in SCORES}
     log.info("wrote %s: %s", out / "results.md", {s: f"{m:.3f} +- {sd:.3f}" for s, (m, sd) in stats.items()})
-    result = {
+    return {
         "runs": per_run,
         "rows": rows,
         "mean": {s: v[0] for s, v in stats.items()},
         "std": {s: v[1] for s, v in stats.items()},
     }
-    if s.statistics:
-        reported = (
-            reported_particles(s.reported, [item.id for item, _ in samples], s.data / "images") if s.reported else None
-        )
-        if reported:  # the sizes the user's report gives for these images, scored as a run of their own
-            found[REPORTED] = reported.particles
-            write_json(out / "reported.json", {"analyze": str(s.reported), "table": reported.table,
-                                               "trusted": reported.trusted})  # fmt: skip
-        else:
-            (out / "reported.json").unlink(missing_ok=True)
-        result["statistics"] = particle_statistics(s, out, found, truth, ids, sources, reported)
-    return result
 
 
 def summed_sources(per_image: list[dict]) -> dict:
