@@ -160,3 +160,30 @@ def test_read_settings_types_each_key_by_its_field_and_names_the_key_it_refuses(
             read_settings(Keys, OmegaConf.create({"folder": "x", key: value}), "stage")
     with pytest.raises(ConfigError, match=re.escape("stage: data.folder is not set")):
         read_settings(Keys, OmegaConf.create({}), "stage", prefix="data.")
+
+
+def test_typed_settings_keep_their_types_where_their_module_is_not_at_hand():
+    """A stage's settings classes live in its __main__ module; a sweep's worker (Hydra's joblib or submitit
+    launcher) receives them by value, without that module's names: `typed` resolved the types where they were
+    defined, a class without it cannot be read there."""
+    import sys
+    import types
+
+    from drgan.core.typed_settings import read_settings
+
+    source = (
+        "from __future__ import annotations\nfrom dataclasses import dataclass\nfrom pathlib import Path\n"
+        "from drgan.core.typed_settings import typed\n"
+        "@typed\n@dataclass(frozen=True)\nclass Kept:\n    folder: Path | None = None\n"
+        "@dataclass(frozen=True)\nclass Bare:\n    folder: Path | None = None\n"
+    )
+    module = types.ModuleType("drgan_test_sweep_main")
+    sys.modules[module.__name__] = module
+    try:
+        exec(source, module.__dict__)
+        del module.__dict__["Path"]  # the worker's view: the class without its module's names
+        assert read_settings(module.Kept, {"folder": "x"}, "s").folder == Path("x")
+        with pytest.raises(NameError):
+            read_settings(module.Bare, {"folder": "x"}, "s")
+    finally:
+        del sys.modules[module.__name__]

@@ -53,7 +53,7 @@ from omegaconf import DictConfig
 from drgan.core.errors import ConfigError, pixel_size
 from drgan.core.io import figure_png, write_bytes, write_json
 from drgan.core.progress import track
-from drgan.core.typed_settings import given, read_settings, setting
+from drgan.core.typed_settings import given, read_settings, setting, typed
 from drgan.data.imagej import write_outlines
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.instance_scores import binarize_and_label
@@ -217,6 +217,7 @@ def size_statistics(
 # --- the command ---------------------------------------------------------------------------------------------
 
 
+@typed
 @dataclass(frozen=True)
 class AnalyzeSettings:
     """Every key of conf/segmentation/analyze.yaml with its type, its default and its check (`from_config`, before

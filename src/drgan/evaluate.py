@@ -50,7 +50,7 @@ from omegaconf import DictConfig
 from drgan.core.errors import ConfigError, pixel_size
 from drgan.core.io import write_bytes, write_json, write_with
 from drgan.core.progress import track
-from drgan.core.typed_settings import given, read_settings, setting
+from drgan.core.typed_settings import given, read_settings, setting, typed
 from drgan.data.imagej import write_outlines
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.instance_scores import (
@@ -173,6 +173,7 @@ def statistics_min_area(stage: str, value) -> float:
     return area
 
 
+@typed
 @dataclass(frozen=True)
 class EvaluateSettings:
     """Every key of conf/segmentation/evaluate.yaml with its type, its default and its check (`from_config`, before
@@ -221,6 +222,7 @@ def model_sources(cfg: DictConfig, need_models: bool = True) -> list[str]:
     return models
 
 
+@typed
 @dataclass(frozen=True)
 class _Runs:
     model: str | None = None

@@ -31,7 +31,7 @@ from omegaconf import DictConfig
 
 from drgan.core import io
 from drgan.core.errors import ConfigError, DataError
-from drgan.core.typed_settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting, typed
 from drgan.launch.runtime import stage_main, start
 from drgan.synthetic.folder import IGNORE
 from drgan.synthetic.manifest import check_files, manifest_entries, read_manifest
@@ -87,6 +87,7 @@ def dataset_json(
     }
 
 
+@typed
 @dataclass(frozen=True)
 class ExportSettings:
     """Every key of conf/segmentation/export_nnunet.yaml, typed (`read_settings`)."""

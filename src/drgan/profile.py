@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from drgan.core.errors import ConfigError, DataError
 from drgan.core.io import write_bytes, write_json
 from drgan.core.progress import track
-from drgan.core.typed_settings import given, read_settings, setting
+from drgan.core.typed_settings import given, read_settings, setting, typed
 from drgan.data import measurements as est
 from drgan.data import particle_edge
 from drgan.data.annotations import annotation_mask, as_grey
@@ -92,6 +92,7 @@ def _crop_rows(stage: str, crop) -> tuple[int, int] | str | None:
     return crop[0], crop[1]
 
 
+@typed
 @dataclass(frozen=True)
 class ProfileData:
     """The ``data`` keys of conf/gan/profile.yaml: the images and how to read them."""
@@ -103,6 +104,7 @@ class ProfileData:
     segment: SegmentParams = setting(SegmentParams(), check=lambda stage, v: SegmentParams.from_config(v))
 
 
+@typed
 @dataclass(frozen=True)
 class ProfileSettings:
     """The settings of a profile run: every key of conf/gan/profile.yaml with its type, its default and its check

@@ -34,7 +34,7 @@ from omegaconf import DictConfig
 
 from drgan.core.errors import ConfigError, DataError, check_keys
 from drgan.core.io import write_bytes, write_json
-from drgan.core.typed_settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting, typed
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.two_sample import ClassifierSettings, two_sample_test
 
@@ -232,6 +232,7 @@ def classifier_settings(test, seed: int) -> ClassifierSettings:
     return settings
 
 
+@typed
 @dataclass(frozen=True)
 class RenderKeys:
     """``render``: how a checkpoint's images are rendered for the test (synthetic=CHECKPOINT only)."""
@@ -241,6 +242,7 @@ class RenderKeys:
     quantize: bool = True
 
 
+@typed
 @dataclass(frozen=True)
 class RealismSettings:
     """Every key of conf/gan/realism.yaml, typed and checked (`read_settings`) before any image is read."""

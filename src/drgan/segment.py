@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from drgan.core.errors import ConfigError, DataError, check_keys, setting_float, setting_int
 from drgan.core.io import write_json
-from drgan.core.typed_settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting, typed
 from drgan.launch.runtime import stage_main, start
 from drgan.segmenters.agreement import agreement_settings
 from drgan.segmenters.contacts import resolve_contact_weight
@@ -111,6 +111,7 @@ class Prepared:
         return {PIXEL_SCALE_KEY: self.pixel_scale, NOISE_KEY: self.noise, WORKING_DIAMETER_KEY: self.diameter}
 
 
+@typed
 @dataclass(frozen=True)
 class SegmentRun:
     """The keys of conf/segmentation/segment.yaml that say how a run starts, what it fine-tunes and how it is

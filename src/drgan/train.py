@@ -24,7 +24,7 @@ from omegaconf import DictConfig, open_dict
 
 from drgan.core.errors import ConfigError
 from drgan.core.io import write_json
-from drgan.core.typed_settings import read_settings
+from drgan.core.typed_settings import read_settings, typed
 from drgan.launch.runtime import (
     flat_config,
     instantiate_callbacks,
@@ -38,6 +38,7 @@ from drgan.launch.runtime import (
 log = logging.getLogger(__name__)
 
 
+@typed
 @dataclass(frozen=True)
 class TrainRun:
     """The keys of conf/gan/train.yaml that say how a run starts and is recorded, typed (`read_settings`); the groups

@@ -34,6 +34,15 @@ def setting(default: Any = _REQUIRED, *, ge: float | None = None, gt: float | No
     return dataclasses.field(default=default, metadata=metadata)
 
 
+def typed(cls: type) -> type:
+    """Resolve the settings dataclass ``cls``'s field types now, where its module's names are at hand, and keep them
+    on the class (use under ``@dataclass``). A stage's classes live in its ``__main__`` module: a sweep's worker process
+    (Hydra's joblib or submitit launchers) receives them by value, without that module's names to resolve
+    ``from __future__`` annotations with."""
+    cls.__typed_hints__ = typing.get_type_hints(cls)
+    return cls
+
+
 def read_settings(cls: type, cfg, stage: str, *, prefix: str = "", **resolved):
     """A stage's typed settings ``cls`` (a dataclass) from its composed config ``cfg``, the one way drgan types a
     stage's keys: ``resolved`` fields as the stage's own checks made them (folders, merged lists), every other field
@@ -42,7 +51,7 @@ def read_settings(cls: type, cfg, stage: str, *, prefix: str = "", **resolved):
     otherwise. An empty string in a field that may be null is null (``model=`` on a command line)."""
     from omegaconf import DictConfig, ListConfig, OmegaConf
 
-    hints = typing.get_type_hints(cls)
+    hints = cls.__dict__.get("__typed_hints__") or typing.get_type_hints(cls)
     values = dict(resolved)
     for f in dataclasses.fields(cls):
         if f.name in resolved or not f.init:

@@ -12,7 +12,7 @@ from pathlib import Path
 import yaml
 
 from drgan.core.errors import ConfigError
-from drgan.core.typed_settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting, typed
 from drgan.pipeline import stage_table
 from drgan.pipeline.slurm import SlurmSettings, parse_slurm
 
@@ -100,6 +100,7 @@ def _stage_key(key: str) -> tuple[str, str] | None:
     return None
 
 
+@typed
 @dataclass(frozen=True)
 class _OwnKeys:
     """The pipeline's own keys (pipeline.yaml), typed by `read_settings` from the YAML's values and the command

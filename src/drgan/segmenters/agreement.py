@@ -30,13 +30,14 @@ import numpy as np
 
 from drgan.core.errors import ConfigError, DataError
 from drgan.core.io import write_json
-from drgan.core.typed_settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting, typed
 
 ATTEMPTS_FILE = "attempts.json"
 ATTEMPTS_DIR = "attempts"
 MOVED = ("checkpoints", "metrics.json")  # what one attempt leaves in the run folder
 
 
+@typed
 @dataclass(frozen=True)
 class AgreementSettings:
     """The ``agreement`` block of segment.yaml, typed (`agreement_settings`)."""

@@ -12,17 +12,19 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drgan.core.errors import ConfigError, setting_float, setting_int
-from drgan.core.typed_settings import read_settings, setting
+from drgan.core.typed_settings import read_settings, setting, typed
 
 log = logging.getLogger(__name__)
 
 
+@typed
 @dataclass(frozen=True)
 class _Source:
     data: str | None = None
     real: str | None = None
 
 
+@typed
 @dataclass(frozen=True)
 class TrainingPairs:
     """Where segment's training pairs come from: ``data`` (pairs of drgan.generate) or ``real`` (the train ids of
@@ -336,6 +338,7 @@ def _check_fraction(stage: str, value) -> float:
     return checked_fraction(setting_float("check_fraction", value, 0.0))
 
 
+@typed
 @dataclass(frozen=True)
 class _HeldOut:
     check_fraction: float = setting(0.0, check=_check_fraction)
