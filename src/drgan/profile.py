@@ -108,7 +108,7 @@ class ProfileData:
 @dataclass(frozen=True)
 class ProfileSettings:
     """The settings of a profile run: every key of conf/gan/profile.yaml with its type, its default and its check
-    (`from_config`, by `drgan.launch.configs.read_settings`), resolved before any image is read. The YAML stays the
+    (`from_config`, by `drgan.core.typed_settings.read_settings`), resolved before any image is read. The YAML stays the
     user's reference (what each key means); the field defaults are the same values (tests/test_profile.py composes
     profile.yaml and compares). A new key is a field here (its check beside it) and, where users should see it, its
     line in the YAML."""
@@ -136,7 +136,7 @@ class ProfileSettings:
         """From the composed profile config; a `ConfigError` naming the key for any value that cannot be right."""
         no_dir = "profile: give data.dir=DIR (a folder of particle images)"
         data = read_settings(ProfileData, given(cfg, "data", no_dir), "profile", prefix="data.")
-        if data.dir is None or str(data.dir) == "":
+        if data.dir is None:  # null or empty
             raise ConfigError(no_dir)
         folder = data.dir.expanduser()
         settings = read_settings(

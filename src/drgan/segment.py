@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -165,12 +165,12 @@ def segment(cfg: DictConfig) -> dict:
     calibration_grid = run.split_calibration
     guard = None if run.finetuning else run.agreement
     if guard is not None:
-        return guarded(cfg, guard, calibration_grid)
-    prepared = prepare_finetune(cfg) if run.finetuning else prepare(cfg)
-    return fit_and_record(cfg, prepared, stopper, calibration_grid, wall_start)
+        return guarded(cfg, run, guard, calibration_grid)
+    prepared = prepare_finetune(cfg, run) if run.finetuning else prepare(cfg)
+    return fit_and_record(cfg, run, prepared, stopper, calibration_grid, wall_start)
 
 
-def guarded(cfg: DictConfig, guard, calibration_grid) -> dict:
+def guarded(cfg: DictConfig, run: SegmentRun, guard, calibration_grid) -> dict:
     """Train, check the segmenter against the classical foreground of the user's images, and train the next seed
     while it covers too little of it (drgan.segmenters.agreement); the best-agreeing attempt is kept in cfg.out. Each
     attempt has an early stopping of its own (one shared would carry the last attempt's best loss and patience into
@@ -179,7 +179,6 @@ def guarded(cfg: DictConfig, guard, calibration_grid) -> dict:
 
     from drgan.segmenters.agreement import Attempts, check_agreement, read_reference
 
-    run = SegmentRun.from_config(cfg)
     out = run.out
     attempts = Attempts(out, guard)
     if attempts.finished() and (out / "metrics.json").is_file():  # done before (an attempt's own is stashed)
@@ -195,7 +194,7 @@ def guarded(cfg: DictConfig, guard, calibration_grid) -> dict:
             with open_dict(cfg):
                 cfg.logger.mlflow.run_name = f"{first_name}/seed={seed}"
         stopper = early_stopping(run.early_stopping)
-        fit_and_record(cfg, prepare(cfg), stopper, calibration_grid, time.perf_counter(), items)
+        fit_and_record(cfg, run, prepare(cfg), stopper, calibration_grid, time.perf_counter(), items)
         check = check_agreement(out / "checkpoints" / "last.ckpt", items, progress)
         log.info(
             "seed %d: its foreground covers %.1f %% of the classical one on %d of the images (Dice %.3f; at least "
@@ -203,7 +202,8 @@ def guarded(cfg: DictConfig, guard, calibration_grid) -> dict:
         )  # fmt: skip
         attempts.stash(seed, check)
         with open_dict(cfg):
-            cfg.ckpt_path = None  # the next attempt starts fresh
+            cfg.ckpt_path = None  # the next attempt starts fresh (its logged params say so too)
+        run = replace(run, ckpt_path=None)
     metrics = attempts.keep_best()
     log.info("agreement: %s", metrics["agreement"]["why"])
     return _floats(metrics)
@@ -246,11 +246,10 @@ def prepare(cfg: DictConfig) -> Prepared:
 FINETUNE_KEPT = ("val_fraction", "check_fraction", "loader.working_px", "loader.contour_px")  # the base run's
 
 
-def finetune_base(cfg: DictConfig) -> tuple[Path, DictConfig | None, str]:
+def finetune_base(keys: SegmentRun) -> tuple[Path, DictConfig | None, str]:
     """(segmenter checkpoint, the base run's config or None, its generated pairs' folder) of ``finetune=RUN``: a
     pipeline run folder (its segment/), a segment run folder or a checkpoint file; ``data=`` names the pairs where
     the base run does not record them. A ConfigError or DataError names what is missing."""
-    keys = SegmentRun.from_config(cfg)
     if keys.finetune is None or keys.corrected is None:
         raise ConfigError(
             "segment: fine-tuning needs both finetune=RUN (a pipeline run, a segment run folder or a segmenter "
@@ -276,7 +275,7 @@ def finetune_base(cfg: DictConfig) -> tuple[Path, DictConfig | None, str]:
     return ckpt, base, str(data)
 
 
-def prepare_finetune(cfg: DictConfig) -> Prepared:
+def prepare_finetune(cfg: DictConfig, keys: SegmentRun) -> Prepared:
     """The segmenter of ``finetune=RUN`` with its generated pairs (split and held out as its own run did: the base's
     seed, val_fraction, check_fraction and loader scale settings) and the corrected images of ``corrected=DIR``
     resampled to its scale (drgan.segmenters.corrections); trained ``correction.epochs`` epochs at
@@ -284,14 +283,13 @@ def prepare_finetune(cfg: DictConfig) -> Prepared:
     from drgan.segmenters.corrections import correction_pairs, load_corrections
     from drgan.segmenters.registry import load_segmenter
 
-    ckpt, base, data = finetune_base(cfg)
+    ckpt, base, data = finetune_base(keys)
     setting = cfg.correction
     lr = setting_float("correction.lr", setting.lr, 0.0)
     epochs = setting_int("correction.epochs", setting.epochs, 1)
     setting_float("correction.share", setting.share, 0.0)
     model = load_segmenter(ckpt, "finetune").train()  # (loaded for inference, in eval mode)
     model.hparams.lr = lr
-    keys = SegmentRun.from_config(cfg)
     split_seed = int(base.seed) if base is not None and base.get("seed") is not None else keys.seed
     with open_dict(cfg):
         cfg.data = data
@@ -329,14 +327,14 @@ def prepare_finetune(cfg: DictConfig) -> Prepared:
 
 
 def fit_and_record(
-    cfg: DictConfig, prepared: Prepared, stopper, calibration_grid, wall_start: float, real_items=None
+    cfg: DictConfig, run: SegmentRun, prepared: Prepared, stopper, calibration_grid, wall_start: float, real_items=None
 ) -> dict:
     """Train ``prepared.model`` into cfg.out, then calibrate its split (checked on ``real_items``, the user's images
     with their classical labels, when given), run its closed-loop check, log and write metrics.json; the final
     metrics."""
     from drgan.segmenters.module import settled
 
-    model, out = prepared.model, SegmentRun.from_config(cfg).out
+    model, out = prepared.model, run.out
     train_loader, val_loader, n_train, n_val = dataloaders(
         cfg,
         prepared.pairs,
@@ -348,7 +346,7 @@ def fit_and_record(
         prepared.split_seed,
     )
     out.mkdir(parents=True, exist_ok=True)
-    trainer, loggers, scores = _fit(cfg, prepared, stopper, (train_loader, val_loader), (n_train, n_val))
+    trainer, loggers, scores = _fit(cfg, run, prepared, stopper, (train_loader, val_loader), (n_train, n_val))
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
     if "val/dsc" not in metrics and scores.history:  # a resumed run whose training had finished validates nothing
@@ -402,9 +400,9 @@ def fit_and_record(
     return metrics
 
 
-def _fit(cfg: DictConfig, prepared: Prepared, stopper, loaders: tuple, sizes: tuple[int, int]):
-    """Fit ``prepared.model`` on ``loaders`` (train, validation) into cfg.out, resumed from its last.ckpt when
-    cfg.ckpt_path says so, its params logged; (trainer, loggers, the validation score history)."""
+def _fit(cfg: DictConfig, run: SegmentRun, prepared: Prepared, stopper, loaders: tuple, sizes: tuple[int, int]):
+    """Fit ``prepared.model`` on ``loaders`` (train, validation) into ``run.out``, resumed from its last.ckpt when
+    ``run.ckpt_path`` says so, its params logged; (trainer, loggers, the validation score history)."""
     from hydra.utils import instantiate
     from lightning.pytorch.callbacks import ModelCheckpoint
 
@@ -413,7 +411,6 @@ def _fit(cfg: DictConfig, prepared: Prepared, stopper, loaders: tuple, sizes: tu
     from drgan.launch.runtime import flat_config, instantiate_loggers, resolve_checkpoint, start_loggers
     from drgan.segmenters.module import CheckpointEntries, ScoreHistory
 
-    run = SegmentRun.from_config(cfg)
     model, out = prepared.model, run.out
     (train_loader, val_loader), (n_train, n_val) = loaders, sizes
     ckpt_path = resolve_checkpoint(run.ckpt_path, out)

@@ -112,7 +112,7 @@ class _OwnKeys:
     out: Path | None = None
     redo: str | None = setting(None, check=lambda stage, value: _checked_stage("redo", value))
     mlflow: bool = True
-    progress: float = setting(60.0, ge=0, expected="seconds between progress lines (>= 0; 0: none)")
+    progress: float = setting(60.0, check=lambda stage, value: _checked_progress(value))
     launcher: str = setting("local", check=lambda stage, value: _checked_choice("launcher", value, LAUNCHERS))
     only: str | None = setting(None, check=lambda stage, value: _checked_stage("only", value))
     shard: str | None = None
@@ -136,8 +136,6 @@ def parse_settings(argv: Sequence[str], config_path: Path = CONFIG) -> Settings:
     names = stage_table.STAGES
     own, stages, slurm_words = _route(argv, base, names)
     keys = read_settings(_OwnKeys, {k: v for k, v in own.items() if k != "data.dir"}, "pipeline")
-    if keys.progress == math.inf:
-        raise ConfigError(f"pipeline: progress={keys.progress}: expected seconds between progress lines (>= 0)")
     shard = _checked_shard(keys)
     slurm = parse_slurm(base.get("slurm") or {}, slurm_words, names)
     _check_wired_keys(stages)
@@ -202,6 +200,14 @@ def _checked_name(name) -> str:
             f"({', '.join(shipped_materials())}); choose another name, e.g. name={name}_mine"
         )
     return str(name)
+
+
+def _checked_progress(value) -> float:
+    """``progress``: seconds between progress lines, finite and >= 0 (0: none)."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and math.isfinite(value) and value >= 0):
+        raise ConfigError(f"pipeline: progress={value!r}: expected seconds between progress lines (>= 0; 0: none)")
+    return float(value)
 
 
 def _checked_choice(key: str, value, choices) -> str:
