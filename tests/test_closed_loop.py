@@ -241,3 +241,27 @@ def test_a_bad_check_fraction_is_refused_before_any_pair_is_read(tmp_path):
     with pytest.raises(ConfigError, match="check_fraction=0.6"):
         segment(cfg)
     assert not (tmp_path / "o").exists()
+
+
+def test_a_segmenter_at_an_enlarged_working_scale_is_checked_on_its_pairs_as_rendered(tmp_path):
+    """loader.min_working_px: the training pairs enlarged, the closed-loop pairs held out at the rendered scale and
+    resampled by the working scale as a real image is; the same ids held out as without enlarging."""
+    from conftest import compose
+    from test_segment import tiny_segment_overrides
+
+    from drgan.segment import segment
+    from drgan.segmenters.pairs import load_generated_pairs, sample_diameters
+
+    data = make_labelled_set(tmp_path / "gen")
+    median = float(np.median(sample_diameters(load_generated_pairs(data))))
+    checks = {}
+    for name, extra in (("plain", []), ("enlarged", [f"loader.min_working_px={2 * median}"])):
+        overrides = tiny_segment_overrides(data, tmp_path, tmp_path / name, "trainer.max_epochs=1", "check_fraction=0.2",
+                                           "logger=none", "split_calibration=null", *extra)  # fmt: skip
+        segment(compose(overrides, config_name="segment"))
+        checks[name] = json.loads((tmp_path / name / "metrics.json").read_text())
+    plain, enlarged = checks["plain"], checks["enlarged"]
+    assert enlarged["pixel_scale"] == pytest.approx(2.0) and plain["pixel_scale"] == 1.0
+    assert enlarged["closed_loop"]["ids"] == plain["closed_loop"]["ids"]
+    truth = [c["closed_loop"]["median_diameter_true_px"] for c in (plain, enlarged)]
+    assert truth[1] == pytest.approx(truth[0]) and truth[0] == pytest.approx(median, rel=0.25)

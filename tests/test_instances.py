@@ -181,14 +181,14 @@ def test_an_instance_map_annotation_keeps_touching_particles_apart(tmp_path):
 
 def test_a_pair_shrunk_to_the_working_scale_keeps_its_instances_exactly():
     from drgan.scene.labels import IGNORE
-    from drgan.segmenters.pairs import Pair, shrink_pair
+    from drgan.segmenters.pairs import Pair, rescale_pair
 
     small = touching_pair()
     big = np.kron(small, np.ones((4, 4), np.int32))  # every pixel a 4 x 4 block
     mask = class_mask(big, 1)
     mask[:8, :8] = IGNORE  # two blocks no class is known for
     image = (big > 0).astype(np.float32) * 0.8 + 0.1
-    shrunk = shrink_pair(Pair("p", image, mask, big), 0.25, contour_px=1)
+    shrunk = rescale_pair(Pair("p", image, mask, big), 0.25, contour_px=1)
     assert shrunk.image.shape == small.shape and shrunk.image.dtype == np.float32
     assert (shrunk.labels == small).all()  # nearest neighbour from each new pixel's centre: the blocks' ids
     expected = class_mask(small, 1)
@@ -200,7 +200,7 @@ def test_a_pair_shrunk_to_the_working_scale_keeps_its_instances_exactly():
 
 def test_the_working_scale_follows_the_median_particle_and_stops_at_one_crop():
     from drgan.metrics.statistics import particles
-    from drgan.segmenters.pairs import Pair, working_scale
+    from drgan.segmenters.pairs import MAX_ENLARGE, Pair, working_scale
 
     labels = [disc_labels(128, n=4, seed=s) for s in range(3)]
     pairs = [Pair(str(k), disc_image(lab), class_mask(lab, 1), lab) for k, lab in enumerate(labels)]
@@ -210,6 +210,23 @@ def test_the_working_scale_follows_the_median_particle_and_stops_at_one_crop():
     assert working_scale(pairs, median / 4, crop=64)[0] == pytest.approx(0.5)  # 128-px pairs keep a 64-px crop
     assert working_scale(pairs, 2 * median, crop=16)[0] == 1.0  # particles already smaller: unchanged
     assert working_scale(pairs, None, crop=16)[0] == 1.0  # off
+    # loader.min_working_px: smaller particles enlarged to it, at most MAX_ENLARGE times; larger ones left alone
+    assert working_scale(pairs, None, crop=16, min_px=2 * median)[0] == pytest.approx(2.0)
+    assert working_scale(pairs, None, crop=16, min_px=100 * median)[0] == MAX_ENLARGE
+    assert working_scale(pairs, None, crop=16, min_px=median / 2)[0] == 1.0
+
+
+def test_a_pair_enlarged_to_the_working_scale_keeps_its_instances_and_redraws_its_contour():
+    from drgan.segmenters.pairs import Pair, rescale_pair
+
+    small = touching_pair()
+    image = (small > 0).astype(np.float32) * 0.8 + 0.1
+    big = rescale_pair(Pair("p", image, class_mask(small, 1), small), 3.0, contour_px=3)
+    assert big.image.shape == (3 * small.shape[0], 3 * small.shape[1])
+    assert (big.labels == np.kron(small, np.ones((3, 3), np.int32))).all()  # each old pixel a 3 x 3 block
+    assert (big.mask == class_mask(big.labels, 3)).all()  # the contour 3 px wide: the same width in real px
+    # bilinear: inside a particle and far outside the grey stays, between them it passes through the middle
+    assert big.image.min() >= 0.1 - 1e-6 and big.image.max() <= 0.9 + 1e-6
 
 
 def test_the_instance_aware_segmenter_learns_at_its_working_scale_and_infers_at_the_same(tmp_path):

@@ -1136,9 +1136,9 @@ def test_real_images_are_sampled_by_their_area_and_generated_pairs_once_each(tmp
     train, _, n_train, _ = dataloaders(cfg, pairs)
     assert n_train == 3 and len(train.dataset) == 48 and len(train) == 12
     # shrunk to a working scale (loader.working_px), the real images keep the crops of their original area
-    from drgan.segmenters.pairs import shrink_pair
+    from drgan.segmenters.pairs import rescale_pair
 
-    shrunk = [shrink_pair(p, 0.5) for p in pairs]
+    shrunk = [rescale_pair(p, 0.5) for p in pairs]
     assert crops_by_area(shrunk, 16) == [4, 4, 4] and len(dataloaders(cfg, shrunk, scale=0.5)[0].dataset) == 48
     generated = compose([f"data={make_generated(tmp_path / 'gen', n=5, size=64)}", *base], config_name="segment")
     train, *_ = dataloaders(generated, load_training_pairs(generated))

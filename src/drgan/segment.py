@@ -37,7 +37,6 @@ from drgan.segmenters.training import (  # segment's data (the names it exports 
     check_fraction,
     checked_source,
     dataloaders,
-    held_out_check,
     load_training_pairs,
     redrawn_contours,
     scaled_pairs,
@@ -227,7 +226,7 @@ def prepare(cfg: DictConfig) -> Prepared:
             )
         log.info("model.contact_weight=%s (%s)", cfg.model.contact_weight, contact_why)
     model = build_segmenter(cfg.model, "model")
-    pairs, pixel_scale, working, diameter, _ = scaled_pairs(cfg, source, manifest, model)
+    pairs, check_pairs, pixel_scale, working, diameter, _ = scaled_pairs(cfg, source, manifest, model)
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
@@ -239,7 +238,6 @@ def prepare(cfg: DictConfig) -> Prepared:
             "the generated images' fine-noise level is %.4f: inference adds white noise to cleaner images up to it "
             "(inference.noise_match; stored in the checkpoints)", noise,
         )  # fmt: skip
-    pairs, check_pairs = held_out_check(cfg, source, pairs)
     return Prepared(model, pairs, check_pairs, pixel_scale, noise, diameter, working, contact_why=contact_why)
 
 
@@ -301,9 +299,10 @@ def prepare_finetune(cfg: DictConfig, keys: SegmentRun) -> Prepared:
         cfg.model = OmegaConf.create(dict(model.hparams))
     source = checked_source(cfg)
     items = load_corrections(keys.corrected, setting.get("images"), keys.crop_rows)
-    pairs, pixel_scale, working, _, contour_width = scaled_pairs(cfg, source, source.manifest(), model)
+    pairs, check_pairs, pixel_scale, working, _, contour_width = scaled_pairs(
+        cfg, source, source.manifest(), model, split_seed
+    )
     corrected = correction_pairs(items, model.pixel_scale, contour_width, model.train_noise)
-    pairs, check_pairs = held_out_check(cfg, source, pairs, split_seed)
     n = sum(int(lab.max()) for _, lab in items)
     log.info(
         "fine-tuning %s on %d corrected image(s) (%d particles, resampled by %.3g) beside %s's pairs: %d epochs at "
@@ -368,7 +367,7 @@ def fit_and_record(
     calibration = calibrate(model, calibration_pairs, calibration_grid, last, progress, real_items)
     if calibration is not None:
         metrics["split/ap50"] = calibration["ap50"]
-    check = closed_loop_check(model, prepared.check_pairs, calibration, last, progress)
+    check = closed_loop_check(model, prepared.check_pairs, calibration, last, progress, prepared.working)
     if check is not None:
         metrics.update(check_metrics(check))
     for logger in loggers:
@@ -527,9 +526,12 @@ def _log_real_count(guard: dict | None) -> None:
         log.info("%s: the choice kept", said)
 
 
-def closed_loop_check(model, pairs, calibration: dict | None, last: Path, progress: bool) -> dict | None:
+def closed_loop_check(
+    model, pairs, calibration: dict | None, last: Path, progress: bool, working: float = 1.0
+) -> dict | None:
     """The segmenter scored on its held-out generated pairs (drgan.segmenters.closed_loop), with the split just
-    calibrated; stored in ``last`` (evaluate/analyze and the pipeline's report quote it). None without pairs."""
+    calibrated, each pair resampled by the ``working`` scale as inference resamples a real image; stored in
+    ``last`` (evaluate/analyze and the pipeline's report quote it). None without pairs."""
     from drgan.core.checkpoint_io import add_entry
     from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, log_summary
 
@@ -538,7 +540,7 @@ def closed_loop_check(model, pairs, calibration: dict | None, last: Path, progre
     if not last.is_file():
         log.warning("closed-loop check skipped: no %s", last)
         return None
-    check = closed_loop(model.eval(), pairs, calibration, progress=progress)
+    check = closed_loop(model.eval(), pairs, calibration, progress=progress, pixel_scale=working)
     add_entry(last, CLOSED_LOOP_KEY, check, "ckpt_path")
     log_summary(check)
     return check

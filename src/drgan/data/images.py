@@ -272,7 +272,7 @@ def resample(image: np.ndarray, scale: float) -> np.ndarray:
     """``image`` (H, W) resized by ``scale`` (at least 1 px a side): area-averaged (anti-aliased) when shrinking,
     as the GAN's real patches were (drgan.data.patches.resample_patches); unchanged for 1. Inference resamples real
     images by a segmenter's pixel scale with it (drgan.segmenters.inference), drgan.segment its pairs to a working
-    scale (drgan.segmenters.pairs.shrink_pair)."""
+    scale (drgan.segmenters.pairs.rescale_pair)."""
     if scale == 1.0:
         return image
     from skimage.transform import resize

@@ -4,8 +4,8 @@ drgan knows every synthetic particle's outline (the renderer's instance labels),
 pairs can be scored on more of them without any annotator's convention in the way. drgan.segment holds out
 ``check_fraction`` of the synthetic pairs (`hold_out`: never trained on, never used to choose the epoch or the
 split), predicts them after training as evaluate/analyze predict real images (the same `predict`, the split calibrated
-on the validation pairs; at the network's own scale, since the pairs are already there; no noise matching, no
-figure-annotation removal: the pairs are the training distribution) and measures them as drgan.evaluate measures real
+on the validation pairs; held out at the rendered scale and resampled by the segmenter's working scale, as real
+images are; no noise matching, no figure-annotation removal: the pairs are the training distribution) and measures them as drgan.evaluate measures real
 test images (drgan.metrics.statistics: equivalent diameters of particles not cut by the border, specks under
 ``min_area_px`` left out on both sides, bootstrap intervals over pairs).
 
@@ -83,8 +83,10 @@ def closed_loop(
     seed: int = 0,
     progress: bool = False,
     predictor=None,
+    pixel_scale: float = 1.0,
 ) -> dict:
     """Score ``model`` on ``pairs`` (generated, exact labels; module docstring) and return the summary (plain numbers).
+    ``pixel_scale``: the pairs resampled by it for the network (a segmenter that learnt them at a working scale);
     ``predictor``: image -> class map instead of the model's `predict` (tests)."""
     from drgan.metrics.instance_scores import binarize_and_label, error_sources, segmentation_scores
     from drgan.metrics.statistics import particles
@@ -97,7 +99,7 @@ def closed_loop(
         settings = check_inference(calibration)
 
         def predictor(image):
-            return predict(model, image, pixel_scale=1.0, noise_match=False, annotations=False, **settings)
+            return predict(model, image, pixel_scale=pixel_scale, noise_match=False, annotations=False, **settings)
 
     iterator = track(pairs, "closed-loop check", unit="pairs") if progress else pairs
     found, truth, sources, scores, contacts = [], [], [], [], []

@@ -320,24 +320,34 @@ def sample_diameters(pairs: list[Pair]) -> np.ndarray:
     return diameters_of([p.instances() for p in pairs[:WORKING_SAMPLE]])
 
 
+MAX_ENLARGE = 4.0  # the most `working_scale` enlarges pairs by (inference's cost grows with its square)
+
+
 def working_scale(
-    pairs: list[Pair], working_px: float | None, crop: int, diameters: np.ndarray | None = None
+    pairs: list[Pair],
+    working_px: float | None,
+    crop: int,
+    diameters: np.ndarray | None = None,
+    min_px: float | None = None,
 ) -> tuple[float, float]:
     """(scale, median diameter px): the factor (<= 1) the pairs are shrunk by so that their median particle (over
     the instances of the first ``WORKING_SAMPLE`` pairs, sized as drgan.metrics.statistics sizes them) spans
-    ``working_px`` px, but never so far that the smallest pair gets narrower than one ``crop``; 1 when
-    ``working_px`` is None, the particles are already that small, or no pair holds a particle. ``diameters``: the
-    pairs' `sample_diameters` where the caller has them already.
+    ``working_px`` px, but never so far that the smallest pair gets narrower than one ``crop``; or the factor (> 1,
+    at most ``MAX_ENLARGE``) they are enlarged by so that it spans ``min_px`` px where it is smaller; 1 when neither
+    applies or no pair holds a particle. ``diameters``: the pairs' `sample_diameters` where the caller has them
+    already.
 
     Why: a segmenter learns from ``crop``-px crops, and the instance-aware one's centre map (1 on each particle's
     core, drgan.segmenters.instances) can only be learnt where a crop shows the whole particle: with particles wider
     than the crops its centre map stays flat over every particle. Cellpose rescales to a
     working diameter (30 px) for the same reason."""
-    if working_px is None or not pairs:
+    if (working_px is None and min_px is None) or not pairs:
         return 1.0, math.nan
     diameters = sample_diameters(pairs) if diameters is None else diameters
     median = float(np.median(diameters)) if diameters.size else math.nan
-    if not median > working_px:
+    if min_px is not None and median < min_px:
+        return float(min(min_px / median, MAX_ENLARGE)), median
+    if working_px is None or not median > working_px:
         return 1.0, median
     floor = crop / min(min(p.image.shape) for p in pairs)
     return float(min(1.0, max(working_px / median, floor))), median
@@ -350,9 +360,9 @@ def _nearest(array: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return array[np.ix_(rows, cols)]
 
 
-def shrink_pair(pair: Pair, scale: float, contour_px: int = 1) -> Pair:
-    """``pair`` at ``scale`` (< 1): the image area-averaged as inference resamples real images
-    (drgan.data.images.resample), the instances by nearest neighbour, the classes drawn anew from them
+def rescale_pair(pair: Pair, scale: float, contour_px: int = 1) -> Pair:
+    """``pair`` at ``scale``: the image resampled as inference resamples real images (drgan.data.images.resample:
+    area-averaged when shrinking, bilinear when enlarging), the instances by nearest neighbour, the classes drawn anew from them
     (``contour_px`` wide, as drgan.scene.labels.class_mask draws them) with the pair's IGNORE pixels kept."""
     image = resample(pair.image, scale)
     labels = _nearest(pair.instances(), image.shape).astype(np.int32)

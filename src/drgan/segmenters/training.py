@@ -123,6 +123,7 @@ class LoaderSettings:
     texture: float = 0.1  # std of the surface texture added to each crop (pairs.surface_texture); 0: none
     contact_shade: float = 0.0  # largest depth of the dip drawn at the contacts of touching particles; 0: none
     working_px: float | str | None = "auto"  # the median particle's diameter in the crops (pairs.working_scale)
+    min_working_px: float | None = None  # smaller median particles are enlarged to this diameter; None: never
     contour_px: int | None = None  # rendered pairs' contour class redrawn from their labels this wide; None: theirs
     seed: int = 0
     val_fraction: float = 0.1
@@ -141,19 +142,22 @@ class LoaderSettings:
             texture=setting_float("loader.texture", ld.texture, 0.0),
             contact_shade=_fraction("loader.contact_shade", ld.contact_shade),
             working_px=_working_px(ld.get("working_px", "auto")),
+            min_working_px=_working_px(ld.get("min_working_px"), "loader.min_working_px"),
             contour_px=None if ld.get("contour_px") is None else setting_int("loader.contour_px", ld.contour_px, 0),
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
 
 
-def _working_px(value) -> float | str | None:
-    """``loader.working_px``: "auto", null (off) or a diameter in px (> 1), else a ConfigError naming the key."""
-    if value is None or value == "auto":
+def _working_px(value, key: str = "loader.working_px") -> float | str | None:
+    """``loader.working_px`` (or ``key``): "auto" (working_px only), null (off) or a diameter in px (> 1), else a
+    ConfigError naming the key."""
+    if value is None or (value == "auto" and key == "loader.working_px"):
         return value
-    number = setting_float("loader.working_px", value, 0.0)
+    number = setting_float(key, value, 0.0)
     if not number > 1.0:
-        raise ConfigError(f"loader.working_px={value}: expected a particle diameter in px (> 1), auto or null (off)")
+        auto = "auto or " if key == "loader.working_px" else ""
+        raise ConfigError(f"{key}={value}: expected a particle diameter in px (> 1), {auto}null (off)")
     return number
 
 
@@ -168,28 +172,38 @@ def working_px_of(setting: float | str | None, model) -> float | None:
     return setting
 
 
-def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_px: int):
-    """(pairs, pixel_scale, scale, diameter): the pairs shrunk to the model's working diameter (`working_px_of`,
-    drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike (inference shrinks real images by it),
-    and their particles' area-weighted median diameter after it (px, drgan.metrics.statistics.area_median; None
-    without particles: inference's per-image scale aims at it); unchanged when no shrinking is needed."""
+def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_px: int, held_out=None):
+    """(pairs, pixel_scale, scale, diameter): the pairs resampled to the model's working diameter (`working_px_of`
+    and ``loader.min_working_px``, drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike
+    (inference resamples real images by it), and their particles' area-weighted median diameter after it (px,
+    drgan.metrics.statistics.area_median; None without particles: inference's per-image scale aims at it);
+    unchanged when no resampling is needed. ``held_out``: a callable pairs -> (rest, check) applied after the scale
+    is measured on every pair and before any is resampled: then (rest resampled, check as rendered, pixel_scale,
+    scale, diameter)."""
     from drgan.metrics.statistics import area_median
-    from drgan.segmenters.pairs import sample_diameters, shrink_pair, working_scale
+    from drgan.segmenters.pairs import rescale_pair, sample_diameters, working_scale
 
     ld = LoaderSettings.from_config(cfg)
     diameters = sample_diameters(pairs)
-    scale, median = working_scale(pairs, working_px_of(ld.working_px, model), ld.crop, diameters)
+    scale, median = working_scale(pairs, working_px_of(ld.working_px, model), ld.crop, diameters, ld.min_working_px)
     by_area = area_median(diameters)
     diameter = round(by_area * scale, 3) if by_area > 0 else None  # nan (no particle) fails the test too
-    if scale >= 1.0:
-        return pairs, pixel_scale, 1.0, diameter
+    check = None
+    if held_out is not None:
+        pairs, check = held_out(pairs)
+    if scale == 1.0:
+        return (pairs, pixel_scale, 1.0, diameter) if held_out is None else (pairs, check, pixel_scale, 1.0, diameter)
     contour = max(1, int(round(contour_px * scale))) if contour_px > 0 else 0
     log.info(
-        "loader.working_px=%s: the pairs' median particle spans %.0f px; the pairs are shrunk by %.3g (to %.0f px "
-        "particles, contour %d px), and inference shrinks images alike (pixel scale %.3g, stored in the "
-        "checkpoints)", ld.working_px, median, scale, median * scale, contour, pixel_scale * scale,
+        "loader.working_px=%s, min_working_px=%s: the pairs' median particle spans %.0f px; the pairs are %s by %.3g "
+        "(to %.0f px particles, contour %d px), and inference resamples images alike (pixel scale %.3g, stored in the "
+        "checkpoints)", ld.working_px, ld.min_working_px, median, "shrunk" if scale < 1 else "enlarged", scale,
+        median * scale, contour, pixel_scale * scale,
     )  # fmt: skip
-    return [shrink_pair(p, scale, contour) for p in pairs], round(pixel_scale * scale, 6), scale, diameter
+    scaled = [rescale_pair(p, scale, contour) for p in pairs]
+    if held_out is None:
+        return scaled, round(pixel_scale * scale, 6), scale, diameter
+    return scaled, check, round(pixel_scale * scale, 6), scale, diameter
 
 
 def redrawn_contours(pairs, contour_px: int | None):
@@ -296,14 +310,19 @@ def dataloaders(
     return train, val, len(train_pairs), len(val_pairs)
 
 
-def scaled_pairs(cfg: DictConfig, source: TrainingPairs, manifest: dict | None, model):
-    """(pairs, pixel_scale, working scale, working diameter, contour width): the source's pairs read, their contour
-    class redrawn where ``loader.contour_px`` asks (`redrawn_contours`) and brought to the model's working scale
-    (`at_working_scale`)."""
+def scaled_pairs(cfg: DictConfig, source: TrainingPairs, manifest: dict | None, model, split_seed: int | None = None):
+    """(pairs, check pairs, pixel_scale, working scale, working diameter, contour width): the source's pairs read,
+    their contour class redrawn where ``loader.contour_px`` asks (`redrawn_contours`), the closed-loop check's pairs
+    held out (`held_out_check`, seed ``split_seed``; they stay at the rendered scale, as real images come to
+    inference) and the rest brought to the model's working scale (`at_working_scale`)."""
     redraw = LoaderSettings.from_config(cfg).contour_px
     pairs = redrawn_contours(source.load(), redraw)
     contour_width = source.contour_width(manifest) if redraw is None else redraw
-    scaled = at_working_scale(cfg, model, pairs, source.pixel_scale(manifest), contour_width)
+
+    def held_out(pairs):
+        return held_out_check(cfg, source, pairs, split_seed)
+
+    scaled = at_working_scale(cfg, model, pairs, source.pixel_scale(manifest), contour_width, held_out)
     return (*scaled, contour_width)
 
 
