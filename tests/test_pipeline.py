@@ -66,7 +66,7 @@ def test_stage_keys_are_routed_to_their_stage_and_replace_the_configs_defaults(t
     [
         (["name=mine"], "give data.dir"),
         (["data.dir=/d", "name=my run"], "name='my run'"),
-        (["data.dir=/d", "name=tio2_sem"], "a material drgan ships has it"),
+        (["data.dir=/d", "name=tio2_sem"], "a material drgan ships has that name"),
         (["data.dir=/d", "name=m", "trian.seed=1"], "trian.seed: not a setting"),
         (["data.dir=/d", "name=m", "redo=trian"], "redo='trian'"),
         (["data.dir=/d", "name=m", "train.hydra.run.dir=/elsewhere"], "train.hydra.run.dir is set by the pipeline"),

@@ -13,7 +13,6 @@ detected outlines: keep them out of the repository), background_noise.png, edge_
 from __future__ import annotations
 
 import logging
-import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from drgan.data.images import default_split, list_images, read_grey, read_split
 from drgan.data.particle_edge import EDGE_BACKGROUND_PX, EDGE_INSIDE_PX, EDGE_INTERIOR_PX, EDGE_OUTSIDE_PX
 from drgan.data.patches import STRIDE, particle_boxes, scale_sample
 from drgan.data.polarity import check_polarity, resolve_polarity
+from drgan.launch.configs import material_name
 from drgan.launch.runtime import stage_main, start
 from drgan.profiling import figures
 from drgan.profiling.proposal import (
@@ -63,21 +63,8 @@ log = logging.getLogger(__name__)
 
 
 def _material_name(stage: str, name) -> str:
-    """``name``: the material's name, a file name of letters, digits, _ or -, not one drgan ships."""
-    from drgan.launch.configs import shipped_materials
-
-    if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
-        raise ConfigError(
-            f"{stage}: name={name!r}: expected a material name of letters, digits, _ or - "
-            "(the config is written as drgan_conf/material/NAME.yaml)"
-        )
-    if str(name) in shipped_materials():
-        raise ConfigError(
-            f"{stage}: name={name}: a material drgan ships has that name ({', '.join(shipped_materials())}); "
-            f"yours would be confused with it on the config search path. Choose another name, e.g. "
-            f"name={name}_mine"
-        )
-    return str(name)
+    """``name``: the material's name (drgan.launch.configs.material_name)."""
+    return material_name(stage, name, "the material is written as")
 
 
 def _crop_rows(stage: str, crop) -> tuple[int, int] | str | None:

@@ -161,6 +161,25 @@ def shipped_materials() -> list[str]:
     return sorted(p.stem for p in (CONF_DIR / "gan" / "material").glob("*.yaml"))
 
 
+def material_name(stage: str, name, why: str) -> str:
+    """``name`` checked as the name of a user's material: a file name of letters, digits, _ or - (its config is
+    drgan_conf/material/NAME.yaml) and none of `shipped_materials`; a ConfigError naming ``stage`` and ``why`` the
+    name is a material's name otherwise."""
+    import re
+
+    if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
+        raise ConfigError(
+            f"{stage}: name={name!r}: expected a name of letters, digits, _ or - (e.g. name=my_tem): {why} "
+            "drgan_conf/material/NAME.yaml"
+        )
+    if str(name) in shipped_materials():
+        raise ConfigError(
+            f"{stage}: name={name}: a material drgan ships has that name ({', '.join(shipped_materials())}); {why} "
+            f"drgan_conf/material/NAME.yaml and would be confused with it. Choose another name, e.g. name={name}_mine"
+        )
+    return str(name)
+
+
 def conf_dir(root: str = "gan") -> Path:
     """The config root ``root`` (one of `ROOTS`); a clear error when the package was installed without its configs."""
     if root not in ROOTS:

@@ -189,17 +189,10 @@ def _route(argv: Sequence[str], base: dict, names) -> tuple[dict, dict[str, dict
 
 
 def _checked_name(name) -> str:
-    """``name``: letters, digits, _ or -, and not a material drgan ships (the run's material takes the name)."""
-    if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
-        raise ConfigError(f"pipeline: name={name!r}: expected a name of letters, digits, _ or - (e.g. name=my_tem)")
-    from drgan.launch.configs import shipped_materials
+    """``name``: the run's material takes it (drgan.launch.configs.material_name)."""
+    from drgan.launch.configs import material_name
 
-    if str(name) in shipped_materials():
-        raise ConfigError(
-            f"pipeline: name={name}: the run's material takes its name, and a material drgan ships has it "
-            f"({', '.join(shipped_materials())}); choose another name, e.g. name={name}_mine"
-        )
-    return str(name)
+    return material_name("pipeline", name, "the run's material takes the name and is written as")
 
 
 def _checked_progress(value) -> float:
