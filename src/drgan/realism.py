@@ -247,7 +247,7 @@ class RenderKeys:
 class RealismSettings:
     """Every key of conf/gan/realism.yaml, typed and checked (`read_settings`) before any image is read."""
 
-    synthetic: str = setting(check=lambda stage, source: (source_kind(source), str(source))[1])
+    synthetic: str = setting(check=lambda stage, source: source if source is None else str(source))  # `source_kind`
     out: Path = setting()
     data: dict = setting(check=data_keys)
     n_synthetic: int | None = setting(None, ge=2)
@@ -259,20 +259,17 @@ class RealismSettings:
     seed: int = setting(0, ge=0)
     threads: int | None = setting(1, ge=1)
     progress: bool = True
+    kind: str = field(default="", init=False)  # what synthetic names (`source_kind`)
+    classifier: ClassifierSettings | None = field(default=None, init=False)  # the test's keys, checked
+
+    def __post_init__(self):
+        """The source's kind and the classifier's keys resolved once, before any patch is mined (frozen: set here)."""
+        object.__setattr__(self, "kind", source_kind(self.synthetic))
+        object.__setattr__(self, "classifier", classifier_settings(self.test, self.seed))
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> RealismSettings:
-        settings = read_settings(cls, cfg, "realism")
-        classifier_settings(settings.test, settings.seed)  # checked now, before any patch is mined
-        return settings
-
-    @property
-    def kind(self) -> str:
-        return source_kind(self.synthetic)
-
-    @property
-    def classifier(self) -> ClassifierSettings:
-        return classifier_settings(self.test, self.seed)
+        return read_settings(cls, cfg, "realism")
 
 
 def realism(s: RealismSettings) -> dict:
