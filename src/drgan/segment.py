@@ -226,19 +226,21 @@ def prepare(cfg: DictConfig) -> Prepared:
             )
         log.info("model.contact_weight=%s (%s)", cfg.model.contact_weight, contact_why)
     model = build_segmenter(cfg.model, "model")
-    pairs, check_pairs, pixel_scale, working, diameter, _ = scaled_pairs(cfg, source, manifest, model)
+    scaled = scaled_pairs(cfg, source, manifest, model)
+    pixel_scale, noise = scaled.pixel_scale, scaled.noise
     if pixel_scale != 1.0:
         log.info(
             "the pairs hold %.3g px per real image px: inference will resample images by %.3g (stored in the "
             "checkpoints)", pixel_scale, pixel_scale,
         )  # fmt: skip
-    noise = source.noise_level(pairs, manifest)
     if noise is not None:
         log.info(
             "the generated images' fine-noise level is %.4f: inference adds white noise to cleaner images up to it "
             "(inference.noise_match; stored in the checkpoints)", noise,
         )  # fmt: skip
-    return Prepared(model, pairs, check_pairs, pixel_scale, noise, diameter, working, contact_why=contact_why)
+    return Prepared(
+        model, scaled.pairs, scaled.check, pixel_scale, noise, scaled.diameter, scaled.working, contact_why=contact_why
+    )
 
 
 FINETUNE_KEPT = ("val_fraction", "check_fraction", "loader.working_px", "loader.contour_px")  # the base run's
@@ -299,10 +301,8 @@ def prepare_finetune(cfg: DictConfig, keys: SegmentRun) -> Prepared:
         cfg.model = OmegaConf.create(dict(model.hparams))
     source = checked_source(cfg)
     items = load_corrections(keys.corrected, setting.get("images"), keys.crop_rows)
-    pairs, check_pairs, pixel_scale, working, _, contour_width = scaled_pairs(
-        cfg, source, source.manifest(), model, split_seed
-    )
-    corrected = correction_pairs(items, model.pixel_scale, contour_width, model.train_noise)
+    scaled = scaled_pairs(cfg, source, source.manifest(), model, split_seed)
+    corrected = correction_pairs(items, model.pixel_scale, scaled.contour_width, model.train_noise)
     n = sum(int(lab.max()) for _, lab in items)
     log.info(
         "fine-tuning %s on %d corrected image(s) (%d particles, resampled by %.3g) beside %s's pairs: %d epochs at "
@@ -311,17 +311,17 @@ def prepare_finetune(cfg: DictConfig, keys: SegmentRun) -> Prepared:
     )  # fmt: skip
     return Prepared(
         model,
-        pairs,
-        check_pairs,
+        scaled.pairs,
+        scaled.check,
         model.pixel_scale,
         model.train_noise,
         model.working_diameter,
-        working,
+        scaled.working,
         corrected,
         split_seed=split_seed,
         contact_why="the base segmenter's",
         finetuned={"base": str(ckpt), "corrected": str(keys.corrected), "images": [item.id for item, _ in items],
-                   "particles": n, "pixel_scale": pixel_scale},
+                   "particles": n, "pixel_scale": scaled.pixel_scale},
     )  # fmt: skip
 
 

@@ -172,14 +172,12 @@ def working_px_of(setting: float | str | None, model) -> float | None:
     return setting
 
 
-def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_px: int, held_out=None):
+def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_px: int):
     """(pairs, pixel_scale, scale, diameter): the pairs resampled to the model's working diameter (`working_px_of`
     and ``loader.min_working_px``, drgan.segmenters.pairs.working_scale), their pixel scale multiplied alike
     (inference resamples real images by it), and their particles' area-weighted median diameter after it (px,
     drgan.metrics.statistics.area_median; None without particles: inference's per-image scale aims at it);
-    unchanged when no resampling is needed. ``held_out``: a callable pairs -> (rest, check) applied after the scale
-    is measured on every pair and before any is resampled: then (rest resampled, check as rendered, pixel_scale,
-    scale, diameter)."""
+    unchanged when no resampling is needed."""
     from drgan.metrics.statistics import area_median
     from drgan.segmenters.pairs import rescale_pair, sample_diameters, working_scale
 
@@ -188,11 +186,8 @@ def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_
     scale, median = working_scale(pairs, working_px_of(ld.working_px, model), ld.crop, diameters, ld.min_working_px)
     by_area = area_median(diameters)
     diameter = round(by_area * scale, 3) if by_area > 0 else None  # nan (no particle) fails the test too
-    check = None
-    if held_out is not None:
-        pairs, check = held_out(pairs)
     if scale == 1.0:
-        return (pairs, pixel_scale, 1.0, diameter) if held_out is None else (pairs, check, pixel_scale, 1.0, diameter)
+        return pairs, pixel_scale, 1.0, diameter
     contour = max(1, int(round(contour_px * scale))) if contour_px > 0 else 0
     log.info(
         "loader.working_px=%s, min_working_px=%s: the pairs' median particle spans %.0f px; the pairs are %s by %.3g "
@@ -200,10 +195,7 @@ def at_working_scale(cfg: DictConfig, model, pairs, pixel_scale: float, contour_
         "checkpoints)", ld.working_px, ld.min_working_px, median, "shrunk" if scale < 1 else "enlarged", scale,
         median * scale, contour, pixel_scale * scale,
     )  # fmt: skip
-    scaled = [rescale_pair(p, scale, contour) for p in pairs]
-    if held_out is None:
-        return scaled, round(pixel_scale * scale, 6), scale, diameter
-    return scaled, check, round(pixel_scale * scale, 6), scale, diameter
+    return [rescale_pair(p, scale, contour) for p in pairs], round(pixel_scale * scale, 6), scale, diameter
 
 
 def redrawn_contours(pairs, contour_px: int | None):
@@ -310,20 +302,37 @@ def dataloaders(
     return train, val, len(train_pairs), len(val_pairs)
 
 
+@dataclass
+class ScaledPairs:
+    """`scaled_pairs`: the pairs to train and validate on (at the working scale), the closed-loop check's pairs (as
+    rendered), the pixel scale and working scale and diameter the checkpoints store, the contour width, and the
+    generated images' fine-noise level at the working scale (`TrainingPairs.noise_level`; None for real images)."""
+
+    pairs: list
+    check: list
+    pixel_scale: float
+    working: float
+    diameter: float | None
+    contour_width: int
+    noise: float | None
+
+
 def scaled_pairs(cfg: DictConfig, source: TrainingPairs, manifest: dict | None, model, split_seed: int | None = None):
-    """(pairs, check pairs, pixel_scale, working scale, working diameter, contour width): the source's pairs read,
-    their contour class redrawn where ``loader.contour_px`` asks (`redrawn_contours`), the closed-loop check's pairs
-    held out (`held_out_check`, seed ``split_seed``; they stay at the rendered scale, as real images come to
-    inference) and the rest brought to the model's working scale (`at_working_scale`)."""
+    """The source's pairs read, their contour class redrawn where ``loader.contour_px`` asks (`redrawn_contours`),
+    brought to the model's working scale (`at_working_scale`), and the closed-loop check's pairs held out
+    (`held_out_check`, seed ``split_seed``) as rendered: real images come to inference at their own scale too.
+    A `ScaledPairs`."""
     redraw = LoaderSettings.from_config(cfg).contour_px
     pairs = redrawn_contours(source.load(), redraw)
     contour_width = source.contour_width(manifest) if redraw is None else redraw
-
-    def held_out(pairs):
-        return held_out_check(cfg, source, pairs, split_seed)
-
-    scaled = at_working_scale(cfg, model, pairs, source.pixel_scale(manifest), contour_width, held_out)
-    return (*scaled, contour_width)
+    scaled, pixel_scale, working, diameter = at_working_scale(
+        cfg, model, pairs, source.pixel_scale(manifest), contour_width
+    )
+    noise = source.noise_level(scaled, manifest)
+    _, check = held_out_check(cfg, source, pairs, split_seed)
+    held = {p.id for p in check}
+    rest = [p for p in scaled if p.id not in held]
+    return ScaledPairs(rest, check, pixel_scale, working, diameter, contour_width, noise)
 
 
 def held_out_check(cfg: DictConfig, source: TrainingPairs, pairs, seed: int | None = None) -> tuple[list, list]:
