@@ -216,6 +216,18 @@ def test_the_working_scale_follows_the_median_particle_and_stops_at_one_crop():
     assert working_scale(pairs, None, crop=16, min_px=median / 2)[0] == 1.0
 
 
+def test_the_working_scale_is_measured_on_pairs_that_hold_particles():
+    """A generated set lists its background pairs first: they must not hide the particles' size."""
+    from drgan.segmenters.pairs import WORKING_SAMPLE, Pair, sample_diameters, working_scale
+
+    empty = np.zeros((64, 64), np.int32)
+    backgrounds = [Pair(f"pbg_{k}", disc_image(empty), class_mask(empty, 1), empty) for k in range(WORKING_SAMPLE)]
+    lab = disc_labels(64, n=4, seed=0)
+    pairs = [*backgrounds, Pair("syn_0", disc_image(lab), class_mask(lab, 1), lab)]
+    assert sample_diameters(pairs).size == 4
+    assert working_scale(pairs, None, crop=16, min_px=4 * float(np.median(sample_diameters(pairs))))[0] == 4.0
+
+
 def test_a_pair_enlarged_to_the_working_scale_keeps_its_instances_and_redraws_its_contour():
     from drgan.segmenters.pairs import Pair, rescale_pair
 

@@ -16,6 +16,7 @@ Every pair is checked (sizes, mask values) before any training or evaluation sta
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -314,10 +315,12 @@ WORKING_SAMPLE = 200  # pairs whose instances give the median diameter `working_
 
 
 def sample_diameters(pairs: list[Pair]) -> np.ndarray:
-    """The instances' diameters (drgan.metrics.statistics.diameters_of) of the first ``WORKING_SAMPLE`` pairs."""
+    """The instances' diameters (drgan.metrics.statistics.diameters_of) of the first ``WORKING_SAMPLE`` pairs that
+    hold a particle (a generated set lists its particle-free background pairs first)."""
     from drgan.metrics.statistics import diameters_of
 
-    return diameters_of([p.instances() for p in pairs[:WORKING_SAMPLE]])
+    holding = (labels for labels in (p.instances() for p in pairs) if labels.max() > 0)
+    return diameters_of(list(itertools.islice(holding, WORKING_SAMPLE)))
 
 
 MAX_ENLARGE = 4.0  # the most `working_scale` enlarges pairs by (inference's cost grows with its square)
