@@ -36,6 +36,7 @@ every entry point before Hydra composes.
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 import warnings
@@ -165,8 +166,6 @@ def material_name(stage: str, name, why: str) -> str:
     """``name`` checked as the name of a user's material: a file name of letters, digits, _ or - (its config is
     drgan_conf/material/NAME.yaml) and none of `shipped_materials`; a ConfigError naming ``stage`` and ``why`` the
     name is a material's name otherwise."""
-    import re
-
     if not name or not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name)):
         raise ConfigError(
             f"{stage}: name={name!r}: expected a name of letters, digits, _ or - (e.g. name=my_tem): {why} "

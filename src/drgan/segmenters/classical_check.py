@@ -214,8 +214,7 @@ def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Map
             "too. The classical segmentation merges touching particles as well: correct the outlines of one or two "
             'images and fine-tune on them (the pipeline\'s corrected=DIR; docs/pipeline.md, "Correcting outlines": '
             "on TiO2 SEM one corrected image took the median from +24 % to +5 % and the count from -33 % to -1 %), or "
-            "score a few annotated images "
-            "(annotated=), before publishing the count.",
+            "score a few annotated images (annotated=), before publishing the count.",
             CLASSICAL,
         )
     if gap < 0 and by_classical >= by_segmenter + MERGE_EXCESS and not _outnumbers(n_classical, n_segmenter):

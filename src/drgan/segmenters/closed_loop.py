@@ -5,9 +5,9 @@ pairs can be scored on more of them without any annotator's convention in the wa
 ``check_fraction`` of the synthetic pairs (`hold_out`: never trained on, never used to choose the epoch or the
 split), predicts them after training as evaluate/analyze predict real images (the same `predict`, the split calibrated
 on the validation pairs; held out at the rendered scale and resampled by the segmenter's working scale, as real
-images are; no noise matching, no figure-annotation removal: the pairs are the training distribution) and measures them as drgan.evaluate measures real
-test images (drgan.metrics.statistics: equivalent diameters of particles not cut by the border, specks under
-``min_area_px`` left out on both sides, bootstrap intervals over pairs).
+images are; no noise matching, no figure-annotation removal: the pairs are the training distribution) and measures
+them as drgan.evaluate measures real test images (drgan.metrics.statistics: equivalent diameters of particles not
+cut by the border, specks under ``min_area_px`` left out on both sides, bootstrap intervals over pairs).
 
 What `closed_loop` returns (and drgan.segment stores in the checkpoint as ``CLOSED_LOOP_KEY`` and in metrics.json):
 ``median_error`` / ``mean_error`` / ``count_error`` (relative, {value, low, high}); ``diameter_offset_px`` (median

@@ -334,11 +334,11 @@ def working_scale(
     min_px: float | None = None,
 ) -> tuple[float, float]:
     """(scale, median diameter px): the factor (<= 1) the pairs are shrunk by so that their median particle (over
-    the instances of the first ``WORKING_SAMPLE`` pairs, sized as drgan.metrics.statistics sizes them) spans
-    ``working_px`` px, but never so far that the smallest pair gets narrower than one ``crop``; or the factor (> 1,
-    at most ``MAX_ENLARGE``) they are enlarged by so that it spans ``min_px`` px where it is smaller; 1 when neither
-    applies or no pair holds a particle. ``diameters``: the pairs' `sample_diameters` where the caller has them
-    already.
+    the instances of the first ``WORKING_SAMPLE`` pairs that hold particles, sized as drgan.metrics.statistics sizes
+    them) spans ``working_px`` px, but never so far that the smallest pair gets narrower than one ``crop``; or the
+    factor (> 1, at most ``MAX_ENLARGE``) they are enlarged by so that it spans ``min_px`` px where it is smaller; 1
+    when neither applies or no pair holds a particle. ``diameters``: the pairs' `sample_diameters` where the caller
+    has them already.
 
     Why: a segmenter learns from ``crop``-px crops, and the instance-aware one's centre map (1 on each particle's
     core, drgan.segmenters.instances) can only be learnt where a crop shows the whole particle: with particles wider
@@ -365,8 +365,8 @@ def _nearest(array: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 def rescale_pair(pair: Pair, scale: float, contour_px: int = 1) -> Pair:
     """``pair`` at ``scale``: the image resampled as inference resamples real images (drgan.data.images.resample:
-    area-averaged when shrinking, bilinear when enlarging), the instances by nearest neighbour, the classes drawn anew from them
-    (``contour_px`` wide, as drgan.scene.labels.class_mask draws them) with the pair's IGNORE pixels kept."""
+    area-averaged when shrinking, bilinear when enlarging), the instances by nearest neighbour, the classes drawn anew
+    from them (``contour_px`` wide, as drgan.scene.labels.class_mask draws them) with the pair's IGNORE pixels kept."""
     image = resample(pair.image, scale)
     labels = _nearest(pair.instances(), image.shape).astype(np.int32)
     mask = class_mask(labels, contour_px).astype(np.uint8)

@@ -142,22 +142,23 @@ class LoaderSettings:
             texture=setting_float("loader.texture", ld.texture, 0.0),
             contact_shade=_fraction("loader.contact_shade", ld.contact_shade),
             working_px=_working_px(ld.get("working_px", "auto")),
-            min_working_px=_working_px(ld.get("min_working_px"), "loader.min_working_px"),
+            min_working_px=_working_px(ld.get("min_working_px"), "loader.min_working_px", auto=False),
             contour_px=None if ld.get("contour_px") is None else setting_int("loader.contour_px", ld.contour_px, 0),
             seed=setting_int("seed", cfg.seed),
             val_fraction=setting_float("val_fraction", cfg.val_fraction),
         )
 
 
-def _working_px(value, key: str = "loader.working_px") -> float | str | None:
-    """``loader.working_px`` (or ``key``): "auto" (working_px only), null (off) or a diameter in px (> 1), else a
+def _working_px(value, key: str = "loader.working_px", auto: bool = True) -> float | str | None:
+    """The diameter setting ``key``: null (off), "auto" where ``auto`` allows it, or a diameter in px (> 1), else a
     ConfigError naming the key."""
-    if value is None or (value == "auto" and key == "loader.working_px"):
+    if value is None or (auto and value == "auto"):
         return value
     number = setting_float(key, value, 0.0)
     if not number > 1.0:
-        auto = "auto or " if key == "loader.working_px" else ""
-        raise ConfigError(f"{key}={value}: expected a particle diameter in px (> 1), {auto}null (off)")
+        raise ConfigError(
+            f"{key}={value}: expected a particle diameter in px (> 1), {'auto or ' if auto else ''}null (off)"
+        )
     return number
 
 
