@@ -26,6 +26,7 @@ from lightning.pytorch import LightningModule
 from omegaconf import DictConfig, OmegaConf
 
 from drgan.core.errors import ConfigError
+from drgan.core.typed_settings import read_settings, setting, typed
 from drgan.models import build
 from drgan.scene.config import Material, typed_material
 
@@ -48,34 +49,49 @@ def model_config(cfg: DictConfig | Mapping) -> dict:
     }
 
 
+@typed
+@dataclass
 class LRDecay:
-    """Learning-rate factor per training step: 1 until ``start_step``, then linear down to ``final_factor``
-    over ``steps`` steps, then constant (pix2pix decays linearly too, over its second half). Applied to G and D.
+    """Learning-rate factor per training step (``model.lr_decay``): 1 until ``start_step``, then linear down to
+    ``final_factor`` over ``steps`` steps, then constant (pix2pix decays linearly too, over its second half); 1 at every
+    step when ``start_step`` is null. Applied to G and D.
 
     A plain callable object, not a lambda, so that the schedulers' state pickles into checkpoints."""
 
-    def __init__(self, start_step: int, steps: int, final_factor: float):
-        if start_step < 0 or steps < 1 or not 0 <= final_factor <= 1:
+    start_step: int | None = setting(ge=0)
+    steps: int = setting(1, ge=1)
+    final_factor: float = setting(0.0, ge=0.0, le=1.0)
+
+    def __post_init__(self):
+        if (self.start_step is not None and self.start_step < 0) or self.steps < 1 or not 0 <= self.final_factor <= 1:
             raise ConfigError(
-                f"model.lr_decay: start_step={start_step}, steps={steps}, final_factor={final_factor}: "
+                f"model.lr_decay: start_step={self.start_step}, steps={self.steps}, final_factor={self.final_factor}: "
                 "expected start_step >= 0, steps >= 1 and final_factor in [0, 1]"
             )
-        self.start_step, self.steps, self.final_factor = int(start_step), int(steps), float(final_factor)
 
     @classmethod
-    def from_config(cls, cfg: Mapping | None) -> LRDecay | None:
-        """None (constant learning rates) when ``cfg`` or its ``start_step`` is null."""
-        if not cfg or cfg.get("start_step") is None:
+    def from_config(cls, cfg: Mapping | None, stage: str = "train") -> LRDecay | None:
+        """The decay ``model.lr_decay`` sets; None (constant learning rates, no scheduler) when ``cfg`` or its
+        ``start_step`` is null."""
+        if not cfg:
             return None
-        return cls(int(cfg["start_step"]), int(cfg.get("steps", 1)), float(cfg.get("final_factor", 0.0)))
+        decay = read_settings(cls, {"start_step": None, **cfg}, stage, prefix="model.lr_decay.")
+        return None if decay.start_step is None else decay
 
     def __call__(self, step: int) -> float:
+        if self.start_step is None:
+            return 1.0
         progress = min(max(step - self.start_step, 0) / self.steps, 1.0)
         return 1.0 - (1.0 - self.final_factor) * progress
 
 
 def _adam(lr: float):
     return functools.partial(torch.optim.Adam, lr=lr, betas=(0.5, 0.999))
+
+
+def _optimizer(net: str):
+    """`read_settings`'s check of ``model.optimizer_<net>``: the factory its ``_target_``/``_partial_`` config builds."""
+    return lambda stage, spec: build.optimizer_factory(spec, f"model.optimizer_{net}")
 
 
 @dataclass(frozen=True)
@@ -85,9 +101,9 @@ class GANTraining:
     the optional learning-rate decay, and how many non-finite steps in a row stop training."""
 
     loss: str = "lsgan"
-    optimizer_g: Callable = field(default_factory=lambda: _adam(2e-4))
-    optimizer_d: Callable = field(default_factory=lambda: _adam(1e-4))
-    lr_decay: LRDecay | None = None
+    optimizer_g: Callable = field(default_factory=lambda: _adam(2e-4), metadata={"check": _optimizer("g")})
+    optimizer_d: Callable = field(default_factory=lambda: _adam(1e-4), metadata={"check": _optimizer("d")})
+    lr_decay: LRDecay | None = field(default=None, metadata={"check": lambda stage, v: LRDecay.from_config(v, stage)})
     max_consecutive_nonfinite: int = 5
 
     def __post_init__(self):
@@ -105,19 +121,9 @@ class GANTraining:
         return getattr(self.optimizer_d, "keywords", {}).get("lr")
 
     @classmethod
-    def from_config(cls, model: Mapping | None) -> GANTraining:
-        """From the ``model`` group; absent keys take the defaults above."""
-        model = dict(model or {})
-        values = {}
-        if model.get("loss") is not None:
-            values["loss"] = str(model["loss"])
-        if model.get("max_consecutive_nonfinite") is not None:
-            values["max_consecutive_nonfinite"] = int(model["max_consecutive_nonfinite"])
-        for net in ("g", "d"):
-            spec = model.get(f"optimizer_{net}")
-            if spec is not None:
-                values[f"optimizer_{net}"] = build.optimizer_factory(spec, f"model.optimizer_{net}")
-        return cls(**values, lr_decay=LRDecay.from_config(model.get("lr_decay")))
+    def from_config(cls, model: Mapping | None, stage: str = "train") -> GANTraining:
+        """From the ``model`` group (`drgan.core.typed_settings.read_settings`); absent keys take the defaults above."""
+        return read_settings(cls, model, stage, prefix="model.")
 
 
 class GANModule(LightningModule):
