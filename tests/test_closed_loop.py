@@ -64,6 +64,31 @@ def test_a_one_pixel_dilation_gives_the_offset_computed_by_hand():
     assert check["count_error"]["value"] == 0.0 and check["matched"] == 1.0
 
 
+def test_the_check_draws_what_it_counted_found_green_false_red_missed_yellow(tmp_path):
+    from drgan.metrics.overlays import GREEN, RED, YELLOW
+
+    labels = squares(n=3)  # the predictor finds squares 1 and 2, misses 3 and adds a false one
+
+    def found(image):
+        pred = np.isin(labels, [1, 2]).astype(np.uint8)
+        pred[50:56, 2:8] = 1
+        return pred
+
+    pairs = [pair_of(labels, f"p{k}") for k in range(30)]
+    check = closed_loop(None, pairs, predictor=found, n_boot=10, sheet=tmp_path / "closed_loop.png")
+    assert check["missed"] == pytest.approx(1 / 3) and check["false"] == pytest.approx(1 / 3)
+    drawn = np.asarray(Image.open(tmp_path / "closed_loop.png").convert("RGB"))
+    # 24 of the 30 pairs, 64-px cells in rows of 6 with 4-px gaps: 4 rows
+    assert drawn.shape == (4 * 64 + 3 * 4, 6 * 64 + 5 * 4, 3)
+    cell = drawn[68 : 68 + 64, 68 : 68 + 64].astype(np.int64)  # the second row's second pair
+    blend = lambda grey, colour: np.round(0.5 * round(grey * 255) + 0.5 * np.array(colour))  # noqa: E731
+    np.testing.assert_array_equal(cell[labels == 1][0], blend(0.8, GREEN))
+    np.testing.assert_array_equal(cell[labels == 3][0], blend(0.8, YELLOW))
+    np.testing.assert_array_equal(cell[52, 4], blend(0.2, RED))
+    np.testing.assert_array_equal(cell[0, 0], [51, 51, 51])  # background untouched (0.2 grey)
+    assert (drawn[64:68] == 255).all()  # the gap between rows
+
+
 def test_touching_particles_predicted_as_one_are_counted_as_merged():
     labels = np.zeros((64, 64), np.int32)
     labels[8:18, 8:18], labels[8:18, 18:28], labels[8:18, 40:50] = 1, 2, 3  # 1 and 2 touch
@@ -149,6 +174,7 @@ def test_segment_scores_itself_on_held_out_pairs_and_stores_the_check(tmp_path):
     ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert stored_closed_loop(ckpt) == check
     assert load_segmenter(out / "checkpoints" / "last.ckpt").closed_loop == check
+    assert Image.open(out / "closed_loop.png").size[1] >= 16  # the check's picture beside its numbers
     # resuming a finished run checks again on the same held-out pairs and keeps its last validation score
     segment(compose([*overrides, "ckpt_path=last"], config_name="segment"))
     again = json.loads((out / "metrics.json").read_text())

@@ -684,7 +684,8 @@ def eval_cfg(data, out, extra=()):
 
 
 def test_evaluate_hand_computed_scores_and_overlay(tmp_path):
-    from drgan.evaluate import GREEN, RED, SCORES, YELLOW, EvaluateSettings, evaluate
+    from drgan.evaluate import SCORES, EvaluateSettings, evaluate
+    from drgan.metrics.overlays import GREEN, RED, YELLOW
 
     data, predictors = _hand_case(tmp_path)
     result = evaluate(

@@ -57,9 +57,9 @@ from drgan.metrics.instance_scores import (
     ERROR_SOURCES,
     binarize_and_label,
     error_sources,
-    match_instances,
     segmentation_scores,
 )
+from drgan.metrics.overlays import overlay
 from drgan.metrics.statistics import compare_sizes, count_errors, interval_text, particles, pooled
 from drgan.segmenters.classical_check import check_reported, reported_particles
 
@@ -68,21 +68,6 @@ log = logging.getLogger(__name__)
 SCORES = ("dsc", "ap50", "pq", "sq", "rq", "pq_classes", "pq_semantic")
 HEADERS = {"pq_classes": "PQ classes", "pq_semantic": "PQ semantic"}  # markdown column names; others upper-case
 COUNTS = ("tp", "fp", "fn")
-GREEN, RED, YELLOW = (0, 200, 0), (230, 0, 0), (255, 220, 0)
-
-
-def overlay(image: np.ndarray, pred_labels: np.ndarray, true_labels: np.ndarray, alpha: float = 0.5) -> np.ndarray:
-    """(H, W, 3) uint8: grey image with matched predicted instances green, unmatched predictions red and
-    unmatched true instances yellow (where no prediction covers them), blended with weight alpha."""
-    m = match_instances(pred_labels, true_labels, 0.5)
-    grey = np.round(np.clip(image, 0, 1) * 255.0)
-    rgb = np.repeat(grey[..., None], 3, axis=2)
-    tp_pred = np.isin(pred_labels, [p for p, _ in m.pairs])
-    fp = np.isin(pred_labels, m.unmatched_pred)
-    fn = np.isin(true_labels, m.unmatched_true) & (pred_labels == 0)
-    for where, colour in ((fn, YELLOW), (fp, RED), (tp_pred, GREEN)):
-        rgb[where] = (1 - alpha) * rgb[where] + alpha * np.array(colour, dtype=np.float64)
-    return np.round(rgb).astype(np.uint8)
 
 
 def score_image(class_map: np.ndarray, true_labels: np.ndarray) -> tuple[dict, np.ndarray]:

@@ -5,7 +5,8 @@ the particles of partial backgrounds, which the loss and val/dsc leave out: drga
 `real=DATASET`: the real-data baseline, trained on the `train` ids of DATASET/split.json only; targets are
 class_mask(4-connected components of the binary mask, contour_px). A seeded `val_fraction` of the pairs is
 held out for validation. Run folder `out`: checkpoints/last.ckpt (and the latest epoch), segment.log,
-metrics.json; MLflow experiment `segment_<name>` gets the params, metrics and the final checkpoint.
+metrics.json, closed_loop.png (the closed-loop check's held-out generated pairs, drgan.segmenters.closed_loop: found
+particles matched to a true one green, false ones red, true ones nothing found yellow); MLflow experiment `segment_<name>` gets the params, metrics and the final checkpoint.
 Resume: same `out` and `ckpt_path=last` (no checkpoint yet: a fresh start).
 `finetune=RUN corrected=DIR`: the correction loop, RUN's segmenter (a pipeline run, a segment run folder or a
 checkpoint) fine-tuned on a user's corrected outlines (drgan.segmenters.corrections) beside RUN's generated pairs,
@@ -48,6 +49,8 @@ __all__ = [
     "load_training_pairs", "main", "redrawn_contours", "segment", "working_px_of",
 ]  # fmt: skip
 log = logging.getLogger(__name__)
+
+SHEET = "closed_loop.png"  # the closed-loop check's picture in the run folder
 
 
 def early_stopping(cfg):
@@ -531,7 +534,8 @@ def closed_loop_check(
 ) -> dict | None:
     """The segmenter scored on its held-out generated pairs (drgan.segmenters.closed_loop), with the split just
     calibrated, each pair resampled by the ``working`` scale as inference resamples a real image; stored in
-    ``last`` (evaluate/analyze and the pipeline's report quote it). None without pairs."""
+    ``last`` (evaluate/analyze and the pipeline's report quote it) and drawn in the run folder (``SHEET``). None without
+    pairs."""
     from drgan.core.checkpoint_io import add_entry
     from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, log_summary
 
@@ -540,7 +544,9 @@ def closed_loop_check(
     if not last.is_file():
         log.warning("closed-loop check skipped: no %s", last)
         return None
-    check = closed_loop(model.eval(), pairs, calibration, progress=progress, pixel_scale=working)
+    check = closed_loop(
+        model.eval(), pairs, calibration, progress=progress, pixel_scale=working, sheet=last.parent.parent / SHEET
+    )
     add_entry(last, CLOSED_LOOP_KEY, check, "ckpt_path")
     log_summary(check)
     return check

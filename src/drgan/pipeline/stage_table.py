@@ -138,7 +138,8 @@ PIPELINE: list[StageSpec] = [
         summary=report.segment_summary,
         what="trains the segmenter on the pairs, chooses its touching-particle split on held-out pairs and checks it "
         "against the profile's classical outlines of your images (another seed when it covers too little of them)",
-        links=(("metrics and split calibration", "metrics.json"), ("log", "segment.log")),
+        links=(("metrics and split calibration", "metrics.json"), ("its closed-loop check", "closed_loop.png"),
+               ("log", "segment.log")),
         resumes=True,
         mlflow_run=True,
     ),
@@ -156,7 +157,8 @@ PIPELINE: list[StageSpec] = [
         summary=report.segment_summary,
         what="fine-tunes the segmenter on your corrected outlines beside its generated pairs, and chooses its split "
         "on them",
-        links=(("metrics and split calibration", "metrics.json"), ("log", "segment.log")),
+        links=(("metrics and split calibration", "metrics.json"), ("its closed-loop check", "closed_loop.png"),
+               ("log", "segment.log")),
         resumes=True,
         mlflow_run=True,
     ),

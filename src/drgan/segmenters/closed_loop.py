@@ -14,7 +14,8 @@ What `closed_loop` returns (and drgan.segment stores in the checkpoint as ``CLOS
 predicted minus true equivalent diameter of the matched particles: twice the outline's offset from the true edge;
 ``edge_offset_px`` is that offset itself); ``merged`` / ``split`` / ``missed`` / ``outline`` (shares of the true
 particles, drgan.metrics.instance_scores.error_sources), ``false`` (share of the predictions); AP50, DSC and SQ;
-``n_pairs``, ``n_true`` and the pairs' ``ids``. A report quotes it as "on generated images like yours this segmenter measures diameters
+``n_pairs``, ``n_true`` and the pairs' ``ids``. drgan.segment also draws the first pairs (closed_loop.png: found
+particles matched to a true one green, false ones red, true ones nothing found yellow). A report quotes it as "on generated images like yours this segmenter measures diameters
 +x % [interval] and counts y %" (`trust_line`).
 """
 
@@ -23,17 +24,21 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 
 from drgan.core.errors import ConfigError
+from drgan.core.io import write_png
 from drgan.core.progress import track
+from drgan.metrics import overlays
 from drgan.scene.labels import IGNORE
 
 log = logging.getLogger(__name__)
 
 CLOSED_LOOP_KEY = "drgan_closed_loop"  # checkpoint entry: the check's summary (plain numbers)
 MIN_CHECK_PAIRS = 4  # held out at least, when the check is on and the pairs allow it
+SHEET_PAIRS = 24  # pairs drawn in the check's picture (closed_loop.png)
 
 
 def checkable(pair) -> bool:
@@ -84,10 +89,13 @@ def closed_loop(
     progress: bool = False,
     predictor=None,
     pixel_scale: float = 1.0,
+    sheet: Path | None = None,
 ) -> dict:
     """Score ``model`` on ``pairs`` (generated, exact labels; module docstring) and return the summary (plain numbers).
     ``pixel_scale``: the pairs resampled by it for the network (a segmenter that learnt them at a working scale);
-    ``predictor``: image -> class map instead of the model's `predict` (tests)."""
+    ``predictor``: image -> class map instead of the model's `predict` (tests); ``sheet``: also write there the first
+    ``SHEET_PAIRS`` pairs' overlays (drgan.metrics.overlays: found particles matched green, false red, missed yellow),
+    the picture of what the check counted."""
     from drgan.metrics.instance_scores import binarize_and_label, error_sources, segmentation_scores
     from drgan.metrics.statistics import particles
 
@@ -102,16 +110,20 @@ def closed_loop(
             return predict(model, image, pixel_scale=pixel_scale, noise_match=False, annotations=False, **settings)
 
     iterator = track(pairs, "closed-loop check", unit="pairs") if progress else pairs
-    found, truth, sources, scores, contacts = [], [], [], [], []
+    found, truth, sources, scores, contacts, tiles = [], [], [], [], [], []
     for pair in iterator:
         true_labels = np.asarray(pair.instances()).astype(np.int64)
         pred_labels = binarize_and_label(np.asarray(predictor(pair.image)).astype(np.int64))
+        if sheet is not None and len(tiles) < SHEET_PAIRS:
+            tiles.append(overlays.overlay(np.asarray(pair.image, np.float64), pred_labels, true_labels))
         found.append(particles(pred_labels).at_least(min_area_px))
         truth.append(particles(true_labels).at_least(min_area_px))
         sources.append(error_sources(pred_labels, true_labels))
         scores.append(segmentation_scores(pred_labels, true_labels))
         contacts += contact_merges(pred_labels, true_labels, pair.image)
     summary = summarise(found, truth, sources, scores, n_boot, seed, contacts)
+    if tiles:
+        write_png(sheet, overlays.sheet(tiles))
     return {**summary, "ids": [str(p.id) for p in pairs]}
 
 
