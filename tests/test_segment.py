@@ -74,6 +74,69 @@ def test_unet_output_shape(depth, base, size):
     assert net(torch.rand(2, 1, *size)).shape == (2, 3, *size)
 
 
+@pytest.mark.parametrize("depth", [3, 4, 5])
+def test_the_unets_receptive_field_is_where_an_output_pixels_gradient_reaches(depth):
+    """The smallest extent over output pixels at every position against the poolings' grid (the field shifts with it)."""
+    from drgan.segmenters.unet import UNet, receptive_field
+
+    torch.manual_seed(0)
+    net = UNet(1, 3, depth, 8).eval()
+    extents = []
+    for offset in range(2 ** (depth - 1)):
+        x = torch.rand(1, 1, 256, 256, requires_grad=True)  # random grey: the ReLUs pass gradients almost everywhere
+        net(x)[0, :, 128 + offset, 128 + offset].sum().backward()
+        rows, cols = (x.grad[0, 0].abs() > 0).nonzero(as_tuple=True)
+        extents += [int(rows.max() - rows.min()) + 1, int(cols.max() - cols.min()) + 1]
+    assert min(extents) == receptive_field(depth) and max(extents) <= 1.09 * receptive_field(depth)
+
+
+def test_auto_depth_takes_the_smallest_depth_whose_field_spans_the_particles():
+    from drgan.segmenters.unet import FIELD_PER_DIAMETER, auto_depth, receptive_field
+
+    edge = receptive_field(4) / FIELD_PER_DIAMETER  # 73.6 px
+    assert auto_depth(24.0)[0] == auto_depth(edge)[0] == 4
+    assert auto_depth(edge + 0.1)[0] == auto_depth(150.0)[0] == 5
+    assert auto_depth(1000.0) == (5, auto_depth(1000.0)[1]) and "at most depth 5" in auto_depth(1000.0)[1]
+    assert auto_depth(None)[0] == auto_depth(float("nan"))[0] == 4
+
+
+def test_segment_with_depth_auto_builds_the_depth_its_pairs_particles_need(tmp_path):
+    """Large particles (~90 px) get depth 5, recorded in metrics.json and the checkpoint; small ones depth 4, the
+    very network (weights and all) a run with depth 4 given trains."""
+    from conftest import compose
+    from test_closed_loop import make_labelled_set
+
+    from drgan.segment import segment
+    from drgan.segmenters.module import load_segmenter
+
+    def run(data, name, depth):
+        out = tmp_path / name
+        extra = ("trainer.max_epochs=1", "check_fraction=0", "split_calibration.max_pairs=2")
+        overrides = [o for o in tiny_segment_overrides(data, tmp_path, out, *extra) if o != "model.depth=2"]
+        segment(compose([*overrides, f"model.depth={depth}"], config_name="segment"))
+        return json.loads((out / "metrics.json").read_text()), load_segmenter(out / "checkpoints" / "last.ckpt")
+
+    large = tmp_path / "large"
+    for d in ("images", "masks", "labels"):
+        (large / d).mkdir(parents=True)
+    for i in range(8):
+        labels = disc_labels(160, n=1, radius=45.0, seed=i)
+        Image.fromarray((disc_image(labels, i) * 255).astype(np.uint8)).save(large / "images" / f"{i:03d}.png")
+        Image.fromarray(class_mask(labels, 1)).save(large / "masks" / f"{i:03d}.png")
+        Image.fromarray(labels.astype(np.uint8)).save(large / "labels" / f"{i:03d}.png")
+    metrics, model = run(large, "large", "auto")
+    assert metrics["depth"]["value"] == 5 and "receptive field 188 px" in metrics["depth"]["why"]
+    assert model.net.depth == 5
+
+    small = make_labelled_set(tmp_path / "small", n=8)
+    metrics, model = run(small, "small", "auto")
+    assert metrics["depth"]["value"] == 4 and model.net.depth == 4
+    given_metrics, given = run(small, "given", 4)
+    assert "depth" not in given_metrics
+    for key, value in given.state_dict().items():
+        assert torch.equal(value, model.state_dict()[key]), key
+
+
 def test_training_steps_reduce_loss():
     from drgan.segmenters.module import SegmenterModule
     from drgan.segmenters.pairs import CropDataset, Pair

@@ -91,7 +91,7 @@ class Prepared:
     """What a segment run trains, its data read and checked: the model, its training pairs (validation pairs among
     them) and the closed-loop check's held-out pairs, a user's corrected pairs (fine-tuning), the values its
     checkpoints carry for inference (pixel scale, noise level, working diameter), the working scale, the seed of
-    its validation split and why its contact weight is what it is."""
+    its validation split and why its contact weight and depth are what they are."""
 
     model: Any
     pairs: list
@@ -103,6 +103,7 @@ class Prepared:
     corrected: list = field(default_factory=list)
     split_seed: int | None = None
     contact_why: str | None = None
+    depth_why: str | None = None  # model.depth: auto (drgan.segmenters.unet.auto_depth)
     finetuned: dict | None = None  # fine-tuning: the base checkpoint and the corrected images (metrics.json)
 
     def entries(self) -> dict:
@@ -217,8 +218,6 @@ def _floats(metrics: dict) -> dict:
 
 def prepare(cfg: DictConfig) -> Prepared:
     """A fresh segmenter and its pairs (generated or real), checked; see `Prepared`."""
-    from drgan.segmenters.registry import build_segmenter
-
     source = checked_source(cfg)
     manifest = source.manifest()
     contact_why = None
@@ -228,8 +227,7 @@ def prepare(cfg: DictConfig) -> Prepared:
                 cfg.model.contact_weight, source.polarity(manifest), source.clark_evans(manifest)
             )
         log.info("model.contact_weight=%s (%s)", cfg.model.contact_weight, contact_why)
-    model = build_segmenter(cfg.model, "model")
-    scaled = scaled_pairs(cfg, source, manifest, model)
+    model, scaled, depth_why = _model_and_pairs(cfg, source, manifest)
     pixel_scale, noise = scaled.pixel_scale, scaled.noise
     if pixel_scale != 1.0:
         log.info(
@@ -242,8 +240,37 @@ def prepare(cfg: DictConfig) -> Prepared:
             "(inference.noise_match; stored in the checkpoints)", noise,
         )  # fmt: skip
     return Prepared(
-        model, scaled.pairs, scaled.check, pixel_scale, noise, scaled.diameter, scaled.working, contact_why=contact_why
-    )
+        model, scaled.pairs, scaled.check, pixel_scale, noise, scaled.diameter, scaled.working, contact_why=contact_why,
+        depth_why=depth_why,
+    )  # fmt: skip
+
+
+def _model_and_pairs(cfg: DictConfig, source, manifest):
+    """(segmenter, its pairs at their working scale (`scaled_pairs`), why its depth; None unless auto): a fresh
+    segmenter; ``model.depth: auto`` resolved from those pairs' particles (drgan.segmenters.unet.auto_depth) and written
+    into ``cfg.model``, the segmenter built at that depth from the torch RNG state a direct build would have had."""
+    import torch
+
+    from drgan.segmenters.registry import build_segmenter
+    from drgan.segmenters.unet import AUTO_DEPTHS, auto_depth
+
+    auto = "depth" in cfg.model and cfg.model.depth == "auto"
+    if auto:
+        with open_dict(cfg):
+            cfg.model.depth = AUTO_DEPTHS[0]
+    rng = torch.random.get_rng_state()
+    model = build_segmenter(cfg.model, "model")
+    scaled = scaled_pairs(cfg, source, manifest, model)
+    if not auto:
+        return model, scaled, None
+    depth, why = auto_depth(scaled.diameter)
+    log.info("model.depth=%d (%s)", depth, why)
+    if depth != cfg.model.depth:
+        with open_dict(cfg):
+            cfg.model.depth = depth
+        torch.random.set_rng_state(rng)
+        model = build_segmenter(cfg.model, "model")
+    return model, scaled, why
 
 
 FINETUNE_KEPT = ("val_fraction", "check_fraction", "loader.working_px", "loader.contour_px")  # the base run's
@@ -394,6 +421,7 @@ def fit_and_record(
             "working_diameter": prepared.diameter,
             "noise_level": prepared.noise,
             "contact_weight": {"value": cfg.model.get("contact_weight"), "why": prepared.contact_why},
+            **({"depth": {"value": cfg.model.depth, "why": prepared.depth_why}} if prepared.depth_why else {}),
             **({"finetuned": prepared.finetuned} if prepared.finetuned else {}),
             **metrics,
         },

@@ -3,6 +3,8 @@
 `depth` levels (depth - 1 poolings), `base` filters at the top level, doubling per level. Each level is
 two 3x3 conv + BatchNorm + ReLU; upsampling is a 2x2 transposed convolution, skips are concatenated.
 Inputs whose sides are not multiples of 2**(depth - 1) are reflect-padded and the output cropped back.
+Its receptive field (`receptive_field`) grows with the depth; ``depth: auto`` (`auto_depth`) takes the depth whose field
+spans the pairs' particles.
 """
 
 from __future__ import annotations
@@ -12,6 +14,35 @@ import torch.nn.functional as F
 from torch import nn
 
 from drgan.core.errors import ConfigError
+
+AUTO_DEPTHS = (4, 5)  # the depths `auto_depth` chooses from (both measured: experiments/statistics/README.md)
+FIELD_PER_DIAMETER = 1.25  # `auto_depth`: the receptive field spans this many median particle diameters
+
+
+def receptive_field(depth: int) -> int:
+    """The side (px) of the input square every output pixel sees, for depth >= 3: two 3x3 convolutions per level,
+    2 x 2 pooling and up-sampling between levels (44, 92, 188 px at depth 3, 4, 5; pixels off the poolings' grid see
+    up to 8 % more)."""
+    if depth < 3:
+        raise ValueError(f"receptive_field: depth >= 3, got {depth}")
+    return 12 * 2 ** (depth - 1) - 4
+
+
+def auto_depth(diameter_px: float | None) -> tuple[int, str]:
+    """(depth, why) for ``model.depth: auto``: the smallest of AUTO_DEPTHS whose receptive field spans
+    FIELD_PER_DIAMETER x the pairs' area-weighted median particle diameter (at the working scale), else the largest.
+    A particle much wider than the field has an inside that sees no edge: the network can only tell it from the
+    background by its grey, which the training's brightness, contrast and texture jitter make unreliable."""
+    low, high = AUTO_DEPTHS
+    if diameter_px is None or not diameter_px > 0:
+        return low, f"auto: {low}, no particle measured in the pairs"
+    for depth in range(low, high + 1):
+        if receptive_field(depth) >= FIELD_PER_DIAMETER * diameter_px:
+            break
+    return depth, (
+        f"auto: {depth}, receptive field {receptive_field(depth)} px for particles of {diameter_px:.0f} px (area-weighted "
+        f"median; at least {FIELD_PER_DIAMETER:g} x wanted, at most depth {high})"
+    )
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:
