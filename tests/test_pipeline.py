@@ -50,7 +50,8 @@ def test_stage_keys_are_routed_to_their_stage_and_replace_the_configs_defaults(t
     )
     assert s.name == "mine" and s.out == (Path("runs/pipeline") / "mine").resolve() and s.annotated == Path("/x/y")
     assert s.stages["train"] == {
-        "trainer.max_epochs": "5", "callbacks.early_stopping.max_minutes": "30", "~callbacks.sample_grid": None
+        "trainer.max_epochs": "5", "callbacks.early_stopping.max_minutes": "30", "renderer.spp": "16",
+        "~callbacks.sample_grid": None,
     }  # fmt: skip
     assert s.stages["segment"] == {"model.normalize": "none"}
     assert s.stages["generate"] == {"n": "500", "renderer.spp": "16", "+shard": "0/2"}
@@ -302,7 +303,8 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
                                       "overwrite=true"], conf / "material" / "t.yaml"),
         "train": ("drgan.train", ["material=t", "run_name=t", f"hydra.run.dir={o / 'train'}",
                                   f"hydra.searchpath=[file://{conf}]", *named["train"],
-                                  "trainer.max_epochs=5", "callbacks.early_stopping.max_minutes=90", "seed=3"], o / "train" / "metrics.json"),
+                                  "trainer.max_epochs=5", "callbacks.early_stopping.max_minutes=90", "renderer.spp=16", "seed=3"],
+                  o / "train" / "metrics.json"),
         "generate": ("drgan.generate", [f"ckpt={o / 'train'}", f"out={o / 'generate'}", "n=500", "renderer.spp=16"],
                      o / "generate" / "manifest.json"),
         "segment": ("drgan.segment", [f"data={o / 'generate'}", f"out={o / 'segment'}", "name=t", "run_name=t",
