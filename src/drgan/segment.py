@@ -6,7 +6,8 @@ the particles of partial backgrounds, which the loss and val/dsc leave out: drga
 class_mask(4-connected components of the binary mask, contour_px). A seeded `val_fraction` of the pairs is
 held out for validation. Run folder `out`: checkpoints/last.ckpt (and the latest epoch), segment.log,
 metrics.json, closed_loop.png (the closed-loop check's held-out generated pairs, drgan.segmenters.closed_loop: found
-particles matched to a true one green, false ones red, true ones nothing found yellow); MLflow experiment `segment_<name>` gets the params, metrics and the final checkpoint.
+particles matched to a true one green, false ones red, true ones nothing found yellow); MLflow experiment
+`segment_<name>` gets the params, metrics and the final checkpoint.
 Resume: same `out` and `ckpt_path=last` (no checkpoint yet: a fresh start).
 `finetune=RUN corrected=DIR`: the correction loop, RUN's segmenter (a pipeline run, a segment run folder or a
 checkpoint) fine-tuned on a user's corrected outlines (drgan.segmenters.corrections) beside RUN's generated pairs,
@@ -258,7 +259,7 @@ def _model_and_pairs(cfg: DictConfig, source, manifest):
     if auto:
         with open_dict(cfg):
             cfg.model.depth = AUTO_DEPTHS[0]
-    rng = torch.random.get_rng_state()
+    rng = torch.random.get_rng_state() if auto else None
     model = build_segmenter(cfg.model, "model")
     scaled = scaled_pairs(cfg, source, manifest, model)
     if not auto:

@@ -15,8 +15,8 @@ predicted minus true equivalent diameter of the matched particles: twice the out
 ``edge_offset_px`` is that offset itself); ``merged`` / ``split`` / ``missed`` / ``outline`` (shares of the true
 particles, drgan.metrics.instance_scores.error_sources), ``false`` (share of the predictions); AP50, DSC and SQ;
 ``n_pairs``, ``n_true`` and the pairs' ``ids``. drgan.segment also draws the first pairs (closed_loop.png: found
-particles matched to a true one green, false ones red, true ones nothing found yellow). A report quotes it as "on generated images like yours this segmenter measures diameters
-+x % [interval] and counts y %" (`trust_line`).
+particles matched to a true one green, false ones red, true ones nothing found yellow). A report quotes it as "on
+generated images like yours this segmenter measures diameters +x % [interval] and counts y %" (`trust_line`).
 """
 
 from __future__ import annotations
