@@ -65,7 +65,9 @@ def main() -> None:
     for name, keep in kinds.items():
         if keep.any():
             offset = float(np.median(rows[keep, 0]))
-            print(f"| {name} | {int(keep.sum())} | {offset:+.2f} | {offset / 2:+.2f} | {np.median(rows[keep, 4]):.1f} |")
+            print(
+                f"| {name} | {int(keep.sum())} | {offset:+.2f} | {offset / 2:+.2f} | {np.median(rows[keep, 4]):.1f} |"
+            )
 
 
 if __name__ == "__main__":
