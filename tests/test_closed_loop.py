@@ -78,15 +78,32 @@ def test_the_check_draws_what_it_counted_found_green_false_red_missed_yellow(tmp
     check = closed_loop(None, pairs, predictor=found, n_boot=10, sheet=tmp_path / "closed_loop.png")
     assert check["missed"] == pytest.approx(1 / 3) and check["false"] == pytest.approx(1 / 3)
     drawn = np.asarray(Image.open(tmp_path / "closed_loop.png").convert("RGB"))
-    # 24 of the 30 pairs, 64-px cells in rows of 6 with 4-px gaps: 4 rows
-    assert drawn.shape == (4 * 64 + 3 * 4, 6 * 64 + 5 * 4, 3)
-    cell = drawn[68 : 68 + 64, 68 : 68 + 64].astype(np.int64)  # the second row's second pair
+    # 24 of the 30 pairs, 64-px cells under a 12-px caption, in rows of 6 with 4-px gaps: 4 rows
+    assert drawn.shape == (4 * (12 + 64) + 3 * 4, 6 * 64 + 5 * 4, 3)
+    top, left = 12 + 64 + 4, 64 + 4  # the second row's second pair, p7
+    cell = drawn[top + 12 : top + 12 + 64, left : left + 64].astype(np.int64)
     blend = lambda grey, colour: np.round(0.5 * round(grey * 255) + 0.5 * np.array(colour))  # noqa: E731
     np.testing.assert_array_equal(cell[labels == 1][0], blend(0.8, GREEN))
     np.testing.assert_array_equal(cell[labels == 3][0], blend(0.8, YELLOW))
     np.testing.assert_array_equal(cell[52, 4], blend(0.2, RED))
     np.testing.assert_array_equal(cell[0, 0], [51, 51, 51])  # background untouched (0.2 grey)
-    assert (drawn[64:68] == 255).all()  # the gap between rows
+    caption = drawn[top : top + 12, left : left + 64]
+    assert (caption < 128).any() and (caption == 255).mean() > 0.5  # dark text on white: the pair's id
+    assert (drawn[12 + 64 : 12 + 64 + 4] == 255).all()  # the gap between rows
+
+
+def test_a_sheets_captions_are_the_tiles_ids_and_must_match_them():
+    from drgan.metrics.overlays import CAPTION_PX, sheet
+
+    tiles = [np.zeros((20, 30, 3), np.uint8)] * 3
+    plain, captioned = sheet(tiles, columns=3), sheet(tiles, columns=3, captions=["a", "bb", ""])
+    assert captioned.shape == (plain.shape[0] + CAPTION_PX, plain.shape[1], 3)
+    np.testing.assert_array_equal(captioned[CAPTION_PX:], plain)  # the tiles below their strips, as without
+    strips = [captioned[:CAPTION_PX, k * 34 : k * 34 + 30] for k in range(3)]
+    assert (strips[0] < 128).any() and (strips[1] < 128).sum() > (strips[0] < 128).sum()  # two letters, more ink
+    assert (strips[2] == 255).all()  # no caption, no ink
+    with pytest.raises(ValueError, match="2 captions for 3 tiles"):
+        sheet(tiles, captions=["a", "b"])
 
 
 def test_touching_particles_predicted_as_one_are_counted_as_merged():

@@ -1,5 +1,6 @@
 """Pictures of a segmentation against its truth: one image's overlay (`overlay`: found particles matched to a true
-one green, false ones red, true ones nothing covers yellow) and a contact sheet of several (`sheet`), as
+one green, false ones red, true ones nothing covers yellow) and a contact sheet of several (`sheet`, each captioned
+with its image's id), as
 drgan.evaluate writes for real test images and drgan.segment for its closed-loop check's generated pairs."""
 
 from __future__ import annotations
@@ -27,17 +28,37 @@ def overlay(image: np.ndarray, pred_labels: np.ndarray, true_labels: np.ndarray,
     return np.round(rgb).astype(np.uint8)
 
 
-def sheet(tiles: Sequence[np.ndarray], columns: int = 6, gap: int = 4) -> np.ndarray:
+CAPTION_PX = 12  # the strip above a captioned tile
+
+
+def sheet(
+    tiles: Sequence[np.ndarray], columns: int = 6, gap: int = 4, captions: Sequence[str] | None = None
+) -> np.ndarray:
     """(H, W, 3) uint8: RGB ``tiles`` in rows of ``columns``, each in a cell of the largest tile's size (top-left
-    aligned), ``gap`` white pixels between cells."""
+    aligned), ``gap`` white pixels between cells; with ``captions`` (one per tile, e.g. the image's id) each cell has a
+    CAPTION_PX-high white strip above its tile with the caption in black, clipped to the cell's width."""
     if not tiles:
         raise ValueError("sheet: no tiles")
-    height = max(t.shape[0] for t in tiles)
+    if captions is not None and len(captions) != len(tiles):
+        raise ValueError(f"sheet: {len(captions)} captions for {len(tiles)} tiles")
+    strip = CAPTION_PX if captions is not None else 0
+    height = max(t.shape[0] for t in tiles) + strip
     width = max(t.shape[1] for t in tiles)
     columns = min(columns, len(tiles))
     rows = -(-len(tiles) // columns)
     out = np.full((rows * height + (rows - 1) * gap, columns * width + (columns - 1) * gap, 3), 255, np.uint8)
     for k, tile in enumerate(tiles):
         top, left = (k // columns) * (height + gap), (k % columns) * (width + gap)
-        out[top : top + tile.shape[0], left : left + tile.shape[1]] = tile
+        out[top + strip : top + strip + tile.shape[0], left : left + tile.shape[1]] = tile
+        if captions is not None:
+            out[top : top + strip, left : left + width] = _caption(str(captions[k]), width, strip)
     return out
+
+
+def _caption(text: str, width: int, height: int) -> np.ndarray:
+    """(height, width, 3) uint8: ``text`` in black on white, from the left edge, cut at ``width``."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    strip = Image.new("RGB", (width, height), (255, 255, 255))
+    ImageDraw.Draw(strip).text((1, 0), text, fill=(0, 0, 0), font=ImageFont.load_default(size=height - 2))
+    return np.asarray(strip)

@@ -95,7 +95,7 @@ def closed_loop(
     ``pixel_scale``: the pairs resampled by it for the network (a segmenter that learnt them at a working scale);
     ``predictor``: image -> class map instead of the model's `predict` (tests); ``sheet``: also write there the first
     ``SHEET_PAIRS`` pairs' overlays (drgan.metrics.overlays: found particles matched green, false red, missed yellow),
-    the picture of what the check counted."""
+    each captioned with its pair's id, the picture of what the check counted."""
     from drgan.metrics.instance_scores import binarize_and_label, error_sources, segmentation_scores
     from drgan.metrics.statistics import particles
 
@@ -110,12 +110,13 @@ def closed_loop(
             return predict(model, image, pixel_scale=pixel_scale, noise_match=False, annotations=False, **settings)
 
     iterator = track(pairs, "closed-loop check", unit="pairs") if progress else pairs
-    found, truth, sources, scores, contacts, tiles = [], [], [], [], [], []
+    found, truth, sources, scores, contacts, tiles, captions = [], [], [], [], [], [], []
     for pair in iterator:
         true_labels = np.asarray(pair.instances()).astype(np.int64)
         pred_labels = binarize_and_label(np.asarray(predictor(pair.image)).astype(np.int64))
         if sheet is not None and len(tiles) < SHEET_PAIRS:
             tiles.append(overlays.overlay(np.asarray(pair.image, np.float64), pred_labels, true_labels))
+            captions.append(str(pair.id))
         found.append(particles(pred_labels).at_least(min_area_px))
         truth.append(particles(true_labels).at_least(min_area_px))
         sources.append(error_sources(pred_labels, true_labels))
@@ -123,7 +124,7 @@ def closed_loop(
         contacts += contact_merges(pred_labels, true_labels, pair.image)
     summary = summarise(found, truth, sources, scores, n_boot, seed, contacts)
     if tiles:
-        write_png(sheet, overlays.sheet(tiles))
+        write_png(sheet, overlays.sheet(tiles, captions=captions))
     return {**summary, "ids": [str(p.id) for p in pairs]}
 
 
