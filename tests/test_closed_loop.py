@@ -92,6 +92,20 @@ def test_the_check_draws_what_it_counted_found_green_false_red_missed_yellow(tmp
     assert (drawn[12 + 64 : 12 + 64 + 4] == 255).all()  # the gap between rows
 
 
+def test_the_checks_picture_shows_pairs_with_particles_before_particle_free_ones(tmp_path):
+    from drgan.metrics.overlays import GREEN
+
+    empty, full = np.zeros((64, 64), np.int32), squares(n=2)
+    pairs = [pair_of(empty, "bg0"), pair_of(full, "p0"), pair_of(empty, "bg1"), pair_of(full, "p1")]
+    run_pairs = {id(p.image): p.labels for p in pairs}
+    closed_loop(None, pairs, predictor=lambda im: run_pairs[id(im)] > 0, n_boot=5, sheet=tmp_path / "c.png")
+    drawn = np.asarray(Image.open(tmp_path / "c.png").convert("RGB")).astype(np.int64)
+    cells = [drawn[12 : 12 + 64, k * 68 : k * 68 + 64] for k in range(4)]
+    green = np.round(0.5 * round(0.8 * 255) + 0.5 * np.array(GREEN))
+    holds = [bool((cell == green).all(axis=-1).any()) for cell in cells]
+    assert holds == [True, True, False, False]  # p0, p1, then bg0, bg1
+
+
 def test_a_sheets_captions_are_the_tiles_ids_and_must_match_them():
     from drgan.metrics.overlays import CAPTION_PX, sheet
 

@@ -95,7 +95,8 @@ def closed_loop(
     ``pixel_scale``: the pairs resampled by it for the network (a segmenter that learnt them at a working scale);
     ``predictor``: image -> class map instead of the model's `predict` (tests); ``sheet``: also write there the first
     ``SHEET_PAIRS`` pairs' overlays (drgan.metrics.overlays: found particles matched green, false red, missed yellow),
-    each captioned with its pair's id, the picture of what the check counted."""
+    each captioned with its pair's id, pairs with particles before particle-free ones: the picture of what the check
+    counted."""
     from drgan.metrics.instance_scores import binarize_and_label, error_sources, segmentation_scores
     from drgan.metrics.statistics import particles
 
@@ -110,21 +111,23 @@ def closed_loop(
             return predict(model, image, pixel_scale=pixel_scale, noise_match=False, annotations=False, **settings)
 
     iterator = track(pairs, "closed-loop check", unit="pairs") if progress else pairs
-    found, truth, sources, scores, contacts, tiles, captions = [], [], [], [], [], [], []
+    found, truth, sources, scores, contacts = [], [], [], [], []
+    drawn: dict[bool, list] = {True: [], False: []}  # (caption, overlay) of pairs with particles, and of the others
     for pair in iterator:
         true_labels = np.asarray(pair.instances()).astype(np.int64)
         pred_labels = binarize_and_label(np.asarray(predictor(pair.image)).astype(np.int64))
-        if sheet is not None and len(tiles) < SHEET_PAIRS:
-            tiles.append(overlays.overlay(np.asarray(pair.image, np.float64), pred_labels, true_labels))
-            captions.append(str(pair.id))
+        kind = drawn[bool(true_labels.any())]
+        if sheet is not None and len(kind) < SHEET_PAIRS:
+            kind.append((str(pair.id), overlays.overlay(np.asarray(pair.image, np.float64), pred_labels, true_labels)))
         found.append(particles(pred_labels).at_least(min_area_px))
         truth.append(particles(true_labels).at_least(min_area_px))
         sources.append(error_sources(pred_labels, true_labels))
         scores.append(segmentation_scores(pred_labels, true_labels))
         contacts += contact_merges(pred_labels, true_labels, pair.image)
     summary = summarise(found, truth, sources, scores, n_boot, seed, contacts)
-    if tiles:
-        write_png(sheet, overlays.sheet(tiles, captions=captions))
+    shown = (drawn[True] + drawn[False])[:SHEET_PAIRS]  # particles first: a background pair shows only false ones
+    if shown:
+        write_png(sheet, overlays.sheet([tile for _, tile in shown], captions=[caption for caption, _ in shown]))
     return {**summary, "ids": [str(p.id) for p in pairs]}
 
 
