@@ -37,7 +37,8 @@ TINY = [
     "train.callbacks.fid.n_images=4", "+train.callbacks.fid.kid_subsets=5", "train.callbacks.best_epoch.n_phi=20",
     "train.callbacks.histograms.n_phi=20", "train.callbacks.sample_grid.n=2", "train.trainer.max_epochs=1",
     "train.data.steps_per_epoch=2", "train.callbacks.grey_start.steps=2", "train.trainer.accelerator=cpu",
-    "generate.n=40", "generate.n_background=1", "generate.renderer.spp=1", "generate.min_contrast=1.0",
+    "generate.n=40", "generate.n_background=1", "generate.renderer.spp=1", "generate.sampled_spp=1",
+    "generate.min_contrast=1.0",
     "segment.trainer.max_epochs=1", "segment.loader.crop=16", "segment.split_calibration=null",
     "segment.trainer.enable_progress_bar=false", "analyze.inference.tile=64", "evaluate.inference.tile=64",
 ]  # fmt: skip

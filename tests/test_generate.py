@@ -210,6 +210,25 @@ def test_a_new_setting_is_one_field_and_reaches_the_stage(tiny_run, tmp_path, mo
         ToySettings.from_config(compose([*args, "+toy_gain=-1"], "generate"))
 
 
+def test_sampled_spp_replaces_the_spp_where_renders_carry_sampling_noise_only(tiny_run, tmp_path):
+    """Secondary-electron renders speckle at a low spp (the real images do not), transmission renders are noiseless:
+    ``sampled_spp`` sets the spp of the first and leaves the second at renderer.spp."""
+    from drgan.scene.config import typed_material
+
+    args = [f"ckpt={tiny_run}", f"out={tmp_path / 'data'}", "renderer.spp=2"]
+    plain = GenerateSettings.from_config(compose(args, "generate")).resolve()
+    sampled = GenerateSettings.from_config(compose([*args, "sampled_spp=5"], "generate")).resolve()
+    assert not plain.material.imaging.noiseless  # the tiny run's material: secondary electrons
+    assert plain.settings.renderer["spp"] == 2 and sampled.settings.renderer["spp"] == 5
+    assert sampled.model_cfg["renderer"]["spp"] == 5 and sampled.settings.record()["sampled_spp"] == 5
+    assert sampled.settings.fixed()["sampled_spp"] == 5 and "sampled_spp" not in plain.settings.fixed()
+    tem = typed_material(compose(["material=tio2_tsem"], config_name="train").material)
+    settings = GenerateSettings.from_config(compose([*args, "sampled_spp=5"], "generate"))
+    assert tem.imaging.noiseless and settings._renderer_for(tem) == {"spp": 2}
+    with pytest.raises(ConfigError, match=r"sampled_spp=0: expected an integer >= 1"):
+        GenerateSettings.from_config(compose([*args, "sampled_spp=0"], "generate"))
+
+
 # --- generation ---------------------------------------------------------------------------------------------
 
 

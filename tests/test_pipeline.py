@@ -54,7 +54,7 @@ def test_stage_keys_are_routed_to_their_stage_and_replace_the_configs_defaults(t
         "~callbacks.sample_grid": None,
     }  # fmt: skip
     assert s.stages["segment"] == {"model.normalize": "none"}
-    assert s.stages["generate"] == {"n": "500", "renderer.spp": "16", "+shard": "0/2"}
+    assert s.stages["generate"] == {"n": "500", "renderer.spp": "16", "sampled_spp": "64", "+shard": "0/2"}
     built = {st.name: st for st in stages.build_stages(s, parent_run="abc")}
     assert "model.normalize=none" in built["segment"].settings and "model.normalize=none" not in built["train"].settings
     assert "~callbacks.sample_grid" in built["train"].settings and "+shard=0/2" in built["generate"].settings
@@ -305,7 +305,7 @@ def test_the_stages_commands_and_keys_are_those_of_the_table(tmp_path):
                                   f"hydra.searchpath=[file://{conf}]", *named["train"],
                                   "trainer.max_epochs=5", "callbacks.early_stopping.max_minutes=90", "renderer.spp=16", "seed=3"],
                   o / "train" / "metrics.json"),
-        "generate": ("drgan.generate", [f"ckpt={o / 'train'}", f"out={o / 'generate'}", "n=500", "renderer.spp=16"],
+        "generate": ("drgan.generate", [f"ckpt={o / 'train'}", f"out={o / 'generate'}", "n=500", "renderer.spp=16", "sampled_spp=64"],
                      o / "generate" / "manifest.json"),
         "segment": ("drgan.segment", [f"data={o / 'generate'}", f"out={o / 'segment'}", "name=t", "run_name=t",
                                       f"agreement.images={data}", f"agreement.reference={o / 'profile' / 'labels'}",

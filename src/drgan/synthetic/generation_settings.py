@@ -124,6 +124,7 @@ class GenerateSettings:
     polarity: str | None = setting(None, fixed=ALWAYS)  # resolved: the checkpoint material's when null
     max_attempts: int | None = setting(None, fixed=NEVER)  # null: 10 * n + 100 (on construction)
     renderer: dict = setting(factory=dict, fixed=ALWAYS, given=_renderer_overrides)  # resolved: the effective one
+    sampled_spp: int | None = setting(None)  # replaces renderer.spp for a material whose renders carry sampling noise
     backgrounds: str | None = setting(None, fixed=ALWAYS)  # resolved: <run folder>/patches when null and there
     shard: str | None = setting(None, fixed=NEVER)  # "i/k" on construction (null: "0/1")
     parameters: str | dict = setting("trained")  # trained | initial | middle | {key: value}
@@ -174,6 +175,8 @@ class GenerateSettings:
             contour_px = int(contour_px)
         if self.polarity:
             check_polarity(self.polarity, "polarity")
+        if self.sampled_spp is not None:
+            _count("sampled_spp", self.sampled_spp, 1, " (samples per pixel) or null")
         if self.grey_spread != "auto" and not isinstance(self.grey_spread, bool):
             raise ConfigError(f"grey_spread={self.grey_spread!r}: expected auto, true or false")
         normal = {
@@ -204,7 +207,7 @@ class GenerateSettings:
         if self.material is not None and str(self.material) != typed.name:
             raise ConfigError(f"checkpoint {ckpt_file} was trained for material {typed.name}, not {self.material}")
         contour_px = typed.contour_px if self.contour_px is None else self.contour_px
-        renderer = effective_renderer(saved.get("renderer"), self.renderer)
+        renderer = effective_renderer(saved.get("renderer"), self._renderer_for(typed))
         polarity = self.polarity or typed.polarity
         check_polarity(polarity, "polarity" if self.polarity else "the checkpoint's material.polarity")
         backgrounds = background_source(self.backgrounds, run_dir)
@@ -242,6 +245,14 @@ class GenerateSettings:
             **given_layout,
         )
         return Resolved(resolved, {**saved, **layout, "renderer": renderer}, typed)
+
+    def _renderer_for(self, material: Material) -> dict:
+        """The renderer keys given, with ``sampled_spp`` as the spp where ``material``'s imaging renders with Monte
+        Carlo grain (secondary electrons: at low spp the particles speckle, which the real images do not); transmission
+        renders are noiseless and keep ``renderer.spp``."""
+        if self.sampled_spp is None or material.imaging.noiseless:
+            return dict(self.renderer)
+        return {**self.renderer, "spp": self.sampled_spp}
 
     @property
     def partial(self) -> PartialSettings:
