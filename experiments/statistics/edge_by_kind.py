@@ -1,6 +1,6 @@
 """Where a segmenter's outline offset on exact truth sits: the closed loop's matched particles by kind.
 
-On a segment run's held-out generated pairs (its closed-loop ids), split as the check splits them, every predicted
+On a segment run's held-out generated pairs (its closed-loop ids), predicted as the check predicts them, every predicted
 particle matched to a true one (IoU > 0.5) gives its diameter offset (predicted minus true equivalent diameter); the
 medians are printed by what the true particle is: cut by the border, inner and alone, inner and touching another,
 inner and whole (solidity >= 0.95). An offset that every kind shares is the outline's; one only touching or cut
@@ -19,7 +19,7 @@ from skimage.measure import regionprops
 from drgan.data.necks import contact_pairs
 from drgan.metrics.instance_scores import binarize_and_label, match_instances
 from drgan.segmenters.closed_loop import check_inference
-from drgan.segmenters.inference import predict_probs, split_touching
+from drgan.segmenters.inference import predict
 from drgan.segmenters.pairs import load_generated_pairs
 from drgan.segmenters.registry import load_segmenter
 
@@ -30,9 +30,9 @@ def matched_rows(model, pairs) -> np.ndarray:
     rows = []
     for pair in pairs:
         truth = np.asarray(pair.instances()).astype(np.int64)
-        probs = predict_probs(model, pair.image)
-        classes = split_touching(probs[:3], settings["split_depth"], settings["split_smooth"], settings["split_core"])
-        pred = binarize_and_label(classes.astype(np.int64))
+        # as drgan.segmenters.closed_loop predicts: the calibrated split at the segmenter's own working scale
+        classes = predict(model, pair.image, noise_match=False, annotations=False, **settings)
+        pred = binarize_and_label(np.asarray(classes).astype(np.int64))
         ridge, low, high = contact_pairs(truth)
         touching = set(np.unique(low[ridge]).tolist()) | set(np.unique(high[ridge]).tolist())
         border = set(np.unique(np.concatenate([truth[0], truth[-1], truth[:, 0], truth[:, -1]])).tolist())
