@@ -4,7 +4,7 @@ so that its renders have the real patches' particle grey, background grey and ba
 A freshly initialised FCN outputs 0.5 for every parameter (zero biases, sigmoid): each renderer value and the noise
 sigma start at the middle of their limits, wherever the user's images lie inside them. The adversarial game then has
 to find the grey levels before it can learn anything else, and on a small, unfamiliar set it may never get there
-(an issue-50 TEM folder: epoch 0 had the real brightness only by chance, and nothing pulled it back when it drifted).
+(on a small TEM folder, epoch 0 had the real brightness only by chance, and nothing pulled it back when it drifted).
 
 ``GreyStart`` measures three numbers on the real training patches, with the classical segmentation the patches were
 mined with (the one the brightness guard of drgan.callbacks.best_epoch also uses, so "in range" means the same thing
