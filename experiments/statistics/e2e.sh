@@ -2,7 +2,7 @@
 # Issue 29's end-to-end check on one BAM set, as a user runs it on their own images: the profile of the train ids
 # writes a material, the GAN trains with it (nothing set by hand but the recorded runs' time budget: an evaluation
 # every 67 steps, 27 minutes), then 1,000 generated pairs, U-Nets (3 seeds) and drgan.evaluate on the test ids, as
-# run.sh does for the recorded rows (experiments/statistics/README.md, "End to end").
+# run.sh does for the recorded rows (experiments/statistics/chain.md, "End to end").
 #
 #   bash experiments/statistics/e2e.sh tio2_sem|tio2_tsem [OUT]          # profile and GAN (CPU, ~30 min each)
 #   STEPS="generate segment evaluate" KINDS=synthetic bash experiments/statistics/run.sh SET OUT   # the rest (CPU)

@@ -3,7 +3,7 @@
 the watershed split with its seed landscape = the smoothed distance transform of the particle core times the grey
 (normalised per image: 0 at the background's median, 1 at the particles' median; clipped to [0, 1]; inverted for
 dark particles) to the power ``gamma`` (0: the default split). A sintered SEM neck dips to 0.69 of the particles'
-contrast (experiments/statistics/README.md, "What a contact looks like"), so gamma > 0 deepens the saddle between two
+contrast (experiments/statistics/merges.md, "What a contact looks like"), so gamma > 0 deepens the saddle between two
 particles' maxima. Prints pooled AP50 and merged / split shares per (gamma, depth).
 
     python experiments/statistics/grey_split.py runs/pipeline/bam_tio2_sem/segment/checkpoints/last.ckpt \

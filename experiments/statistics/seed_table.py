@@ -3,7 +3,7 @@ ids' scores, per seed and as mean +- std (issue 67's "3 seeds" rows).
 
     python experiments/statistics/seed_table.py NAME SEGMENT_RUN:EVALUATE_RUN ...
 
-e.g. for a pipeline run (seed 0) and two more U-Nets on its pairs (experiments/statistics/README.md, "The closed loop
+e.g. for a pipeline run (seed 0) and two more U-Nets on its pairs (experiments/statistics/chain.md, "The closed loop
 over the sets, three seeds"):
 
     R=runs/benchmarks/pipeline/cej_0 S=runs/seeds/cej

@@ -1,7 +1,7 @@
 """The splits within a pipeline segmenter's calibration margin (validation AP50 within 0.05 of the best, read from
 its segment.log), ranked by how near their particle count on the user's own images (up to 8 the profile segmented,
 as the agreement check reads them) comes to the classical segmentation's count. No annotation is read: a lead for
-breaking the size-first calibration's ties on real images (experiments/statistics/README.md, "The closed loop over
+breaking the size-first calibration's ties on real images (experiments/statistics/chain.md, "The closed loop over
 the sets, three seeds").
 
     python experiments/statistics/split_by_real_count.py runs/benchmarks/pipeline/tsem4_0 /work/data/emps/tsem4/images

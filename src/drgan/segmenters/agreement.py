@@ -5,7 +5,7 @@ A U-Net seed can miss the agglomerates' inner particles on the real images while
 pairs looks as good as the other seeds': the check's pairs are its training distribution. The profile's classical
 segmentation (threshold + watershed at the measured scale) finds the particles' area on such images without
 training, so the share of its foreground that the segmenter's foreground covers ranks seeds as the truth does
-(experiments/statistics/README.md, "A weak seed caught without annotations"). No annotation is read.
+(experiments/statistics/trust.md, "A weak seed caught without annotations"). No annotation is read.
 
 drgan.segment (the pipeline wires ``agreement.images`` and ``agreement.reference``: its data folder and the profile's
 ``labels/``) predicts up to ``max_images`` of those images after training, and when the segmenter covers less than

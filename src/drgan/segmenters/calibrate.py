@@ -213,7 +213,7 @@ def tied_best(rows: Sequence[Mapping], particle_px: float) -> Mapping:
 # margin nearest that count is taken then: generated validation pairs can rank the splits by size the other way from
 # the real images, choosing a split that merges on them. One-sided, since the classical watershed merges far more
 # often than it splits (on packed spheres a right segmenter counts well above it). Measured:
-# experiments/statistics/README.md, "The closed loop over the sets, three seeds".
+# experiments/statistics/chain.md, "The closed loop over the sets, three seeds".
 REAL_COUNT_GUARD = 0.10
 
 

@@ -21,7 +21,7 @@ writes the pool to summary.json as ``classical``), before the check's interval i
 
 `judge` gives the sentence the report and statistics.md print and whose sizes drgan trusts; analyze then sizes the
 classical particles too (`ClassicalReference.particles`, at half contrast) and puts the trusted sizes first. The
-measurements that set these rules: experiments/statistics/README.md, "Which sizes to trust when the two disagree".
+measurements that set these rules: experiments/statistics/trust.md, "Which sizes to trust when the two disagree".
 """
 
 from __future__ import annotations
@@ -248,7 +248,7 @@ def _cause(gap: float, classical_px: float, check: Mapping | None, outlines: Map
 def _outnumbers(merger: int | None, other: int | None) -> bool:
     """Whether the segmentation that merges the other's particles still finds as many particles or more: then the
     other one misses particles outright, its count is no ceiling and its median is of the particles it found, so the
-    merges do not explain the gap (experiments/statistics/README.md, "Which sizes to trust")."""
+    merges do not explain the gap (experiments/statistics/trust.md, "Which sizes to trust")."""
     return merger is not None and other is not None and merger >= other
 
 

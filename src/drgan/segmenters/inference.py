@@ -357,7 +357,7 @@ AUTO = "auto"  # inference.pixel_scale: per_image for the instance-aware segment
 def resolve_pixel_scale(model, value):
     """``inference.pixel_scale`` with "auto" resolved: ``PER_IMAGE`` for a segmenter that learnt whole particles at one
     working diameter (``needs_centres``: the instance-aware one, drgan.segmenters.pairs.working_scale) and stores it,
-    else None (the segmenter's own scale: the U-Net's classes are local). Measured in experiments/statistics/README.md,
+    else None (the segmenter's own scale: the U-Net's classes are local). Measured in experiments/statistics/segmenters.md,
     "A scale per image"."""
     if value != AUTO:
         return value

@@ -412,7 +412,7 @@ def contact_ridge(labels: np.ndarray) -> np.ndarray:
 def shade_contacts(image: np.ndarray, labels: np.ndarray, mask: np.ndarray, depth: float) -> np.ndarray:
     """``image`` with the grey where particles touch (`contact_ridge`) pulled towards the crop's background grey
     (the median of its background-class pixels) by ``depth`` in [0, 1] at the ridge, falling off as a Gaussian of
-    CONTACT_SHADE_PX across it: the dip a real contact shows (experiments/statistics/README.md, "What a contact looks
+    CONTACT_SHADE_PX across it: the dip a real contact shows (experiments/statistics/merges.md, "What a contact looks
     like"). Unchanged without a ridge, a depth of 0 or fewer than 16 background pixels."""
     from scipy.ndimage import gaussian_filter
 

@@ -11,7 +11,8 @@ drgan.synthetic.edge_check), the generated side on its exact labels, and compare
 classical contacts hide their neck about as often as annotated ones, while on generated pairs the classical
 segmentation misses most hidden contacts (piled particles that overlap in projection show no neck of shape either,
 so it merges them), which would hide the difference; the classical measurement of the generated images is kept
-beside it (``generated``). Measured: experiments/statistics/README.md, "Merges where the image shows no neck".
+beside it (``generated``). Measured: experiments/statistics/closed_loop.md, "Merges where the image shows no neck:
+tio2_tsem's closed loop".
 """
 
 from __future__ import annotations
