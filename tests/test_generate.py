@@ -20,7 +20,7 @@ from test_train import make_images, run_train, tiny_overrides
 
 from drgan import generate as gen
 from drgan.core.errors import ConfigError
-from drgan.synthetic.generation_settings import GenerateSettings, defaults
+from drgan.synthetic.generation_settings import GenerateSettings, defaults, setting
 
 N = 3
 N_BG = 2
@@ -183,12 +183,7 @@ def test_a_new_setting_is_one_field_and_reaches_the_stage(tiny_run, tmp_path, mo
 
     @dataclass(frozen=True, kw_only=True)
     class ToySettings(GenerateSettings):
-        toy_gain: float = 1.0  # a toy key, fixed by config.json when not at its default (CHANGED)
-
-        def __post_init__(self):
-            super().__post_init__()
-            if isinstance(self.toy_gain, bool) or not isinstance(self.toy_gain, (int, float)) or self.toy_gain <= 0:
-                raise ConfigError(f"toy_gain={self.toy_gain!r}: expected a number > 0")
+        toy_gain: float = setting(1.0, gt=0.0)  # a toy key, fixed by config.json when not at its default (CHANGED)
 
     seen = []
     render = gen.render_index
@@ -206,8 +201,9 @@ def test_a_new_setting_is_one_field_and_reaches_the_stage(tiny_run, tmp_path, mo
     assert json.loads((out / "config.json").read_text())["fixed"]["toy_gain"] == 2.5
     with pytest.raises(ConfigError, match=r"generated with other settings \(toy_gain: 2.5 there, None now\)"):
         gen.generate_dataset(ToySettings.from_config(compose(args, "generate")))  # the default, 1.0: not recorded
-    with pytest.raises(ConfigError, match=r"toy_gain=-1: expected a number > 0"):
-        ToySettings.from_config(compose([*args, "+toy_gain=-1"], "generate"))
+    for bad in ("-1", "many"):
+        with pytest.raises(ConfigError, match=rf"generate: toy_gain='?{bad}'?: expected a number > 0"):
+            ToySettings.from_config(compose([*args, f"+toy_gain={bad}"], "generate"))
 
 
 def test_sampled_spp_replaces_the_spp_where_renders_carry_sampling_noise_only(tiny_run, tmp_path):

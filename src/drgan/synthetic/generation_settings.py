@@ -27,9 +27,10 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from drgan.core.errors import ConfigError
+from drgan.core.typed_settings import read_settings
 from drgan.data.polarity import check_polarity
 from drgan.scene.config import Material, typed_material
 from drgan.synthetic.backgrounds import PARTIAL_MAX_IGNORED, PartialSettings
@@ -60,13 +61,20 @@ def setting(
     before: Any = _DEFAULT,
     factory=None,
     given=None,
+    ge: float | None = None,
+    gt: float | None = None,
+    le: float | None = None,
+    expected: str | None = None,
 ):
     """A field of `GenerateSettings`: its ``default`` (or ``factory`` for a mutable one), whether config.json records
-    it (``fixed``: ALWAYS, NEVER, or CHANGED from ``before``), whether manifest.json does (``record``), and ``given``
-    (cfg -> value) where the value is not the composed config's key of the field's name."""
+    it (``fixed``: ALWAYS, NEVER, or CHANGED from ``before``), whether manifest.json does (``record``), ``given``
+    (cfg -> value) where the value is not the composed config's key of the field's name, and what
+    `drgan.core.typed_settings.read_settings` checks when it reads the key, as for every stage's settings: bounds
+    (``ge``, ``gt``, ``le``) and ``expected``, the words of the error (else derived from the type and the bounds).
+    ``__post_init__`` checks what a bound cannot say (and a value given to the constructor directly)."""
     if fixed not in (ALWAYS, NEVER, CHANGED):
         raise ValueError(f"fixed={fixed!r}: expected ALWAYS, NEVER or CHANGED")
-    metadata: dict[str, Any] = {"fixed": fixed, "record": record}
+    metadata: dict[str, Any] = {"fixed": fixed, "record": record, "ge": ge, "gt": gt, "le": le, "expected": expected}
     if before is not _DEFAULT:
         metadata["before"] = before
     if given is not None:
@@ -116,9 +124,9 @@ class GenerateSettings:
     n_background: int = setting(200, fixed=NEVER)
     partial_background: bool = setting(True)
     partial_max_ignored: float = setting(PARTIAL_MAX_IGNORED)
-    partial_margin_px: int | None = setting(None)
+    partial_margin_px: int | None = setting(None, expected="an integer >= 0 (px) or null (from the particles)")
     seed: int = setting(0, fixed=ALWAYS)
-    contour_px: int | None = setting(None, fixed=ALWAYS)  # resolved: the checkpoint material's when null
+    contour_px: int | None = setting(None, fixed=ALWAYS, expected="an integer >= 0 or null (the checkpoint material's)")
     min_contrast: float = setting(1.15, fixed=ALWAYS)
     min_background: float = setting(0.05, fixed=ALWAYS)
     polarity: str | None = setting(None, fixed=ALWAYS)  # resolved: the checkpoint material's when null
@@ -195,8 +203,11 @@ class GenerateSettings:
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> GenerateSettings:
-        """The settings of a composed generate config, checked; a key ``cfg`` lacks takes the field's default."""
-        return cls(**{f.name: _given(cfg, f) for f in fields(cls)})
+        """The settings of a composed generate config, read as every stage's are
+        (`drgan.core.typed_settings.read_settings`: each key of a field's name against the field's type; a key ``cfg``
+        lacks takes the field's default), the fields with a ``given`` reader by it; then checked (``__post_init__``)."""
+        given = {f.name: f.metadata["given"](cfg) for f in fields(cls) if "given" in f.metadata}
+        return read_settings(cls, cfg, "generate", **given)
 
     def resolve(self) -> Resolved:
         """These settings with every "the checkpoint's" filled in from the checkpoint, and the model config to
@@ -316,19 +327,6 @@ def defaults(settings_type: type[GenerateSettings] = GenerateSettings) -> dict:
 
 def _field_default(f: dataclasses.Field):
     return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-
-
-def _given(cfg: DictConfig, f: dataclasses.Field):
-    """The value of field ``f`` in the composed config: its ``given`` reader, else the key of its name (missing,
-    ``???``: MISSING; absent: the field's default), containers as plain dicts and lists."""
-    if "given" in f.metadata:
-        return f.metadata["given"](cfg)
-    if OmegaConf.is_missing(cfg, f.name):
-        return MISSING
-    value = cfg.get(f.name, _field_default(f))
-    if isinstance(value, (DictConfig, ListConfig)):
-        value = OmegaConf.to_container(value, resolve=True)
-    return value
 
 
 def _count(key: str, value, minimum: int, note: str = "") -> None:
