@@ -1,0 +1,74 @@
+"""Whether a segmenter's size bias on exact truth is its network or its split's calibration: fresh generated pairs of
+the same generator (never trained on) cut in two halves; the split calibrated again on the first half (as
+`drgan.segment` calibrates it on its validation pairs, the stored grid and objective) and both calibrations, the
+stored one and the new one, scored on the second half as the closed-loop check scores (`drgan.segmenters.closed_loop`).
+
+    python -m drgan.generate ckpt=RUN/train out=FRESH n=200 n_background=0 seed=1 renderer.spp=16 sampled_spp=64
+    python experiments/statistics/calibration_size.py FRESH SEG_RUN_OR_CKPT [...] [--names a b c] [--calibrate 100]
+
+A split that the network allows but the validation pairs chose badly moves to the truth with the larger calibration;
+a network that merges whatever the split stays off.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from drgan.segmenters.calibrate import GRID_DEFAULTS, as_array_free, calibrate_split, check_grid
+from drgan.segmenters.closed_loop import checkable, closed_loop
+from drgan.segmenters.pairs import load_generated_pairs
+from drgan.segmenters.registry import load_segmenter
+
+SPLIT_KEYS = ("split_seeds", "split_depth", "split_core")
+
+
+def checkpoint(path: Path) -> Path:
+    return path if path.is_file() else path / "checkpoints" / "last.ckpt"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("fresh", type=Path, help="fresh generated pairs of the same generator (drgan.generate)")
+    parser.add_argument("runs", type=Path, nargs="+", help="segment run folders or checkpoints")
+    parser.add_argument("--names", nargs="*", default=None)
+    parser.add_argument("--calibrate", type=int, default=100, help="pairs of the first half (the rest score)")
+    args = parser.parse_args()
+    names = args.names or [r.name for r in args.runs]
+    pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)]
+    first, second = pairs[: args.calibrate], pairs[args.calibrate :]
+    print(f"calibrated on {len(first)} fresh pairs, scored on {len(second)}")
+    print(
+        "| segmenter | split (seeds, depth, core) | calibrated on | median error [95 %] | count error [95 %] | merged |"
+    )
+    print("|---|---|---|---|---|---|")
+    errors: dict[str, list[tuple[float, float]]] = {"stored": [], "fresh": []}
+    for name, run in zip(names, args.runs):
+        model = load_segmenter(checkpoint(run)).eval()
+        stored = model.split_calibration
+        grid = check_grid({**GRID_DEFAULTS, "max_pairs": len(first), "objective": stored.get("objective", "sizes")})
+        fresh = as_array_free(calibrate_split(model, first, grid))
+        for kind, calibration, where in (
+            ("stored", stored, f"its {stored.get('n_pairs', '?')} validation pairs"),
+            ("fresh", fresh, f"{len(first)} fresh pairs"),
+        ):
+            check = closed_loop(model, second, calibration, n_boot=1000, pixel_scale=model.pixel_scale)
+            m, c = check["median_error"], check["count_error"]
+            split = ", ".join(str(calibration.get(k)) for k in SPLIT_KEYS)
+            print(
+                f"| {name} | {split} | {where} | {100 * m['value']:+.1f} [{100 * m['low']:+.1f}, "
+                f"{100 * m['high']:+.1f}] | {100 * c['value']:+.1f} [{100 * c['low']:+.1f}, {100 * c['high']:+.1f}] | "
+                f"{100 * check['merged']:.1f} % |"
+            )
+            errors[kind].append((100 * m["value"], 100 * c["value"]))
+    for kind, rows in errors.items():
+        values = np.array(rows)
+        sd = values.std(axis=0, ddof=1) if len(values) > 1 else np.zeros(2)
+        mean = values.mean(axis=0)
+        print(f"| mean | | {kind} | {mean[0]:+.1f} +- {sd[0]:.1f} | {mean[1]:+.1f} +- {sd[1]:.1f} | |")
+
+
+if __name__ == "__main__":
+    main()
