@@ -78,10 +78,8 @@ def use_parameters(module, source, model_cfg: dict, base_dir=None) -> None:
     if source == "initial":
         from drgan.models import build
 
-        base_dir = base_dir if base_dir is not None else module.hparams.get("base_dir")
-        fresh = build.build_generator(
-            OmegaConf.create(model_cfg), base_dir=base_dir, seed=int(model_cfg.get("seed", 0))
-        )
+        base_dir = base_dir if base_dir is not None else module.hparams["base_dir"]  # saved by every GANModule
+        fresh = build.build_generator(OmegaConf.create(model_cfg), base_dir=base_dir, seed=module.seed)
         generator.regressor.load_state_dict(fresh.regressor.state_dict())
         return
     learned = generator.learned
