@@ -3,7 +3,8 @@
 On the held-out generated pairs a segment run scored itself on (its checkpoint's closed-loop ids), the network's
 probabilities are computed once, then turned into instances several ways, each measured against the exact labels as
 drgan.segmenters.closed_loop measures:
-- ``default``: the segmenter's calibrated split (what the check reports);
+- ``default``: the segmenter's prediction as the check makes it (`drgan.segmenters.inference.predict` with the
+  calibrated split): what the check reports;
 - ``oracle split``: the network's foreground (particle + contour > 0.5) cut by a watershed seeded at the true
   particles' cores: what is left is the foreground's outline alone;
 - ``fg > t``: the oracle split of the foreground at other thresholds t of 1 - p(background);
@@ -26,7 +27,7 @@ from drgan.metrics.instance_scores import binarize_and_label, error_sources, seg
 from drgan.metrics.statistics import particles
 from drgan.scene.labels import centre_distance
 from drgan.segmenters.closed_loop import check_inference, summarise
-from drgan.segmenters.inference import predict_probs, split_of, split_touching
+from drgan.segmenters.inference import predict, predict_probs
 from drgan.segmenters.pairs import load_generated_pairs
 from drgan.segmenters.registry import load_segmenter
 
@@ -80,7 +81,6 @@ def main() -> None:
         probs = predict_probs(model, pair.image, tile=args.tile)
         if args.through_scale:
             from drgan.data.images import resample
-            from drgan.segmenters.inference import predict
             from drgan.segmenters.pairs import _nearest
 
             big = resample(pair.image, 1.0 / args.through_scale)
@@ -92,15 +92,9 @@ def main() -> None:
             ways[f"through pixel scale {args.through_scale:g}"].append(
                 row(binarize_and_label(classes.astype(np.int64)), big_truth)
             )
-        if split_of(model) == "watershed":
-            classes = split_touching(
-                probs[:3], settings["split_depth"], settings["split_smooth"], settings["split_core"]
-            )
-        else:
-            from drgan.segmenters.inference import split_by_centres
-
-            classes = split_by_centres(probs, settings["seed_level"])
-        ways["default"].append(row(binarize_and_label(classes.astype(np.int64)), truth))
+        # as drgan.segmenters.closed_loop predicts: the calibrated split (seed rule and hole filling included)
+        classes = predict(model, pair.image, noise_match=False, annotations=False, tile=args.tile, **settings)
+        ways["default"].append(row(binarize_and_label(np.asarray(classes).astype(np.int64)), truth))
         for t in args.thresholds:
             fg = 1.0 - probs[0] > t
             ways[f"oracle split, fg > {t:g}"].append(row(oracle_split(fg, truth), truth))
