@@ -23,12 +23,17 @@ def given(cfg, key: str, why: str):
 _REQUIRED = object()  # `setting`'s default where a key has none
 
 
+def checks(*, ge: float | None = None, gt: float | None = None, le: float | None = None, expected: str | None = None,
+           check=None) -> dict:  # fmt: skip
+    """The field metadata `read_settings` reads: bounds (``expected``: the words of the error, else derived from the
+    type and the bounds), or ``check(stage, value)``, which returns the typed value or raises a ConfigError itself."""
+    return {"ge": ge, "gt": gt, "le": le, "expected": expected, "check": check}
+
+
 def setting(default: Any = _REQUIRED, *, ge: float | None = None, gt: float | None = None, le: float | None = None,
             expected: str | None = None, check=None):  # fmt: skip
-    """A settings field with its default (none: a required key) and what `read_settings` checks: bounds
-    (``expected``: the words of the error, else derived from the type and the bounds), or ``check(stage, value)``,
-    which returns the typed value or raises a ConfigError itself."""
-    metadata = {"ge": ge, "gt": gt, "le": le, "expected": expected, "check": check}
+    """A settings field with its default (none: a required key) and what `read_settings` checks (`checks`)."""
+    metadata = checks(ge=ge, gt=gt, le=le, expected=expected, check=check)
     if default is _REQUIRED:
         return dataclasses.field(metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)

@@ -30,7 +30,7 @@ from typing import Any, NamedTuple
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from drgan.core.errors import ConfigError
-from drgan.core.typed_settings import read_settings
+from drgan.core.typed_settings import checks, read_settings
 from drgan.data.polarity import check_polarity
 from drgan.scene.config import Material, typed_material
 from drgan.synthetic.backgrounds import PARTIAL_MAX_IGNORED, PartialSettings
@@ -74,7 +74,7 @@ def setting(
     ``__post_init__`` checks what a bound cannot say (and a value given to the constructor directly)."""
     if fixed not in (ALWAYS, NEVER, CHANGED):
         raise ValueError(f"fixed={fixed!r}: expected ALWAYS, NEVER or CHANGED")
-    metadata: dict[str, Any] = {"fixed": fixed, "record": record, "ge": ge, "gt": gt, "le": le, "expected": expected}
+    metadata: dict[str, Any] = {"fixed": fixed, "record": record, **checks(ge=ge, gt=gt, le=le, expected=expected)}
     if before is not _DEFAULT:
         metadata["before"] = before
     if given is not None:
