@@ -16,6 +16,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from check_size import cell, checkpoint, run_name  # this folder's script (a script's folder is on its path)
 
 from drgan.segmenters.calibrate import GRID_DEFAULTS, as_array_free, calibrate_split, check_grid
 from drgan.segmenters.closed_loop import checkable, closed_loop
@@ -25,10 +26,6 @@ from drgan.segmenters.registry import load_segmenter
 SPLIT_KEYS = ("split_seeds", "split_depth", "split_core")
 
 
-def checkpoint(path: Path) -> Path:
-    return path if path.is_file() else path / "checkpoints" / "last.ckpt"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("fresh", type=Path, help="fresh generated pairs of the same generator (drgan.generate)")
@@ -36,7 +33,7 @@ def main() -> None:
     parser.add_argument("--names", nargs="*", default=None)
     parser.add_argument("--calibrate", type=int, default=100, help="pairs of the first half (the rest score)")
     args = parser.parse_args()
-    names = args.names or [r.name for r in args.runs]
+    names = args.names or [run_name(r) for r in args.runs]
     pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)]
     first, second = pairs[: args.calibrate], pairs[args.calibrate :]
     print(f"calibrated on {len(first)} fresh pairs, scored on {len(second)}")
@@ -55,14 +52,12 @@ def main() -> None:
             ("fresh", fresh, f"{len(first)} fresh pairs"),
         ):
             check = closed_loop(model, second, calibration, n_boot=1000, pixel_scale=model.pixel_scale)
-            m, c = check["median_error"], check["count_error"]
             split = ", ".join(str(calibration.get(k)) for k in SPLIT_KEYS)
             print(
-                f"| {name} | {split} | {where} | {100 * m['value']:+.1f} [{100 * m['low']:+.1f}, "
-                f"{100 * m['high']:+.1f}] | {100 * c['value']:+.1f} [{100 * c['low']:+.1f}, {100 * c['high']:+.1f}] | "
+                f"| {name} | {split} | {where} | {cell(check, 'median_error')} | {cell(check, 'count_error')} | "
                 f"{100 * check['merged']:.1f} % |"
             )
-            errors[kind].append((100 * m["value"], 100 * c["value"]))
+            errors[kind].append((100 * check["median_error"]["value"], 100 * check["count_error"]["value"]))
     for kind, rows in errors.items():
         values = np.array(rows)
         sd = values.std(axis=0, ddof=1) if len(values) > 1 else np.zeros(2)

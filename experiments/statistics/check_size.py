@@ -27,6 +27,11 @@ def checkpoint(path: Path) -> Path:
     return path if path.is_file() else path / "checkpoints" / "last.ckpt"
 
 
+def run_name(path: Path) -> str:
+    """A row's default name: the segment run folder's (a checkpoint's: its run folder's)."""
+    return path.name if path.is_dir() else path.parent.parent.name
+
+
 def cell(check: dict, key: str) -> str:
     c = check[key]
     return f"{100 * c['value']:+.1f} [{100 * c['low']:+.1f}, {100 * c['high']:+.1f}]"
@@ -45,7 +50,7 @@ def main() -> None:
     parser.add_argument("runs", type=Path, nargs="+", help="segment run folders or checkpoints")
     parser.add_argument("--names", nargs="*", default=None, help="row names (default: the run folders' names)")
     args = parser.parse_args()
-    names = args.names or [r.name if r.is_dir() else r.parent.parent.name for r in args.runs]
+    names = args.names or [run_name(r) for r in args.runs]
     pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)]
     print("| segmenter | check | pairs / particles | median error [95 %] | count error [95 %] | merged | edge px |")
     print("|---|---|---|---|---|---|---|")
