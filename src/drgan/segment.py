@@ -321,6 +321,7 @@ def prepare_finetune(cfg: DictConfig, keys: SegmentRun) -> Prepared:
     setting_float("correction.share", setting.share, 0.0)
     model = load_segmenter(ckpt, "finetune").train()  # (loaded for inference, in eval mode)
     model.hparams.lr = lr
+    model.hparams.lr_schedule = "constant"  # the fine-tuning's few epochs at correction.lr, as measured
     split_seed = int(base.seed) if base is not None and base.get("seed") is not None else keys.seed
     with open_dict(cfg):
         cfg.data = data

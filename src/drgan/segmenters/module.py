@@ -139,6 +139,7 @@ class SegmenterModule(L.LightningModule):
         contact_weight: float = 0.0,
         contact_reach: int = 3,
         dice: str = "classes",
+        lr_schedule: str = "constant",
     ):
         super().__init__()
         # "none" by default: the synthetic images' grey levels are the real ones, so no normalisation is needed.
@@ -149,6 +150,8 @@ class SegmenterModule(L.LightningModule):
             raise ConfigError(f"model.contact_reach={contact_reach!r}: expected a whole number of px >= 1")
         if dice not in DICE_MODES:
             raise ConfigError(f"model.dice={dice!r}: expected one of {', '.join(DICE_MODES)}")
+        if lr_schedule not in LR_SCHEDULES:
+            raise ConfigError(f"model.lr_schedule={lr_schedule!r}: expected one of {', '.join(LR_SCHEDULES)}")
         self.save_hyperparameters()
         self.net = UNet(1, n_classes, depth, base)
 
@@ -198,7 +201,25 @@ class SegmenterModule(L.LightningModule):
         self.log_dict({"val/loss": loss, "val/dsc": dsc}, prog_bar=True, batch_size=len(batch[0]))
 
     def configure_optimizers(self):
-        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        """Adam at ``lr``; with ``lr_schedule: poly`` the rate falls each step as (1 - step / steps)^0.9 over the
+        run's ``max_epochs`` (`poly_factor`), so the weights the run ends with are settled ones, not those of
+        whichever step the last epoch stopped at. Checkpoints from before the setting train at a constant rate."""
+        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        steps = self.trainer.estimated_stepping_batches if self._trainer is not None else math.inf
+        if self.hparams.get("lr_schedule", "constant") == "constant" or not math.isfinite(steps):
+            return optimizer
+        total = max(int(steps), 1)
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: poly_factor(step, total))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+
+LR_SCHEDULES = ("constant", "poly")
+POLY_POWER = 0.9  # nnU-Net's polynomial decay (Isensee et al. 2021)
+
+
+def poly_factor(step: int, total: int) -> float:
+    """The learning rate's factor at optimizer ``step`` of ``total``: (1 - step / total)^POLY_POWER, 0 from the end."""
+    return max(1.0 - step / total, 0.0) ** POLY_POWER
 
 
 SETTLE_EPOCHS, SETTLE_GAIN = 3, 0.01  # settled: the last 3 epochs raised the best val/dsc by less than 0.01
