@@ -415,3 +415,50 @@ def test_a_new_segmenter_is_a_registered_class_that_segment_trains_and_evaluate_
             )
     finally:
         sys.modules.pop("toy_segmenter", None)
+
+
+# --- the learning-rate schedule -------------------------------------------------------------------------------
+
+
+def test_poly_factor_falls_from_one_to_zero_as_computed_by_hand():
+    from drgan.segmenters.module import poly_factor
+
+    assert poly_factor(0, 10) == 1.0
+    assert poly_factor(5, 10) == pytest.approx(0.5**0.9)  # 0.536
+    assert poly_factor(9, 10) == pytest.approx(0.1**0.9)  # the last step's: 0.126
+    assert poly_factor(10, 10) == 0.0 and poly_factor(12, 10) == 0.0  # never negative past the end
+
+
+class RateLog(L.Callback):
+    """The optimizer's learning rate at every training step."""
+
+    def __init__(self):
+        self.rates: list[float] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.rates.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+
+@pytest.mark.parametrize("schedule", ["constant", "poly"])
+def test_the_rate_of_each_step_follows_the_schedule_over_max_epochs(schedule, tmp_path):
+    """8 crops in batches of 2 for 2 epochs: 8 steps; poly's k-th step trains at lr (1 - k / 8)^0.9."""
+    from drgan.segmenters.module import poly_factor
+
+    torch.manual_seed(0)
+    images = torch.rand(8, 1, 16, 16)
+    masks = (images[:, 0] > 0.5).long()
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(images, masks), batch_size=2)
+    model = tiny_model(f"model.lr_schedule={schedule}")
+    log = RateLog()
+    trainer = L.Trainer(max_epochs=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, limit_val_batches=0, callbacks=[log], default_root_dir=tmp_path,
+                        accelerator="cpu")  # fmt: skip
+    trainer.fit(model, loader)
+    lr = model.hparams.lr
+    expected = [lr * (poly_factor(k, 8) if schedule == "poly" else 1.0) for k in range(8)]
+    assert log.rates == pytest.approx(expected)
+
+
+def test_an_unknown_schedule_is_refused_naming_the_key():
+    with pytest.raises(ConfigError, match=r"model.lr_schedule='cosine': expected one of constant, poly"):
+        tiny_model("model.lr_schedule=cosine")
