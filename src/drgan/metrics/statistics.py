@@ -12,7 +12,8 @@ shape statistic (a cut particle's area is not its size).
 alike. Annotated masks hold them too (single pixels, brush strokes): the train masks of both TiO2 sets have a mode at
 1 px^2 (6 % and 4.5 % of their components) and their log-area histogram's valley at 4-8 px^2 before the particles'
 mode, so drgan.evaluate leaves out components under 8 px^2 (equivalent diameter < 3.2 px;
-experiments/statistics/README.md).
+experiments/statistics/merges.md, "Specks are not particles: a minimum area on both sides, chosen on train
+masks").
 
 Comparisons (`compare_sizes`): median and mean diameter with their relative errors (prediction / truth - 1), the
 total count's relative error and the per-image count errors, the two-sample Kolmogorov-Smirnov statistic (largest

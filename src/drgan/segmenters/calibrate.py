@@ -2,11 +2,12 @@
 
 ``split_touching`` seeds one particle per h-maximum of the distance transform of a particle *core*: where the
 particle probability exceeds ``split_core``. How strict that core should be depends on how confident the network
-is: 0.95 opened the necks between touching TiO2 particles for one U-Net (merged particles 41 % -> 26 %) and broke
-a less confident one's particles into pieces (AP50 0.60 -> 0.30; experiments/statistics/README.md). So after
-training, ``drgan.segment`` scores a small grid of (split_depth, split_core) on the held-out validation pairs (never
-test images), keeps the setting with the highest pooled AP50 and stores it in the checkpoint under
-``CHECKPOINT_KEY``; ``inference.split_core: auto`` / ``split_depth: auto`` of evaluate and analyze read it back.
+is: a strict core opens the necks between touching particles for a confident network and breaks a less confident
+one's particles into pieces (experiments/statistics/merges.md, "The split chosen per segmenter on its validation
+pairs"). So after training, ``drgan.segment`` scores a small grid of (split_seeds, split_depth, split_core) on the
+held-out validation pairs (never test images), keeps the setting its objective chooses (``sizes``: the sizes and
+counts nearest the truth within ``SIZES_AP50_MARGIN`` of the best AP50; ``ap50``: the best pooled AP50) and stores it
+in the checkpoint under ``CHECKPOINT_KEY``; the ``auto`` split settings of evaluate and analyze read it back.
 
 Settings within ``TIE`` of the best AP50 are ties: on particles of ``LARGE_PARTICLE_PX`` and more (median over the
 validation pairs) the largest tied depth wins, else the smallest; then the most lenient core of that depth.
