@@ -59,8 +59,8 @@ class LRDecay:
     A plain callable object, not a lambda, so that the schedulers' state pickles into checkpoints."""
 
     start_step: int | None = setting(ge=0)
-    steps: int = setting(1, ge=1)
-    final_factor: float = setting(0.0, ge=0.0, le=1.0)
+    steps: int = setting(300, ge=1)
+    final_factor: float = setting(0.1, ge=0.0, le=1.0)
 
     def __post_init__(self):
         if (self.start_step is not None and self.start_step < 0) or self.steps < 1 or not 0 <= self.final_factor <= 1:

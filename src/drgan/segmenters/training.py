@@ -370,4 +370,4 @@ def _check_fraction(stage: str, value) -> float:
 @typed
 @dataclass(frozen=True)
 class _HeldOut:
-    check_fraction: float = setting(0.0, check=_check_fraction)
+    check_fraction: float = setting(0.0, check=_check_fraction)  # absent (a run from before the check): no check
