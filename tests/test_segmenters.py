@@ -459,6 +459,29 @@ def test_the_rate_of_each_step_follows_the_schedule_over_max_epochs(schedule, tm
     assert log.rates == pytest.approx(expected)
 
 
+def test_a_resumed_poly_run_goes_on_at_the_rate_where_it_stopped(tmp_path):
+    """A run resumed from its first epoch's checkpoint trains its second epoch at the rates the whole run did (steps
+    4-7 of 8), not from the full rate again: the scheduler's step is in the checkpoint."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    torch.manual_seed(0)
+    images = torch.rand(8, 1, 16, 16)
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(images, (images[:, 0] > 0.5).long()), 2)
+
+    def fit(log, ckpt_path=None):
+        saved = ModelCheckpoint(dirpath=tmp_path, save_top_k=-1, every_n_epochs=1, filename="{epoch}")
+        trainer = L.Trainer(max_epochs=2, logger=False, enable_progress_bar=False, enable_model_summary=False,
+                            limit_val_batches=0, callbacks=[log, saved], default_root_dir=tmp_path,
+                            accelerator="cpu")  # fmt: skip
+        trainer.fit(tiny_model("model.lr_schedule=poly"), loader, ckpt_path=ckpt_path)
+
+    whole, resumed = RateLog(), RateLog()
+    fit(whole)
+    fit(resumed, ckpt_path=tmp_path / "epoch=0.ckpt")
+    assert len(whole.rates) == 8 and resumed.rates == pytest.approx(whole.rates[4:])
+    assert resumed.rates[0] < 0.6 * whole.rates[0]
+
+
 def test_an_unknown_schedule_is_refused_naming_the_key():
     with pytest.raises(ConfigError, match=r"model.lr_schedule='cosine': expected one of constant, poly"):
         tiny_model("model.lr_schedule=cosine")
