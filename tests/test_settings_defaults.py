@@ -15,7 +15,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from drgan.analyze import AnalyzeSettings
 from drgan.evaluate import EvaluateSettings, _Runs
 from drgan.export_nnunet import ExportSettings
-from drgan.launch.configs import compose, conf_dir
+from drgan.launch.configs import compose
 from drgan.models.gan_module import GANTraining, LRDecay
 from drgan.pipeline.settings import CONFIG as PIPELINE_YAML
 from drgan.pipeline.settings import _OwnKeys

@@ -32,6 +32,7 @@ from drgan.core.errors import ConfigError
 from drgan.core.io import write_png
 from drgan.core.progress import track
 from drgan.metrics import overlays
+from drgan.metrics.statistics import interval_text
 from drgan.scene.labels import IGNORE
 
 log = logging.getLogger(__name__)
@@ -210,10 +211,7 @@ def _percent(value) -> str:
 
 
 def _interval(cell: Mapping) -> str:
-    text = _percent(cell.get("value"))
-    if cell.get("low") is not None and cell.get("high") is not None:
-        text += f" [{_percent(cell['low'])}, {_percent(cell['high'])}]"
-    return text
+    return interval_text({"value": cell.get("value"), "low": cell.get("low"), "high": cell.get("high")}, _percent)
 
 
 def trust_line(check: Mapping) -> str:

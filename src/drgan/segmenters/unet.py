@@ -15,7 +15,8 @@ from torch import nn
 
 from drgan.core.errors import ConfigError
 
-AUTO_DEPTHS = (4, 5)  # the depths `auto_depth` chooses from (both measured: experiments/statistics/closed_loop.md, "Large particles")
+# the depths `auto_depth` chooses from (both measured: experiments/statistics/closed_loop.md, "Large particles")
+AUTO_DEPTHS = (4, 5)
 FIELD_PER_DIAMETER = 1.25  # `auto_depth`: the receptive field spans this many median particle diameters
 
 
