@@ -1,0 +1,72 @@
+"""How much validation AP50 the size-first split must give up to measure sizes and counts on exact truth: fresh generated
+pairs (never trained on) cut in two halves; every split of the calibration grid scored on both (as `drgan.segment`
+calibrates, `drgan.segmenters.calibrate.calibrate_split`); for each AP50 margin the setting `sizes_best` picks on the
+first half, scored on the second; and the second half's best setting whatever its AP50 (what the network allows).
+
+    python experiments/statistics/margin_size.py FRESH SEG_RUN_OR_CKPT [...] [--names a b c] [--margins 0.05 0.1 0.2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from check_size import checkpoint, run_name  # this folder's script (a script's folder is on its path)
+
+from drgan.segmenters import calibrate
+from drgan.segmenters.calibrate import GRID_DEFAULTS, calibrate_split, check_grid, size_error
+from drgan.segmenters.closed_loop import checkable
+from drgan.segmenters.pairs import load_generated_pairs
+from drgan.segmenters.registry import load_segmenter
+
+SPLIT_KEYS = ("split_seeds", "split_depth", "split_core")
+
+
+def key(row: dict) -> tuple:
+    return tuple(row[k] for k in SPLIT_KEYS)
+
+
+def percent(value) -> str:
+    return "n/a" if value is None or not math.isfinite(value) else f"{100 * value:+.1f}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("fresh", type=Path, help="fresh generated pairs of the same generator (drgan.generate)")
+    parser.add_argument("runs", type=Path, nargs="+", help="segment run folders or checkpoints")
+    parser.add_argument("--names", nargs="*", default=None)
+    parser.add_argument("--half", type=int, default=100, help="pairs of the first half (the rest score)")
+    parser.add_argument("--pairs", type=int, default=None, help="the first this many pairs only (a quick look)")
+    parser.add_argument("--margins", type=float, nargs="+", default=[0.0, 0.05, 0.1, 0.15, 0.2, 1.0])
+    args = parser.parse_args()
+    names = args.names or [run_name(r) for r in args.runs]
+    pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)][: args.pairs]
+    first, second = pairs[: args.half], pairs[args.half :]
+    print(f"chosen on {len(first)} fresh pairs, scored on {len(second)}; AP50 pooled over the pairs, as calibrated")
+    print(
+        "| segmenter | AP50 margin | split (seeds, depth, core) | AP50 (first / second) | median error | count error |"
+    )
+    print("|---|---|---|---|---|---|")
+    for name, run in zip(names, args.runs):
+        model = load_segmenter(checkpoint(run)).eval()
+        if float(getattr(model, "pixel_scale", 1.0) or 1.0) != 1.0:
+            raise SystemExit(f"{run}: trained at another pixel scale; this script scores at the rendered one only")
+        grid = check_grid({**GRID_DEFAULTS, "objective": "sizes", "max_pairs": max(len(first), len(second))})
+        tables = [calibrate_split(model, half, grid)["table"] for half in (first, second)]
+        scored = {key(row): row for row in tables[1]}
+        rows = [row for row in tables[0] if not math.isnan(row["ap50"])]
+        particle_px = 0.0  # ties in grid order, whatever the particles' size
+        for margin in args.margins:
+            calibrate.SIZES_AP50_MARGIN = margin
+            pick = calibrate.sizes_best(rows, particle_px)
+            out = scored[key(pick)]
+            print(f"| {name} | {margin:g} | {', '.join(str(v) for v in key(pick))} | {pick['ap50']:.3f} / "
+                  f"{out['ap50']:.3f} | {percent(out['median_error'])} | {percent(out['count_error'])} |")  # fmt: skip
+        best = min(tables[1], key=size_error)
+        print(f"| {name} | any (second half's best) | {', '.join(str(v) for v in key(best))} | - / {best['ap50']:.3f} | "
+              f"{percent(best['median_error'])} | {percent(best['count_error'])} |")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
