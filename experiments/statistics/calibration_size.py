@@ -12,11 +12,8 @@ a network that merges whatever the split stays off.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
-from check_size import cell, checkpoint, run_name  # this folder's script (a script's folder is on its path)
+from check_size import cell, checkpoint, fresh_parser, names  # this folder's script (a script's folder is on its path)
 
 from drgan.segmenters.calibrate import GRID_DEFAULTS, as_array_free, calibrate_split, check_grid
 from drgan.segmenters.closed_loop import checkable, closed_loop
@@ -27,13 +24,9 @@ SPLIT_KEYS = ("split_seeds", "split_depth", "split_core")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("fresh", type=Path, help="fresh generated pairs of the same generator (drgan.generate)")
-    parser.add_argument("runs", type=Path, nargs="+", help="segment run folders or checkpoints")
-    parser.add_argument("--names", nargs="*", default=None)
+    parser = fresh_parser(__doc__)
     parser.add_argument("--calibrate", type=int, default=100, help="pairs of the first half (the rest score)")
     args = parser.parse_args()
-    names = args.names or [run_name(r) for r in args.runs]
     pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)]
     first, second = pairs[: args.calibrate], pairs[args.calibrate :]
     print(f"calibrated on {len(first)} fresh pairs, scored on {len(second)}")
@@ -42,7 +35,7 @@ def main() -> None:
     )
     print("|---|---|---|---|---|---|")
     errors: dict[str, list[tuple[float, float]]] = {"stored": [], "fresh": []}
-    for name, run in zip(names, args.runs):
+    for name, run in zip(names(args), args.runs):
         model = load_segmenter(checkpoint(run)).eval()
         stored = model.split_calibration
         grid = check_grid({**GRID_DEFAULTS, "max_pairs": len(first), "objective": stored.get("objective", "sizes")})

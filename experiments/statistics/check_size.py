@@ -44,19 +44,29 @@ def row(name: str, check: dict) -> str:
     )
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def fresh_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments every script of this folder that scores segmenters on fresh pairs takes: the pairs' folder, the
+    segment runs (or checkpoints) and their row names (`names`)."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("fresh", type=Path, help="fresh generated pairs of the same generator (drgan.generate)")
     parser.add_argument("runs", type=Path, nargs="+", help="segment run folders or checkpoints")
     parser.add_argument("--names", nargs="*", default=None, help="row names (default: the run folders' names)")
-    args = parser.parse_args()
-    names = args.names or [run_name(r) for r in args.runs]
+    return parser
+
+
+def names(args: argparse.Namespace) -> list[str]:
+    return args.names or [run_name(r) for r in args.runs]
+
+
+def main() -> None:
+    args = fresh_parser(__doc__).parse_args()
+    rows = names(args)
     pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)]
     print("| segmenter | check | pairs / particles | median error [95 %] | count error [95 %] | merged | edge px |")
     print("|---|---|---|---|---|---|---|")
     medians: dict[str, list[float]] = {"own": [], "fresh": []}
     counts: dict[str, list[float]] = {"own": [], "fresh": []}
-    for name, run in zip(names, args.runs):
+    for name, run in zip(rows, args.runs):
         model = load_segmenter(checkpoint(run)).eval()
         own = model.closed_loop
         fresh = closed_loop(model, pairs, model.split_calibration, n_boot=1000, pixel_scale=model.pixel_scale)

@@ -8,11 +8,9 @@ first half, scored on the second; and the second half's best setting whatever it
 
 from __future__ import annotations
 
-import argparse
 import math
-from pathlib import Path
 
-from check_size import checkpoint, run_name  # this folder's script (a script's folder is on its path)
+from check_size import checkpoint, fresh_parser, names  # this folder's script (a script's folder is on its path)
 
 from drgan.segmenters import calibrate
 from drgan.segmenters.calibrate import GRID_DEFAULTS, calibrate_split, check_grid, size_error
@@ -32,15 +30,11 @@ def percent(value) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("fresh", type=Path, help="fresh generated pairs of the same generator (drgan.generate)")
-    parser.add_argument("runs", type=Path, nargs="+", help="segment run folders or checkpoints")
-    parser.add_argument("--names", nargs="*", default=None)
+    parser = fresh_parser(__doc__)
     parser.add_argument("--half", type=int, default=100, help="pairs of the first half (the rest score)")
     parser.add_argument("--pairs", type=int, default=None, help="the first this many pairs only (a quick look)")
     parser.add_argument("--margins", type=float, nargs="+", default=[0.0, 0.05, 0.1, 0.15, 0.2, 1.0])
     args = parser.parse_args()
-    names = args.names or [run_name(r) for r in args.runs]
     pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)][: args.pairs]
     first, second = pairs[: args.half], pairs[args.half :]
     print(f"chosen on {len(first)} fresh pairs, scored on {len(second)}; AP50 pooled over the pairs, as calibrated")
@@ -48,7 +42,7 @@ def main() -> None:
         "| segmenter | AP50 margin | split (seeds, depth, core) | AP50 (first / second) | median error | count error |"
     )
     print("|---|---|---|---|---|---|")
-    for name, run in zip(names, args.runs):
+    for name, run in zip(names(args), args.runs):
         model = load_segmenter(checkpoint(run)).eval()
         if float(getattr(model, "pixel_scale", 1.0) or 1.0) != 1.0:
             raise SystemExit(f"{run}: trained at another pixel scale; this script scores at the rendered one only")
