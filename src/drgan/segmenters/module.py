@@ -205,8 +205,9 @@ class SegmenterModule(L.LightningModule):
         run's ``max_epochs`` (`poly_factor`), so the weights the run ends with are settled ones, not those of
         whichever step the last epoch stopped at. Checkpoints from before the setting train at a constant rate."""
         optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        # no trainer (the optimizer built by hand) or max_epochs unbounded (inf): no run length to decay over
         steps = self.trainer.estimated_stepping_batches if self._trainer is not None else math.inf
-        if self.hparams.get("lr_schedule", "constant") == "constant" or not math.isfinite(steps):
+        if self.hparams.lr_schedule == "constant" or not math.isfinite(steps):
             return optimizer
         total = max(int(steps), 1)
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: poly_factor(step, total))
