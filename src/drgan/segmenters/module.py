@@ -209,8 +209,7 @@ class SegmenterModule(L.LightningModule):
         steps = self.trainer.estimated_stepping_batches if self._trainer is not None else math.inf
         if self.hparams.lr_schedule == "constant" or not math.isfinite(steps):
             return optimizer
-        total = max(int(steps), 1)
-        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: poly_factor(step, total))
+        schedule = poly_schedule(optimizer, max(int(steps), 1))
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
 
 
@@ -221,6 +220,11 @@ POLY_POWER = 0.9  # nnU-Net's polynomial decay (Isensee et al. 2021)
 def poly_factor(step: int, total: int) -> float:
     """The learning rate's factor at optimizer ``step`` of ``total``: (1 - step / total)^POLY_POWER, 0 from the end."""
     return max(1.0 - step / total, 0.0) ** POLY_POWER
+
+
+def poly_schedule(optimizer: torch.optim.Optimizer, total: int) -> torch.optim.lr_scheduler.LambdaLR:
+    """``optimizer``'s rate times `poly_factor` of its step over ``total`` steps (stepped once per optimizer step)."""
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: poly_factor(step, total))
 
 
 SETTLE_EPOCHS, SETTLE_GAIN = 3, 0.01  # settled: the last 3 epochs raised the best val/dsc by less than 0.01
