@@ -4,6 +4,11 @@ calibrates, `drgan.segmenters.calibrate.calibrate_split`); for each AP50 margin 
 first half, scored on the second; and the second half's best setting whatever its AP50 (what the network allows).
 
     python experiments/statistics/margin_size.py FRESH SEG_RUN_OR_CKPT [...] [--names a b c] [--margins 0.05 0.1 0.2]
+    python experiments/statistics/margin_size.py ... --sources   # also what became of the second half's particles
+
+``--sources``: each pick is also scored on the second half by the closed-loop check (`closed_loop`) with what became of
+every true particle (matched, merged, split, missed) and the false share: whether a count nearer the truth is particles
+separated, or merges and splits that cancel.
 """
 
 from __future__ import annotations
@@ -14,7 +19,7 @@ from check_size import checkpoint, fresh_parser, names  # this folder's script (
 
 from drgan.segmenters import calibrate
 from drgan.segmenters.calibrate import GRID_DEFAULTS, calibrate_split, check_grid, size_error
-from drgan.segmenters.closed_loop import checkable
+from drgan.segmenters.closed_loop import checkable, closed_loop
 from drgan.segmenters.pairs import load_generated_pairs
 from drgan.segmenters.registry import load_segmenter
 
@@ -34,14 +39,16 @@ def main() -> None:
     parser.add_argument("--half", type=int, default=100, help="pairs of the first half (the rest score)")
     parser.add_argument("--pairs", type=int, default=None, help="the first this many pairs only (a quick look)")
     parser.add_argument("--margins", type=float, nargs="+", default=[0.0, 0.05, 0.1, 0.15, 0.2, 1.0])
+    parser.add_argument("--sources", action="store_true", help="each pick's matched / merged / split / missed / false")
     args = parser.parse_args()
     pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)][: args.pairs]
     first, second = pairs[: args.half], pairs[args.half :]
     print(f"chosen on {len(first)} fresh pairs, scored on {len(second)}; AP50 pooled over the pairs, as calibrated")
+    extra = " matched / merged / split / missed / false |" if args.sources else ""
     print(
-        "| segmenter | AP50 margin | split (seeds, depth, core) | AP50 (first / second) | median error | count error |"
+        f"| segmenter | AP50 margin | split (seeds, depth, core) | AP50 (first / second) | median error | count error |{extra}"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|" + ("---|" if args.sources else ""))
     for name, run in zip(names(args), args.runs):
         model = load_segmenter(checkpoint(run)).eval()
         if float(getattr(model, "pixel_scale", 1.0) or 1.0) != 1.0:
@@ -51,15 +58,26 @@ def main() -> None:
         scored = {key(row): row for row in tables[1]}
         rows = [row for row in tables[0] if not math.isnan(row["ap50"])]
         particle_px = 0.0  # ties in grid order, whatever the particles' size
+        fates: dict[tuple, str] = {}
+
+        def fate(row: dict) -> str:
+            if not args.sources:
+                return ""
+            if key(row) not in fates:
+                check = closed_loop(model, second, dict(zip(SPLIT_KEYS, key(row))), n_boot=50)
+                shares = " / ".join(f"{100 * check[k]:.1f}" for k in ("matched", "merged", "split", "missed", "false"))
+                fates[key(row)] = f" {shares} |"
+            return fates[key(row)]
+
         for margin in args.margins:
             calibrate.SIZES_AP50_MARGIN = margin
             pick = calibrate.sizes_best(rows, particle_px)
             out = scored[key(pick)]
             print(f"| {name} | {margin:g} | {', '.join(str(v) for v in key(pick))} | {pick['ap50']:.3f} / "
-                  f"{out['ap50']:.3f} | {percent(out['median_error'])} | {percent(out['count_error'])} |")  # fmt: skip
+                  f"{out['ap50']:.3f} | {percent(out['median_error'])} | {percent(out['count_error'])} |{fate(out)}")  # fmt: skip
         best = min(tables[1], key=size_error)
         print(f"| {name} | any (second half's best) | {', '.join(str(v) for v in key(best))} | - / {best['ap50']:.3f} | "
-              f"{percent(best['median_error'])} | {percent(best['count_error'])} |")  # fmt: skip
+              f"{percent(best['median_error'])} | {percent(best['count_error'])} |{fate(best)}")  # fmt: skip
 
 
 if __name__ == "__main__":
