@@ -5,6 +5,10 @@ scale, `drgan.segmenters.closed_loop`).
 
     python -m drgan.generate ckpt=RUN/train out=FRESH n=200 n_background=0 seed=1 renderer.spp=16 sampled_spp=64
     python experiments/statistics/check_size.py FRESH SEG_RUN_OR_CKPT [...] [--names a b c]
+    python experiments/statistics/check_size.py FRESH SEG_RUN_OR_CKPT [...] --mirror   # also with test-time mirroring
+
+``--mirror``: the fresh pairs are also scored with each tile's probabilities averaged over its four mirror images
+(`inference.mirror`, as nnU-Net), split as calibrated (on unmirrored probabilities).
 
 Prints one row per segmenter: its own check and the fresh one (median and count error with their 95 % intervals, the
 whole particles each median is taken over, merged share, edge offset), then the mean +- std over the segmenters.
@@ -58,23 +62,38 @@ def names(args: argparse.Namespace) -> list[str]:
     return args.names or [run_name(r) for r in args.runs]
 
 
+def mirrored(model):
+    """The closed-loop check's predictor (`closed_loop`'s own) with test-time mirroring."""
+    from drgan.segmenters.closed_loop import check_inference
+    from drgan.segmenters.inference import predict
+
+    settings = check_inference(model.split_calibration)
+    return lambda image: predict(model, image, pixel_scale=model.pixel_scale, noise_match=False, annotations=False,
+                                 mirror=True, **settings)  # fmt: skip
+
+
 def main() -> None:
-    args = fresh_parser(__doc__).parse_args()
+    parser = fresh_parser(__doc__)
+    parser.add_argument("--mirror", action="store_true", help="also the fresh pairs with test-time mirroring")
+    args = parser.parse_args()
     rows = names(args)
     pairs = [p for p in load_generated_pairs(args.fresh) if checkable(p)]
     print("| segmenter | check | pairs / particles | median error [95 %] | count error [95 %] | merged | edge px |")
     print("|---|---|---|---|---|---|---|")
-    medians: dict[str, list[float]] = {"own": [], "fresh": []}
-    counts: dict[str, list[float]] = {"own": [], "fresh": []}
+    kinds = ("own", "fresh", "fresh mirrored") if args.mirror else ("own", "fresh")
+    medians: dict[str, list[float]] = {kind: [] for kind in kinds}
+    counts: dict[str, list[float]] = {kind: [] for kind in kinds}
     for name, run in zip(rows, args.runs):
         model = load_segmenter(checkpoint(run)).eval()
-        own = model.closed_loop
-        fresh = closed_loop(model, pairs, model.split_calibration, n_boot=1000, pixel_scale=model.pixel_scale)
-        for kind, check in (("own", own), ("fresh", fresh)):
+        checks = {"own": model.closed_loop}
+        checks["fresh"] = closed_loop(model, pairs, model.split_calibration, n_boot=1000, pixel_scale=model.pixel_scale)
+        if args.mirror:
+            checks["fresh mirrored"] = closed_loop(model, pairs, n_boot=1000, predictor=mirrored(model))
+        for kind, check in checks.items():
             print(row(f"{name} | {kind}", check))
             medians[kind].append(check["median_error"]["value"])
             counts[kind].append(check["count_error"]["value"])
-    for kind in ("own", "fresh"):
+    for kind in kinds:
         m, c = np.array(medians[kind]) * 100, np.array(counts[kind]) * 100
         sd = lambda v: f" +- {v.std(ddof=1):.1f}" if len(v) > 1 else ""  # noqa: E731
         print(f"| mean | {kind} | | {m.mean():+.1f}{sd(m)} | {c.mean():+.1f}{sd(c)} | | |")
