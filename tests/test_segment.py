@@ -592,6 +592,45 @@ def test_split_touching_separates_a_merged_pair_and_keeps_single_particles():
     assert not split_touching(_probs_of(np.zeros((20, 20), bool), contour=disc[:20, :20])).any()
 
 
+def test_specks_go_to_the_neighbour_sharing_the_most_border_or_are_dropped():
+    from drgan.data.classical.watershed import merge_specks
+
+    labels = np.zeros((12, 16), np.int64)
+    labels[1:11, 1:6] = 1  # a particle of 50 px ...
+    labels[1:11, 9:15] = 2  # ... and one of 60
+    labels[4:7, 6:9] = 3  # a 9-px region between them: kept at min_px 8
+    np.testing.assert_array_equal(merge_specks(labels, 8), labels)
+    labels[4:7, 6:9] = 0
+    sliver = np.zeros_like(labels, bool)
+    sliver[4:6, 6] = sliver[5, 7:9] = True  # a 4-px sliver: 4 px of border with particle 1, 3 with particle 2
+    labels[sliver] = 3
+    labels[11, 7] = 4  # a 1-px speck touching nothing
+    out = merge_specks(labels, 8)
+    assert (out[sliver] == 1).all() and out[11, 7] == 0
+    np.testing.assert_array_equal(out[labels <= 2], labels[labels <= 2])  # the particles keep their pixels
+    assert (merge_specks(labels, 0) == labels).all()  # off
+
+
+def test_a_core_sliver_seeds_no_false_particle_of_its_own():
+    """`components` keeps a seed in every piece of the core; a sliver of core the contour class cut off beside a
+    particle then floods a few pixels: merged into the particle, not a false one (AP50) nor a lost pixel."""
+    from drgan.metrics.instance_scores import binarize_and_label
+    from drgan.segmenters.inference import split_touching
+
+    yy, xx = np.mgrid[:40, :40]
+    disc = (yy - 20) ** 2 + (xx - 20) ** 2 <= 100
+    contour = disc & (np.abs(xx - 27) <= 0)  # a line across the disc cuts off a 3-px-wide cap ...
+    probs = _probs_of(disc, contour=contour)
+    cap = disc & (xx > 27)
+    assert 8 <= cap.sum()  # ... a particle of its own when large enough
+    for rule in ("hmaxima", "components"):
+        labels = binarize_and_label(split_touching(probs, 1.0, 1.0, None, rule, min_px=cap.sum() + 1).astype(np.int64))
+        assert labels.max() == 1, rule
+        assert (labels > 0).sum() >= disc.sum() - contour.sum() - 2  # the cap's pixels went to the particle
+    kept = binarize_and_label(split_touching(probs, 1.0, 1.0, None, "components", min_px=1).astype(np.int64))
+    assert kept.max() == 2  # without the rule the cap is a particle: what the rule removes
+
+
 class _Threshold(torch.nn.Module):
     """A stand-in segmenter: particle where the image is above 0.5; records the size of every tile it sees."""
 

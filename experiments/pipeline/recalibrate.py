@@ -3,12 +3,16 @@
 
     python experiments/pipeline/recalibrate.py runs/pipeline/NAME [--depths 1,2,4,8,16] [--store] [--check]
     python experiments/pipeline/recalibrate.py SEGMENT_RUN --generated GENERATED ...     # any segment run folder
+    python experiments/pipeline/recalibrate.py SEGMENT_RUN --generated GENERATED --seed 2 \
+        --guard USER_IMAGES PROFILE_LABELS --store --check   # as drgan.segment seed=2 with its agreement settings
 
 Prints the AP50 table (seeds, depth x core) and the choice; ``--store`` writes the choice into the run's
 checkpoints/last.ckpt (the original kept as last.before_grid.ckpt), where evaluate and analyze read it (`split_core:
 auto`); ``--check`` then scores the closed-loop check again with it (drgan.segmenters.closed_loop) and stores it too.
 The validation pairs are those `drgan.segment` held out (its closed-loop pairs set aside first, then val_fraction 0.1,
-seed 0). Never a real test image."""
+both drawn with the run's seed: ``--seed``, default 0). ``--guard``: the user's images and the profile's classical
+labels, with which `drgan.segment` checks the split's real count (drgan.segmenters.calibrate.real_count_guard; the
+pipeline passes its agreement folders). Never a real test image."""
 
 from __future__ import annotations
 
@@ -24,7 +28,9 @@ from drgan.segmenters.calibrate import (
     calibrate_split,
     check_grid,
     markdown_table,
+    real_count_guard,
 )
+from drgan.segmenters.agreement import AgreementSettings, read_reference
 from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, hold_out, log_summary, trust_line
 from drgan.segmenters.pairs import load_generated_pairs, split_pairs
 from drgan.segmenters.registry import load_segmenter
@@ -39,6 +45,9 @@ def main() -> None:
     parser.add_argument("--objective", default=GRID_DEFAULTS["objective"], choices=("ap50", "sizes"))
     parser.add_argument("--generated", type=Path, default=None, help="the pairs of a segment run folder given as run")
     parser.add_argument("--check-fraction", type=float, default=0.05)
+    parser.add_argument("--seed", type=int, default=0, help="the segment run's seed (its validation split's)")
+    parser.add_argument("--guard", type=Path, nargs=2, default=None, metavar=("IMAGES", "LABELS"),
+                        help="the real-count guard's user images and classical labels (drgan.segment's agreement.*)")
     args = parser.parse_args()
     folder = args.run if args.generated else args.run / "segment"
     last = folder / "checkpoints" / "last.ckpt"
@@ -49,12 +58,16 @@ def main() -> None:
     if ids:
         rest, check = [p for p in pairs if p.id not in ids], [p for p in pairs if p.id in ids]
     else:
-        rest, check = hold_out(pairs, args.check_fraction, 0)
-    validation = split_pairs(rest, 0.1, 0)[1]
+        rest, check = hold_out(pairs, args.check_fraction, args.seed)
+    validation = split_pairs(rest, 0.1, args.seed)[1]
     grid = check_grid(
         {**GRID_DEFAULTS, "depths": [float(d) for d in args.depths.split(",")], "objective": args.objective}
     )
     calibration = as_array_free(calibrate_split(model.eval(), validation, grid, progress=False))
+    if args.guard:
+        settings = AgreementSettings(images=args.guard[0], reference=args.guard[1])
+        calibration = as_array_free(real_count_guard(model, calibration, read_reference(settings)))
+        print("real-count guard:", calibration.get("real_count"))
     print(markdown_table(calibration))
     print({k: v for k, v in calibration.items() if k != "table"})
     if args.store:

@@ -33,6 +33,11 @@ import numpy as np
 
 from drgan.core.errors import ConfigError, DataError
 
+# Components under this many px^2 are specks: neither counted nor sized (drgan.evaluate's and drgan.analyze's
+# min_area_px default, chosen on train masks: experiments/statistics/merges.md, "Specks are not particles"), and the
+# U-Net's split leaves none of its own (drgan.segmenters.inference.split_touching)
+SPECK_PX = 8.0
+
 
 @dataclass(frozen=True)
 class Particles:

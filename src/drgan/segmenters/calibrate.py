@@ -28,7 +28,7 @@ import numpy as np
 from drgan.core.checkpoint_io import positive_entry
 from drgan.core.errors import ConfigError
 from drgan.core.progress import track
-from drgan.metrics.statistics import median_diameter
+from drgan.metrics.statistics import SPECK_PX, median_diameter
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ GRID_DEFAULTS = {
 }
 TIE = 0.002  # AP50 differences below this are ties, broken by the particles' size (tied_best)
 SIZES_AP50_MARGIN = 0.05  # objective sizes: the split may give up this much validation AP50 for exact sizes
-MIN_AREA_PX = 8.0  # components under this are specks in the size statistics (drgan.evaluate's min_area_px)
+MIN_AREA_PX = SPECK_PX  # components under this are specks in the size statistics (drgan.evaluate's min_area_px)
 # Median diameter (px) of the validation pairs' particles from which a tie between split depths goes to the larger
 # depth: large particles have rough or faceted outlines that a shallow split cuts into fragments, small ones touch
 # and a deep split merges them (ties scored both ways on annotated train ids: experiments/pipeline/README.md, "Tied

@@ -29,6 +29,7 @@ import torch
 
 from drgan.core.errors import ConfigError, DataError, check_keys
 from drgan.data.images import resample
+from drgan.metrics.statistics import SPECK_PX
 from drgan.segmenters.noise_match import match_noise
 from drgan.segmenters.pairs import normalization
 
@@ -162,14 +163,19 @@ def split_touching(
     split_smooth: float = 1.0,
     split_core: float | None = None,
     split_seeds: str = "hmaxima",
+    min_px: float = SPECK_PX,
 ) -> np.ndarray:
     """(C, H, W) class probabilities -> (H, W) uint8 class map whose particle class separates touching
     particles (module docstring). ``split_core``: the particle core whose distance transform seeds the split is
     where the particle probability exceeds it (a stricter core opens the necks between touching particles);
     None: where the particle class wins the argmax. ``split_seeds``: "hmaxima", the h-maxima of the smoothed
     distance transform; "components", those and at least one seed in every 4-connected piece of the core
-    (drgan.data.classical.watershed.component_seeds: a piece the contour class cut off is a particle of its own)."""
-    from drgan.data.classical.watershed import component_seeds, distance_watershed, flood
+    (drgan.data.classical.watershed.component_seeds: a piece the contour class cut off is a particle of its own).
+    A region the watershed floods smaller than ``min_px`` px (a speck, as the statistics define it) goes to the
+    neighbour it shares the most border with, or is dropped where it touches none (`merge_specks`): a seed in a
+    sliver of core between two particles, which `components` keeps, would otherwise be a false particle to AP50
+    (experiments/statistics/closed_loop.md, "Specks the split made")."""
+    from drgan.data.classical.watershed import component_seeds, distance_watershed, flood, merge_specks
 
     check_split("watershed", split_depth, split_smooth, split_core, split_seeds)
     probs = np.asarray(probs)
@@ -185,7 +191,7 @@ def split_touching(
         labels = flood(*component_seeds(core, smooth=split_smooth, depth=split_depth), foreground)
     else:
         labels = distance_watershed(core, foreground, smooth=split_smooth, depth=split_depth)
-    return separate_regions(labels)
+    return separate_regions(merge_specks(labels, min_px))
 
 
 def split_by_centres(probs: np.ndarray, seed_level: float = 0.5, min_seed_px: int = 2) -> np.ndarray:
