@@ -21,6 +21,7 @@ import shutil
 from pathlib import Path
 
 from drgan.core.checkpoint_io import add_entry
+from drgan.segmenters.agreement import AgreementSettings, read_reference
 from drgan.segmenters.calibrate import (
     CHECKPOINT_KEY,
     GRID_DEFAULTS,
@@ -30,7 +31,6 @@ from drgan.segmenters.calibrate import (
     markdown_table,
     real_count_guard,
 )
-from drgan.segmenters.agreement import AgreementSettings, read_reference
 from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, hold_out, log_summary, trust_line
 from drgan.segmenters.pairs import load_generated_pairs, split_pairs
 from drgan.segmenters.registry import load_segmenter
@@ -46,8 +46,14 @@ def main() -> None:
     parser.add_argument("--generated", type=Path, default=None, help="the pairs of a segment run folder given as run")
     parser.add_argument("--check-fraction", type=float, default=0.05)
     parser.add_argument("--seed", type=int, default=0, help="the segment run's seed (its validation split's)")
-    parser.add_argument("--guard", type=Path, nargs=2, default=None, metavar=("IMAGES", "LABELS"),
-                        help="the real-count guard's user images and classical labels (drgan.segment's agreement.*)")
+    parser.add_argument(
+        "--guard",
+        type=Path,
+        nargs=2,
+        default=None,
+        metavar=("IMAGES", "LABELS"),
+        help="the real-count guard's user images and classical labels (drgan.segment's agreement.*)",
+    )
     args = parser.parse_args()
     folder = args.run if args.generated else args.run / "segment"
     last = folder / "checkpoints" / "last.ckpt"

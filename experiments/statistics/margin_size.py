@@ -34,6 +34,21 @@ def percent(value) -> str:
     return "n/a" if value is None or not math.isfinite(value) else f"{100 * value:+.1f}"
 
 
+class Fates:
+    """A split's matched / merged / split / missed / false shares on ``pairs`` (the closed-loop check), one check per
+    split setting however often it is picked."""
+
+    def __init__(self, model, pairs):
+        self.model, self.pairs, self.done = model, pairs, {}
+
+    def cell(self, row: dict) -> str:
+        if key(row) not in self.done:
+            check = closed_loop(self.model, self.pairs, dict(zip(SPLIT_KEYS, key(row))), n_boot=50)
+            shares = " / ".join(f"{100 * check[k]:.1f}" for k in ("matched", "merged", "split", "missed", "false"))
+            self.done[key(row)] = f" {shares} |"
+        return self.done[key(row)]
+
+
 def main() -> None:
     parser = fresh_parser(__doc__)
     parser.add_argument("--half", type=int, default=100, help="pairs of the first half (the rest score)")
@@ -58,17 +73,8 @@ def main() -> None:
         scored = {key(row): row for row in tables[1]}
         rows = [row for row in tables[0] if not math.isnan(row["ap50"])]
         particle_px = 0.0  # ties in grid order, whatever the particles' size
-        fates: dict[tuple, str] = {}
-
-        def fate(row: dict) -> str:
-            if not args.sources:
-                return ""
-            if key(row) not in fates:
-                check = closed_loop(model, second, dict(zip(SPLIT_KEYS, key(row))), n_boot=50)
-                shares = " / ".join(f"{100 * check[k]:.1f}" for k in ("matched", "merged", "split", "missed", "false"))
-                fates[key(row)] = f" {shares} |"
-            return fates[key(row)]
-
+        fates = Fates(model, second) if args.sources else None
+        fate = (lambda row: "") if fates is None else fates.cell  # noqa: E731
         for margin in args.margins:
             calibrate.SIZES_AP50_MARGIN = margin
             pick = calibrate.sizes_best(rows, particle_px)

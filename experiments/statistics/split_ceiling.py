@@ -60,7 +60,9 @@ def main() -> None:
         ids = set((load_segmenter(args.ckpt).closed_loop or {}).get("ids") or [])
         pairs = [p for p in load_generated_pairs(args.generated) if p.id in ids]
     outputs = {id(p.image): exact_outputs(np.asarray(p.labels)) for p in pairs}
-    print("| split (exact inputs) | median error | count error | merged | split | missed | AP50 | hidden / shown contacts merged |")
+    print(
+        "| split (exact inputs) | median error | count error | merged | split | missed | AP50 | hidden / shown contacts merged |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for name, split in SPLITS.items():
         c = closed_loop(None, pairs, predictor=lambda image, f=split: f(outputs[id(image)]), n_boot=0)
@@ -76,7 +78,9 @@ def contacts(summary) -> str:
     if not summary:
         return "-"
     share = lambda v: "-" if v is None else f"{100 * v:.1f} %"  # noqa: E731
-    return f"{share(summary['hidden_merged'])} / {share(summary['shown_merged'])} ({100 * summary['hidden']:.0f} % hidden)"
+    return (
+        f"{share(summary['hidden_merged'])} / {share(summary['shown_merged'])} ({100 * summary['hidden']:.0f} % hidden)"
+    )
 
 
 if __name__ == "__main__":
