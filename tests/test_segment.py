@@ -619,7 +619,7 @@ def test_a_core_sliver_seeds_no_false_particle_of_its_own():
 
     yy, xx = np.mgrid[:40, :40]
     disc = (yy - 20) ** 2 + (xx - 20) ** 2 <= 100
-    contour = disc & (np.abs(xx - 27) <= 0)  # a line across the disc cuts off a 3-px-wide cap ...
+    contour = disc & (xx == 27)  # a line across the disc cuts off a 3-px-wide cap ...
     probs = _probs_of(disc, contour=contour)
     cap = disc & (xx > 27)
     assert 8 <= cap.sum()  # ... a particle of its own when large enough
