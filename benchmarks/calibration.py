@@ -4,8 +4,9 @@ they were computed cluster by cluster and counted by id (whole-image h-maxima, o
 
     python benchmarks/calibration.py SEGMENT_RUN GENERATED_SET [--pairs 50] [--real DATASET --ids N]
 
-Prints one markdown row per way: seconds, and the chosen split with its AP50 (equal by construction: the two ways give
-the same seeds and the same counts). With --real, N of DATASET's train images (as a fine-tuning calibrates on a user's
+Prints one markdown row per way: seconds, and the chosen split with its AP50 (equal by construction for the first two
+ways: they give the same seeds and the same counts); the third, without the split's speck rule
+(drgan.data.classical.watershed.merge_specks), is its cost, and may choose another split. With --real, N of DATASET's train images (as a fine-tuning calibrates on a user's
 corrected images) join the pairs.
 """
 
@@ -34,6 +35,19 @@ def as_before():
         yield
     finally:
         watershed.cluster_h_maxima, instance_scores.DENSE_PAIRS = saved
+
+
+@contextmanager
+def without_speck_rule():
+    """The U-Net's split as before the speck rule: every watershed region kept, however small."""
+    from drgan.data.classical import watershed
+
+    saved = watershed.merge_specks
+    watershed.merge_specks = lambda labels, min_px: labels
+    try:
+        yield
+    finally:
+        watershed.merge_specks = saved
 
 
 def main() -> None:
@@ -65,7 +79,12 @@ def main() -> None:
         "objective": "sizes",
     }  # fmt: skip  (segment.yaml's)
     print("| way | pairs | px | seconds | chosen | AP50 |\n|---|---|---|---|---|---|")
-    for name, context in (("before (whole-image h-maxima, np.unique)", as_before), ("now", None)):
+    ways = (
+        ("before (whole-image h-maxima, np.unique)", as_before),
+        ("now", None),
+        ("now, no speck rule", without_speck_rule),
+    )
+    for name, context in ways:
         start = time.perf_counter()
         if context is None:
             result = calibrate_split(model, pairs, grid)
