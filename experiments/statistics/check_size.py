@@ -62,16 +62,6 @@ def names(args: argparse.Namespace) -> list[str]:
     return args.names or [run_name(r) for r in args.runs]
 
 
-def mirrored(model):
-    """The closed-loop check's predictor (`closed_loop`'s own) with test-time mirroring."""
-    from drgan.segmenters.closed_loop import check_inference
-    from drgan.segmenters.inference import predict
-
-    settings = check_inference(model.split_calibration)
-    return lambda image: predict(model, image, pixel_scale=model.pixel_scale, noise_match=False, annotations=False,
-                                 mirror=True, **settings)  # fmt: skip
-
-
 def main() -> None:
     parser = fresh_parser(__doc__)
     parser.add_argument("--mirror", action="store_true", help="also the fresh pairs with test-time mirroring")
@@ -88,7 +78,9 @@ def main() -> None:
         checks = {"own": model.closed_loop}
         checks["fresh"] = closed_loop(model, pairs, model.split_calibration, n_boot=1000, pixel_scale=model.pixel_scale)
         if args.mirror:
-            checks["fresh mirrored"] = closed_loop(model, pairs, n_boot=1000, predictor=mirrored(model))
+            checks["fresh mirrored"] = closed_loop(
+                model, pairs, model.split_calibration, n_boot=1000, pixel_scale=model.pixel_scale, mirror=True
+            )
         for kind, check in checks.items():
             print(row(f"{name} | {kind}", check))
             medians[kind].append(check["median_error"]["value"])

@@ -57,7 +57,7 @@ from drgan.core.typed_settings import given, read_settings, setting, typed
 from drgan.data.imagej import write_outlines
 from drgan.launch.runtime import stage_main, start
 from drgan.metrics.instance_scores import binarize_and_label
-from drgan.metrics.statistics import Particles, bootstrap, interval_text, particles, pooled
+from drgan.metrics.statistics import SPECK_PX, Particles, bootstrap, interval_text, particles, pooled
 from drgan.metrics.statistics_figures import (
     fmt,
     histograms,
@@ -229,7 +229,7 @@ class AnalyzeSettings:
     model: str | None = None  # a segmenter checkpoint, or a folder of predicted masks named like the images
     crop_rows: tuple[int, int] | str | None = "auto"  # info-bar rows [start, stop) to drop; auto: detected; None: none
     nm_per_px: float | None = setting(None, check=pixel_size)  # None: read from each image's metadata, else px
-    min_area_px: float = setting(8.0, ge=0, expected="an area in px^2 >= 0")  # smaller components are specks (as
+    min_area_px: float = setting(SPECK_PX, ge=0, expected="an area in px^2 >= 0")  # smaller components are specks (as
     # drgan.evaluate's statistics)
     exclude_border: bool = False
     bootstrap: int = setting(1000, ge=0, expected="a number of resamples >= 0 (0: no intervals)")

@@ -60,7 +60,7 @@ from drgan.metrics.instance_scores import (
     segmentation_scores,
 )
 from drgan.metrics.overlays import overlay
-from drgan.metrics.statistics import compare_sizes, count_errors, interval_text, particles, pooled
+from drgan.metrics.statistics import SPECK_PX, compare_sizes, count_errors, interval_text, particles, pooled
 from drgan.segmenters.classical_check import check_reported, reported_particles
 
 log = logging.getLogger(__name__)
@@ -178,7 +178,7 @@ class EvaluateSettings:
     bootstrap: int = setting(1000, ge=0, expected="a number of resamples >= 0 (0: no intervals)")
     seed: int = 0
     nm_per_px: float | None = setting(None, check=pixel_size)
-    min_area_px: float = setting(8.0, check=statistics_min_area)
+    min_area_px: float = setting(SPECK_PX, check=statistics_min_area)
     overlay_alpha: float = 0.5
     reported: Path | None = setting(None, check=lambda stage, value: check_reported(value) if value else None)  # an
     # analyze run of these images: the sizes it reported, scored as run "reported"

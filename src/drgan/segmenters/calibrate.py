@@ -46,7 +46,6 @@ GRID_DEFAULTS = {
 }
 TIE = 0.002  # AP50 differences below this are ties, broken by the particles' size (tied_best)
 SIZES_AP50_MARGIN = 0.05  # objective sizes: the split may give up this much validation AP50 for exact sizes
-MIN_AREA_PX = SPECK_PX  # components under this are specks in the size statistics (drgan.evaluate's min_area_px)
 # Median diameter (px) of the validation pairs' particles from which a tie between split depths goes to the larger
 # depth: large particles have rough or faceted outlines that a shallow split cuts into fragments, small ones touch
 # and a deep split merges them (ties scored both ways on annotated train ids: experiments/pipeline/README.md, "Tied
@@ -142,7 +141,7 @@ def calibrate_split(
         ]
     from drgan.metrics.statistics import compare_sizes, particles
 
-    true_particles = [particles(truth).at_least(MIN_AREA_PX) for truth in truths]
+    true_particles = [particles(truth).at_least(SPECK_PX) for truth in truths]
     table = []
     for setting, split in track(candidates, "split calibration: scoring", unit="settings") if progress else candidates:
         tp = fp = fn = 0
@@ -151,7 +150,7 @@ def calibrate_split(
             labels = binarize_and_label(split(p))
             match = match_instances(labels, truth)
             tp, fp, fn = tp + match.tp, fp + match.fp, fn + match.fn
-            found.append(particles(labels).at_least(MIN_AREA_PX))
+            found.append(particles(labels).at_least(SPECK_PX))
         ap50 = tp / (tp + fp + fn) if tp + fp + fn else math.nan
         sizes = compare_sizes(found, true_particles, n_boot=0)  # as drgan.evaluate measures them
         # None, not nan, where unknown: the table goes to JSON and checkpoints
@@ -219,8 +218,8 @@ REAL_COUNT_GUARD = 0.10
 
 
 def _count(labels: np.ndarray) -> int:
-    """Particles of an instance label image, specks under MIN_AREA_PX left out."""
-    return int((np.bincount(np.asarray(labels, np.int64).ravel())[1:] >= MIN_AREA_PX).sum())
+    """Particles of an instance label image, specks under SPECK_PX left out."""
+    return int((np.bincount(np.asarray(labels, np.int64).ravel())[1:] >= SPECK_PX).sum())
 
 
 def real_count_guard(model, calibration: dict, items: Sequence[tuple[object, np.ndarray]]) -> dict:

@@ -91,10 +91,12 @@ def closed_loop(
     predictor=None,
     pixel_scale: float = 1.0,
     sheet: Path | None = None,
+    **predict_kw,
 ) -> dict:
     """Score ``model`` on ``pairs`` (generated, exact labels; module docstring) and return the summary (plain numbers).
     ``pixel_scale``: the pairs resampled by it for the network (a segmenter that learnt them at a working scale);
-    ``predictor``: image -> class map instead of the model's `predict` (tests); ``sheet``: also write there the first
+    ``predictor``: image -> class map instead of the model's `predict` (tests); ``predict_kw``: more of `predict`'s
+    keywords (e.g. ``mirror=True``); ``sheet``: also write there the first
     ``SHEET_PAIRS`` pairs' overlays (drgan.metrics.overlays: found particles matched green, false red, missed yellow),
     each captioned with its pair's id, pairs with particles before particle-free ones: the picture of what the check
     counted."""
@@ -109,7 +111,9 @@ def closed_loop(
         settings = check_inference(calibration)
 
         def predictor(image):
-            return predict(model, image, pixel_scale=pixel_scale, noise_match=False, annotations=False, **settings)
+            return predict(
+                model, image, pixel_scale=pixel_scale, noise_match=False, annotations=False, **settings, **predict_kw
+            )
 
     iterator = track(pairs, "closed-loop check", unit="pairs") if progress else pairs
     found, truth, sources, scores, contacts = [], [], [], [], []
