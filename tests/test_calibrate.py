@@ -271,3 +271,21 @@ def test_the_real_count_guard_keeps_a_choice_near_the_classical_count_and_moves_
     # an instance-aware segmenter's seed levels, or no real images: the calibration as it was
     assert real_count_guard(model, {**calibration, "split": "centres"}, items) == {**calibration, "split": "centres"}
     assert real_count_guard(model, calibration, []) is calibration
+
+
+def test_segment_calibrate_stores_its_choice_only_when_asked(tmp_path):
+    """drgan.segment's calibration writes the chosen split into the checkpoint evaluate and analyze read; with
+    ``store=False`` (recalibrate.py's dry run) it chooses the same split and leaves the file as it was."""
+    from drgan.core.checkpoint_io import load_checkpoint
+    from drgan.segment import calibrate
+    from drgan.segmenters.calibrate import CHECKPOINT_KEY
+
+    last = tmp_path / "last.ckpt"
+    torch.save({"state_dict": {"w": torch.zeros(2)}}, last)
+    before = last.read_bytes()
+    pair = _pair(_two_touching_discs(r=10.0, gap=7.0), neck_probability=0.6)
+    grid = {"cores": [None, 0.7], "depths": [2.0], "seeds": ["hmaxima"], "objective": "ap50"}
+    dry = calibrate(ProbabilityImage(), [pair, pair], grid, last, progress=False, store=False)
+    assert last.read_bytes() == before and (dry["split_core"], dry["ap50"]) == (0.7, 1.0)
+    stored = calibrate(ProbabilityImage(), [pair, pair], grid, last, progress=False)
+    assert load_checkpoint(last, "ckpt")[CHECKPOINT_KEY] == stored and stored["split_core"] == dry["split_core"]

@@ -17,26 +17,21 @@ pipeline passes its agreement folders). Never a real test image."""
 from __future__ import annotations
 
 import argparse
+import logging
 import shutil
 from pathlib import Path
 
 from drgan.core.checkpoint_io import add_entry
+from drgan.segment import calibrate
 from drgan.segmenters.agreement import AgreementSettings, read_reference
-from drgan.segmenters.calibrate import (
-    CHECKPOINT_KEY,
-    GRID_DEFAULTS,
-    as_array_free,
-    calibrate_split,
-    check_grid,
-    markdown_table,
-    real_count_guard,
-)
+from drgan.segmenters.calibrate import GRID_DEFAULTS, check_grid
 from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, hold_out, log_summary, trust_line
 from drgan.segmenters.pairs import load_generated_pairs, split_pairs
 from drgan.segmenters.registry import load_segmenter
 
 
 def main() -> None:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path)
     parser.add_argument("--depths", default=",".join(str(d) for d in GRID_DEFAULTS["depths"]))
@@ -69,18 +64,16 @@ def main() -> None:
     grid = check_grid(
         {**GRID_DEFAULTS, "depths": [float(d) for d in args.depths.split(",")], "objective": args.objective}
     )
-    calibration = as_array_free(calibrate_split(model.eval(), validation, grid, progress=False))
+    real_items = None
     if args.guard:
-        settings = AgreementSettings(images=args.guard[0], reference=args.guard[1])
-        calibration = as_array_free(real_count_guard(model, calibration, read_reference(settings)))
-        print("real-count guard:", calibration.get("real_count"))
-    print(markdown_table(calibration))
+        real_items = read_reference(AgreementSettings(images=args.guard[0], reference=args.guard[1]))
+    if args.store and not before.is_file():
+        shutil.copy2(last, before)
+    # as drgan.segment calibrates after training: the split, the real-count guard, then (--store) the checkpoint entry
+    calibration = calibrate(model, validation, grid, last, progress=False, real_items=real_items, store=args.store)
+    if calibration is None:
+        raise SystemExit(f"no split calibrated for {last}")
     print({k: v for k, v in calibration.items() if k != "table"})
-    if args.store:
-        if not before.is_file():
-            shutil.copy2(last, before)
-        add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
-        print(f"stored in {last}")
     if args.check and check:
         result = closed_loop(model.eval(), check, calibration)
         log_summary(result)

@@ -494,10 +494,13 @@ def _fit(cfg: DictConfig, run: SegmentRun, prepared: Prepared, stopper, loaders:
     return trainer, loggers, scores
 
 
-def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool, real_items=None) -> dict | None:
+def calibrate(
+    model, pairs, grid: dict | None, last: Path, progress: bool, real_items=None, store: bool = True
+) -> dict | None:
     """Choose the touching-particle split on ``pairs`` (the validation pairs; drgan.segmenters.calibrate), check its
     particle count on ``real_items`` (the user's images and their classical labels: `real_count_guard`) and store it
-    in ``last`` for evaluate/analyze's ``split_core: auto``; None when calibration is off or impossible."""
+    in ``last`` for evaluate/analyze's ``split_core: auto`` (``store``: False chooses without writing, as
+    experiments/pipeline/recalibrate.py's dry run); None when calibration is off or impossible."""
     from drgan.core.checkpoint_io import add_entry
     from drgan.segmenters.calibrate import (
         CHECKPOINT_KEY,
@@ -523,7 +526,8 @@ def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool, real_
 
         calibration = as_array_free(real_count_guard(load_segmenter(last), calibration, real_items))
         _log_real_count(calibration.get("real_count"))
-    add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
+    if store:
+        add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
     chosen = (
         f"seed_level {calibration['seed_level']}"
         if calibration.get("split") in SEEDED
@@ -531,12 +535,12 @@ def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool, real_
         f"{calibration['split_core']}"
     )
     log.info(
-        "split chosen on %d pairs (particles %.0f px across, median): %s (AP50 %.3f); stored in %s\n%s",
+        "split chosen on %d pairs (particles %.0f px across, median): %s (AP50 %.3f); %s\n%s",
         calibration["n_pairs"],
         calibration.get("particle_px", float("nan")),
         chosen,
         calibration["ap50"],
-        last,
+        f"stored in {last}" if store else "not stored",
         markdown_table(calibration),
     )
     return calibration
