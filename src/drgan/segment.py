@@ -494,22 +494,13 @@ def _fit(cfg: DictConfig, run: SegmentRun, prepared: Prepared, stopper, loaders:
     return trainer, loggers, scores
 
 
-def calibrate(
-    model, pairs, grid: dict | None, last: Path, progress: bool, real_items=None, store: bool = True
-) -> dict | None:
+def calibrate(model, pairs, grid: dict | None, last: Path, progress: bool, real_items=None, store=True) -> dict | None:
     """Choose the touching-particle split on ``pairs`` (the validation pairs; drgan.segmenters.calibrate), check its
     particle count on ``real_items`` (the user's images and their classical labels: `real_count_guard`) and store it
-    in ``last`` for evaluate/analyze's ``split_core: auto`` (``store``: False chooses without writing, as
-    experiments/pipeline/recalibrate.py's dry run); None when calibration is off or impossible."""
+    in ``last`` for evaluate/analyze's ``split_core: auto`` (unless not ``store``: recalibrate.py's dry run); None
+    when calibration is off or impossible."""
     from drgan.core.checkpoint_io import add_entry
-    from drgan.segmenters.calibrate import (
-        CHECKPOINT_KEY,
-        SEEDED,
-        as_array_free,
-        calibrate_split,
-        markdown_table,
-        real_count_guard,
-    )
+    from drgan.segmenters import calibrate as calib
 
     if grid is None:
         return None
@@ -517,20 +508,20 @@ def calibrate(
         log.warning("split calibration skipped: %s", "no validation pairs" if not pairs else f"no {last}")
         return None
     try:
-        calibration = as_array_free(calibrate_split(model.eval(), pairs, grid, progress=progress))
+        calibration = calib.as_array_free(calib.calibrate_split(model.eval(), pairs, grid, progress=progress))
     except ValueError as error:
         log.warning("split calibration skipped: %s", error)
         return None
     if real_items:  # the segmenter as analyze loads it (its pixel scale and noise level are checkpoint entries)
         from drgan.segmenters.registry import load_segmenter
 
-        calibration = as_array_free(real_count_guard(load_segmenter(last), calibration, real_items))
+        calibration = calib.as_array_free(calib.real_count_guard(load_segmenter(last), calibration, real_items))
         _log_real_count(calibration.get("real_count"))
     if store:
-        add_entry(last, CHECKPOINT_KEY, calibration, "ckpt_path")
+        add_entry(last, calib.CHECKPOINT_KEY, calibration, "ckpt_path")
     chosen = (
         f"seed_level {calibration['seed_level']}"
-        if calibration.get("split") in SEEDED
+        if calibration.get("split") in calib.SEEDED
         else f"split_seeds {calibration.get('split_seeds')}, split_depth {calibration['split_depth']}, split_core "
         f"{calibration['split_core']}"
     )
@@ -541,7 +532,7 @@ def calibrate(
         chosen,
         calibration["ap50"],
         f"stored in {last}" if store else "not stored",
-        markdown_table(calibration),
+        calib.markdown_table(calibration),
     )
     return calibration
 
