@@ -6,8 +6,8 @@ they were computed cluster by cluster and counted by id (whole-image h-maxima, o
 
 Prints one markdown row per way: seconds, and the chosen split with its AP50 (equal by construction for the first two
 ways: they give the same seeds and the same counts); the third, without the split's speck rule
-(drgan.data.classical.watershed.merge_specks), is its cost, and may choose another split. With --real, N of DATASET's train images (as a fine-tuning calibrates on a user's
-corrected images) join the pairs.
+(drgan.data.classical.watershed.merge_specks), is its cost, and may choose another split. With --real, N of DATASET's
+train images (as a fine-tuning calibrates on a user's corrected images) join the pairs.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import argparse
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -28,26 +29,21 @@ def as_before():
     from drgan.data.classical import watershed
     from drgan.metrics import instance_scores
 
-    saved = watershed.cluster_h_maxima, instance_scores.DENSE_PAIRS
-    watershed.cluster_h_maxima = lambda distance, depth: h_maxima(distance, depth).astype(bool)
-    instance_scores.DENSE_PAIRS = 0
-    try:
+    def whole_image(distance, depth):
+        return h_maxima(distance, depth).astype(bool)
+
+    with (
+        mock.patch.object(watershed, "cluster_h_maxima", whole_image),
+        mock.patch.object(instance_scores, "DENSE_PAIRS", 0),
+    ):
         yield
-    finally:
-        watershed.cluster_h_maxima, instance_scores.DENSE_PAIRS = saved
 
 
-@contextmanager
 def without_speck_rule():
     """The U-Net's split as before the speck rule: every watershed region kept, however small."""
     from drgan.data.classical import watershed
 
-    saved = watershed.merge_specks
-    watershed.merge_specks = lambda labels, min_px: labels
-    try:
-        yield
-    finally:
-        watershed.merge_specks = saved
+    return mock.patch.object(watershed, "merge_specks", lambda labels, min_px: labels)
 
 
 def main() -> None:
