@@ -239,7 +239,7 @@ def _pairs_of_discs(size=96, r1=9.0, r2=7.0, gap=14.0):
 def test_the_real_count_guard_keeps_a_choice_near_the_classical_count_and_moves_one_that_merges():
     from types import SimpleNamespace
 
-    from drgan.segmenters.calibrate import REAL_COUNT_GUARD, real_count_guard
+    from drgan.segmenters.calibrate import REAL_COUNT_CEILING, REAL_COUNT_GUARD, real_count_guard
 
     labels, probs = _pairs_of_discs()
     items = [(SimpleNamespace(image=probs, id="a"), labels)]
@@ -262,6 +262,15 @@ def test_the_real_count_guard_keeps_a_choice_near_the_classical_count_and_moves_
     pairs_merged = np.where(labels > 0, (labels + 1) // 2, 0)
     above = real_count_guard(model, {**calibration, **table[0]}, [(items[0][0], pairs_merged)])
     assert above["real_count"]["classical"] == 4 and not above["real_count"]["moved"] and above["split_depth"] == 1.0
+    # ... up to REAL_COUNT_CEILING times it (8 against 4 is twice, kept); beyond, the choice cuts particles apart and
+    # the setting counting the most under the ceiling is taken: classical labels of 3 particles (two pairs one id),
+    # depth 1's 8 over the ceiling of 6, depth 4's 4 under it
+    assert REAL_COUNT_CEILING == 2.0
+    three = np.where(pairs_merged == 4, 3, pairs_merged)
+    cut = real_count_guard(model, {**calibration, **table[0]}, [(items[0][0], three)])
+    guard = cut["real_count"]
+    assert (guard["classical"], guard["chosen_count"], guard["count"], guard["side"]) == (3, 8, 4, "above")
+    assert guard["moved"] and guard["ceiling"] == 6.0 and cut["split_depth"] == 4.0 and cut["ap50"] == 0.77
     # classical labels that split one disc more (9) leave depth 1 11 % below, the nearest there is: depth 1 kept
     assert REAL_COUNT_GUARD == 0.10
     more = labels.copy()

@@ -545,11 +545,14 @@ def _log_real_count(guard: dict | None) -> None:
         f"classical segmentation's {guard['classical']} ({100 * (guard['chosen_count'] / guard['classical'] - 1):+.1f} %)"
     )
     if guard["moved"]:
-        log.warning(
-            "%s: the generated pairs' choice merges particles of your images that even the classical segmentation "
-            "separates; the setting within the AP50 margin nearest the classical count taken instead (%d particles)",
-            said, guard["count"],
+        why, instead = (
+            ("cuts particles of your images into pieces", f"counting the most up to {guard.get('ceiling'):g}")
+            if guard.get("side") == "above"
+            else ("merges particles of your images that even the classical segmentation separates",
+                  "nearest the classical count")
         )  # fmt: skip
+        log.warning("%s: the generated pairs' choice %s; the setting within the AP50 margin %s taken instead (%d "
+                    "particles)", said, why, instead, guard["count"])  # fmt: skip
     else:
         log.info("%s: the choice kept", said)
 

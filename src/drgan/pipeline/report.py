@@ -118,9 +118,10 @@ def segment_summary(folder: Path) -> dict:
         )
     guard = calibration.get("real_count") or {}
     was = guard.get("from") or {}
+    taken = f"the most up to {guard.get('ceiling', 0):g}" if guard.get("side") == "above" else "the count nearest it"
     moved = (
         f" (depth {was['split_depth']} core {was['split_core']} on the generated pairs counted {guard['chosen_count']} "
-        f"particles on your images against the classical {guard['classical']}: the count's nearest kept)"
+        f"particles on your images against the classical {guard['classical']}: {taken} kept)"
         if guard.get("moved")
         else ""
     )
