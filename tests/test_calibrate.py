@@ -271,6 +271,7 @@ def test_the_real_count_guard_keeps_a_choice_near_the_classical_count_and_moves_
     guard = cut["real_count"]
     assert (guard["classical"], guard["chosen_count"], guard["count"], guard["side"]) == (3, 8, 4, "above")
     assert guard["moved"] and guard["ceiling"] == 6.0 and cut["split_depth"] == 4.0 and cut["ap50"] == 0.77
+    assert [(c["split_depth"], c["count"]) for c in guard["counts"]] == [(1.0, 8), (4.0, 4)]  # the margin's settings
     # classical labels that split one disc more (9) leave depth 1 11 % below, the nearest there is: depth 1 kept
     assert REAL_COUNT_GUARD == 0.10
     more = labels.copy()

@@ -234,7 +234,7 @@ def real_count_guard(model, calibration: dict, items: Sequence[tuple[object, np.
     drgan.segmenters.registry.load_segmenter returns it, with its checkpoint's pixel scale and noise level) runs once
     per image as evaluate and analyze predict; each setting within the objective's AP50
     margin splits it, and the particles (specks left out, figure annotations dropped) are counted against the
-    classical ones. Returns the calibration with ``real_count`` (the counts, the setting's and the decision) and,
+    classical ones. Returns the calibration with ``real_count`` (the counts, every setting's and the decision) and,
     where the chosen count falls more than REAL_COUNT_GUARD below the classical count (the split merges what even
     the classical segmentation separates), the setting nearest that count instead; where it exceeds
     REAL_COUNT_CEILING times the classical count (the split cuts real particles into pieces), the setting that counts
@@ -293,6 +293,7 @@ def real_count_guard(model, calibration: dict, items: Sequence[tuple[object, np.
         "side": side,
         "ceiling": ceiling,
         "from": {key: calibration[key] for key in keys},
+        "counts": [{**{key: row[key] for key in keys}, "count": n} for row, n in zip(rows, counts)],
     }
     result = {**calibration, "real_count": guard}
     if moved:
