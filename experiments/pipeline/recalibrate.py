@@ -5,6 +5,7 @@
     python experiments/pipeline/recalibrate.py SEGMENT_RUN --generated GENERATED ...     # any segment run folder
     python experiments/pipeline/recalibrate.py SEGMENT_RUN --generated GENERATED --seed 2 \
         --guard USER_IMAGES PROFILE_LABELS --store --check   # as drgan.segment seed=2 with its agreement settings
+    python experiments/pipeline/recalibrate.py ... --texture 0.1   # on pairs as textured as the training crops
 
 Prints the AP50 table (seeds, depth x core) and the choice; ``--store`` writes the choice into the run's
 checkpoints/last.ckpt (the original kept as last.before_grid.ckpt), where evaluate and analyze read it (`split_core:
@@ -19,14 +20,17 @@ from __future__ import annotations
 import argparse
 import logging
 import shutil
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from drgan.core.checkpoint_io import add_entry
 from drgan.segment import calibrate
 from drgan.segmenters.agreement import AgreementSettings, read_reference
 from drgan.segmenters.calibrate import GRID_DEFAULTS, check_grid
 from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, hold_out, log_summary, trust_line
-from drgan.segmenters.pairs import load_generated_pairs, split_pairs
+from drgan.segmenters.pairs import load_generated_pairs, split_pairs, surface_texture
 from drgan.segmenters.registry import load_segmenter
 
 
@@ -41,6 +45,13 @@ def main() -> None:
     parser.add_argument("--generated", type=Path, default=None, help="the pairs of a segment run folder given as run")
     parser.add_argument("--check-fraction", type=float, default=0.05)
     parser.add_argument("--seed", type=int, default=0, help="the segment run's seed (its validation split's)")
+    parser.add_argument(
+        "--texture",
+        type=float,
+        default=0.0,
+        help="calibrate on validation pairs with the training crops' surface texture added (its std drawn from [0, "
+        "this], drgan.segmenters.pairs.surface_texture; loader.texture's default 0.1): a diagnosis, never stored",
+    )
     parser.add_argument(
         "--guard",
         type=Path,
@@ -61,6 +72,16 @@ def main() -> None:
     else:
         rest, check = hold_out(pairs, args.check_fraction, args.seed)
     validation = split_pairs(rest, 0.1, args.seed)[1]
+    if args.texture > 0:
+        if args.store:
+            raise SystemExit("--texture is a diagnosis: not with --store")
+        rng = np.random.default_rng(args.seed)
+        validation = [
+            replace(
+                p, image=np.clip(p.image + surface_texture(p.image.shape, args.texture, rng), 0, 1).astype(np.float32)
+            )
+            for p in validation
+        ]
     grid = check_grid(
         {**GRID_DEFAULTS, "depths": [float(d) for d in args.depths.split(",")], "objective": args.objective}
     )
