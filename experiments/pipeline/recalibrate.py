@@ -30,7 +30,7 @@ from drgan.segment import calibrate
 from drgan.segmenters.agreement import AgreementSettings, read_reference
 from drgan.segmenters.calibrate import GRID_DEFAULTS, check_grid
 from drgan.segmenters.closed_loop import CLOSED_LOOP_KEY, closed_loop, hold_out, log_summary, trust_line
-from drgan.segmenters.pairs import load_generated_pairs, split_pairs, surface_texture
+from drgan.segmenters.pairs import load_generated_pairs, split_pairs, with_texture
 from drgan.segmenters.registry import load_segmenter
 
 
@@ -50,7 +50,7 @@ def main() -> None:
         type=float,
         default=0.0,
         help="calibrate on validation pairs with the training crops' surface texture added (its std drawn from [0, "
-        "this], drgan.segmenters.pairs.surface_texture; loader.texture's default 0.1): a diagnosis, never stored",
+        "this], drgan.segmenters.pairs.with_texture; loader.texture's default 0.1): a diagnosis, never stored",
     )
     parser.add_argument(
         "--guard",
@@ -76,12 +76,7 @@ def main() -> None:
         if args.store:
             raise SystemExit("--texture is a diagnosis: not with --store")
         rng = np.random.default_rng(args.seed)
-        validation = [
-            replace(
-                p, image=np.clip(p.image + surface_texture(p.image.shape, args.texture, rng), 0, 1).astype(np.float32)
-            )
-            for p in validation
-        ]
+        validation = [replace(p, image=with_texture(p.image, args.texture, rng).astype(np.float32)) for p in validation]
     grid = check_grid(
         {**GRID_DEFAULTS, "depths": [float(d) for d in args.depths.split(",")], "objective": args.objective}
     )

@@ -398,6 +398,12 @@ def surface_texture(shape: tuple[int, int], amplitude: float, rng: np.random.Gen
     return (rng.uniform(0.0, amplitude) / max(float(field.std()), 1e-12)) * field
 
 
+def with_texture(image: np.ndarray, amplitude: float, rng: np.random.Generator) -> np.ndarray:
+    """``image`` (grey, [0, 1]) with a `surface_texture` of ``amplitude`` added, clipped to [0, 1]: the training crops'
+    texture augmentation."""
+    return np.clip(image + surface_texture(image.shape, amplitude, rng), 0.0, 1.0)
+
+
 CONTACT_SHADE_PX = 0.7  # Gaussian stddev (px) of the contact shading's profile across a contact line
 
 
@@ -521,7 +527,7 @@ class CropDataset(Dataset):
             c = rng.uniform(1 - self.contrast, 1 + self.contrast)
             image = np.clip((image - mean) * c + mean + rng.uniform(-self.brightness, self.brightness), 0.0, 1.0)
             if self.texture > 0:
-                image = np.clip(image + surface_texture(image.shape, self.texture, rng), 0.0, 1.0)
+                image = with_texture(image, self.texture, rng)
         image = (image - shift) / scale
         sample = (
             torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None],
