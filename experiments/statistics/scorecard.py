@@ -92,6 +92,23 @@ def _met(ok: bool | None) -> str:
     return "-" if ok is None else ("**met**" if ok else "not met")
 
 
+def _judge(test: dict, cl: dict, real_sq, classical: dict | None, before: dict) -> dict:
+    """Each target met (True), not met (False) or not measured (None), on the means over seeds."""
+    closed_loop = None
+    if all(v is not None for v in cl.values()):
+        closed_loop = all(abs(cl[k][0]) <= t for k, t in CLOSED_LOOP.items())
+    sq = None if real_sq is None else test["sq"][0] >= real_sq[0] - SQ_MARGIN
+    vs_classical = None
+    if classical is not None:
+        vs_classical = all(abs(test[k][0]) <= abs(classical[k]) + TIE for k in ("median", "count"))
+    record = None
+    if "dsc" in before:
+        record = all(test[k][0] >= before[k] - test[k][1] - 1e-9 for k in ("dsc", "ap50"))
+    test_sizes = all(abs(test[k][0]) <= t for k, t in TEST.items())
+    return {"closed loop": closed_loop, "test sizes": test_sizes, "SQ": sq, "vs classical": vs_classical,
+            "DSC / AP50": record}  # fmt: skip
+
+
 def set_row(name: str, spec: dict) -> tuple[str, dict]:
     rows = seed_rows(spec["seeds"])
     before = spec.get("before", {})
@@ -100,33 +117,19 @@ def set_row(name: str, spec: dict) -> tuple[str, dict]:
     real = evaluate_runs(Path(spec["real"])) if spec.get("real") else []
     real_sq = _mean(real, "sq") if real else None
     classical = evaluate_runs(Path(spec["classical"]))[0] if spec.get("classical") else None
-    verdict = {
-        "closed loop": None if any(v is None for v in cl.values())
-        else all(abs(cl[k][0]) <= t for k, t in CLOSED_LOOP.items()),
-        "test sizes": all(abs(test[k][0]) <= t for k, t in TEST.items()),
-        "SQ": None if real_sq is None else test["sq"][0] >= real_sq[0] - SQ_MARGIN,
-        "vs classical": None if classical is None
-        else all(abs(test[k][0]) <= abs(classical[k]) + TIE for k in ("median", "count")),
-        "DSC / AP50": None if "before" not in spec
-        else all(test[k][0] >= before[k] - test[k][1] - 1e-9 for k in ("dsc", "ap50")),
-    }
-    cells = [
-        f"{name} ({len(rows)})",
-        " / ".join([_cell(cl["cl_median"], "+.1f"), _cell(cl["cl_count"], "+.1f")]) + " % / "
-        + _cell(cl["cl_edge"], "+.2f") + " px",
-        _met(verdict["closed loop"]),
-        _cell(test["median"], "+.1f") + " / " + _cell(test["count"], "+.1f") + " %"
-        + f" (worst seed {test['median'][2]:+.1f} / {test['count'][2]:+.1f}"
-        + (f"; before {before['median']:+.1f} / {before['count']:+.1f}" if "median" in before else "") + ")",
-        _met(verdict["test sizes"]),
-        f"{test['sq'][0]:.3f} / " + ("-" if real_sq is None else _cell(real_sq, ".3f", len(real))),
-        _met(verdict["SQ"]),
-        "-" if classical is None else f"{classical['median']:+.1f} / {classical['count']:+.1f} %",
-        _met(verdict["vs classical"]),
-        f"{test['dsc'][0]:.3f} / {test['ap50'][0]:.3f}"
-        + ("" if "before" not in spec else f" ({spec['before']['dsc']:.3f} / {spec['before']['ap50']:.3f})"),
-        _met(verdict["DSC / AP50"]),
-    ]
+    verdict = _judge(test, cl, real_sq, classical, before)
+    closed = f"{_cell(cl['cl_median'], '+.1f')} / {_cell(cl['cl_count'], '+.1f')} % / {_cell(cl['cl_edge'], '+.2f')} px"
+    worst = f"worst seed {test['median'][2]:+.1f} / {test['count'][2]:+.1f}"
+    if "median" in before:
+        worst += f"; before {before['median']:+.1f} / {before['count']:+.1f}"
+    sizes = f"{_cell(test['median'], '+.1f')} / {_cell(test['count'], '+.1f')} % ({worst})"
+    sq = f"{test['sq'][0]:.3f} / " + ("-" if real_sq is None else _cell(real_sq, ".3f", len(real)))
+    versus = "-" if classical is None else f"{classical['median']:+.1f} / {classical['count']:+.1f} %"
+    record = f"{test['dsc'][0]:.3f} / {test['ap50'][0]:.3f}"
+    if "dsc" in before:
+        record += f" ({before['dsc']:.3f} / {before['ap50']:.3f})"
+    cells = [f"{name} ({len(rows)})", closed, _met(verdict["closed loop"]), sizes, _met(verdict["test sizes"]), sq,
+             _met(verdict["SQ"]), versus, _met(verdict["vs classical"]), record, _met(verdict["DSC / AP50"])]  # fmt: skip
     return "| " + " | ".join(cells) + " |", verdict
 
 
