@@ -8,8 +8,9 @@ The spec (JSON) names, per set: ``seeds``, a list of ``SEGMENT_RUN:EVALUATE_RUN`
 its closed-loop check in metrics.json, and ``drgan.evaluate`` of its checkpoint on the test ids; ``-:EVALUATE_RUN``
 where the network was rescored at another split and has no check of its own); ``real``, one ``drgan.evaluate`` run of
 the real-trained U-Nets (``models=[...]``, one per seed); ``classical``, ``drgan.evaluate model=classical``; ``before``,
-``{"dsc": .., "ap50": .., "median": .., "count": ..}`` (errors in %) of the record when the issue was filed; ``note`` (optional). Paths are under runs/,
-which is never committed: the spec says which runs gave the recorded table (experiments/statistics/README.md).
+``{"dsc": .., "ap50": .., "median": .., "count": ..}`` (errors in %) of the record when the issue was filed; ``note``
+(optional). Paths are under runs/, which is never committed: the spec says which runs gave the recorded table
+(experiments/statistics/README.md).
 
 Targets (issue 67): closed loop |median| <= 2 %, |count| <= 3 %, |edge offset| <= 0.5 px; test ids |median| <= 5 %,
 |count| <= 10 %, SQ at least the real-trained U-Net's minus 0.05, |median| and |count| no larger than the classical
@@ -21,7 +22,6 @@ seed's sizes are printed too.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -29,17 +29,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from seed_table import seed_row  # noqa: E402  (the same reader as the per-set seed tables)
+from seed_table import _rows, seed_row  # noqa: E402  (the same readers as the per-set seed tables)
 
 CLOSED_LOOP = {"cl_median": 2.0, "cl_count": 3.0, "cl_edge": 0.5}
 TEST = {"median": 5.0, "count": 10.0}
 SQ_MARGIN = 0.05
 TIE = 0.05  # percentage points: a tie with the classical baseline (the same particles counted) is no worse
-
-
-def _rows(path: Path) -> list[dict]:
-    with path.open(newline="") as handle:
-        return list(csv.DictReader(handle))
 
 
 def evaluate_runs(folder: Path) -> list[dict]:
