@@ -29,30 +29,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from seed_table import _rows, seed_row  # noqa: E402  (the same readers as the per-set seed tables)
+from seed_table import evaluate_runs, seed_row  # noqa: E402  (the same readers as the per-set seed tables)
 
 CLOSED_LOOP = {"cl_median": 2.0, "cl_count": 3.0, "cl_edge": 0.5}
 TEST = {"median": 5.0, "count": 10.0}
 SQ_MARGIN = 0.05
 TIE = 0.05  # percentage points: a tie with the classical baseline (the same particles counted) is no worse
-
-
-def evaluate_runs(folder: Path) -> list[dict]:
-    """Each run of one drgan.evaluate folder: its mean DSC / AP50 / SQ and its median and count errors (%)."""
-    means = [r for r in _rows(folder / "results.csv") if r["image"] == "mean"]
-    stats: dict[str, dict[str, float]] = {}
-    for r in _rows(folder / "statistics.csv"):
-        stats.setdefault(r["run"], {})[r["statistic"]] = float(r["value"])
-    return [
-        {
-            "dsc": float(m["dsc"]),
-            "ap50": float(m["ap50"]),
-            "sq": float(m["sq"]),
-            "median": 100 * stats[m["run"]]["median_error"],
-            "count": 100 * stats[m["run"]]["count_error"],
-        }
-        for m in means
-    ]
 
 
 def seed_rows(specs: list[str]) -> list[dict]:
@@ -104,7 +86,7 @@ def _judge(test: dict, cl: dict, real_sq, classical: dict | None, before: dict) 
             "DSC / AP50": record}  # fmt: skip
 
 
-def set_row(name: str, spec: dict) -> tuple[str, dict]:
+def set_row(name: str, spec: dict) -> str:
     rows = seed_rows(spec["seeds"])
     before = spec.get("before", {})
     cl = {k: _mean(rows, k) for k in CLOSED_LOOP}
@@ -125,7 +107,7 @@ def set_row(name: str, spec: dict) -> tuple[str, dict]:
         record += f" ({before['dsc']:.3f} / {before['ap50']:.3f})"
     cells = [f"{name} ({len(rows)})", closed, _met(verdict["closed loop"]), sizes, _met(verdict["test sizes"]), sq,
              _met(verdict["SQ"]), versus, _met(verdict["vs classical"]), record, _met(verdict["DSC / AP50"])]  # fmt: skip
-    return "| " + " | ".join(cells) + " |", verdict
+    return "| " + " | ".join(cells) + " |"
 
 
 HEADER = (
@@ -149,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
     notes = []
     for name in names:
         try:
-            line, _ = set_row(name, spec[name])
+            line = set_row(name, spec[name])
         except FileNotFoundError as err:  # a run of the spec not made (yet) on this machine
             line = f"| {name} | missing: {err.filename} |"
         print(line)

@@ -25,21 +25,35 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(handle))
 
 
+def evaluate_runs(folder: Path) -> list[dict]:
+    """Each run of one drgan.evaluate folder (``models=[...]``: one per model), in its order: the mean DSC / AP50 / SQ
+    over the test images and the median and count errors (%). A pipeline's evaluate also scores run "reported" in
+    statistics.csv only: it has no row in results.csv, so it is not one of them."""
+    means = [r for r in _rows(folder / "results.csv") if r["image"] == "mean"]
+    stats: dict[str, dict[str, float]] = {}
+    for r in _rows(folder / "statistics.csv"):
+        stats.setdefault(r["run"], {})[r["statistic"]] = float(r["value"])
+    return [
+        {
+            "dsc": float(m["dsc"]),
+            "ap50": float(m["ap50"]),
+            "sq": float(m["sq"]),
+            "median": 100 * stats[m["run"]]["median_error"],
+            "count": 100 * stats[m["run"]]["count_error"],
+        }
+        for m in means
+    ]
+
+
 def seed_row(segment: Path, evaluate: Path) -> dict:
+    """One seed: the segment run's closed-loop check beside its (first) network's scores on the test ids."""
     check = json.loads((segment / "metrics.json").read_text())["closed_loop"]
-    mean = next(r for r in _rows(evaluate / "results.csv") if r["image"] == "mean")
-    rows = _rows(evaluate / "statistics.csv")  # the segmenter's rows: a pipeline's evaluate adds run "reported" after
-    stats = {r["statistic"]: float(r["value"]) for r in rows if r["run"] == rows[0]["run"]}
     return {
         "cl_median": 100 * check["median_error"]["value"],
         "cl_count": 100 * check["count_error"]["value"],
         "cl_merged": 100 * check["merged"],
         "cl_edge": check["edge_offset_px"],
-        "dsc": float(mean["dsc"]),
-        "ap50": float(mean["ap50"]),
-        "sq": float(mean["sq"]),
-        "median": 100 * stats["median_error"],
-        "count": 100 * stats["count_error"],
+        **evaluate_runs(evaluate)[0],
     }
 
 
